@@ -1,0 +1,94 @@
+"""Command-line interface: ``kneenlp <command> ...``.
+
+Bad input gives a one-line ``kneenlp: error: ...`` on stderr and exit status 2 (never a
+traceback); a run in which some trial or fit did not converge still writes its outputs and exits
+with status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from .errors import ConvergenceError, InputError
+
+
+def _knee(args):
+    from .knee import Knee
+
+    knee = Knee.load(args.knee) if args.knee else Knee.default()
+    if getattr(args, "parameters", None):
+        knee = knee.with_parameters(args.parameters)
+    return knee
+
+
+def cmd_simulate(args) -> int:
+    from . import plots
+    from .protocol import Protocol
+    from .simulate import simulate
+
+    knee = _knee(args)
+    protocol = Protocol.load(args.protocol)
+    result = simulate(knee, protocol)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = result.table()
+    table.to_csv(out / "kinematics.csv", index=False, float_format="%.10g")
+    written = [out / "kinematics.csv"]
+    if args.noise not in (None, "none") and not result.failed:
+        measured = result.measured(args.noise, args.seed)
+        measured.to_csv(out / "measured.csv", index=False, float_format="%.10g")
+        written.append(out / "measured.csv")
+    if not args.no_plots:
+        title = f"{knee.name} knee, {protocol.title or protocol.name}"
+        written.append(plots.laxity_curves(table, out / "laxity.png", title))
+        written.append(plots.ligament_forces(table, list(knee.ligaments), out / "ligament_forces.png", title))
+    summary = result.summary() | {"outputs": [str(p) for p in written]}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"{protocol.name}: {result.converged}/{len(result.solutions)} trials converged, "
+              f"max residual {result.max_residual:.2e} N or N m, {result.seconds:.2f} s")
+        cols = ["trial", "varus_rotation_deg", "internal_rotation_deg", "lateral_translation_mm",
+                "anterior_translation_mm", "proximal_translation_mm"]
+        print(table[cols + [f"{n}_force_N" for n in knee.ligaments]].to_string(index=False, float_format="%.2f"))
+        for s in result.failed:
+            print(f"NOT CONVERGED: {s.trial.id}: {s.reason}")
+        print("wrote: " + ", ".join(str(p) for p in written))
+    return 1 if result.failed else 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="kneenlp", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("simulate", help="simulate a laxity protocol (forward problem)")
+    p.add_argument("--protocol", default="set3", help="protocol name (set1..set4) or TOML file")
+    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    p.add_argument("--parameters", help="parameter set TOML (default: the knee's)")
+    p.add_argument("--out", default="kneenlp-out", help="output directory")
+    p.add_argument("--noise", default=None, help="also write measured.csv with noise: uniform:B | gaussian:S")
+    p.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
+    p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.set_defaults(func=cmd_simulate)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except InputError as exc:
+        print(f"kneenlp: error: {exc}", file=sys.stderr)
+        return 2
+    except ConvergenceError as exc:
+        print(f"kneenlp: not converged: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,214 @@
+"""A knee: geometry (cartilage meshes, ligament attachments, frames) plus a default parameter set.
+
+A knee is described by a TOML file (see ``problems/knees/default/knee.toml``) that names its
+cartilage meshes (STL/PLY/OBJ, read with trimesh), ligament attachments, landmarks and contact
+settings, all in millimetres in the ISB femoral frame.  :meth:`Knee.load` validates the file and
+converts everything to SI.  A left knee (``side = "left"``) is mirrored into a right knee
+(Z -> -Z), which keeps the anatomical meaning of every coordinate.
+
+Each femoral condyle enters the contact model through the sphere fitted to its cartilage mesh
+(least squares, ``trimesh.nsphere.fit_nsphere``); the RMS distance of the mesh from that sphere is
+kept in :attr:`Compartment.fit_rms` and a knee whose fit is worse than 1 mm is rejected, since the
+contact law would then misrepresent it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from .errors import InputError
+from .parameters import ParameterSet, number, read_toml
+
+PROBLEMS = Path(__file__).resolve().parent.parent / "problems"
+DEFAULT_KNEE = PROBLEMS / "knees" / "default" / "knee.toml"
+MAX_SPHERE_FIT_RMS = 1e-3  # m
+
+
+@dataclass(frozen=True)
+class Ligament:
+    """A single-bundle ligament line element (positions in m)."""
+
+    name: str
+    femur: np.ndarray  # femoral frame
+    tibia: np.ndarray  # tibial frame
+
+    @property
+    def reference_length(self) -> float:
+        """Length (m) in the reference pose, where the tibial and femoral frames coincide."""
+        return float(np.linalg.norm(self.femur - self.tibia))
+
+
+@dataclass(frozen=True)
+class Compartment:
+    """One tibiofemoral compartment: condyle sphere and tibial cartilage samples (SI)."""
+
+    name: str
+    femur_mesh: trimesh.Trimesh  # femoral frame, m
+    tibia_mesh: trimesh.Trimesh  # tibial frame, m
+    sphere_center: np.ndarray  # femoral frame, m
+    sphere_radius: float  # m
+    fit_rms: float  # m
+
+    @cached_property
+    def points(self) -> np.ndarray:
+        """Tibial cartilage sample points: mesh vertices (N x 3, m, tibial frame)."""
+        return np.asarray(self.tibia_mesh.vertices, dtype=float)
+
+    @cached_property
+    def areas(self) -> np.ndarray:
+        """Area lumped to each sample point: a third of each adjacent face (m^2)."""
+        m = self.tibia_mesh
+        a = np.zeros(len(m.vertices))
+        np.add.at(a, m.faces.ravel(), np.repeat(m.area_faces / 3.0, 3))
+        return a
+
+
+@dataclass
+class Knee:
+    """Geometry of a (right) knee and its default mechanical parameters."""
+
+    name: str
+    ligaments: dict[str, Ligament]
+    compartments: dict[str, Compartment]
+    tuberosity: np.ndarray  # tibial frame, m
+    parameters: ParameterSet
+    gate: float = 1e-5  # m
+    landmarks: dict[str, np.ndarray] = field(default_factory=dict)
+    source: str | None = None
+    description: str = ""
+
+    @classmethod
+    def default(cls) -> Knee:
+        """The embedded default knee with the paper's Table 1 properties."""
+        return cls.load(DEFAULT_KNEE)
+
+    @classmethod
+    def load(cls, path: str | Path, parameters: str | Path | ParameterSet | None = None) -> Knee:
+        """Read and validate a knee description TOML; see module docstring for the format."""
+        path = Path(path)
+        src = str(path)
+        doc = read_toml(path)
+        side = doc.get("side", "right")
+        if side not in ("right", "left"):
+            raise InputError(f"must be 'right' or 'left', got {side!r}", source=src, field="side")
+        units = doc.get("units", "mm")
+        if units not in ("mm", "m"):
+            raise InputError(f"must be 'mm' or 'm', got {units!r}", source=src, field="units")
+        scale = 1e-3 if units == "mm" else 1.0
+        mirror = np.array([1.0, 1.0, -1.0 if side == "left" else 1.0])
+
+        def point(value: object, fld: str) -> np.ndarray:
+            if not isinstance(value, list) or len(value) != 3:
+                raise InputError(f"expected [x, y, z] in {units}, got {value!r}", source=src, field=fld)
+            return np.array([number(v, src, fld) for v in value]) * scale * mirror
+
+        landmarks = {k: point(v, f"landmarks.{k}") for k, v in doc.get("landmarks", {}).items()}
+        if "tibial_tuberosity" not in landmarks:
+            raise InputError("missing (anterior/posterior loads act there)", source=src,
+                             field="landmarks.tibial_tuberosity")
+
+        ligs_doc = doc.get("ligaments")
+        if not isinstance(ligs_doc, dict) or not ligs_doc:
+            raise InputError("missing table [ligaments.<NAME>]", source=src, field="ligaments")
+        ligaments = {}
+        for name, lig in ligs_doc.items():
+            for key in ("femur", "tibia"):
+                if key not in lig:
+                    raise InputError("missing attachment", source=src, field=f"ligaments.{name}.{key}")
+            ligaments[name] = Ligament(name, point(lig["femur"], f"ligaments.{name}.femur"),
+                                       point(lig["tibia"], f"ligaments.{name}.tibia"))
+            if ligaments[name].reference_length < 1e-3:
+                raise InputError("attachments closer than 1 mm", source=src, field=f"ligaments.{name}")
+
+        contact = doc.get("contact", {})
+        gate = number(contact.get("gate", 0.01), src, "contact.gate") * scale
+        if gate <= 0:
+            raise InputError("must be > 0", source=src, field="contact.gate")
+        compartments = {}
+        for cname, cdoc in contact.items():
+            if cname == "gate":
+                continue
+            if not isinstance(cdoc, dict):
+                raise InputError("must be a table with 'femur' and 'tibia' meshes", source=src,
+                                 field=f"contact.{cname}")
+            meshes = {}
+            for key in ("femur", "tibia"):
+                if key not in cdoc:
+                    raise InputError("missing mesh file", source=src, field=f"contact.{cname}.{key}")
+                meshes[key] = read_mesh(path.parent / str(cdoc[key]), scale, mirror,
+                                        field=f"contact.{cname}.{key}", knee_file=src)
+            center, radius, rms = fit_sphere(meshes["femur"].vertices)
+            if rms > MAX_SPHERE_FIT_RMS:
+                raise InputError(f"femoral cartilage deviates {rms * 1e3:.2f} mm RMS from a sphere "
+                                 "(limit 1 mm); the contact model needs a condyle-like surface",
+                                 source=src, field=f"contact.{cname}.femur")
+            compartments[cname] = Compartment(cname, meshes["femur"], meshes["tibia"], center,
+                                              radius, rms)
+        if not compartments:
+            raise InputError("no compartments ([contact.medial], [contact.lateral])", source=src,
+                             field="contact")
+
+        if isinstance(parameters, ParameterSet):
+            params = parameters
+        elif parameters is not None:
+            params = ParameterSet.load(parameters)
+        elif "parameters" in doc:
+            params = ParameterSet.load(path.parent / str(doc["parameters"]))
+        else:
+            raise InputError("no parameter set: give 'parameters = FILE' or pass one", source=src,
+                             field="parameters")
+        missing = [f"{n}.{k}" for n in ligaments for k in ("k", "ref_strain", "lin_strain")
+                   if f"{n}.{k}" not in params]
+        if missing:
+            raise InputError(f"parameter set {params.source or params.name} lacks {', '.join(missing)}",
+                             source=src, field="parameters")
+        extra = sorted({n.split(".")[0] for n in params.names()} - set(ligaments) - {"contact"})
+        if extra:
+            raise InputError(f"parameter set names ligaments the knee does not have: {', '.join(extra)};"
+                             f" known: {', '.join(ligaments)}", source=src, field="parameters")
+        return cls(name=str(doc.get("name", path.stem)), ligaments=ligaments,
+                   compartments=compartments, tuberosity=landmarks["tibial_tuberosity"],
+                   parameters=params, gate=gate, landmarks=landmarks, source=src,
+                   description=str(doc.get("description", "")))
+
+    @property
+    def ligament_names(self) -> list[str]:
+        return list(self.ligaments)
+
+    def with_parameters(self, parameters: ParameterSet | str | Path) -> Knee:
+        """The same geometry with another parameter set."""
+        params = parameters if isinstance(parameters, ParameterSet) else ParameterSet.load(parameters)
+        return Knee(self.name, self.ligaments, self.compartments, self.tuberosity, params,
+                    self.gate, self.landmarks, self.source, self.description)
+
+
+def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_file: str) -> trimesh.Trimesh:
+    """Load a cartilage mesh with trimesh, validate it and convert it to metres."""
+    if not path.is_file():
+        raise InputError(f"mesh file not found: {path}", source=knee_file, field=field)
+    try:
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many exception types for broken files
+        raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {exc})",
+                         source=knee_file, field=field) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError(f"mesh {path.name} has no triangles", source=knee_file, field=field)
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise InputError(f"mesh {path.name} has non-finite vertices", source=knee_file, field=field)
+    mesh = mesh.copy()
+    mesh.vertices = mesh.vertices * scale * mirror
+    if mirror[2] < 0:
+        mesh.invert()  # keep the face orientation after mirroring
+    return mesh
+
+
+def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Least-squares sphere through ``points``: (centre, radius, RMS radial deviation)."""
+    center, radius, _ = trimesh.nsphere.fit_nsphere(np.asarray(points, dtype=float))
+    dev = np.linalg.norm(points - center, axis=1) - radius
+    return np.asarray(center, dtype=float), float(radius), float(np.sqrt(np.mean(dev**2)))

@@ -1,0 +1,126 @@
+"""Simulate a laxity protocol on a knee: the forward problem, as a table in user units."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .conventions import coords_to_user
+from .data import measured_frame
+from .forward import ForwardSolver, TrialSolution
+from .knee import Knee
+from .model import KneeModel
+from .noise import NoiseModel
+from .protocol import Protocol
+
+_MODELS: dict[int, KneeModel] = {}
+
+
+def model_for(knee: Knee) -> KneeModel:
+    """The (cached) CasADi model of ``knee``: built once per knee object."""
+    key = id(knee)
+    if key not in _MODELS or _MODELS[key].knee is not knee:
+        _MODELS[key] = KneeModel(knee)
+    return _MODELS[key]
+
+
+@dataclass
+class SimulationResult:
+    """Equilibria of every trial of a protocol (``solutions`` in SI; tables in user units)."""
+
+    knee: Knee
+    protocol: Protocol
+    solutions: list[TrialSolution]
+    seconds: float
+    parameters: dict[str, float]
+
+    @property
+    def converged(self) -> int:
+        return sum(s.converged for s in self.solutions)
+
+    @property
+    def failed(self) -> list[TrialSolution]:
+        return [s for s in self.solutions if not s.converged]
+
+    @property
+    def max_residual(self) -> float:
+        return max(s.max_residual for s in self.solutions)
+
+    @property
+    def q(self) -> np.ndarray:
+        """Poses (n x 5, SI)."""
+        return np.array([s.q for s in self.solutions])
+
+    def table(self) -> pd.DataFrame:
+        """One row per trial: loads, coordinates (mm, deg), ligament strain (%) and force (N),
+        contact force per compartment (N), convergence."""
+        trials = [s.trial for s in self.solutions]
+        df = measured_frame(trials, coords_to_user(self.q), self.protocol.name)
+        names = list(self.knee.ligaments)
+        for j, n in enumerate(names):
+            df[f"{n}_strain_pct"] = [100 * s.strain[j] for s in self.solutions]
+        for j, n in enumerate(names):
+            df[f"{n}_force_N"] = [s.tension[j] for s in self.solutions]
+        for j, c in enumerate(self.knee.compartments):
+            df[f"contact_{c}_N"] = [s.contact_force[j] for s in self.solutions]
+            df[f"penetration_{c}_mm"] = [1e3 * s.max_penetration[j] for s in self.solutions]
+        df["converged"] = [s.converged for s in self.solutions]
+        df["max_residual"] = [s.max_residual for s in self.solutions]
+        df["strategy"] = [s.strategy for s in self.solutions]
+        return df
+
+    def measured(self, noise: str | NoiseModel = "none", seed: int | None = 0) -> pd.DataFrame:
+        """Measured-data table: the converged poses plus seeded noise (mm, deg)."""
+        noise = NoiseModel.parse(noise)
+        if self.failed:
+            from .errors import ConvergenceError
+
+            raise ConvergenceError("cannot write measured data: trials did not converge: "
+                                   + ", ".join(s.trial.id for s in self.failed), self)
+        rng = np.random.default_rng(seed)
+        q_user = coords_to_user(self.q) + noise.sample(rng, self.q.shape)
+        return measured_frame([s.trial for s in self.solutions], q_user, self.protocol.name)
+
+    def to_csv(self, path: str | Path) -> Path:
+        path = Path(path)
+        self.table().to_csv(path, index=False, float_format="%.10g")
+        return path
+
+    def summary(self) -> dict:
+        return {
+            "protocol": self.protocol.name,
+            "knee": self.knee.name,
+            "trials": len(self.solutions),
+            "converged": self.converged,
+            "failed": [{"trial": s.trial.id, "max_residual": s.max_residual, "reason": s.reason}
+                       for s in self.failed],
+            "max_residual": self.max_residual,
+            "seconds": round(self.seconds, 4),
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.summary(), indent=2)
+
+
+def simulate(knee: Knee | None = None, protocol: Protocol | str = "set3",
+             parameters: dict[str, float] | None = None, tol: float = 1e-6) -> SimulationResult:
+    """Solve every trial of ``protocol`` on ``knee`` (default: the embedded knee).
+
+    ``parameters`` overrides values of the knee's parameter set (SI, by name, e.g.
+    ``{"ACL.k": 12000.0}``).  Returns a :class:`SimulationResult`; trials that do not converge are
+    listed in ``result.failed`` (with their residual), never silently kept.
+    """
+    knee = knee or Knee.default()
+    protocol = protocol if isinstance(protocol, Protocol) else Protocol.load(protocol)
+    model = model_for(knee)
+    theta = model.theta(parameters)
+    solver = ForwardSolver(model, tol=tol)
+    t0 = time.perf_counter()
+    sols = solver.solve(protocol.trials, theta)
+    seconds = time.perf_counter() - t0
+    return SimulationResult(knee, protocol, sols, seconds, dict(zip(model.parameter_names, theta, strict=True)))

@@ -1,0 +1,68 @@
+import casadi as ca
+import numpy as np
+import pytest
+import trimesh
+
+from kneenlp.contact import compartment_function, smooth_gate, sphere_plane_force
+
+K = 10e9  # N/m^3
+
+
+def plane_samples(half=0.012, spacing=0.0002):
+    g = np.arange(-half, half + 1e-12, spacing)
+    x, z = np.meshgrid(g, g, indexing="ij")
+    verts = np.column_stack([x.ravel(), np.zeros(x.size), z.ravel()])
+    n = len(g)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    mesh = trimesh.Trimesh(verts, np.vstack([np.column_stack([a, d, b]), np.column_stack([b, d, c])]))
+    areas = np.zeros(len(verts))
+    np.add.at(areas, mesh.faces.ravel(), np.repeat(mesh.area_faces / 3, 3))
+    return verts, areas
+
+
+@pytest.mark.parametrize("depth", [0.1e-3, 0.3e-3, 0.6e-3])
+def test_sphere_pressed_into_plane_matches_closed_form(depth):
+    radius = 0.022
+    pts, areas = plane_samples()
+    fn = compartment_function("test", pts, areas, delta=1e-7)
+    centre = np.array([0.0, radius - depth, 0.0])  # sphere above the plane y = 0
+    force, moment = (np.asarray(v).ravel() for v in fn(centre, K, radius))
+    exact = sphere_plane_force(K, radius, depth)
+    assert -force[1] == pytest.approx(exact, rel=5e-3)  # the plane is pushed down (-Y)
+    assert abs(force[0]) < 1e-6 * exact and abs(force[2]) < 1e-6 * exact  # symmetric
+    # moment about the origin of a force through (0, 0, 0) along -Y: zero
+    assert np.allclose(moment, 0.0, atol=1e-6 * exact * radius)
+    # the classic cap-volume law agrees to O(d/R)
+    cap = np.pi * K * depth**2 * (radius - depth / 3)
+    assert exact == pytest.approx(cap, rel=depth / radius)
+
+
+def test_offset_contact_moment_is_r_cross_f():
+    radius = 0.022
+    pts, areas = plane_samples()
+    fn = compartment_function("test", pts, areas, delta=1e-7)
+    centre = np.array([0.004, radius - 0.3e-3, -0.003])
+    force, moment = (np.asarray(v).ravel() for v in fn(centre, K, radius))
+    contact_point = np.array([0.004, 0.0, -0.003])
+    assert np.allclose(moment, np.cross(contact_point, force), rtol=1e-3, atol=1e-6)
+
+
+def test_gate_is_exactly_zero_without_penetration_and_c2():
+    d = ca.SX.sym("d")
+    delta = 1e-5
+    g = smooth_gate(d, delta)
+    f = ca.Function("g", [d], [g, ca.jacobian(g, d), ca.hessian(g, d)[0]])
+    assert float(f(-1e-3)[0]) == 0.0
+    assert float(f(1e-3)[0]) == pytest.approx(1e-3 - delta / 2)
+    for x in (0.0, delta):
+        lo, hi = f(x - 1e-12), f(x + 1e-12)
+        for a, b in zip(lo, hi, strict=True):
+            assert float(a) == pytest.approx(float(b), abs=1e-6 / delta)  # curvature scale 1/delta
+
+
+def test_contact_is_differentiable(model):
+    # jacobian of the contact-laden residual exists and is finite at a penetrated pose
+    q = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])
+    jac = np.asarray(model.residual_jacobian(q, model.theta(), np.zeros(6), 0.0))
+    assert np.all(np.isfinite(jac)) and np.linalg.matrix_rank(jac) == 5
