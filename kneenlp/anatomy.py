@@ -2,7 +2,7 @@
 
 The default knee is a right knee in the ISB femoral frame (X anterior, Y proximal, Z lateral, mm,
 origin on the flexion axis midway between the condyle centres).  Its dimensions and their sources
-are listed in ``docs/anatomy.md``; this module only turns them into meshes:
+are listed in ``docs/anatomy-sources.md``; this module only turns them into meshes:
 
 * femoral cartilage of each condyle: the distal-posterior part of a sphere (the condyle's
   flexion-facet circle, Iwaki et al. 2000), centred on the flexion axis;

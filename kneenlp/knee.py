@@ -162,15 +162,15 @@ class Knee:
         else:
             raise InputError("no parameter set: give 'parameters = FILE' or pass one", source=src,
                              field="parameters")
+        extra = sorted({n.split(".")[0] for n in params.names()} - set(ligaments) - {"contact"})
+        if extra:
+            raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)}",
+                             source=params.source or src, field="ligaments")
         missing = [f"{n}.{k}" for n in ligaments for k in ("k", "ref_strain", "lin_strain")
                    if f"{n}.{k}" not in params]
         if missing:
             raise InputError(f"parameter set {params.source or params.name} lacks {', '.join(missing)}",
                              source=src, field="parameters")
-        extra = sorted({n.split(".")[0] for n in params.names()} - set(ligaments) - {"contact"})
-        if extra:
-            raise InputError(f"parameter set names ligaments the knee does not have: {', '.join(extra)};"
-                             f" known: {', '.join(ligaments)}", source=src, field="parameters")
         return cls(name=str(doc.get("name", path.stem)), ligaments=ligaments,
                    compartments=compartments, tuberosity=landmarks["tibial_tuberosity"],
                    parameters=params, gate=gate, landmarks=landmarks, source=src,

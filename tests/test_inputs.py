@@ -1,0 +1,133 @@
+"""Bad input gives a one-line error naming the file and field (exit 2 on the CLI), never a traceback."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from kneenlp.cli import main
+from kneenlp.data import read_measured
+from kneenlp.errors import InputError
+from kneenlp.knee import DEFAULT_KNEE, Knee
+from kneenlp.parameters import ParameterSet
+from kneenlp.protocol import Protocol
+
+
+@pytest.fixture()
+def knee_copy(tmp_path):
+    src = DEFAULT_KNEE.parent
+    dst = tmp_path / "knee"
+    shutil.copytree(src, dst)
+    shutil.copy(src.parent.parent / "parameters" / "table1.toml", tmp_path / "table1.toml")
+    text = (dst / "knee.toml").read_text().replace("../../parameters/table1.toml", "../table1.toml")
+    (dst / "knee.toml").write_text(text)
+    return dst / "knee.toml"
+
+
+def run_cli(capsys, *argv):
+    code = main(list(argv))
+    err = capsys.readouterr().err.strip()
+    return code, err
+
+
+def test_unknown_protocol(capsys):
+    code, err = run_cli(capsys, "simulate", "--protocol", "set9", "--no-plots")
+    assert code == 2 and err.count("\n") == 0
+    assert "unknown protocol 'set9'; known: set1, set2, set3, set4" in err
+
+
+def test_malformed_knee_toml(capsys, knee_copy):
+    knee_copy.write_text(knee_copy.read_text() + "\n[ligaments.ACL\n")
+    code, err = run_cli(capsys, "simulate", "--knee", str(knee_copy), "--no-plots")
+    assert code == 2 and "malformed TOML" in err and str(knee_copy) in err and "\n" not in err
+
+
+def test_missing_and_broken_mesh(knee_copy):
+    (knee_copy.parent / "meshes" / "tibia_medial.stl").unlink()
+    with pytest.raises(InputError, match=r"contact\.medial\.tibia: mesh file not found"):
+        Knee.load(knee_copy)
+    (knee_copy.parent / "meshes" / "tibia_medial.stl").write_bytes(b"solid junk\nthis is not an stl\n")
+    with pytest.raises(InputError, match=r"contact\.medial\.tibia"):
+        Knee.load(knee_copy)
+
+
+def test_bad_attachment_field(knee_copy):
+    knee_copy.write_text(knee_copy.read_text().replace("femur = [-3.0, 1.0, 7.0]", 'femur = [-3.0, "x", 7.0]'))
+    with pytest.raises(InputError, match=r"ligaments\.ACL\.femur: expected a number"):
+        Knee.load(knee_copy)
+
+
+def test_unknown_ligament_and_units_in_parameter_set(tmp_path, knee_copy):
+    bad = tmp_path / "p.toml"
+    text = (knee_copy.parent.parent / "table1.toml").read_text()
+    bad.write_text(text.replace("[ligaments.ACL]", "[ligaments.ACLx]"))
+    with pytest.raises(InputError, match="unknown ligament 'ACLx'; known: ACL, PCL, MCL, LCL"):
+        Knee.load(knee_copy, parameters=bad)
+    bad.write_text(text.replace('ref_strain = "%"', 'ref_strain = "fraction"'))
+    with pytest.raises(InputError, match=r"units\.ref_strain: unit 'fraction' not accepted"):
+        ParameterSet.load(bad)
+
+
+def test_protocol_errors(tmp_path):
+    p = tmp_path / "p.toml"
+    p.write_text('[[cases]]\ndirection = "sideways"\nmagnitude = [1.0]\nflexion = [0.0]\n')
+    with pytest.raises(InputError, match="unknown load direction 'sideways'"):
+        Protocol.load(p)
+    p.write_text('[[cases]]\ndirection = "anterior"\nmagnitude = [-5.0]\nflexion = [0.0]\n')
+    with pytest.raises(InputError, match="magnitudes must be > 0"):
+        Protocol.load(p)
+
+
+def _measured_csv(tmp_path) -> Path:
+    from kneenlp import simulate
+
+    res = simulate(protocol="set1")
+    path = tmp_path / "m.csv"
+    res.measured("uniform:0.5", seed=1).to_csv(path, index=False)
+    return path
+
+
+def test_measured_csv_errors(tmp_path):
+    path = _measured_csv(tmp_path)
+    data = read_measured(path)
+    assert len(data) == 7 and data.protocol == "set1"
+    text = path.read_text()
+    lines = text.splitlines()
+    cols = lines[0].split(",")
+    j = cols.index("anterior_translation_mm")
+    row = lines[2].split(",")
+    row[j] = "nan"
+    path.write_text("\n".join([lines[0], lines[1], ",".join(row), *lines[3:]]))
+    with pytest.raises(InputError, match=r"anterior_translation_mm: row 3 .* not a finite number"):
+        read_measured(path)
+    path.write_text(text.replace("anterior_translation_mm", "anterior_translation_m"))
+    with pytest.raises(InputError, match="wrong unit; expected anterior_translation_mm"):
+        read_measured(path)
+    path.write_text("a,b\n1,2\n")
+    with pytest.raises(InputError, match="missing column"):
+        read_measured(path)
+    with pytest.raises(InputError, match="file not found"):
+        read_measured(tmp_path / "nope.csv")
+
+
+def test_data_checked_against_protocol(tmp_path):
+    path = _measured_csv(tmp_path)
+    data = read_measured(path)
+    small = Protocol.from_dict({"name": "small", "cases": [{"direction": "none", "flexion": [30.0]}]})
+    with pytest.raises(InputError, match="trial 'anterior_134N_flex30' is not in protocol 'small'"):
+        data.check_protocol(small)
+    data.trials.pop()
+    with pytest.raises(InputError, match="missing trials of protocol 'set1': valgus_10Nm_flex0"):
+        data.check_protocol(Protocol.load("set1"))
+
+
+def test_cli_process_exit_code_and_no_traceback(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "kneenlp.cli", "simulate", "--knee", str(tmp_path / "none.toml")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and proc.stderr.strip().count("\n") == 0
+    assert "file not found" in proc.stderr
