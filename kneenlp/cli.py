@@ -60,6 +60,22 @@ def cmd_simulate(args) -> int:
     return 1 if result.failed else 0
 
 
+def cmd_identify(args) -> int:
+    from .identify import identify
+
+    knee = _knee(args)
+    free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
+    fit = identify(knee, args.data, free=free, seed=args.seed, noise=args.noise, weighted=args.weighted,
+                   multistart=args.multistart, solver=args.solver, protocol=args.protocol)
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        fit.table().to_csv(out / "fit_trials.csv", index=False, float_format="%.10g")
+        (out / "fit.json").write_text(fit.to_json())
+    print(fit.to_json() if args.json else fit.report())
+    return 0 if fit.success else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="kneenlp", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -74,6 +90,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("identify", help="identify ligament parameters from measured data (simultaneous NLP)")
+    p.add_argument("data", help="measured-data CSV (as written by 'kneenlp simulate --noise')")
+    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    p.add_argument("--parameters", help="parameter set TOML: reference values and fixed parameters")
+    p.add_argument("--free", help="comma-separated parameters to identify (default: k and ref_strain of all)")
+    p.add_argument("--noise", help="noise model of the data for the covariance, e.g. uniform:0.5")
+    p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
+    p.add_argument("--seed", type=int, default=0, help="seed of the paper's start scatter")
+    p.add_argument("--multistart", type=int, default=1, help="number of starts (best is kept)")
+    p.add_argument("--solver", default="ipopt", help="CasADi nlpsol plugin (default ipopt)")
+    p.add_argument("--protocol", help="protocol the data must match (default: the one named in the data)")
+    p.add_argument("--out", help="also write fit.json and fit_trials.csv here")
+    p.add_argument("--json", action="store_true", help="print JSON instead of the report")
+    p.set_defaults(func=cmd_identify)
     return parser
 
 

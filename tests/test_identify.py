@@ -1,0 +1,129 @@
+"""Simultaneous identification (issue 3): recovery, optimality, model equality, diagnostics."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import kneenlp
+from kneenlp.cli import main
+from kneenlp.conventions import coords_to_user
+from kneenlp.data import MeasuredData, read_measured
+from kneenlp.forward import ForwardSolver
+from kneenlp.identify import identify
+
+
+def measured(knee, protocol, noise, seed, tmp_path):
+    res = kneenlp.simulate(knee, protocol)
+    path = tmp_path / f"{protocol}_{seed}.csv"
+    res.measured(noise, seed).to_csv(path, index=False)
+    return read_measured(path)
+
+
+def objective_at(model, data, theta):
+    sols = ForwardSolver(model).solve(data.trials, theta)
+    assert all(s.converged for s in sols)
+    pred = coords_to_user(np.array([s.q for s in sols]))
+    return float(np.sum((pred - data.q_user) ** 2))
+
+
+def rel_errors(fit, truth):
+    return {n: abs(fit.params[n] - truth[n]) / abs(truth[n]) for n in fit.free}
+
+
+def test_zero_noise_set1_recovers_table1_from_paper_scatter(knee, tmp_path):
+    data = measured(knee, "set1", "none", 0, tmp_path)
+    fit = identify(knee, data, seed=11)
+    assert fit.success, fit.report()
+    assert fit.start != {n: knee.parameters[n] for n in fit.free}  # really started elsewhere
+    assert max(rel_errors(fit, knee.parameters.values).values()) <= 1e-6
+    assert fit.identifiable and fit.rank == 8
+    assert fit.max_residual <= 1e-6
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("protocol", ["set2", "set3", "set4"])
+def test_zero_noise_sets_2_to_4_recover_table1(knee, tmp_path, protocol):
+    data = measured(knee, protocol, "none", 0, tmp_path)
+    fit = identify(knee, data, seed=5)
+    assert fit.success, fit.report()
+    assert max(rel_errors(fit, knee.parameters.values).values()) <= 1e-6
+
+
+def test_noisy_fit_is_optimal_and_consistent_with_forward_model(knee, model, tmp_path):
+    data = measured(knee, "set1", "uniform:0.5", 3, tmp_path)
+    fit = identify(knee, data, seed=3, noise="uniform:0.5")
+    assert fit.success, fit.report()
+    assert fit.max_residual <= 1e-6
+    # sanity of optimality: not worse than the truth
+    assert fit.objective <= objective_at(model, data, model.theta()) + 1e-9
+    # the NLP's residual is the forward model's: re-simulate at the estimate
+    again = ForwardSolver(model).solve(data.trials, fit.theta, {t.id: q for t, q in zip(data.trials, fit.q_pred)})
+    assert np.allclose(coords_to_user(np.array([s.q for s in again])), coords_to_user(fit.q_pred), atol=1e-6)
+    # covariance from the given noise: uniform +-0.5 has variance 0.25/3
+    assert np.allclose(fit.noise_variance, 0.25 / 3)
+    assert all(np.isfinite(v) and v > 0 for v in fit.stderr.values())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("protocol", ["set1", "set2", "set3", "set4"])
+def test_twenty_noise_seeds_converge(knee, model, tmp_path, protocol):
+    theta_true = model.theta()
+    for seed in range(20):
+        data = measured(knee, protocol, "uniform:0.5", seed, tmp_path)
+        fit = identify(knee, data, seed=seed)
+        assert fit.success, (seed, fit.report())
+        assert fit.max_residual <= 1e-6
+        assert fit.objective <= objective_at(model, data, theta_true) * (1 + 1e-9) + 1e-9, seed
+
+
+def test_rank_deficient_data_says_so(knee, tmp_path):
+    full = measured(knee, "set1", "none", 0, tmp_path)
+    one = MeasuredData(full.trials[:1], full.q[:1], None, "one-trial")
+    fit = identify(knee, one, seed=1, free=["ACL.k", "ACL.ref_strain", "PCL.k", "PCL.ref_strain",
+                                            "MCL.k", "MCL.ref_strain", "LCL.k", "LCL.ref_strain"])
+    assert fit.rank <= 5 and not fit.identifiable
+    assert fit.unidentifiable_directions()
+    assert any(not np.isfinite(v) for v in fit.stderr.values())
+    assert "NOT ALL PARAMETERS IDENTIFIABLE" in fit.report()
+
+
+def test_free_parameters_by_name(knee, tmp_path):
+    data = measured(knee, "set1", "none", 0, tmp_path)
+    fit = identify(knee, data, free=["ACL.k", "contact.modulus"], start={"ACL.k": 9000.0, "contact.modulus": 9e9})
+    assert fit.success and fit.free == ["ACL.k", "contact.modulus"]
+    assert fit.params["ACL.k"] == pytest.approx(10000.0, rel=1e-6)
+    assert fit.params["contact.modulus"] == pytest.approx(1e10, rel=1e-6)
+    with pytest.raises(kneenlp.InputError, match="unknown parameter 'ACLx.k'"):
+        identify(knee, data, free=["ACLx.k"])
+
+
+def test_cli_identify_json(knee, tmp_path, capsys):
+    res = kneenlp.simulate(knee, "set1")
+    path = tmp_path / "m.csv"
+    res.measured("uniform:0.5", 2).to_csv(path, index=False)
+    code = main(["identify", str(path), "--json", "--noise", "uniform:0.5"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0
+    assert {"params", "stderr", "objective", "iterations", "seconds", "max_residual", "status"} <= set(out)
+    assert set(out["params"]) == {f"{lig}.{k}" for lig in knee.ligaments for k in ("k", "ref_strain")}
+
+
+def test_cli_identify_bad_data(knee, tmp_path, capsys):
+    res = kneenlp.simulate(knee, "set1")
+    good = res.measured("uniform:0.5", 2)
+    cases = {
+        "missing_trial": good.iloc[:-1],
+        "nan": good.assign(anterior_translation_mm=[np.nan, *good["anterior_translation_mm"][1:]]),
+        "units": good.rename(columns={"varus_rotation_deg": "varus_rotation_rad"}),
+        "unknown_trial": good.assign(trial=["mystery", *good["trial"][1:]]),
+    }
+    for name, df in cases.items():
+        path = tmp_path / f"{name}.csv"
+        df.to_csv(path, index=False)
+        code = main(["identify", str(path)])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and err.startswith("kneenlp: error:") and "\n" not in err, (name, err)
+        assert str(path) in err
