@@ -78,7 +78,7 @@ class Fit:
 
     def unidentifiable_directions(self) -> list[dict[str, float]]:
         """Parameter combinations (scaled units) the data cannot determine."""
-        _, sv, vt = self._svd()
+        vt = self._svd()[2]
         dirs = []
         for i in range(self.rank, len(self.free)):
             v = vt[i]
