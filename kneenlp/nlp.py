@@ -122,7 +122,7 @@ def build_nlp(model: KneeModel, n_trials: int, free: list[str], solver: str = "i
     nlp = {"x": ca.vertcat(xp, ca.vec(xq)), "p": par, "f": f, "g": g}
     opts = dict(options or {})
     if solver == "ipopt":
-        ipopt = {"tol": 1e-12, "acceptable_tol": 1e-9, "constr_viol_tol": 1e-9, "max_iter": 300,
+        ipopt = {"tol": 1e-12, "acceptable_tol": 1e-9, "constr_viol_tol": 1e-9, "max_iter": 150,
                  "print_level": 0, "linear_solver": "mumps", "mu_strategy": "monotone",
                  "nlp_scaling_method": "gradient-based", "sb": "yes"}
         ipopt.update(opts.pop("ipopt", {}))
