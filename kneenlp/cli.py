@@ -65,8 +65,8 @@ def cmd_identify(args) -> int:
 
     knee = _knee(args)
     free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
-    fit = identify(knee, args.data, free=free, seed=args.seed, noise=args.noise, weighted=args.weighted,
-                   multistart=args.multistart, solver=args.solver, protocol=args.protocol)
+    fit = identify(knee, args.data, args.method, free=free, seed=args.seed, noise=args.noise,
+                   weighted=args.weighted, multistart=args.multistart, solver=args.solver, protocol=args.protocol)
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -74,6 +74,38 @@ def cmd_identify(args) -> int:
         (out / "fit.json").write_text(fit.to_json())
     print(fit.to_json() if args.json else fit.report())
     return 0 if fit.success else 1
+
+
+def cmd_compare_methods(args) -> int:
+    from .identify import identify
+
+    knee = _knee(args)
+    fits = [identify(knee, args.data, seed=args.seed),
+            identify(knee, args.data, method="nested", seed=args.seed,
+                     nested_options={"max_evals": args.max_evals, "max_seconds": args.max_seconds})]
+    rows = []
+    for f in fits:
+        rows.append({"method": f.method, "objective": f.objective, "params": f.params_user(),
+                     "evaluations": f.evaluations, "evaluation_kind": "IPOPT iterations" if f.method == "simultaneous"
+                     else "rootfinder solves (trial equilibria)", "iterations": f.iterations,
+                     "seconds": f.seconds, "max_residual": f.max_residual, "status": f.status, "success": f.success})
+    ref = fits[0].params
+    rows[1]["max_relative_difference"] = max(abs(fits[1].params[n] - ref[n]) / abs(ref[n]) for n in ref)
+    if args.json:
+        print(json.dumps({"units": {n: fits[0]._info(n).unit for n in fits[0].free}, "methods": rows}, indent=2))
+    else:
+        names = fits[0].free
+        head = f"{'method':13s} {'objective':>12s} " + " ".join(f"{n:>14s}" for n in names)
+        print(head + f" {'evaluations':>12s} {'seconds':>8s} {'max resid':>10s}")
+        units = " ".join(f"{'[' + fits[0]._info(n).unit + ']':>14s}" for n in names)
+        print(f"{'':13s} {'[mm2+deg2]':>12s} {units}")
+        for r in rows:
+            vals = " ".join(f"{r['params'][n]:14.6g}" for n in names)
+            print(f"{r['method']:13s} {r['objective']:12.6g} {vals} {r['evaluations']:12d} {r['seconds']:8.2f}"
+                  f" {r['max_residual']:10.2e}")
+        print("evaluations: IPOPT iterations (simultaneous); trial equilibrium solves (nested)")
+        print(f"largest relative parameter difference: {100 * rows[1]['max_relative_difference']:.3f} %")
+    return 0 if all(f.success for f in fits) else 1
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -100,11 +132,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
     p.add_argument("--seed", type=int, default=0, help="seed of the paper's start scatter")
     p.add_argument("--multistart", type=int, default=1, help="number of starts (best is kept)")
+    p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"],
+                   help="simultaneous NLP (default) or the paper's nested Complex method")
     p.add_argument("--solver", default="ipopt", help="CasADi nlpsol plugin (default ipopt)")
     p.add_argument("--protocol", help="protocol the data must match (default: the one named in the data)")
     p.add_argument("--out", help="also write fit.json and fit_trials.csv here")
     p.add_argument("--json", action="store_true", help="print JSON instead of the report")
     p.set_defaults(func=cmd_identify)
+
+    p = sub.add_parser("compare-methods", help="simultaneous NLP vs the paper's nested Complex method")
+    p.add_argument("data", help="measured-data CSV")
+    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    p.add_argument("--parameters", help="parameter set TOML")
+    p.add_argument("--seed", type=int, default=0, help="seed of the start scatter / Complex")
+    p.add_argument("--max-evals", type=int, default=5000, help="Complex evaluation budget")
+    p.add_argument("--max-seconds", type=float, default=None, help="Complex wall-time budget")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_compare_methods)
     return parser
 
 

@@ -1,7 +1,8 @@
 """Identify ligament parameters from measured laxity data: ``identify(knee, data, ...) -> Fit``.
 
 ``method="simultaneous"`` solves the single NLP of :mod:`kneenlp.nlp` with IPOPT (or another
-CasADi ``nlpsol`` plugin given by ``solver``).
+CasADi ``nlpsol`` plugin given by ``solver``); ``method="nested"`` runs the paper's Complex
+optimizer around per-trial rootfinders (:mod:`kneenlp.nested`) on the same objective.
 
 Start: parameters from ``start`` (dict, SI) or the paper's scatter around the knee's parameter
 set (uniform +-500 N on every k, +-0.02 on every reference strain, +-10 % on other kinds; seeded);
@@ -33,7 +34,7 @@ from .noise import NoiseModel
 from .protocol import Protocol, available_protocols
 from .simulate import model_for
 
-METHODS = ("simultaneous",)
+METHODS = ("simultaneous", "nested")
 _NLP_CACHE: dict[tuple, IdentificationNLP] = {}
 
 
@@ -86,7 +87,8 @@ def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "
              free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
              noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
              solver: str = "ipopt", solver_options: dict | None = None,
-             protocol: Protocol | str | None = None, restarts: int = 4) -> Fit:
+             protocol: Protocol | str | None = None, restarts: int = 4,
+             nested_options: dict | None = None) -> Fit:
     """Identify the ``free`` parameters of ``knee`` from measured ``data``.
 
     Parameters
@@ -101,6 +103,8 @@ def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "
     weighted : weight each coordinate by its inverse noise variance (needs ``noise``).
     multistart : number of starts; the best converged one is kept.
     restarts : extra scatter draws tried when no start has converged yet.
+    nested_options : for ``method="nested"``: ``max_evals``, ``max_seconds``, ``xtol``, ``ftol``
+        of the Complex optimizer, or ``initial`` (a list of starting parameter dicts, SI).
     solver : CasADi nlpsol plugin (``ipopt``, ``sqpmethod``, ...), options in ``solver_options``.
     protocol : protocol the data must match (by default the one named in the data, if known).
     """
@@ -125,6 +129,8 @@ def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "
             if n not in free:
                 raise unknown_name("free parameter", n, free)
     rng = np.random.default_rng(seed)
+    if method == "nested":
+        return _nested(model, data, free, start, rng, seed, weights, noise_model, dict(nested_options or {}))
     best: Fit | None = None
     k = 0
     while k < max(1, multistart) or (not best.success and k < max(1, multistart) + restarts):
@@ -140,6 +146,41 @@ def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "
         note = f"{k - max(1, multistart)} restart(s) after failed solves"
         best.message = f"{best.message}; {note}" if best.message else note
     return best
+
+
+def _noise_variance(noise_model, objective, weights, n_par):
+    if noise_model is not None:
+        return (np.full(weights.shape, noise_model.std**2),
+                f"given ({noise_model}: std {noise_model.std:.4g} mm or deg)")
+    s2 = objective / max(weights.size - n_par, 1) / float(np.mean(weights))
+    return np.full(weights.shape, s2), f"estimated from residuals (std {np.sqrt(s2):.4g} mm or deg)"
+
+
+def _nested(model, data, free, start, rng, seed, weights, noise_model, options) -> Fit:
+    from .nested import nested_fit
+
+    initial = options.pop("initial", None)
+    if initial is None:
+        clouds = [paper_scatter(model, free, rng) for _ in range(2 * len(free) + 1)]
+        if start:
+            clouds[0].update(start)
+        initial = clouds
+    cloud = np.array([[c[n] for n in free] for c in initial])
+    out = nested_fit(model, data, free, weights, cloud, seed=seed, **options)
+    params = dict(zip(free, out["values"], strict=True))
+    theta = model.theta(params)
+    q = out["q"]
+    max_res = float(np.max(out["residual"]))
+    res = out["result"]
+    psi = float(np.sum(weights * (coords_to_user(q) - data.q_user) ** 2))
+    variance, source = _noise_variance(noise_model, psi, weights, len(free))
+    return Fit(model=model, data=data, method="nested", free=list(free), params=params, theta=theta,
+               objective=psi, status=res.message, success=bool(res.success) and max_res <= 1e-6,
+               iterations=int(res.nit), seconds=out["seconds"], max_residual=max_res, q_pred=q,
+               sensitivity=sensitivities(model, data, theta, q, free), weights=weights, noise_variance=variance,
+               noise_source=source, start=dict(zip(free, cloud[0], strict=True)), evaluations=out["trial_solves"],
+               message=f"{res.nfev} objective evaluations", solver="complex",
+               extra={"objective_evaluations": res.nfev, "history": res.history})
 
 
 def _simultaneous(model, data, free, start, weights, noise_model, solver, solver_options) -> Fit:
@@ -166,14 +207,7 @@ def _simultaneous(model, data, free, start, weights, noise_model, solver, solver
     max_res = float(np.max(np.abs(g))) if g.size else 0.0
     sens = sensitivities(model, data, theta, q, free)
     objective = float(sol["f"])
-    n_obs, n_par = weights.size, len(free)
-    if noise_model is not None:
-        variance = np.full(weights.shape, noise_model.std**2)
-        source = f"given ({noise_model}: std {noise_model.std:.4g} mm or deg)"
-    else:
-        s2 = objective / max(n_obs - n_par, 1) / float(np.mean(weights))
-        variance = np.full(weights.shape, s2)
-        source = f"estimated from residuals (std {np.sqrt(s2):.4g} mm or deg)"
+    variance, source = _noise_variance(noise_model, objective, weights, len(free))
     success = bool(stats.get("success", False)) and max_res <= 1e-6
     msg = "" if n_fail_start == 0 else f"{n_fail_start} trial(s) could not be solved at the start; started at data"
     if bool(stats.get("success", False)) and max_res > 1e-6:

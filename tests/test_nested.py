@@ -1,0 +1,73 @@
+"""Nested cross-check (issue 4): the paper's Complex method around per-trial rootfinders."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import kneenlp
+from kneenlp.boxcomplex import minimize_complex
+from kneenlp.cli import main
+from kneenlp.data import read_measured
+from kneenlp.identify import identify
+from kneenlp.nested import NestedObjective
+
+
+def noisy(knee, protocol, seed, tmp_path):
+    path = tmp_path / f"{protocol}_{seed}.csv"
+    kneenlp.simulate(knee, protocol).measured("uniform:0.5", seed).to_csv(path, index=False)
+    return read_measured(path)
+
+
+@pytest.fixture(scope="module")
+def set1_fit(knee, tmp_path_factory):
+    data = noisy(knee, "set1", 1, tmp_path_factory.mktemp("nested"))
+    return identify(knee, data, seed=1)
+
+
+def test_nested_objective_equals_simultaneous_objective(set1_fit):
+    fit = set1_fit
+    obj = NestedObjective(fit.model, fit.data, fit.free, fit.weights, fit.q_pred)
+    f, _, res = obj.evaluate(np.array([fit.params[n] for n in fit.free]) / obj.scales)
+    assert f == pytest.approx(fit.objective, rel=1e-8)
+    assert res.max() <= 1e-6
+
+
+@pytest.mark.slow
+def test_complex_finds_nothing_better_near_simultaneous_optimum(set1_fit):
+    fit = set1_fit
+    obj = NestedObjective(fit.model, fit.data, fit.free, fit.weights, fit.q_pred)
+    x_opt = np.array([fit.params[n] for n in fit.free]) / obj.scales
+    # a small cloud: +-0.5 % of each (scaled) value around the optimum
+    res = minimize_complex(obj, [(v - 0.05 * abs(v), v + 0.05 * abs(v)) for v in x_opt], x0=x_opt,
+                           spread=0.005 * np.abs(x_opt), seed=2, max_evals=400)
+    assert res.fun >= fit.objective * (1 - 1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("protocol,seed", [("set1", 1), ("set1", 2), ("set3", 1), ("set3", 2)])
+def test_nested_converges_to_simultaneous_estimate(knee, tmp_path, protocol, seed):
+    data = noisy(knee, protocol, seed, tmp_path)
+    sim = identify(knee, data, seed=seed)
+    nest = identify(knee, data, method="nested", seed=seed, nested_options={"max_evals": 6000})
+    rel = {n: abs(nest.params[n] - sim.params[n]) / abs(sim.params[n]) for n in sim.free}
+    print(f"{protocol} seed {seed}: nested {nest.extra['objective_evaluations']} evaluations, "
+          f"{nest.evaluations} trial solves, {nest.seconds:.1f} s; worst {max(rel.values()):.2e}")
+    assert max(rel.values()) <= 5e-3, rel
+    assert nest.objective >= sim.objective * (1 - 1e-9)
+
+
+def test_nested_fit_object_and_cli(knee, tmp_path, capsys):
+    data = noisy(knee, "set1", 3, tmp_path)
+    fit = identify(knee, data, method="nested", seed=3, nested_options={"max_evals": 60})
+    assert fit.method == "nested" and fit.evaluations >= 60 * len(data)
+    assert set(fit.params) == set(fit.free) and fit.max_residual <= 1e-6
+    assert "nested" in fit.report()
+    code = main(["compare-methods", data.source, "--json", "--max-evals", "60"])
+    out = json.loads(capsys.readouterr().out)
+    assert [m["method"] for m in out["methods"]] == ["simultaneous", "nested"]
+    for m in out["methods"]:
+        assert {"objective", "params", "evaluations", "seconds", "max_residual"} <= set(m)
+    assert code in (0, 1)  # 60 evaluations do not converge the Complex; the table is still printed
