@@ -71,7 +71,10 @@ def sensitivities(model: KneeModel, data: MeasuredData, theta: np.ndarray, q: np
     rows = []
     for t, qi in zip(data.trials, q, strict=True):
         dq, dth = (np.asarray(v) for v in jac(qi, theta, t.load, t.flexion))
-        rows.append(-TO_USER[:, None] * np.linalg.solve(dq, dth[:, idx]))
+        try:
+            rows.append(-TO_USER[:, None] * np.linalg.solve(dq, dth[:, idx]))
+        except np.linalg.LinAlgError:  # singular equilibrium (e.g. a failed solve): least squares
+            rows.append(-TO_USER[:, None] * (np.linalg.pinv(dq) @ dth[:, idx]))
     return np.vstack(rows)
 
 
