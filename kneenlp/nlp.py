@@ -108,12 +108,12 @@ def build_nlp(model: KneeModel, n_trials: int, free: list[str], solver: str = "i
     w = ca.reshape(par[n_theta + 5 * T : n_theta + 10 * T], 5, T)
     loads = ca.reshape(par[n_theta + 10 * T : n_theta + 16 * T], 6, T)
     flex = ca.reshape(par[n_theta + 16 * T :], 1, T)
-    idx = [model.parameter_names.index(n) for n in free]
-    select = np.zeros((n_theta, nf))
-    select[idx, range(nf)] = 1.0
-    keep = np.ones(n_theta)
-    keep[idx] = 0.0
-    theta = keep * theta_in + ca.mtimes(ca.DM(select), scales * xp)
+    # theta element by element, so that fixed parameters (e.g. the contact modulus) depend on no
+    # decision variable structurally: the Hessian then never seeds the contact with parameter
+    # directions (a dense selection matrix made it ~2x slower).
+    pos = {n: j for j, n in enumerate(free)}
+    theta = ca.vertcat(*[scales[pos[n]] * xp[pos[n]] if n in pos else theta_in[i]
+                         for i, n in enumerate(model.parameter_names)])
     q_si = xq / ca.DM(TO_USER)  # deg, mm -> rad, m
     mapped = model.residual.map(T, "thread", 2)
     g = ca.vec(mapped(q_si, theta, loads, flex))
