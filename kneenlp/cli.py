@@ -108,6 +108,33 @@ def cmd_compare_methods(args) -> int:
     return 0 if all(f.success for f in fits) else 1
 
 
+def cmd_study(args) -> int:
+    from .study import StudySpec, run_study
+
+    sets = tuple(f"set{s}" if s.strip().isdigit() else s.strip() for s in args.sets.split(","))
+    spec = StudySpec(sets=sets, samples=args.samples, noise=args.noise, seed=args.seed, method=args.method,
+                     knee=str(Path(args.knee).resolve()) if args.knee else None,
+                     free=tuple(f.strip() for f in args.free.split(",")) if args.free else None)
+    from .noise import NoiseModel
+
+    NoiseModel.parse(spec.noise)
+    if spec.samples < 1:
+        raise InputError(f"must be >= 1, got {spec.samples}", field="--samples")
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"must be >= 1, got {args.workers}", field="--workers")
+    study = run_study(spec, args.out, workers=args.workers, scheduler=args.scheduler, dask_local=args.dask,
+                      progress=False if args.quiet else None)
+    df = study.load_rows()
+    failed = int((~df["success"].astype(bool)).sum()) if len(df) else 0
+    summary = {"out": str(study.out), "fits": len(df), "failed": failed,
+               "outputs": sorted(p.name for p in study.out.iterdir() if p.is_file())}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    elif not args.quiet:
+        print((study.out / "summary.md").read_text())
+    return 1 if failed else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="kneenlp", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -149,6 +176,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-seconds", type=float, default=None, help="Complex wall-time budget")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_compare_methods)
+
+    p = sub.add_parser("study", help="noise study: the paper's Monte Carlo (Table 3, Fig. 3) at any scale")
+    p.add_argument("--sets", default="1,2,3,4", help="protocols: 1,2,3,4 or names/files (default 1,2,3,4)")
+    p.add_argument("--samples", type=int, default=20, help="noise samples per set (default 20)")
+    p.add_argument("--noise", default="uniform:0.5", help="uniform:B or gaussian:SIGMA (mm, deg)")
+    p.add_argument("--seed", type=int, default=0, help="study seed; each sample's seed derives from it")
+    p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"])
+    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    p.add_argument("--free", help="comma-separated parameters to identify")
+    p.add_argument("--out", default="kneenlp-study", help="study directory (resumable)")
+    p.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")
+    p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
+    p.add_argument("--dask", action="store_true", help="run on a local Dask cluster")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.set_defaults(func=cmd_study)
     return parser
 
 

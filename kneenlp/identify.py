@@ -78,6 +78,14 @@ def sensitivities(model: KneeModel, data: MeasuredData, theta: np.ndarray, q: np
     return np.vstack(rows)
 
 
+def _forward_solver(model: KneeModel) -> ForwardSolver:
+    fs = getattr(model, "_forward_solver", None)
+    if fs is None:
+        fs = ForwardSolver(model)
+        model._forward_solver = fs
+    return fs
+
+
 def _jacobians(model: KneeModel) -> ca.Function:
     fn = getattr(model, "_jac_q_theta", None)
     if fn is None:
@@ -190,10 +198,12 @@ def _simultaneous(model, data, free, start, weights, noise_model, solver, solver
     t0 = time.perf_counter()
     nlp = get_nlp(model, len(data), free, solver, solver_options)
     theta0 = model.theta(start)
-    fwd = ForwardSolver(model)
-    sols = fwd.solve(data.trials, theta0)
-    q0_user = np.array([coords_to_user(s.q) if s.converged else data.q_user[i] for i, s in enumerate(sols)])
-    n_fail_start = sum(not s.converged for s in sols)
+    # equilibrium-consistent start: Newton on all trials at once from the measured poses,
+    # per-trial ramping for the few that fail; a trial that still fails starts at its data
+    q0, res0 = _forward_solver(model).solve_batch(data.trials, theta0, data.q)
+    ok = res0 <= 1e-6
+    q0_user = np.where(ok[:, None], coords_to_user(q0), data.q_user)
+    n_fail_start = int(np.sum(~ok))
     loads = np.array([t.load for t in data.trials])
     flex = np.array([t.flexion for t in data.trials])
     p = nlp.pack_p(model.theta(), data.q_user, weights, loads, flex)

@@ -85,3 +85,41 @@ def ligament_forces(table: pd.DataFrame, ligaments: list[str], path: str | Path,
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str | Path, title: str = "") -> Path:
+    """The paper's Fig. 3: estimates per set as boxplots, true values marked, linearised +-2 sigma.
+
+    Top row: stiffness k (kN per unit strain); bottom row: reference strain (%).
+    """
+    ligs = list(dict.fromkeys(table["ligament"])) if len(table) else []
+    fig, axes = plt.subplots(2, max(len(ligs), 1), figsize=(3.2 * max(len(ligs), 1), 6.5), squeeze=False)
+    for j, lig in enumerate(ligs):
+        for i, (kind, unit, f) in enumerate((("k", "kN", 1e-3), ("ref_strain", "%", 100.0))):
+            ax = axes[i, j]
+            col = f"{lig}.{kind}"
+            data = [estimates.loc[estimates["set"] == s, col].to_numpy(dtype=float) * f
+                    if col in estimates else np.array([]) for s in sets]
+            pos = np.arange(1, len(sets) + 1)
+            ax.boxplot(data, positions=pos, widths=0.5, flierprops={"marker": "x"})
+            rows = table[(table["ligament"] == lig) & (table["parameter"] == kind)]
+            true = rows["true"].iloc[0] if len(rows) else np.nan
+            ax.axhline(true, color="0.5", ls="--", lw=1, label="true")
+            pred = [rows.loc[rows["set"] == s, "predicted_std"].iloc[0] if (rows["set"] == s).any() else np.nan
+                    for s in sets]
+            ax.errorbar(pos + 0.33, [true] * len(sets), yerr=2 * np.asarray(pred), fmt="o", ms=3, color="C3",
+                        capsize=3, label="linearised +-2 sd")
+            ax.set_xticks(pos)
+            ax.set_xticklabels([str(s) for s in sets], rotation=30)
+            ax.set_title(f"{lig} {'stiffness' if kind == 'k' else 'reference strain'}", fontsize=9)
+            ax.set_ylabel(f"{'k' if kind == 'k' else 'reference strain'} [{unit}]")
+            ax.grid(alpha=0.3)
+    if ligs:
+        axes[0, 0].legend(fontsize=7)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,252 @@
+"""Noise studies: the paper's Monte Carlo (Table 3, Fig. 3) at any scale, locally or on Dask.
+
+For each protocol ("set") and sample index, the truth is simulated once, seeded noise is added
+(:func:`sample_seed`: derived from the study seed, the set name and the index only, so results
+are bit-identical whatever the executor and worker count) and the parameters are identified.
+Every finished sample is written atomically to ``DIR/samples/<set>_<index>.json`` (temporary
+file + ``os.replace``): a study killed mid-run and started again with the same arguments skips
+what is done, and the estimates table has exactly one row per (set, sample).  ``DIR/study.json``
+records the arguments; resuming with different ones is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+import zlib
+from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .errors import InputError
+
+_CACHE: dict = {}
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """What a study computes (all that determines its numbers)."""
+
+    sets: tuple[str, ...] = ("set1", "set2", "set3", "set4")
+    samples: int = 20
+    noise: str = "uniform:0.5"
+    seed: int = 0
+    method: str = "simultaneous"
+    knee: str | None = None  # knee TOML path; None = embedded default knee
+    free: tuple[str, ...] | None = None
+    nested_max_evals: int = 6000
+
+    def tasks(self) -> list[tuple[str, int]]:
+        return [(s, i) for s in self.sets for i in range(self.samples)]
+
+    def identity(self) -> dict:
+        """The arguments that must match for a resume (the sample count may grow)."""
+        d = asdict(self)
+        d.pop("samples")
+        return d
+
+
+def sample_seed(study_seed: int, set_name: str, index: int) -> int:
+    """Seed of one sample's noise, independent of execution order and workers."""
+    ss = np.random.SeedSequence([study_seed, zlib.crc32(set_name.encode()), index])
+    return int(ss.generate_state(1, dtype=np.uint32)[0])
+
+
+def _knee(spec: StudySpec):
+    from .knee import Knee
+
+    key = ("knee", spec.knee)
+    if key not in _CACHE:
+        _CACHE[key] = Knee.load(spec.knee) if spec.knee else Knee.default()
+    return _CACHE[key]
+
+
+def _truth(spec: StudySpec, set_name: str):
+    from .simulate import simulate
+
+    key = ("truth", spec.knee, set_name)
+    if key not in _CACHE:
+        res = simulate(_knee(spec), set_name)
+        if res.failed:
+            raise InputError(f"truth simulation of {set_name} failed: {', '.join(s.trial.id for s in res.failed)}")
+        _CACHE[key] = res
+    return _CACHE[key]
+
+
+def run_sample(spec: StudySpec, set_name: str, index: int) -> dict:
+    """Simulate, add noise and identify one sample; returns one result row (never raises)."""
+    from .data import MeasuredData
+    from .identify import identify
+
+    seed = sample_seed(spec.seed, set_name, index)
+    row: dict = {"set": set_name, "sample": index, "seed": seed}
+    t0 = time.perf_counter()
+    try:
+        truth = _truth(spec, set_name)
+        df = truth.measured(spec.noise, seed)
+        from .conventions import coordinate_columns, coords_from_user
+
+        data = MeasuredData([s.trial for s in truth.solutions],
+                            coords_from_user(df[coordinate_columns()].to_numpy()), set_name,
+                            f"{set_name} sample {index}")
+        fit = identify(_knee(spec), data, spec.method, free=list(spec.free) if spec.free else None, seed=seed,
+                       noise=spec.noise, nested_options={"max_evals": spec.nested_max_evals})
+        row.update(status=fit.status, success=fit.success, objective=fit.objective, iterations=fit.iterations,
+                   evaluations=fit.evaluations, max_residual=fit.max_residual, seconds=fit.seconds,
+                   message=fit.message)
+        row.update({f"{n}": v for n, v in fit.params.items()})
+    except Exception as exc:  # a failed sample is recorded, never dropped
+        row.update(status=f"error: {type(exc).__name__}: {exc}", success=False, objective=np.nan,
+                   iterations=-1, evaluations=-1, max_residual=np.nan, seconds=np.nan, message=str(exc))
+    row["wall_seconds"] = time.perf_counter() - t0
+    return row
+
+
+def _run_sample_args(args: tuple) -> dict:
+    return run_sample(*args)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+@dataclass
+class Study:
+    """A study directory: spec, finished samples, and the analysis outputs."""
+
+    spec: StudySpec
+    out: Path
+    rows: list[dict] = field(default_factory=list)
+
+    @property
+    def sample_dir(self) -> Path:
+        return self.out / "samples"
+
+    def sample_path(self, set_name: str, index: int) -> Path:
+        return self.sample_dir / f"{set_name}_{index:06d}.json"
+
+    def prepare(self) -> None:
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.sample_dir.mkdir(exist_ok=True)
+        spec_file = self.out / "study.json"
+        if spec_file.exists():
+            old = json.loads(spec_file.read_text())
+            mine = json.loads(json.dumps(self.spec.identity()))
+            if {k: old.get(k) for k in mine} != mine:
+                diff = ", ".join(f"{k}: {old.get(k)!r} -> {v!r}" for k, v in mine.items() if old.get(k) != v)
+                raise InputError(f"holds a study with other arguments ({diff}); use another --out",
+                                 source=str(spec_file))
+        write_atomic(spec_file, json.dumps(asdict(self.spec), indent=2))
+
+    def pending(self) -> list[tuple[str, int]]:
+        return [(s, i) for s, i in self.spec.tasks() if not self.sample_path(s, i).exists()]
+
+    def record(self, row: dict) -> None:
+        clean = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in row.items()}
+        write_atomic(self.sample_path(row["set"], row["sample"]), json.dumps(clean))
+
+    def load_rows(self) -> pd.DataFrame:
+        rows = []
+        wanted = set(self.spec.tasks())
+        for p in sorted(self.sample_dir.glob("*.json")):
+            r = json.loads(p.read_text())
+            if (r["set"], r["sample"]) in wanted:
+                rows.append(r)
+        df = pd.DataFrame(rows)
+        if not df.empty:
+            df = df.sort_values(["set", "sample"], key=lambda c: c.map(self._order) if c.name == "set" else c)
+        return df.reset_index(drop=True)
+
+    def _order(self, s: str) -> int:
+        return list(self.spec.sets).index(s) if s in self.spec.sets else 99
+
+
+def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, scheduler: str | None = None,
+              dask_local: bool = False, progress: bool | None = None, analyse: bool = True) -> Study:
+    """Run (or resume) a study into ``out``; see module docstring.
+
+    ``workers`` local processes (default: all cores; 1 = in this process), or Dask: ``scheduler``
+    (address ``tcp://HOST:PORT``) or ``dask_local`` (a LocalCluster with ``workers`` processes).
+    """
+    from .protocol import Protocol
+
+    for s in spec.sets:
+        Protocol.load(s)  # validates names early
+    study = Study(spec, Path(out))
+    study.prepare()
+    todo = study.pending()
+    workers = workers or os.cpu_count() or 1
+    bar = _progress(len(spec.tasks()), len(spec.tasks()) - len(todo), progress)
+    if todo:
+        for row in _execute(spec, todo, workers, scheduler, dask_local):
+            study.record(row)
+            bar.update(1)
+    bar.close()
+    if analyse:
+        from .study_report import analyse_study
+
+        analyse_study(study)
+    return study
+
+
+def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, scheduler: str | None,
+             dask_local: bool) -> Iterable[dict]:
+    if scheduler or dask_local:
+        try:
+            from dask.distributed import Client, LocalCluster, as_completed as dask_completed
+        except ImportError:
+            raise InputError("Dask is not installed: pip install 'kneenlp[dask]'", field="scheduler") from None
+        cluster = None
+        if scheduler:
+            client = Client(scheduler)
+        else:
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+            client = Client(cluster)
+        try:
+            futures = [client.submit(run_sample, spec, s, i, pure=False) for s, i in todo]
+            for fut in dask_completed(futures):
+                yield fut.result()
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+        return
+    if workers == 1:
+        for s, i in todo:
+            yield run_sample(spec, s, i)
+        return
+    # fork: works from scripts and notebooks without a __main__ guard; the parent holds no CasADi
+    # threads at this point (thread maps join their threads after every evaluation)
+    ctx = get_context("fork") if sys.platform.startswith("linux") else get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures = [pool.submit(_run_sample_args, (spec, s, i)) for s, i in todo]
+        for fut in as_completed(futures):
+            yield fut.result()
+
+
+class _NoBar:
+    def update(self, n: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int, done: int, progress: bool | None):
+    show = sys.stderr.isatty() if progress is None else progress
+    if not show:
+        return _NoBar()
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _NoBar()
+    return tqdm(total=total, initial=done, unit="fit", desc="study")
