@@ -202,7 +202,8 @@ def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, schedul
              dask_local: bool) -> Iterable[dict]:
     if scheduler or dask_local:
         try:
-            from dask.distributed import Client, LocalCluster, as_completed as dask_completed
+            from dask.distributed import Client, LocalCluster
+            from dask.distributed import as_completed as dask_completed
         except ImportError:
             raise InputError("Dask is not installed: pip install 'kneenlp[dask]'", field="scheduler") from None
         cluster = None

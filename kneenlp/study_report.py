@@ -118,7 +118,8 @@ def _summary(study, df, table, failures, parquet) -> str:
              "fig2 forces, failures.csv", ""]
     if len(failures):
         lines += ["## Failed identifications (counted, not dropped)", ""]
-        lines += [f"- {r['set']} sample {r['sample']} (seed {r['seed']}): {r['status']}" for _, r in failures.iterrows()]
+        lines += [f"- {r['set']} sample {r['sample']} (seed {r['seed']}): {r['status']}"
+                  for _, r in failures.iterrows()]
         lines.append("")
     lines += ["## Table 3 analogue (k in kN per unit strain, reference strain in %)", "",
               "| set | parameter | true | min | max | range | MC std | linearised std | paper min | paper max |",
