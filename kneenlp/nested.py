@@ -71,7 +71,7 @@ class NestedObjective:
 
 def nested_fit(model: KneeModel, data: MeasuredData, free: list[str], weights: np.ndarray,
                initial: np.ndarray, *, seed: int = 0, max_evals: int = 20000, max_seconds: float | None = None,
-               xtol: float = 1e-7, ftol: float = 1e-11) -> dict:
+               xtol: float = 1e-5, ftol: float = 1e-10) -> dict:
     """Run the Complex optimizer from the ``initial`` cloud (SI parameter values, k x n).
 
     Returns a dict with the best values (SI), poses, residuals, objective and counters."""
