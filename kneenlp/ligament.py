@@ -4,7 +4,10 @@
 ``k (eps - eps_l)`` for ``eps >= 2 eps_l`` (Blankevoort & Huiskes 1991), with ``k`` in N per unit
 strain and the linear strain limit ``eps_l`` (0.03 by default).  The law is C1 (force and slope
 continuous at both kinks); kneenlp uses it exactly, without smoothing: Newton and IPOPT converge
-on it, and the identified parameters then refer to the paper's law, not an approximation.
+on it, and the identified parameters then refer to the paper's law, not an approximation.  It is
+written branch-free as ``k t^2 / (4 eps_l) + k max(eps - 2 eps_l, 0)`` with
+``t = min(max(eps, 0), 2 eps_l)``, identical to Eq. (1) and expressible in every NLP exchange
+format (no conditionals; see :mod:`kneenlp.export`).
 
 Strain ``eps = (l - l0) / l0`` with slack length ``l0 = l_r / (1 + eps_r)`` where ``l_r`` is the
 length in the reference pose and ``eps_r`` the reference strain (Eq. 2-3).
@@ -18,9 +21,8 @@ import numpy as np
 
 def force_strain(eps, k, eps_l):
     """Tensile force (N) of Eq. (1) as a CasADi expression (or number) of strain ``eps``."""
-    toe = k * eps**2 / (4 * eps_l)
-    linear = k * (eps - eps_l)
-    return ca.if_else(eps <= 0, 0, ca.if_else(eps <= 2 * eps_l, toe, linear))
+    t = ca.fmin(ca.fmax(eps, 0), 2 * eps_l)
+    return k * t * t / (4 * eps_l) + k * ca.fmax(eps - 2 * eps_l, 0)
 
 
 def force_strain_numpy(eps: np.ndarray, k: float, eps_l: float) -> np.ndarray:

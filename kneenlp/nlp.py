@@ -91,12 +91,21 @@ class IdentificationNLP:
         return x[: self.n_free] * self.scales, x[self.n_free :].reshape(self.n_trials, 5)
 
 
-def build_nlp(model: KneeModel, n_trials: int, free: list[str], solver: str = "ipopt",
-              options: dict | None = None) -> IdentificationNLP:
-    """Build the identification NLP solver (see module docstring)."""
-    import time
+@dataclass
+class NLPExpressions:
+    """The symbolic identification NLP (MX): decision vector, data vector, objective, constraints."""
 
-    t0 = time.perf_counter()
+    x: ca.MX
+    p: ca.MX
+    f: ca.MX
+    g: ca.MX
+    scales: np.ndarray
+    lbx: np.ndarray
+    ubx: np.ndarray
+
+
+def nlp_expressions(model: KneeModel, n_trials: int, free: list[str], parallel: str = "thread") -> NLPExpressions:
+    """Build the NLP's expressions (see module docstring); ``parallel`` is the trial map's mode."""
     free = check_free(model, free)
     n_theta, nf, T = len(model.parameter_names), len(free), n_trials
     scales = np.array([SCALES[parameter_kind(n)] for n in free])
@@ -115,11 +124,26 @@ def build_nlp(model: KneeModel, n_trials: int, free: list[str], solver: str = "i
     theta = ca.vertcat(*[scales[pos[n]] * xp[pos[n]] if n in pos else theta_in[i]
                          for i, n in enumerate(model.parameter_names)])
     q_si = xq / ca.DM(TO_USER)  # deg, mm -> rad, m
-    mapped = model.residual.map(T, "thread", 2)
+    mapped = model.residual.map(T, parallel, 2) if parallel == "thread" else model.residual.map(T, parallel)
     g = ca.vec(mapped(q_si, theta, loads, flex))
     diff = xq - meas
     f = ca.sum1(ca.sum2(w * diff * diff))
-    nlp = {"x": ca.vertcat(xp, ca.vec(xq)), "p": par, "f": f, "g": g}
+    lo = np.array([BOUNDS[parameter_kind(n)][0] for n in free]) / scales
+    hi = np.array([BOUNDS[parameter_kind(n)][1] for n in free]) / scales
+    lbx = np.concatenate([lo, np.tile(-Q_BOUNDS, T)])
+    ubx = np.concatenate([hi, np.tile(Q_BOUNDS, T)])
+    return NLPExpressions(ca.vertcat(xp, ca.vec(xq)), par, f, g, scales, lbx, ubx)
+
+
+def build_nlp(model: KneeModel, n_trials: int, free: list[str], solver: str = "ipopt",
+              options: dict | None = None) -> IdentificationNLP:
+    """Build the identification NLP solver (see module docstring)."""
+    import time
+
+    t0 = time.perf_counter()
+    free = check_free(model, free)
+    e = nlp_expressions(model, n_trials, free)
+    nlp = {"x": e.x, "p": e.p, "f": e.f, "g": e.g}
     opts = dict(options or {})
     if solver == "ipopt":
         ipopt = {"tol": 1e-12, "acceptable_tol": 1e-9, "constr_viol_tol": 1e-9, "max_iter": 150,
@@ -134,8 +158,4 @@ def build_nlp(model: KneeModel, n_trials: int, free: list[str], solver: str = "i
     except RuntimeError as exc:
         raise InputError(f"cannot create NLP solver {solver!r}: {str(exc).splitlines()[-1]}",
                          field="solver") from None
-    lo = np.array([BOUNDS[parameter_kind(n)][0] for n in free]) / scales
-    hi = np.array([BOUNDS[parameter_kind(n)][1] for n in free]) / scales
-    lbx = np.concatenate([lo, np.tile(-Q_BOUNDS, T)])
-    ubx = np.concatenate([hi, np.tile(Q_BOUNDS, T)])
-    return IdentificationNLP(model, T, free, solver, fn, scales, lbx, ubx, time.perf_counter() - t0)
+    return IdentificationNLP(model, n_trials, free, solver, fn, e.scales, e.lbx, e.ubx, time.perf_counter() - t0)

@@ -1,0 +1,37 @@
+"""Benchmark: the paper's full noise study (4 sets x 20 samples, uniform +-0.5) on local processes.
+
+Target (issue 5): <= 60 s on the 2-core machine.  Also prints the per-set mean time per fit and
+the extrapolated time of 1000 samples per set.
+Run: python benchmarks/bench_study.py [samples] [workers]
+"""
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from kneenlp.study import StudySpec, run_study
+
+
+def main(samples: int = 20, workers: int = 2) -> None:
+    out = Path(tempfile.mkdtemp()) / "study"
+    t0 = time.perf_counter()
+    study = run_study(StudySpec(samples=samples, seed=0), out, workers=workers, progress=False, analyse=False)
+    run = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    from kneenlp.study_report import analyse_study
+
+    analyse_study(study)
+    analysis = time.perf_counter() - t1
+    df = study.load_rows()
+    print(f"{len(df)} fits ({samples} per set, {workers} workers): run {run:.1f} s, analysis {analysis:.1f} s, "
+          f"failed {int((~df['success'].astype(bool)).sum())}")
+    per_set = df.groupby("set")["wall_seconds"].mean()
+    for s, v in per_set.items():
+        print(f"  {s}: {v:.2f} s per fit (one core)")
+    extrapolated = 1000 * per_set.sum() / workers
+    print(f"  1000 samples per set, extrapolated: {extrapolated / 60:.0f} min on {workers} workers")
+
+
+if __name__ == "__main__":
+    main(*(int(a) for a in sys.argv[1:3]))
