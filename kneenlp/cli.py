@@ -135,6 +135,22 @@ def cmd_study(args) -> int:
     return 1 if failed else 0
 
 
+def cmd_export(args) -> int:
+    from .export import export_problem, write_export
+
+    knee = _knee(args)
+    free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
+    prob = export_problem(knee, args.data, free=free, seed=args.seed)
+    files = write_export(prob, args.format, args.out, nl_common=args.nl_common)
+    if args.json:
+        print(json.dumps({"format": args.format, "files": [str(f) for f in files],
+                          "variables": len(prob.var_names), "constraints": len(prob.con_names)}, indent=2))
+    else:
+        print(f"wrote {args.format} export of {len(prob.var_names)} variables, {len(prob.con_names)} constraints: "
+              + ", ".join(str(f) for f in files))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="kneenlp", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -192,6 +208,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=cmd_study)
+
+    p = sub.add_parser("export", help="write the identification NLP for other solvers (.nl, CasADi, C)")
+    p.add_argument("data", help="measured-data CSV")
+    p.add_argument("--format", required=True, choices=["nl", "casadi", "c"], help="export format")
+    p.add_argument("--out", default="kneenlp-export", help="output directory")
+    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    p.add_argument("--parameters", help="parameter set TOML")
+    p.add_argument("--free", help="comma-separated parameters to identify")
+    p.add_argument("--seed", type=int, default=0, help="seed of the start scatter")
+    p.add_argument("--nl-common", default="defined", choices=["defined", "lifted"],
+                   help="shared subexpressions as .nl defined variables (default) or lifted auxiliary variables")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_export)
     return parser
 
 

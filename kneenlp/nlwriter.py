@@ -79,11 +79,27 @@ class _Graph:
 
 
 class _Emitter:
+    """Writes nodes as prefix tokens; sums are flattened into n-ary ``o54`` so that trees stay
+    shallow (a left-deep chain of thousands of additions overflowed SCIP's recursive reader)."""
+
     def __init__(self, graph: _Graph, var_map: np.ndarray, n_var: int):
         self.g = graph
         self.var_map = var_map  # SX input index -> .nl variable index
         self.defined: dict[int, int] = {}  # node -> defined-variable index (global .nl index)
         self.n_var = n_var
+
+    def _sum_terms(self, node: int) -> list[int]:
+        """Operands of the maximal tree of single-use, non-defined additions rooted at ``node``."""
+        terms: list[int] = []
+        stack = [node]
+        while stack:
+            n = stack.pop()
+            kind, data = self.g.kind[n], self.g.data[n]
+            if n != node and (n in self.defined or kind != "o" or data[0] != ca.OP_ADD):
+                terms.append(n)
+                continue
+            stack.extend(reversed(data[1]))
+        return terms
 
     def tokens(self, node: int, top: bool = False) -> list[str]:
         """Prefix tokens of ``node`` (iterative, so deep chains do not hit the recursion limit)."""
@@ -106,7 +122,11 @@ class _Emitter:
             else:
                 op, ch = data
                 seq: list = []
-                if op in _BINARY:
+                if op == ca.OP_ADD:
+                    terms = self._sum_terms(n)
+                    seq = ["o54", str(len(terms)), *[(t, False) for t in terms]] if len(terms) > 2 else \
+                        ["o0", (terms[0], False), (terms[1], False)]
+                elif op in _BINARY:
                     seq = [_BINARY[op], (ch[0], False), (ch[1], False)]
                 elif op in _UNARY:
                     seq = [_UNARY[op], (ch[0], False)]
@@ -128,27 +148,107 @@ class _Emitter:
         return out
 
 
+_NUMPY = {ca.OP_ADD: np.add, ca.OP_SUB: np.subtract, ca.OP_MUL: np.multiply, ca.OP_DIV: np.divide,
+          ca.OP_POW: np.power, ca.OP_CONSTPOW: np.power, ca.OP_ATAN2: np.arctan2, ca.OP_NEG: np.negative,
+          ca.OP_SQRT: np.sqrt, ca.OP_EXP: np.exp, ca.OP_LOG: np.log, ca.OP_SIN: np.sin, ca.OP_COS: np.cos,
+          ca.OP_TAN: np.tan, ca.OP_ATAN: np.arctan, ca.OP_ASIN: np.arcsin, ca.OP_ACOS: np.arccos,
+          ca.OP_TANH: np.tanh, ca.OP_SINH: np.sinh, ca.OP_COSH: np.cosh, ca.OP_FABS: np.abs,
+          ca.OP_SQ: np.square, ca.OP_TWICE: lambda a: 2 * a, ca.OP_INV: lambda a: 1 / a, ca.OP_FMIN: np.minimum,
+          ca.OP_FMAX: np.maximum, ca.OP_LOG1P: np.log1p, ca.OP_EXPM1: np.expm1}
+
+
+def _node_values(graph: _Graph, x: np.ndarray) -> np.ndarray:
+    vals = np.zeros(len(graph.kind))
+    with np.errstate(all="ignore"):
+        for i, (kind, data) in enumerate(zip(graph.kind, graph.data, strict=True)):
+            if kind == "v":
+                vals[i] = x[data]
+            elif kind == "n":
+                vals[i] = data
+            else:
+                vals[i] = _NUMPY[data[0]](*(vals[c] for c in data[1]))
+    return vals
+
+
+def _leaves(graph: _Graph, node: int | None, cut: dict[int, int], n: int) -> set[int]:
+    """Variable indices an expression depends on, shared nodes counting as variable ``cut[node]``."""
+    out: set[int] = set()
+    if node is None:
+        return out
+    stack, seen = [node], set()
+    while stack:
+        k = stack.pop()
+        if k in seen:
+            continue
+        seen.add(k)
+        if k != node and k in cut:
+            out.add(cut[k])
+        elif graph.kind[k] == "v":
+            out.add(graph.data[k])
+        elif graph.kind[k] == "o":
+            stack.extend(graph.data[k][1])
+    return out
+
+
 def write_nl(path: str | Path, fn: ca.Function, *, n_both: int, x0: Sequence[float], lbx: Sequence[float],
              ubx: Sequence[float], lbg: Sequence[float], ubg: Sequence[float], var_names: Sequence[str],
-             con_names: Sequence[str], objective_name: str = "objective", title: str = "kneenlp") -> dict:
+             con_names: Sequence[str], objective_name: str = "objective", title: str = "kneenlp",
+             common: str = "defined") -> dict:
     """Write ``fn`` (SX, ``x -> (f, g)``, variables already in .nl order) to ``path`` (.nl) with
-    ``.row``/``.col`` name files beside it.  Returns counts for the caller's metadata."""
+    ``.row``/``.col`` name files beside it.  Returns counts for the caller's metadata.
+
+    ``common`` says how subexpressions used more than once are written: ``"defined"`` as .nl
+    defined variables (compact, the same NLP), or ``"lifted"`` as auxiliary variables ``aux_j``
+    with constraints ``aux_j - expr_j = 0`` (an equivalent lifted NLP, for readers that copy
+    defined variables at every use: SCIP's reader is exponential in their nesting depth).
+    """
+    if common not in ("defined", "lifted"):
+        raise ValueError(f"common must be 'defined' or 'lifted', got {common!r}")
     if not fn.is_a("SXFunction"):
         fn = fn.expand()
-    n, m = fn.nnz_in(0), fn.nnz_out(1)
+    n0, m0 = fn.nnz_in(0), fn.nnz_out(1)
     graph = _Graph(fn)
-    em = _Emitter(graph, np.arange(n), n)
     shared = [i for i in range(len(graph.kind)) if graph.kind[i] == "o" and graph.uses[i] > 1]
-    for j, node in enumerate(shared):
-        em.defined[node] = n + j
-    x = ca.SX.sym("x", n)
-    f_expr, g_expr = fn(x)
-    jac = ca.jacobian_sparsity(g_expr, x) if m else ca.Sparsity(0, n)
-    grad = ca.jacobian_sparsity(f_expr, x)
-    rows_j = [[] for _ in range(m)]
-    for r, c in zip(*jac.get_triplet(), strict=True):
-        rows_j[r].append(c)
-    col_counts = np.bincount(np.array(jac.get_triplet()[1], dtype=int), minlength=n)
+    cut = {node: n0 + j for j, node in enumerate(shared)}
+    lifted = common == "lifted"
+    n = n0 + (len(shared) if lifted else 0)
+    m = m0 + (len(shared) if lifted else 0)
+    em = _Emitter(graph, np.arange(n0), n0)
+    em.defined = dict(cut)
+    x0 = np.asarray(x0, dtype=float)
+    con_nodes = list(graph.g_nodes) + (shared if lifted else [])
+    rows = [sorted(_leaves(graph, node, cut, n0) | ({cut[node]} if lifted and i >= m0 else set()))
+            for i, node in enumerate(con_nodes)]
+    if not lifted:  # defined variables are not variables: expand their dependencies
+        dep: dict[int, set[int]] = {}
+        for node in shared:
+            d = set()
+            for v in _leaves(graph, node, cut, n0):
+                d |= dep[v] if v >= n0 else {v}
+            dep[cut[node]] = d
+
+        def expand(vs: list[int]) -> list[int]:
+            return sorted(set().union(*[dep[v] if v >= n0 else {v} for v in vs])) if vs else []
+
+        rows = [expand(r) for r in rows]
+        gcols = expand(sorted(_leaves(graph, graph.f_node, cut, n0)))
+    else:
+        gcols = sorted(_leaves(graph, graph.f_node, cut, n0))
+    col_counts = np.zeros(n, dtype=int)
+    for r in rows:
+        col_counts[r] += 1
+    if lifted:
+        x_all = np.concatenate([x0, _node_values(graph, x0)[shared]])
+        lbx = np.concatenate([lbx, np.full(len(shared), -np.inf)])
+        ubx = np.concatenate([ubx, np.full(len(shared), np.inf)])
+        lbg = np.concatenate([lbg, np.zeros(len(shared))])
+        ubg = np.concatenate([ubg, np.zeros(len(shared))])
+        var_names = [*var_names, *[f"aux_{j}" for j in range(len(shared))]]
+        con_names = [*con_names, *[f"aux_{j}_definition" for j in range(len(shared))]]
+        nlv = (n, n, n)
+    else:
+        x_all = x0
+        nlv = (n, n_both, n_both)
     path = Path(path)
     with path.open("w") as fh:
         w = fh.write
@@ -156,37 +256,36 @@ def write_nl(path: str | Path, fn: ca.Function, *, n_both: int, x0: Sequence[flo
         w(f" {n} {m} 1 0 {m} 0\t# vars, constraints, objectives, ranges, eqns, lcons\n")
         w(f" {m} 1\t# nonlinear constraints, objectives\n")
         w(" 0 0\t# network constraints: nonlinear, linear\n")
-        w(f" {n} {n_both} {n_both}\t# nonlinear vars in constraints, objectives, both\n")
+        w(f" {nlv[0]} {nlv[1]} {nlv[2]}\t# nonlinear vars in constraints, objectives, both\n")
         w(" 0 0 0 1\t# linear network variables; functions; arith, flags\n")
         w(" 0 0 0 0 0\t# discrete variables: binary, integer, nonlinear (b,c,o)\n")
-        w(f" {jac.nnz()} {grad.nnz()}\t# nonzeros in Jacobian, gradients\n")
+        w(f" {int(col_counts.sum())} {len(gcols)}\t# nonzeros in Jacobian, gradients\n")
         w(f" {max(map(len, con_names), default=0)} {max(map(len, var_names), default=0)}"
           "\t# max name lengths: constraints, variables\n")
-        w(f" {len(shared)} 0 0 0 0\t# common exprs: b,c,o,c1,o1\n")
-        for node in shared:
-            w(f"V{em.defined[node]} 0 0\n")
-            w("\n".join(em.tokens(node, top=True)) + "\n")
+        w(f" {0 if lifted else len(shared)} 0 0 0 0\t# common exprs: b,c,o,c1,o1\n")
+        if not lifted:
+            for node in shared:
+                w(f"V{cut[node]} 0 0\n")
+                w("\n".join(em.tokens(node, top=True)) + "\n")
         for i, node in enumerate(graph.g_nodes):
             w(f"C{i}\n")
             w(("\n".join(em.tokens(node)) if node is not None else "n0") + "\n")
+        if lifted:
+            for j, node in enumerate(shared):
+                w(f"C{m0 + j}\no1\nv{cut[node]}\n" + "\n".join(em.tokens(node, top=True)) + "\n")
         w("O0 0\n")
         w(("\n".join(em.tokens(graph.f_node)) if graph.f_node is not None else "n0") + "\n")
-        w(f"x{n}\n" + "".join(f"{i} {float(v)!r}\n" for i, v in enumerate(x0)))
-        w("r\n")
-        for lo, hi in zip(lbg, ubg, strict=True):
-            w(_bound_line(lo, hi))
-        w("b\n")
-        for lo, hi in zip(lbx, ubx, strict=True):
-            w(_bound_line(lo, hi))
+        w(f"x{n}\n" + "".join(f"{i} {float(v)!r}\n" for i, v in enumerate(x_all)))
+        w("r\n" + "".join(_bound_line(lo, hi) for lo, hi in zip(lbg, ubg, strict=True)))
+        w("b\n" + "".join(_bound_line(lo, hi) for lo, hi in zip(lbx, ubx, strict=True)))
         w(f"k{n - 1}\n" + "".join(f"{c}\n" for c in np.cumsum(col_counts)[: n - 1]))
-        for i, cols in enumerate(rows_j):
-            w(f"J{i} {len(cols)}\n" + "".join(f"{c} 0\n" for c in sorted(cols)))
-        gcols = sorted(grad.get_triplet()[1])
+        for i, cols in enumerate(rows):
+            w(f"J{i} {len(cols)}\n" + "".join(f"{c} 0\n" for c in cols))
         w(f"G0 {len(gcols)}\n" + "".join(f"{c} 0\n" for c in gcols))
     path.with_suffix(".row").write_text("".join(f"{c}\n" for c in con_names) + f"{objective_name}\n")
     path.with_suffix(".col").write_text("".join(f"{v}\n" for v in var_names))
-    return {"variables": n, "constraints": m, "defined_variables": len(shared),
-            "instructions": fn.n_instructions(), "jacobian_nonzeros": jac.nnz()}
+    return {"variables": n, "constraints": m, "common": common, "shared_subexpressions": len(shared),
+            "instructions": fn.n_instructions(), "jacobian_nonzeros": int(col_counts.sum())}
 
 
 def _bound_line(lo: float, hi: float) -> str:

@@ -1,0 +1,174 @@
+"""Export the identification NLP for other solvers: AMPL .nl, CasADi serialised functions, C code.
+
+The exported problem is exactly :mod:`kneenlp.nlp`'s NLP for one knee, one data set and one set of
+free parameters, with the data substituted (``.nl``) or supplied as the parameter vector ``p``
+(CasADi and C).  Decision variables: the free parameters scaled to order one (value / scale, the
+scale and unit are in ``problem.json``) and every trial's five coordinates in mm and deg.
+Constraints: every trial's five equilibrium residuals (N m, N m, N, N, N), all ``= 0``.
+Objective: the sum of squared model-minus-measured coordinates (mm^2 + deg^2).
+
+* ``nl``: ``kneenlp.nl`` (+ ``.row``/``.col`` names) written by :mod:`kneenlp.nlwriter`; variables
+  in .nl order (coordinates first, they appear nonlinearly in the objective too);
+* ``casadi``: ``nlp_f``, ``nlp_g``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l`` as
+  ``*.casadi`` files for ``casadi.Function.load`` (no kneenlp needed), inputs ``(x, p)``
+  (``nlp_hess_l``: ``(x, p, lam_f, lam_g)``, the full symmetric Hessian of
+  ``lam_f f + lam_g' g``);
+* ``c``: the same functions as C code (``kneenlp_nlp.c`` and ``kneenlp_nlp.h``, CasADi's
+  calling convention), compile with ``gcc -shared -fPIC -O1``;
+* always ``problem.json``: names, units, scaling, bounds, start, ``p`` and the data's origin.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from .conventions import COORDINATE_UNITS, COORDINATES, RESIDUAL_NAMES, RESIDUAL_UNITS, coords_to_user
+from .data import MeasuredData, read_measured
+from .errors import InputError
+from .knee import Knee
+from .nlp import check_free, default_free, nlp_expressions
+from .simulate import model_for
+
+FORMATS = ("nl", "casadi", "c")
+
+
+@dataclass
+class ExportProblem:
+    """The NLP of one identification, ready to be written in any format."""
+
+    f: ca.MX
+    g: ca.MX
+    x: ca.MX
+    p: ca.MX
+    p_value: np.ndarray
+    x0: np.ndarray
+    lbx: np.ndarray
+    ubx: np.ndarray
+    var_names: list[str]
+    var_units: list[str]
+    con_names: list[str]
+    con_units: list[str]
+    scales: dict[str, float]
+    n_free: int
+    meta: dict
+
+    def function(self) -> ca.Function:
+        return ca.Function("nlp", [self.x, self.p], [self.f, self.g], ["x", "p"], ["f", "g"])
+
+
+def export_problem(knee: Knee | None, data: MeasuredData | str | Path, *, free: list[str] | None = None,
+                   start: dict[str, float] | None = None, seed: int = 0) -> ExportProblem:
+    """Build the identification NLP of ``data`` with a start like :func:`kneenlp.identify.identify`'s."""
+    from .identify import _forward_solver, paper_scatter
+
+    knee = knee or Knee.default()
+    model = model_for(knee)
+    if not isinstance(data, MeasuredData):
+        data = read_measured(data)
+    free = check_free(model, free or default_free(model))
+    T = len(data)
+    e = nlp_expressions(model, T, free, parallel="serial")
+    values = paper_scatter(model, free, np.random.default_rng(seed))
+    values.update(start or {})
+    q0, res = _forward_solver(model).solve_batch(data.trials, model.theta(values), data.q)
+    q0_user = np.where((res <= 1e-6)[:, None], coords_to_user(q0), data.q_user)
+    loads = np.array([t.load for t in data.trials])
+    flex = np.array([t.flexion for t in data.trials])
+    p = np.concatenate([model.theta(), data.q_user.ravel(), np.ones(5 * T), loads.ravel(), flex])
+    x0 = np.concatenate([np.array([values[n] for n in free]) / e.scales, q0_user.ravel()])
+    info = {n: model.parameter_info[model.index(n)] for n in free}
+    var_names = list(free) + [f"{t.id}.{c}" for t in data.trials for c in COORDINATES]
+    var_units = [f"{info[n].unit} x {e.scales[i] * info[n].to_user:g}" for i, n in enumerate(free)]
+    var_units += list(COORDINATE_UNITS) * T
+    con_names = [f"{t.id}.eq_{r}" for t in data.trials for r in RESIDUAL_NAMES]
+    meta = {"knee": knee.source, "data": data.source, "protocol": data.protocol, "trials": [t.id for t in data.trials],
+            "parameters": dict(zip(model.parameter_names, model.theta().tolist(), strict=True)),
+            "start_seed": seed}
+    return ExportProblem(e.f, e.g, e.x, e.p, p, x0, e.lbx, e.ubx, var_names, var_units, con_names,
+                         list(RESIDUAL_UNITS) * T, {n: float(s) for n, s in zip(free, e.scales, strict=True)},
+                         len(free), meta)
+
+
+def _derivative_functions(prob: ExportProblem) -> list[ca.Function]:
+    x, p = prob.x, prob.p
+    lam_f = ca.MX.sym("lam_f")
+    lam_g = ca.MX.sym("lam_g", prob.g.numel())
+    lag = lam_f * prob.f + ca.dot(lam_g, prob.g)
+    return [
+        ca.Function("nlp_f", [x, p], [prob.f], ["x", "p"], ["f"]),
+        ca.Function("nlp_g", [x, p], [prob.g], ["x", "p"], ["g"]),
+        ca.Function("nlp_grad_f", [x, p], [ca.gradient(prob.f, x)], ["x", "p"], ["grad_f"]),
+        ca.Function("nlp_jac_g", [x, p], [ca.jacobian(prob.g, x)], ["x", "p"], ["jac_g"]),
+        ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [ca.hessian(lag, x)[0]],
+                    ["x", "p", "lam_f", "lam_g"], ["hess_l"]),
+    ]
+
+
+def nl_function(prob: ExportProblem) -> tuple[ca.Function, np.ndarray]:
+    """The NLP with the data substituted as an SX function of the .nl-ordered variables
+    (coordinates first), and ``order`` such that ``x_nl = x[order]``."""
+    nq = len(prob.var_names) - prob.n_free
+    order = np.concatenate([np.arange(prob.n_free, prob.n_free + nq), np.arange(prob.n_free)])
+    xnl = ca.MX.sym("x_nl", len(order))
+    x_ours = ca.vertcat(xnl[nq:], xnl[:nq])
+    return ca.Function("nlp_nl", [xnl], list(prob.function()(x_ours, prob.p_value))).expand(), order
+
+
+def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: str = "defined") -> list[Path]:
+    """Write ``prob`` in format ``fmt`` (nl, casadi, c) into directory ``out``; returns the files.
+
+    ``nl_common``: see :func:`kneenlp.nlwriter.write_nl` (``"lifted"`` for SCIP)."""
+    if fmt not in FORMATS:
+        raise InputError(f"unknown export format {fmt!r}; known: {', '.join(FORMATS)}", field="--format")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = []
+    extra: dict = {}
+    if fmt == "nl":
+        from .nlwriter import write_nl
+
+        fn, order = nl_function(prob)
+        nq = len(order) - prob.n_free
+        extra = write_nl(out / "kneenlp.nl", fn, n_both=nq, x0=prob.x0[order], lbx=prob.lbx[order],
+                         ubx=prob.ubx[order], lbg=np.zeros(len(prob.con_names)), ubg=np.zeros(len(prob.con_names)),
+                         var_names=[prob.var_names[i] for i in order], con_names=prob.con_names,
+                         objective_name="sum_squared_residuals", title="kneenlp identification",
+                         common=nl_common)
+        extra["variable_order"] = "nl: coordinates first, then free parameters (see kneenlp.col)"
+        files += [out / "kneenlp.nl", out / "kneenlp.row", out / "kneenlp.col"]
+    elif fmt == "casadi":
+        for fn in _derivative_functions(prob):
+            fn.save(str(out / f"{fn.name()}.casadi"))
+            files.append(out / f"{fn.name()}.casadi")
+    else:
+        cg = ca.CodeGenerator("kneenlp_nlp.c", {"with_header": True})
+        for fn in _derivative_functions(prob):
+            cg.add(fn)
+        cg.generate(str(out) + "/")
+        files += [out / "kneenlp_nlp.c", out / "kneenlp_nlp.h"]
+    sidecar = {
+        "format": fmt,
+        "description": "kneenlp identification NLP: min sum of squared coordinate residuals s.t. equilibrium",
+        "objective": {"name": "sum_squared_residuals", "unit": "mm^2 + deg^2"},
+        "variables": [{"name": n, "unit": u, "lb": float(lo), "ub": float(hi), "x0": float(v)}
+                      for n, u, lo, hi, v in zip(prob.var_names, prob.var_units, prob.lbx, prob.ubx, prob.x0,
+                                                 strict=True)],
+        "constraints": [{"name": n, "unit": u, "lb": 0.0, "ub": 0.0}
+                        for n, u in zip(prob.con_names, prob.con_units, strict=True)],
+        "scaling": {n: {"scale": s, "meaning": f"variable = {n} [SI] / {s:g}"} for n, s in prob.scales.items()},
+        "p": prob.p_value.tolist(),
+        "p_layout": "theta (all model parameters, SI, in 'parameters' order), measured coordinates (T x 5, "
+                    "mm/deg), weights (T x 5), loads (T x 6, N and N m, femoral frame), flexion (T, rad)",
+        "source": prob.meta,
+        "files": [f.name for f in files],
+        **({"nl": extra} if extra else {}),
+    }
+    (out / "problem.json").write_text(json.dumps(sidecar, indent=1))
+    files.append(out / "problem.json")
+    return files
+

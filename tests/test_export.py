@@ -1,0 +1,190 @@
+"""Export of the identification NLP (issue 6): .nl (CasADi import, SCIP), CasADi files, C code."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import kneenlp
+from kneenlp import anatomy
+from kneenlp.cli import main
+from kneenlp.conventions import TO_USER
+from kneenlp.data import read_measured
+from kneenlp.export import export_problem, nl_function, write_export
+from kneenlp.identify import identify
+
+
+@pytest.fixture(scope="module")
+def coarse_case(tmp_path_factory):
+    """The default knee with tibial cartilage sampled every 3 mm (same formulation, 9x fewer
+    contact points), Set 1 with noise, and its simultaneous fit: keeps the .nl small for readers."""
+    d = tmp_path_factory.mktemp("coarse")
+    (d / "meshes").mkdir()
+    for c in anatomy.DEFAULT_COMPARTMENTS:
+        anatomy.condyle_mesh(c).export(d / "meshes" / f"femur_{c.name}.stl")
+        anatomy.plateau_mesh(c, spacing=3.0).export(d / "meshes" / f"tibia_{c.name}.stl")
+    text = (kneenlp.knee.DEFAULT_KNEE).read_text().replace(
+        "../../parameters/table1.toml", str(kneenlp.knee.PROBLEMS / "parameters" / "table1.toml"))
+    (d / "knee.toml").write_text(text)
+    knee = kneenlp.Knee.load(d / "knee.toml")
+    kneenlp.simulate(knee, "set1").measured("uniform:0.5", 1).to_csv(d / "m.csv", index=False)
+    data = read_measured(d / "m.csv")
+    fit = identify(knee, data, seed=1)
+    prob = export_problem(knee, data, seed=1)
+    x_opt = np.concatenate([np.array([fit.params[n] for n in fit.free]) / [prob.scales[n] for n in fit.free],
+                            (fit.q_pred * TO_USER).ravel()])
+    return knee, data, fit, prob, x_opt, d
+
+
+def test_nl_round_trip_through_casadi_nlpbuilder(coarse_case, tmp_path):
+    _, _, fit, prob, x_opt, _ = coarse_case
+    files = write_export(prob, "nl", tmp_path)
+    assert {f.name for f in files} == {"kneenlp.nl", "kneenlp.row", "kneenlp.col", "problem.json"}
+    cols = (tmp_path / "kneenlp.col").read_text().split()
+    assert cols[0] == "none_flex30.varus_rotation" and "ACL.k" in cols
+    assert "anterior_134N_flex30.eq_force_anterior" in (tmp_path / "kneenlp.row").read_text()
+    nb = ca.NlpBuilder()
+    nb.import_nl(str(tmp_path / "kneenlp.nl"))
+    x = ca.vertcat(*nb.x)
+    fn = ca.Function("imported", [x], [nb.f, ca.vertcat(*nb.g)]).expand()
+    f, g = fn(x_opt[nl_function(prob)[1]])
+    assert float(f) == pytest.approx(fit.objective, rel=1e-10)
+    assert np.max(np.abs(np.asarray(g))) <= 1e-6
+
+
+def test_nl_solved_by_ipopt_after_import_recovers_the_truth(coarse_case, tmp_path):
+    """Zero-noise Set 1 data: the imported NLP, solved by IPOPT from the file's own start (the
+    paper's scatter, poses solved forward), returns Table 1 (a unique optimum, objective 0)."""
+    knee, _, _, _, _, d = coarse_case
+    kneenlp.simulate(knee, "set1").measured("none").to_csv(d / "exact.csv", index=False)
+    prob = export_problem(knee, read_measured(d / "exact.csv"), seed=3)
+    write_export(prob, "nl", tmp_path)
+    nb = ca.NlpBuilder()
+    nb.import_nl(str(tmp_path / "kneenlp.nl"))
+    x = ca.vertcat(*nb.x)
+    solver = ca.nlpsol("again", "ipopt", {"x": x, "f": nb.f, "g": ca.vertcat(*nb.g)},
+                       {"expand": True, "print_time": False, "ipopt": {"print_level": 0, "tol": 1e-14,
+                                                                        "mu_strategy": "monotone", "sb": "yes"}})
+    sol = solver(x0=nb.x_init, lbx=nb.x_lb, ubx=nb.x_ub, lbg=nb.g_lb, ubg=nb.g_ub)
+    assert solver.stats()["success"]
+    assert float(sol["f"]) < 1e-12
+    names = (tmp_path / "kneenlp.col").read_text().split()
+    xs = np.asarray(sol["x"]).ravel()
+    for n, scale in prob.scales.items():
+        assert xs[names.index(n)] * scale == pytest.approx(knee.parameters[n], rel=1e-6)
+
+
+def test_nl_read_by_scip(coarse_case, tmp_path):
+    pyscipopt = pytest.importorskip("pyscipopt")
+    _, _, fit, prob, x_opt, _ = coarse_case
+    write_export(prob, "nl", tmp_path, nl_common="lifted")  # SCIP copies defined variables at every use
+    from kneenlp.nlwriter import _Graph, _node_values
+
+    sx, order = nl_function(prob)
+    xs = x_opt[order]
+    graph = _Graph(sx)  # values of the lifted auxiliaries at our optimum
+    shared = [i for i in range(len(graph.kind)) if graph.kind[i] == "o" and graph.uses[i] > 1]
+    full = np.concatenate([xs, _node_values(graph, xs)[shared]])
+    accepted = []
+    for rel in (1e-8, -1e-8):
+        m = pyscipopt.Model()
+        m.hideOutput()
+        m.readProblem(str(tmp_path / "kneenlp.nl"))
+        m.setParam("numerics/feastol", 1e-9)
+        m.setParam("constraints/nonlinear/violscale", "a")
+        variables = m.getVars()
+        assert len(variables) == len(full) + 1 and variables[-1].name == "nlobjvar"
+        sol = m.createSol()
+        for v, val in zip(variables[:-1], full, strict=True):
+            m.setSolVal(sol, v, val)
+        m.setSolVal(sol, variables[-1], fit.objective * (1 + rel))
+        accepted.append(m.checkSol(sol, completely=False, checkintegrality=False, original=True))
+    # SCIP's objective at our optimum lies within 1e-8 relative of ours: above f(1-1e-8), below f(1+1e-8)
+    assert accepted == [True, False]
+
+
+def _eval_inputs(prob, x_opt):
+    lam_g = np.linspace(-1.0, 1.0, len(prob.con_names))
+    return {"x": x_opt, "p": prob.p_value, "lam_f": 1.0, "lam_g": lam_g}
+
+
+def _reference(prob, x_opt):
+    from kneenlp.export import _derivative_functions
+
+    args = _eval_inputs(prob, x_opt)
+    out = {}
+    for fn in _derivative_functions(prob):
+        res = fn(*[args[n] for n in fn.name_in()])
+        out[fn.name()] = np.asarray(ca.densify(res)).ravel()
+    return out
+
+
+def test_casadi_files_load_in_a_fresh_process_without_kneenlp(coarse_case, tmp_path):
+    _, _, _, prob, x_opt, _ = coarse_case
+    write_export(prob, "casadi", tmp_path)
+    np.savez(tmp_path / "inputs.npz", **_eval_inputs(prob, x_opt))
+    script = textwrap.dedent("""
+        import json, sys
+        sys.modules["kneenlp"] = None  # prove kneenlp is not needed
+        import casadi as ca, numpy as np
+        d = sys.argv[1]
+        a = dict(np.load(d + "/inputs.npz"))
+        out = {}
+        for name in ("nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g", "nlp_hess_l"):
+            fn = ca.Function.load(d + "/" + name + ".casadi")
+            res = fn(*[a[n] for n in fn.name_in()])
+            out[name] = np.asarray(ca.densify(res)).ravel().tolist()
+        print(json.dumps(out))
+    """)
+    proc = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    loaded = json.loads(proc.stdout)
+    for name, ref in _reference(prob, x_opt).items():
+        assert np.allclose(loaded[name], ref, rtol=1e-12, atol=1e-12 * max(1.0, np.abs(ref).max())), name
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("gcc") is None, reason="needs gcc")
+def test_c_code_compiles_and_evaluates_identically(coarse_case, tmp_path):
+    _, _, _, prob, x_opt, _ = coarse_case
+    write_export(prob, "c", tmp_path)
+    assert "nlp_hess_l" in (tmp_path / "kneenlp_nlp.h").read_text()
+    lib = tmp_path / "libkneenlp_nlp.so"
+    subprocess.run(["gcc", "-shared", "-fPIC", "-O1", str(tmp_path / "kneenlp_nlp.c"), "-o", str(lib), "-lm"],
+                   check=True, timeout=600)
+    args = _eval_inputs(prob, x_opt)
+    for name, ref in _reference(prob, x_opt).items():
+        fn = ca.external(name, str(lib))
+        res = np.asarray(ca.densify(fn(*[args[n] for n in fn.name_in()]))).ravel()
+        assert np.allclose(res, ref, rtol=1e-10, atol=1e-10 * max(1.0, np.abs(ref).max())), name
+
+
+def test_cli_export_json(coarse_case, tmp_path, capsys):
+    _, data, _, _, _, d = coarse_case
+    code = main(["export", data.source, "--format", "nl", "--knee", str(d / "knee.toml"), "--out", str(tmp_path),
+                 "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0 and out["variables"] == 8 + 35 and out["constraints"] == 35
+    meta = json.loads((tmp_path / "problem.json").read_text())
+    assert meta["objective"]["unit"] == "mm^2 + deg^2" and meta["scaling"]["ACL.k"]["scale"] == 1e4
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("solver,options", [
+    ("sqpmethod", {"qpsol": "qrqp", "print_iteration": False, "print_header": False, "print_status": False,
+                   "qpsol_options": {"print_iter": False, "print_header": False, "error_on_fail": False}}),
+    ("uno", {}),
+])
+def test_other_nlpsol_plugins_reach_the_ipopt_optimum(coarse_case, solver, options):
+    knee, data, fit, _, _, _ = coarse_case
+    other = identify(knee, data, seed=1, solver=solver, solver_options=options)
+    assert other.success, other.report()
+    assert other.objective == pytest.approx(fit.objective, rel=1e-6)
+    assert max(abs(other.params[n] - fit.params[n]) / abs(fit.params[n]) for n in fit.free) < 1e-5
