@@ -151,6 +151,27 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_design(args) -> int:
+    from .design import candidate_pool, design, write_protocol
+
+    knee = _knee(args)
+    flexions = tuple(float(f) for f in args.flexions.split(","))
+    free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
+    result = design(knee, args.max_cases, args.criterion, pool=candidate_pool(flexions), free=free,
+                    noise=args.noise, robust=args.robust, seed=args.seed, reference=args.reference)
+    path = write_protocol(result, args.out)
+    summary = {"protocol": str(path), "cases": len(result.protocol), "criterion": args.criterion,
+               "value": result.value, "predicted_relative_stderr": result.predicted_rse,
+               "trials": [t.id for t in result.protocol.trials]}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"wrote {path}: {len(result.protocol)} load cases, {args.criterion}-criterion {result.value:.4g}")
+        for n, v in result.predicted_rse.items():
+            print(f"  {n:18s} predicted relative standard error {100 * v:6.2f} %")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="kneenlp", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -221,6 +242,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="shared subexpressions as .nl defined variables (default) or lifted auxiliary variables")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("design", help="design a laxity protocol with few load cases and tight estimates")
+    p.add_argument("--max-cases", type=int, default=22, help="largest number of load cases (default 22)")
+    p.add_argument("--criterion", default="A", choices=["A", "D", "W", "R"],
+                   help="A: sum of relative variances, D: log det, W: worst relative standard error, "
+                        "R: worst standard-error ratio to a reference protocol (--reference)")
+    p.add_argument("--reference", default="set4", help="reference protocol of criterion R (default set4)")
+    p.add_argument("--flexions", default="0,15,30,45,60", help="candidate flexion angles, deg")
+    p.add_argument("--noise", default="uniform:0.5", help="noise model (mm, deg)")
+    p.add_argument("--robust", type=int, default=3, help="parameter sets averaged over (knee's + scatter draws)")
+    p.add_argument("--free", help="comma-separated parameters to identify")
+    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    p.add_argument("--parameters", help="parameter set TOML")
+    p.add_argument("--seed", type=int, default=0, help="seed of the robustness draws")
+    p.add_argument("--out", default="designed_protocol.toml", help="protocol TOML to write")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_design)
     return parser
 
 
