@@ -48,17 +48,20 @@ class Fit:
 
     # ------------------------------------------------------------------ derived
     @property
-    def residuals(self) -> np.ndarray:
-        """Model minus measured coordinates (T x 5, mm and deg)."""
+    def predicted_user(self) -> np.ndarray:
+        """The model's measured coordinates (T x 5, mm and deg), including any registration bias."""
         from .conventions import coords_to_user
 
-        return coords_to_user(self.q_pred) - self.data.q_user
+        return coords_to_user(self.q_pred) + self.model.bias_user(self.theta)
+
+    @property
+    def residuals(self) -> np.ndarray:
+        """Model minus measured coordinates (T x 5, mm and deg)."""
+        return self.predicted_user - self.data.q_user
 
     @property
     def scales(self) -> np.ndarray:
-        from .nlp import SCALES, parameter_kind
-
-        return np.array([SCALES[parameter_kind(n)] for n in self.free])
+        return np.array([self.model.parameter_info[self.model.index(n)].scale for n in self.free])
 
     def _svd(self):
         s_scaled = self.sensitivity * self.scales  # columns per unit of scaled parameter
@@ -137,10 +140,8 @@ class Fit:
 
     def table(self) -> pd.DataFrame:
         """Per trial: measured and predicted coordinates and residuals (mm, deg)."""
-        from .conventions import coords_to_user
-
         df = pd.DataFrame({"trial": [t.id for t in self.data.trials]})
-        pred = coords_to_user(self.q_pred)
+        pred = self.predicted_user
         for j, col in enumerate(coordinate_columns()):
             df[f"measured_{col}"] = self.data.q_user[:, j]
             df[f"predicted_{col}"] = pred[:, j]

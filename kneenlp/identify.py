@@ -29,7 +29,7 @@ from .fit import Fit
 from .forward import ForwardSolver
 from .knee import Knee
 from .model import KneeModel
-from .nlp import IdentificationNLP, build_nlp, check_free, default_free, parameter_kind
+from .nlp import IdentificationNLP, build_nlp, check_free, default_free
 from .noise import NoiseModel
 from .protocol import Protocol, available_protocols
 from .simulate import model_for
@@ -42,14 +42,16 @@ def paper_scatter(model: KneeModel, free: list[str], rng: np.random.Generator,
                   reference: dict[str, float] | None = None) -> dict[str, float]:
     """Uniform scatter around ``reference`` (default: the knee's parameter set), as in the paper:
     +-500 N on stiffnesses, +-0.02 on reference strains, +-10 % on other parameters (SI)."""
-    ref = reference or model.knee.parameters.values
+    ref = reference or dict(zip(model.parameter_names, model.theta(), strict=True))
     out = {}
     for n in free:
-        kind = parameter_kind(n)
+        info = model.parameter_info[model.index(n)]
+        if info.neutral is not None:  # effect parameters start at their neutral value
+            out[n] = info.neutral
+            continue
+        kind = n.rsplit(".", 1)[-1]
         half = {"k": 500.0, "ref_strain": 0.02}.get(kind, 0.1 * abs(ref[n]))
-        out[n] = float(ref[n] + rng.uniform(-half, half))
-        if kind == "k":
-            out[n] = max(out[n], 0.0)
+        out[n] = float(min(max(ref[n] + rng.uniform(-half, half), info.lower), info.upper))
     return out
 
 
@@ -68,14 +70,23 @@ def sensitivities(model: KneeModel, data: MeasuredData, theta: np.ndarray, q: np
     ``q`` (SI), by the implicit-function theorem through each trial's equilibrium."""
     jac = _jacobians(model)
     idx = [model.index(n) for n in free]
+    d_bias = TO_USER[:, None] * np.asarray(_bias_jacobian(model)(theta))[:, idx]  # registration effects
     rows = []
     for t, qi in zip(data.trials, q, strict=True):
         dq, dth = (np.asarray(v) for v in jac(qi, theta, t.load, t.flexion))
         try:
-            rows.append(-TO_USER[:, None] * np.linalg.solve(dq, dth[:, idx]))
+            rows.append(-TO_USER[:, None] * np.linalg.solve(dq, dth[:, idx]) + d_bias)
         except np.linalg.LinAlgError:  # singular equilibrium (e.g. a failed solve): least squares
-            rows.append(-TO_USER[:, None] * (np.linalg.pinv(dq) @ dth[:, idx]))
+            rows.append(-TO_USER[:, None] * (np.linalg.pinv(dq) @ dth[:, idx]) + d_bias)
     return np.vstack(rows)
+
+
+def _bias_jacobian(model: KneeModel) -> ca.Function:
+    fn = getattr(model, "_bias_jac", None)
+    if fn is None:
+        fn = model.measurement_bias.factory("bias_jac", ["theta"], ["jac:bias:theta"])
+        model._bias_jac = fn
+    return fn
 
 
 def _forward_solver(model: KneeModel) -> ForwardSolver:

@@ -81,6 +81,7 @@ class Knee:
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
     source: str | None = None
     description: str = ""
+    candidates: list = field(default_factory=list)  # kneenlp.effects.Effect from [candidates.*]
 
     @classmethod
     def default(cls) -> Knee:
@@ -153,6 +154,21 @@ class Knee:
             raise InputError("no compartments ([contact.medial], [contact.lateral])", source=src,
                              field="contact")
 
+        from .effects import bundle
+
+        candidates = []
+        for cname, cdoc in doc.get("candidates", {}).items():
+            fld = f"candidates.{cname}"
+            if cdoc.get("kind") != "bundle":
+                raise InputError(f"unknown candidate kind {cdoc.get('kind')!r}; known: bundle", source=src,
+                                 field=f"{fld}.kind")
+            fem, tib = cdoc.get("femur"), cdoc.get("tibia")
+            if not isinstance(fem, list) or not isinstance(tib, list) or len(fem) != len(tib) or not fem:
+                raise InputError("femur and tibia must be equally long lists of [x, y, z]", source=src, field=fld)
+            fem = [point(v, f"{fld}.femur") for v in fem]
+            tib = [point(v, f"{fld}.tibia") for v in tib]
+            ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / 100.0
+            candidates.append(bundle(cname, fem, tib, ref, str(cdoc.get("description", ""))))
         if isinstance(parameters, ParameterSet):
             params = parameters
         elif parameters is not None:
@@ -174,7 +190,7 @@ class Knee:
         return cls(name=str(doc.get("name", path.stem)), ligaments=ligaments,
                    compartments=compartments, tuberosity=landmarks["tibial_tuberosity"],
                    parameters=params, gate=gate, landmarks=landmarks, source=src,
-                   description=str(doc.get("description", "")))
+                   description=str(doc.get("description", "")), candidates=candidates)
 
     @property
     def ligament_names(self) -> list[str]:
@@ -184,7 +200,7 @@ class Knee:
         """The same geometry with another parameter set."""
         params = parameters if isinstance(parameters, ParameterSet) else ParameterSet.load(parameters)
         return Knee(self.name, self.ligaments, self.compartments, self.tuberosity, params,
-                    self.gate, self.landmarks, self.source, self.description)
+                    self.gate, self.landmarks, self.source, self.description, self.candidates)
 
 
 def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_file: str) -> trimesh.Trimesh:

@@ -41,14 +41,24 @@ from .parameters import (
 class KneeModel:
     """Symbolic equilibrium model of a :class:`~kneenlp.knee.Knee` (built once, reused)."""
 
-    def __init__(self, knee: Knee):
+    def __init__(self, knee: Knee, extra_effects: list | None = None):
+        from .effects import builtin_effects
+
         self.knee = knee
         self.ligament_names = list(knee.ligaments)
         self.compartment_names = list(knee.compartments)
+        self.effects = [*knee.candidates, *builtin_effects(self.ligament_names), *(extra_effects or [])]
         self.parameter_info: list[ParameterInfo] = [
             ligament_parameter_info(lig, kind) for lig in self.ligament_names for kind in LIGAMENT_KINDS
         ] + [MODULUS_INFO]
+        self.n_base = len(self.parameter_info)
+        for e in self.effects:
+            for ep in e.parameters:
+                self.parameter_info.append(ParameterInfo(ep.name, ep.unit, ep.to_user, ep.description, ep.lower,
+                                                         ep.upper, ep.scale, ep.neutral))
         self.parameter_names = [p.name for p in self.parameter_info]
+        if len(set(self.parameter_names)) != len(self.parameter_names):
+            raise ValueError(f"duplicate parameter names: {self.parameter_names}")
         self._build()
 
     # ------------------------------------------------------------------ construction
@@ -63,6 +73,11 @@ class KneeModel:
         kin = ca.Function("kinematics", [q, flexion], [ca.horzcat(*centres)], ["q", "flexion"], ["centres"])
 
         theta = ca.SX.sym("theta", len(self.parameter_names))
+        values = {n: theta[i] for i, n in enumerate(self.parameter_names)}
+        offset = sum((e.flexion_offset(values) for e in self.effects), ca.SX(0))
+        bias = sum((e.measurement_bias(values) for e in self.effects), ca.SX.zeros(5))
+        flex_eff = ca.Function("flexion_effective", [flexion, theta], [flexion + offset])
+        self.measurement_bias = ca.Function("measurement_bias", [theta], [bias], ["theta"], ["bias"])
         load = ca.SX.sym("load", 6)
         fc = ca.SX.sym("contact_force", 3, n_comp)  # tibial frame
         mc = ca.SX.sym("contact_moment", 3, n_comp)  # tibial frame, about the tibial origin
@@ -81,6 +96,14 @@ class KneeModel:
             moment += ca.cross(arm, f_vec)
             strains.append(eps)
             tensions.append(tension)
+        from .effects import PoseContext
+
+        ctx = PoseContext(R, p, q, ca.horzcat(*centres),
+                          np.column_stack([c.sphere_center for c in knee.compartments.values()]))
+        for e in self.effects:
+            f_e, m_e = e.wrench(ctx, values)
+            force += f_e
+            moment += m_e
         arm = R @ ca.DM(knee.tuberosity)
         force += load[0:3]
         moment += ca.cross(arm, load[0:3]) + load[3:6]
@@ -104,13 +127,14 @@ class KneeModel:
         flexm = ca.MX.sym("flexion")
         thetam = ca.MX.sym("theta", len(self.parameter_names))
         loadm = ca.MX.sym("load", 6)
-        cen = kin(qm, flexm)
+        flex_e = flex_eff(flexm, thetam)
+        cen = kin(qm, flex_e)
         fcs, mcs = [], []
         for j, fn in enumerate(contact_fns):
             f_j, m_j = fn(cen[:, j], thetam[i_mod], radii[j])
             fcs.append(f_j)
             mcs.append(m_j)
-        res, eps, ten, cf = balance(qm, flexm, thetam, loadm, ca.horzcat(*fcs), ca.horzcat(*mcs))
+        res, eps, ten, cf = balance(qm, flex_e, thetam, loadm, ca.horzcat(*fcs), ca.horzcat(*mcs))
         names_in = ["q", "theta", "load", "flexion"]
         self.residual = ca.Function("residual", [qm, thetam, loadm, flexm], [res], names_in, ["r"])
         depth = ca.vertcat(*[radii[j] - self._min_distance(contact_fns[j], cen[:, j], j) for j in range(n_comp)])
@@ -131,9 +155,38 @@ class KneeModel:
 
     # ------------------------------------------------------------------ helpers
     def theta(self, values: dict[str, float] | None = None) -> np.ndarray:
-        """Full parameter vector (SI) from the knee's parameter set, with ``values`` overriding."""
-        params = self.knee.parameters.updated(values or {})
-        return np.array(params.vector(self.parameter_names), dtype=float)
+        """Full parameter vector (SI): the knee's parameter set, effect parameters at neutral,
+        ``values`` (by name) overriding."""
+        values = dict(values or {})
+        for n in values:
+            if n not in self.parameter_names:
+                from .errors import unknown_name
+
+                raise unknown_name("parameter", n, self.parameter_names)
+        out = []
+        for info in self.parameter_info:
+            if info.name in values:
+                out.append(float(values[info.name]))
+            elif info.neutral is not None:
+                out.append(info.neutral)
+            else:
+                out.append(self.knee.parameters[info.name])
+        return np.array(out, dtype=float)
+
+    def bias_user(self, theta: np.ndarray) -> np.ndarray:
+        """Measurement bias (mm, deg) that the effects add to the model's coordinates."""
+        from .conventions import TO_USER
+
+        return np.asarray(self.measurement_bias(theta)).ravel() * TO_USER
+
+    def effect(self, name: str):
+        """The candidate effect called ``name``."""
+        for e in self.effects:
+            if e.name == name:
+                return e
+        from .errors import unknown_name
+
+        raise unknown_name("effect", name, [e.name for e in self.effects])
 
     def index(self, name: str) -> int:
         """Position of parameter ``name`` in ``theta``."""

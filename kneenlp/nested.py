@@ -23,7 +23,6 @@ from .conventions import coords_to_user
 from .data import MeasuredData
 from .forward import ForwardSolver
 from .model import KneeModel
-from .nlp import BOUNDS, SCALES, parameter_kind
 
 PENALTY = 100.0
 CONSTRAINT_TOL = 1e-3  # N or N m, the paper's FDK tolerance
@@ -35,7 +34,9 @@ class NestedObjective:
     def __init__(self, model: KneeModel, data: MeasuredData, free: list[str], weights: np.ndarray,
                  q_start: np.ndarray | None = None):
         self.model, self.data, self.free, self.weights = model, data, list(free), weights
-        self.scales = np.array([SCALES[parameter_kind(n)] for n in free])
+        infos = [model.parameter_info[model.index(n)] for n in free]
+        self.scales = np.array([i.scale for i in infos])
+        self.is_stiffness = [n.endswith(".k") for n in free]
         self.solver = ForwardSolver(model)
         self.q_last = np.array(q_start) if q_start is not None else None
         self.trial_solves = 0
@@ -57,11 +58,11 @@ class NestedObjective:
         ok = res <= CONSTRAINT_TOL
         if ok.all():
             self.q_last = q
-        diff = coords_to_user(q) - self.data.q_user
+        diff = coords_to_user(q) + self.model.bias_user(theta) - self.data.q_user
         psi = float(np.sum(self.weights * diff**2)) if np.all(np.isfinite(diff)) else np.inf
         penalty = PENALTY * float(np.sum(np.where(ok, 0.0, np.minimum(res, 1e6)) ** 2))
-        for n, v in zip(self.free, x_scaled, strict=True):
-            if parameter_kind(n) == "k" and v < 0:
+        for stiff, v in zip(self.is_stiffness, x_scaled, strict=True):
+            if stiff and v < 0:
                 penalty += PENALTY * v**2
         return psi + penalty, q, res
 
@@ -75,9 +76,9 @@ def nested_fit(model: KneeModel, data: MeasuredData, free: list[str], weights: n
     """Run the Complex optimizer from the ``initial`` cloud (SI parameter values, k x n).
 
     Returns a dict with the best values (SI), poses, residuals, objective and counters."""
-    scales = np.array([SCALES[parameter_kind(n)] for n in free])
-    bounds = [(BOUNDS[parameter_kind(n)][0] / s, BOUNDS[parameter_kind(n)][1] / s)
-              for n, s in zip(free, scales, strict=True)]
+    infos = [model.parameter_info[model.index(n)] for n in free]
+    scales = np.array([i.scale for i in infos])
+    bounds = [(i.lower / i.scale, i.upper / i.scale) for i in infos]
     obj = NestedObjective(model, data, free, weights)
     t0 = time.perf_counter()
     obj.evaluate(initial[0] / scales)  # cold solve once; later evaluations warm-start

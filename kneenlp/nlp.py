@@ -30,16 +30,11 @@ from .conventions import TO_USER
 from .errors import InputError, unknown_name
 from .model import KneeModel
 
-#: Scale (SI) of each parameter kind: the NLP works with value / scale.
-SCALES = {"k": 1e4, "ref_strain": 1e-2, "lin_strain": 1e-2, "modulus": 1e10}
-#: Bounds (SI) of each parameter kind.
-BOUNDS = {"k": (0.0, 1e5), "ref_strain": (-0.3, 0.3), "lin_strain": (0.005, 0.1), "modulus": (1e8, 1e12)}
+# Scales and bounds of every parameter live in its ParameterInfo (kneenlp/parameters.py and
+# kneenlp/effects.py): k / 1e4 N in [0, 1e5] N, strains / 1 % in [-30, 30] %, linear strain limit
+# in [0.5, 10] %, modulus / 10 GN/m^3 in [0.1, 1000] GN/m^3.
 #: Bounds of the coordinates in user units (deg, deg, mm, mm, mm): the physiological envelope.
 Q_BOUNDS = np.array([30.0, 60.0, 25.0, 25.0, 25.0])
-
-
-def parameter_kind(name: str) -> str:
-    return name.rsplit(".", 1)[-1]
 
 
 def default_free(model: KneeModel) -> list[str]:
@@ -108,7 +103,8 @@ def nlp_expressions(model: KneeModel, n_trials: int, free: list[str], parallel: 
     """Build the NLP's expressions (see module docstring); ``parallel`` is the trial map's mode."""
     free = check_free(model, free)
     n_theta, nf, T = len(model.parameter_names), len(free), n_trials
-    scales = np.array([SCALES[parameter_kind(n)] for n in free])
+    infos = [model.parameter_info[model.index(n)] for n in free]
+    scales = np.array([i.scale for i in infos])
     xp = ca.MX.sym("p_free", nf)
     xq = ca.MX.sym("q_user", 5, T)
     par = ca.MX.sym("data", n_theta + 5 * T + 5 * T + 6 * T + T)
@@ -126,10 +122,11 @@ def nlp_expressions(model: KneeModel, n_trials: int, free: list[str], parallel: 
     q_si = xq / ca.DM(TO_USER)  # deg, mm -> rad, m
     mapped = model.residual.map(T, parallel, 2) if parallel == "thread" else model.residual.map(T, parallel)
     g = ca.vec(mapped(q_si, theta, loads, flex))
-    diff = xq - meas
+    bias = model.measurement_bias(theta) * ca.DM(TO_USER)  # registration effects, mm / deg
+    diff = xq + ca.repmat(bias, 1, T) - meas
     f = ca.sum1(ca.sum2(w * diff * diff))
-    lo = np.array([BOUNDS[parameter_kind(n)][0] for n in free]) / scales
-    hi = np.array([BOUNDS[parameter_kind(n)][1] for n in free]) / scales
+    lo = np.array([i.lower for i in infos]) / scales
+    hi = np.array([i.upper for i in infos]) / scales
     lbx = np.concatenate([lo, np.tile(-Q_BOUNDS, T)])
     ubx = np.concatenate([hi, np.tile(Q_BOUNDS, T)])
     return NLPExpressions(ca.vertcat(xp, ca.vec(xq)), par, f, g, scales, lbx, ubx)

@@ -14,6 +14,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from .errors import InputError, unknown_name
 
 #: Per parameter kind: accepted file units with their factor to SI, and the display unit.
@@ -35,21 +37,28 @@ class ParameterInfo:
     unit: str
     to_user: float
     description: str = ""
+    lower: float = -np.inf  # SI bounds used by the identification NLP
+    upper: float = np.inf
+    scale: float = 1.0  # the NLP works with value / scale
+    neutral: float | None = None  # value at which an effect parameter switches the effect off
 
 
 def ligament_parameter_info(ligament: str, kind: str) -> ParameterInfo:
     """Metadata of a ligament parameter ``kind`` (k, ref_strain, lin_strain)."""
     unit = DISPLAY_UNITS[kind]
     factor = 1.0 / UNIT_FACTORS[kind][unit]
+    lower, upper, scale = {"k": (0.0, 1e5, 1e4), "ref_strain": (-0.3, 0.3, 1e-2),
+                           "lin_strain": (0.005, 0.1, 1e-2)}[kind]
     text = {
         "k": "stiffness, N per unit strain",
         "ref_strain": "reference strain at the reference pose",
         "lin_strain": "linear strain limit of the toe region",
     }[kind]
-    return ParameterInfo(f"{ligament}.{kind}", unit, factor, f"{ligament} {text}")
+    return ParameterInfo(f"{ligament}.{kind}", unit, factor, f"{ligament} {text}", lower, upper, scale)
 
 
-MODULUS_INFO = ParameterInfo("contact.modulus", "GN/m^3", 1e-9, "elastic-foundation pressure modulus")
+MODULUS_INFO = ParameterInfo("contact.modulus", "GN/m^3", 1e-9, "elastic-foundation pressure modulus",
+                             1e8, 1e12, 1e10)
 
 
 @dataclass

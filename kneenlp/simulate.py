@@ -83,7 +83,8 @@ class SimulationResult:
             raise ConvergenceError("cannot write measured data: trials did not converge: "
                                    + ", ".join(s.trial.id for s in self.failed), self)
         rng = np.random.default_rng(seed)
-        q_user = coords_to_user(self.q) + noise.sample(rng, self.q.shape)
+        bias = model_for(self.knee).bias_user(model_for(self.knee).theta(self.parameters))
+        q_user = coords_to_user(self.q) + bias + noise.sample(rng, self.q.shape)
         return measured_frame([s.trial for s in self.solutions], q_user, self.protocol.name)
 
     def to_csv(self, path: str | Path) -> Path:
