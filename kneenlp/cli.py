@@ -24,6 +24,48 @@ def _knee(args):
     return knee
 
 
+def _effect_values(knee, specs: list[str]) -> dict[str, float]:
+    """``NAME[:param=value,...]`` (display units, e.g. ``posterior_capsule:k=8000``,
+    ``registration:anterior_translation=1.5``) -> parameter values in SI."""
+    from .simulate import model_for
+
+    model = model_for(knee)
+    values: dict[str, float] = {}
+    for spec in specs or []:
+        name, _, rest = spec.partition(":")
+        effect = model.effect(name)
+        for item in filter(None, rest.split(",")):
+            key, eq, val = item.partition("=")
+            full = f"{name}.{key.strip()}"
+            info = model.parameter_info[model.index(full)]
+            if not eq:
+                raise InputError(f"expected PARAM=VALUE in {spec!r}", field="--with-effect")
+            try:
+                values[full] = float(val) / info.to_user
+            except ValueError:
+                raise InputError(f"value of {full} is not a number: {val!r}", field="--with-effect") from None
+        if not rest and effect.parameters:
+            raise InputError(f"give the strength, e.g. {name}:{effect.parameters[0].name.split('.', 1)[1]}=VALUE "
+                             f"({effect.parameters[0].unit})", field="--with-effect")
+    return values
+
+
+def cmd_diagnose(args) -> int:
+    from .adequacy import diagnose
+    from .identify import identify
+
+    knee = _knee(args)
+    fit = identify(knee, args.data, seed=args.seed)
+    d = diagnose(fit, args.noise, refit=args.refit)
+    if args.out:
+        out = Path(args.out)
+        d.figures(out)
+        d.residual_map.to_csv(out / "residual_map.csv", float_format="%.6g")
+        (out / "diagnosis.json").write_text(d.to_json())
+    print(d.to_json() if args.json else d.report())
+    return 0
+
+
 def cmd_simulate(args) -> int:
     from . import plots
     from .protocol import Protocol
@@ -31,7 +73,7 @@ def cmd_simulate(args) -> int:
 
     knee = _knee(args)
     protocol = Protocol.load(args.protocol)
-    result = simulate(knee, protocol)
+    result = simulate(knee, protocol, parameters=_effect_values(knee, args.with_effect))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     table = result.table()
@@ -66,7 +108,8 @@ def cmd_identify(args) -> int:
     knee = _knee(args)
     free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
     fit = identify(knee, args.data, args.method, free=free, seed=args.seed, noise=args.noise,
-                   weighted=args.weighted, multistart=args.multistart, solver=args.solver, protocol=args.protocol)
+                   weighted=args.weighted, multistart=args.multistart, solver=args.solver, protocol=args.protocol,
+                   with_effects=args.with_effect)
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -184,8 +227,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", default=None, help="also write measured.csv with noise: uniform:B | gaussian:S")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument("--with-effect", action="append", default=[], metavar="NAME:PARAM=VALUE,...",
+                   help="switch a candidate effect on (display units), e.g. posterior_capsule:k=8000")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("diagnose", help="model adequacy: where the fit fails and which effect is missing")
+    p.add_argument("data", help="measured-data CSV")
+    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    p.add_argument("--parameters", help="parameter set TOML")
+    p.add_argument("--noise", default="uniform:0.5", help="noise model of the data (default uniform:0.5)")
+    p.add_argument("--refit", type=int, default=4, help="refit the best N candidates (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the start scatter")
+    p.add_argument("--out", help="write residual_map.png/.csv, laxity_fit.png and diagnosis.json here")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser("identify", help="identify ligament parameters from measured data (simultaneous NLP)")
     p.add_argument("data", help="measured-data CSV (as written by 'kneenlp simulate --noise')")
@@ -200,6 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simultaneous NLP (default) or the paper's nested Complex method")
     p.add_argument("--solver", default="ipopt", help="CasADi nlpsol plugin (default ipopt)")
     p.add_argument("--protocol", help="protocol the data must match (default: the one named in the data)")
+    p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
+                   help="also identify this candidate effect's parameters (repeatable; see 'kneenlp diagnose')")
     p.add_argument("--out", help="also write fit.json and fit_trials.csv here")
     p.add_argument("--json", action="store_true", help="print JSON instead of the report")
     p.set_defaults(func=cmd_identify)

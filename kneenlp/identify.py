@@ -11,7 +11,9 @@ constraint.  (Starting at the noisy measured poses sent a prototype to wrong min
 stiffnesses at their bounds.)  ``multistart=N`` runs N starts (the first as above, the others
 fresh scatter draws) and keeps the best converged one.  A start whose solve fails (IPOPT wanders
 off from an indefinite-Hessian region, about one seed in ten on Sets 1-3 in our measurements)
-is followed by up to ``restarts`` fresh draws (default 4); the fit records how many were used.
+is followed by up to ``restarts`` fresh draws (default 4); so is a solve that ends with a ligament
+parameter on its bound (k = 0 or 1e5 N, strain at +-30 %: the wrong-minimum signature of the
+prototype).  The best fit is kept and records how many starts were used.
 """
 
 from __future__ import annotations
@@ -110,7 +112,7 @@ def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "
              noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
              solver: str = "ipopt", solver_options: dict | None = None,
              protocol: Protocol | str | None = None, restarts: int = 4,
-             nested_options: dict | None = None) -> Fit:
+             nested_options: dict | None = None, with_effects: list[str] | None = None) -> Fit:
     """Identify the ``free`` parameters of ``knee`` from measured ``data``.
 
     Parameters
@@ -125,6 +127,8 @@ def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "
     weighted : weight each coordinate by its inverse noise variance (needs ``noise``).
     multistart : number of starts; the best converged one is kept.
     restarts : extra scatter draws tried when no start has converged yet.
+    with_effects : candidate effects (:mod:`kneenlp.effects`) whose parameters are freed too,
+        starting at their neutral values (e.g. ``["posterior_capsule"]``).
     nested_options : for ``method="nested"``: ``max_evals``, ``max_seconds``, ``xtol``, ``ftol``
         of the Complex optimizer, or ``initial`` (a list of starting parameter dicts, SI).
     solver : CasADi nlpsol plugin (``ipopt``, ``sqpmethod``, ...), options in ``solver_options``.
@@ -141,7 +145,10 @@ def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "
         proto = Protocol.load(data.protocol)
     if proto is not None:
         data.check_protocol(proto)
-    free = check_free(model, free or default_free(model))
+    free = list(free or default_free(model))
+    for name in with_effects or []:
+        free += [n for n in model.effect(name).free_names() if n not in free]
+    free = check_free(model, free)
     noise_model = NoiseModel.parse(noise) if noise is not None else None
     if weighted and (noise_model is None or noise_model.std == 0):
         raise InputError("weighted fit needs a noise model with non-zero level", field="noise")
@@ -155,19 +162,40 @@ def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "
         return _nested(model, data, free, start, rng, seed, weights, noise_model, dict(nested_options or {}))
     best: Fit | None = None
     k = 0
-    while k < max(1, multistart) or (not best.success and k < max(1, multistart) + restarts):
+
+    def good(f: Fit | None) -> bool:
+        return f is not None and f.success and not _at_bounds(f)
+
+    while k < max(1, multistart) or (not good(best) and k < max(1, multistart) + restarts):
         s = paper_scatter(model, free, rng)
         if k == 0 and start:
             s.update(start)
         fit = _simultaneous(model, data, free, s, weights, noise_model, solver, solver_options)
-        if best is None or (fit.success and (not best.success or fit.objective < best.objective)):
+        if best is None or (good(fit) and not good(best)) or \
+                (fit.success and good(fit) == good(best) and fit.objective < best.objective) or \
+                (fit.success and not best.success):
             best = fit
         k += 1
+    if best.success and _at_bounds(best):
+        note = "ligament parameters at their bounds: a poor local minimum or a model that cannot fit the data"
+        best.message = f"{best.message}; {note}" if best.message else note
     best.extra["starts"] = k
     if k > max(1, multistart):
         note = f"{k - max(1, multistart)} restart(s) after failed solves"
         best.message = f"{best.message}; {note}" if best.message else note
     return best
+
+
+def _at_bounds(fit: Fit) -> bool:
+    """True if a ligament parameter sits on its bound (the prototype's wrong-minimum signature)."""
+    for n in fit.free:
+        info = fit.model.parameter_info[fit.model.index(n)]
+        if info.neutral is not None or n == "contact.modulus":
+            continue
+        span = info.upper - info.lower
+        if min(fit.params[n] - info.lower, info.upper - fit.params[n]) <= 1e-6 * span:
+            return True
+    return False
 
 
 def _noise_variance(noise_model, objective, weights, n_par):

@@ -123,3 +123,24 @@ def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def residual_map(rmap: pd.DataFrame, path: str | Path, title: str = "") -> Path:
+    """Heat map of residuals (trials x coordinates) in units of the noise standard deviation."""
+    fig, ax = plt.subplots(figsize=(6.5, max(3.0, 0.22 * len(rmap) + 1.5)))
+    lim = max(3.0, float(np.nanmax(np.abs(rmap.to_numpy()))))
+    im = ax.imshow(rmap.to_numpy(), cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
+    ax.set_yticks(range(len(rmap)))
+    ax.set_yticklabels(rmap.index, fontsize=7)
+    units = {"rotation": "deg", "translation": "mm"}
+    ax.set_xticks(range(len(rmap.columns)))
+    ax.set_xticklabels([f"{c.replace('_', ' ')} [{units[c.split('_')[-1]]}]" for c in rmap.columns], rotation=30,
+                       ha="right", fontsize=8)
+    fig.colorbar(im, ax=ax, label="(model - measured) / noise sd")
+    if title:
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
