@@ -150,7 +150,8 @@ class Diagnosis:
 
 def _words(trial, coord: str, unit: str, r: float) -> str:
     where = "above" if r > 0 else "below"
-    return f"{coord.replace('_', ' ')} {trial.describe().replace('no load', 'unloaded')}: model {abs(r):.2f} {unit} {where} the measurement"
+    what = trial.describe().replace("no load", "unloaded")
+    return f"{coord.replace('_', ' ')} {what}: model {abs(r):.2f} {unit} {where} the measurement"
 
 
 def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list[str] | None = None,
