@@ -237,9 +237,9 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
         base = info.neutral if info.neutral is not None else fit.theta[model.index(n)]
         start[n] = float(np.clip(base + v, info.lower, info.upper))
     free = [*fit.free, *score.parameters]
-    new = identify(model.knee, fit.data, free=free, start=start)
+    new = identify(model, fit.data, free=free, start=start)
     if not new.success or new.objective > fit.objective:  # retry from the base fit, effect neutral
-        again = identify(model.knee, fit.data, free=free, start=dict(fit.params))
+        again = identify(model, fit.data, free=free, start=dict(fit.params))
         if again.success and (not new.success or again.objective < new.objective):
             new = again
     n_obs = fit.residuals.size

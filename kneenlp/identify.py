@@ -107,7 +107,7 @@ def _jacobians(model: KneeModel) -> ca.Function:
     return fn
 
 
-def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "simultaneous", *,
+def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: str = "simultaneous", *,
              free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
              noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
              solver: str = "ipopt", solver_options: dict | None = None,
@@ -136,8 +136,7 @@ def identify(knee: Knee | None, data: MeasuredData | str | Path, method: str = "
     """
     if method not in METHODS:
         raise unknown_name("method", method, METHODS)
-    knee = knee or Knee.default()
-    model = model_for(knee)
+    model = model_for(knee or Knee.default())  # a KneeModel with user effects is accepted too
     if not isinstance(data, MeasuredData):
         data = read_measured(data)
     proto = protocol if isinstance(protocol, Protocol) or protocol is None else Protocol.load(protocol)

@@ -21,8 +21,11 @@ from .protocol import Protocol
 _MODELS: dict[int, KneeModel] = {}
 
 
-def model_for(knee: Knee) -> KneeModel:
-    """The (cached) CasADi model of ``knee``: built once per knee object."""
+def model_for(knee: Knee | KneeModel) -> KneeModel:
+    """The (cached) CasADi model of ``knee``: built once per knee object.  A :class:`KneeModel`
+    (e.g. one built with extra user effects) is returned as it is."""
+    if isinstance(knee, KneeModel):
+        return knee
     key = id(knee)
     if key not in _MODELS or _MODELS[key].knee is not knee:
         _MODELS[key] = KneeModel(knee)
@@ -38,6 +41,7 @@ class SimulationResult:
     solutions: list[TrialSolution]
     seconds: float
     parameters: dict[str, float]
+    model: KneeModel | None = None
 
     @property
     def converged(self) -> int:
@@ -83,7 +87,8 @@ class SimulationResult:
             raise ConvergenceError("cannot write measured data: trials did not converge: "
                                    + ", ".join(s.trial.id for s in self.failed), self)
         rng = np.random.default_rng(seed)
-        bias = model_for(self.knee).bias_user(model_for(self.knee).theta(self.parameters))
+        model = self.model or model_for(self.knee)
+        bias = model.bias_user(model.theta(self.parameters))
         q_user = coords_to_user(self.q) + bias + noise.sample(rng, self.q.shape)
         return measured_frame([s.trial for s in self.solutions], q_user, self.protocol.name)
 
@@ -108,7 +113,7 @@ class SimulationResult:
         return json.dumps(self.summary(), indent=2)
 
 
-def simulate(knee: Knee | None = None, protocol: Protocol | str = "set3",
+def simulate(knee: Knee | KneeModel | None = None, protocol: Protocol | str = "set3",
              parameters: dict[str, float] | None = None, tol: float = 1e-6) -> SimulationResult:
     """Solve every trial of ``protocol`` on ``knee`` (default: the embedded knee).
 
@@ -116,12 +121,13 @@ def simulate(knee: Knee | None = None, protocol: Protocol | str = "set3",
     ``{"ACL.k": 12000.0}``).  Returns a :class:`SimulationResult`; trials that do not converge are
     listed in ``result.failed`` (with their residual), never silently kept.
     """
-    knee = knee or Knee.default()
+    model = model_for(knee or Knee.default())
+    knee = model.knee
     protocol = protocol if isinstance(protocol, Protocol) else Protocol.load(protocol)
-    model = model_for(knee)
     theta = model.theta(parameters)
     solver = ForwardSolver(model, tol=tol)
     t0 = time.perf_counter()
     sols = solver.solve(protocol.trials, theta)
     seconds = time.perf_counter() - t0
-    return SimulationResult(knee, protocol, sols, seconds, dict(zip(model.parameter_names, theta, strict=True)))
+    return SimulationResult(knee, protocol, sols, seconds, dict(zip(model.parameter_names, theta, strict=True)),
+                            model)
