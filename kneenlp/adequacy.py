@@ -23,7 +23,6 @@ value is its lower bound) and scores zero.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -99,18 +98,9 @@ class Diagnosis:
                 "recommended": rec.effect if rec else None, "verdict": self.verdict}
 
     def to_json(self) -> str:
-        def clean(v):
-            if isinstance(v, dict):
-                return {k: clean(x) for k, x in v.items()}
-            if isinstance(v, list | tuple):
-                return [clean(x) for x in v]
-            if isinstance(v, float | np.floating):
-                return float(v) if np.isfinite(v) else None
-            if isinstance(v, np.integer | np.bool_):
-                return v.item()
-            return v
+        from .serialize import dumps
 
-        return json.dumps(clean(self.summary()), indent=2)
+        return dumps(self.summary())
 
     def report(self) -> str:
         lines = [f"[[Adequacy]] {self.fit.data.source or 'data'} against noise {self.noise}",

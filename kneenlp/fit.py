@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -177,18 +176,9 @@ class Fit:
         }
 
     def to_json(self) -> str:
-        def clean(v):
-            if isinstance(v, dict):
-                return {k: clean(x) for k, x in v.items()}
-            if isinstance(v, list | tuple):
-                return [clean(x) for x in v]
-            if isinstance(v, float | np.floating):
-                return float(v) if np.isfinite(v) else None
-            if isinstance(v, np.integer | np.bool_):
-                return v.item()
-            return v
+        from .serialize import dumps
 
-        return json.dumps(clean(self.summary()), indent=2)
+        return dumps(self.summary())
 
     def report(self) -> str:
         """lmfit-like text report (display units: N per unit strain, %, GN/m^3; mm and deg)."""

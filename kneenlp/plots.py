@@ -58,11 +58,7 @@ def laxity_curves(table: pd.DataFrame, path: str | Path, title: str = "",
     axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def ligament_forces(table: pd.DataFrame, ligaments: list[str], path: str | Path, title: str = "") -> Path:
@@ -80,11 +76,7 @@ def ligament_forces(table: pd.DataFrame, ligaments: list[str], path: str | Path,
     ax.grid(axis="y", alpha=0.3)
     if title:
         ax.set_title(title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str | Path, title: str = "") -> Path:
@@ -118,11 +110,7 @@ def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str
         axes[0, 0].legend(fontsize=7)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def residual_map(rmap: pd.DataFrame, path: str | Path, title: str = "") -> Path:
@@ -139,6 +127,10 @@ def residual_map(rmap: pd.DataFrame, path: str | Path, title: str = "") -> Path:
     fig.colorbar(im, ax=ax, label="(model - measured) / noise sd")
     if title:
         ax.set_title(title, fontsize=9)
+    return _save(fig, path)
+
+
+def _save(fig, path: str | Path) -> Path:
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
