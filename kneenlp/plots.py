@@ -102,7 +102,7 @@ def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str
             ax.errorbar(pos + 0.33, [true] * len(sets), yerr=2 * np.asarray(pred), fmt="o", ms=3, color="C3",
                         capsize=3, label="linearised +-2 sd")
             ax.set_xticks(pos)
-            ax.set_xticklabels([str(s) for s in sets], rotation=30)
+            ax.set_xticklabels([Path(s).stem if str(s).endswith(".toml") else str(s) for s in sets], rotation=30)
             ax.set_title(f"{lig} {'stiffness' if kind == 'k' else 'reference strain'}", fontsize=9)
             ax.set_ylabel(f"{'k' if kind == 'k' else 'reference strain'} [{unit}]")
             ax.grid(alpha=0.3)

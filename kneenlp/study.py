@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 import time
 import zlib
@@ -132,7 +133,11 @@ class Study:
         return self.out / "samples"
 
     def sample_path(self, set_name: str, index: int) -> Path:
-        return self.sample_dir / f"{set_name}_{index:06d}.json"
+        """File of one sample; a protocol given as a path gets a safe, unique file key."""
+        key = set_name
+        if not re.fullmatch(r"[A-Za-z0-9_.-]+", set_name):
+            key = f"{re.sub(r'[^A-Za-z0-9_.-]', '_', Path(set_name).stem)}-{zlib.crc32(set_name.encode()):08x}"
+        return self.sample_dir / f"{key}_{index:06d}.json"
 
     def prepare(self) -> None:
         self.out.mkdir(parents=True, exist_ok=True)

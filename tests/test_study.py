@@ -93,3 +93,20 @@ def test_cli_study_json(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     assert code == 0 and out["fits"] == 2 and out["failed"] == 0
     assert "table3.csv" in out["outputs"]
+
+
+def test_protocol_files_as_sets_stay_inside_the_study(tmp_path):
+    proto = tmp_path / "protocols" / "my protocol.toml"
+    proto.parent.mkdir()
+    proto.write_text((kneenlp_problems() / "protocols" / "set1.toml").read_text().replace('"set1"', '"mine"'))
+    study = run_study(StudySpec(sets=(str(proto),), samples=2, seed=1), tmp_path / "s", workers=1, progress=False)
+    files = sorted(p.name for p in (tmp_path / "s" / "samples").glob("*.json"))
+    assert len(files) == 2 and all(f.startswith("my_protocol-") for f in files)
+    assert list(study.load_rows()["set"]) == [str(proto)] * 2
+    assert not list(proto.parent.glob("*.json"))
+
+
+def kneenlp_problems():
+    from kneenlp.knee import PROBLEMS
+
+    return PROBLEMS
