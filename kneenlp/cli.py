@@ -62,6 +62,20 @@ def cmd_diagnose(args) -> int:
         d.figures(out)
         d.residual_map.to_csv(out / "residual_map.csv", float_format="%.6g")
         (out / "diagnosis.json").write_text(d.to_json())
+        rec = d.recommended
+        if rec is not None:  # before/after: figures of the refit and the parameters side by side
+            after = d.refits[rec.effect]
+            diagnose(after, args.noise, refit=0).figures(out / f"after_{rec.effect}")
+            rows = []
+            for n in after.free:
+                info = after.model.parameter_info[after.model.index(n)]
+                rows.append({"parameter": n, "unit": info.unit,
+                             "before": fit.params[n] * info.to_user if n in fit.params else None,
+                             "after": after.params[n] * info.to_user, "after_stderr": after.stderr[n] * info.to_user})
+            import pandas as pd
+
+            pd.DataFrame(rows).to_csv(out / f"parameters_before_after_{rec.effect}.csv", index=False,
+                                      float_format="%.6g")
     print(d.to_json() if args.json else d.report())
     return 0
 

@@ -79,7 +79,9 @@ def test_cli_diagnose_json(knee, tmp_path, capsys):
     assert out["adequate"] is False and out["ranking"][0]["effect"] == "posterior_capsule"
     assert {"effect", "statistic", "p_value", "expected_rms"} <= set(out["ranking"][0])
     assert out["flagged"] and {"trial", "coordinate"} <= set(out["flagged"][0])
-    for name in ("residual_map.png", "laxity_fit.png", "residual_map.csv", "diagnosis.json"):
+    for name in ("residual_map.png", "laxity_fit.png", "residual_map.csv", "diagnosis.json",
+                 "after_posterior_capsule/residual_map.png", "after_posterior_capsule/laxity_fit.png",
+                 "parameters_before_after_posterior_capsule.csv"):
         assert (tmp_path / "diag" / name).stat().st_size > 0
     code = main(["identify", str(tmp_path / "measured.csv"), "--with-effect", "posterior_capsule", "--json"])
     fit = json.loads(capsys.readouterr().out)
