@@ -2,8 +2,11 @@
 
 A knee is described by a TOML file (see ``problems/knees/default/knee.toml``) that names its
 cartilage meshes (STL/PLY/OBJ, read with trimesh), ligament attachments, landmarks and contact
-settings, all in millimetres in the ISB femoral frame.  :meth:`Knee.load` validates the file and
-converts everything to SI.  A left knee (``side = "left"``) is mirrored into a right knee
+settings, in millimetres, either already in the ISB femoral frame (``coordinates = "femoral"``,
+the default) or in scanner coordinates (``coordinates = "scan"``): then the ISB femoral frame is
+built from the landmarks ``hip_center``, ``medial_epicondyle`` and ``lateral_epicondyle`` (Wu et al.
+2002) and its origin put midway between the fitted condyle centres, on the flexion axis.
+:meth:`Knee.load` validates the file and converts everything to SI.  A left knee (``side = "left"``) is mirrored into a right knee
 (Z -> -Z), which keeps the anatomical meaning of every coordinate.
 
 Each femoral condyle enters the contact model through the sphere fitted to its cartilage mesh
@@ -102,13 +105,29 @@ class Knee:
             raise InputError(f"must be 'mm' or 'm', got {units!r}", source=src, field="units")
         scale = 1e-3 if units == "mm" else 1.0
         mirror = np.array([1.0, 1.0, -1.0 if side == "left" else 1.0])
+        coordinates = doc.get("coordinates", "femoral")
+        if coordinates not in ("femoral", "scan"):
+            raise InputError(f"must be 'femoral' or 'scan', got {coordinates!r}", source=src, field="coordinates")
+        transform = _Transform(scale, mirror)
 
-        def point(value: object, fld: str) -> np.ndarray:
+        def raw_point(value: object, fld: str) -> np.ndarray:
             if not isinstance(value, list) or len(value) != 3:
                 raise InputError(f"expected [x, y, z] in {units}, got {value!r}", source=src, field=fld)
-            return np.array([number(v, src, fld) for v in value]) * scale * mirror
+            return np.array([number(v, src, fld) for v in value])
 
-        landmarks = {k: point(v, f"landmarks.{k}") for k, v in doc.get("landmarks", {}).items()}
+        def point(value: object, fld: str) -> np.ndarray:
+            return transform(raw_point(value, fld))
+
+        raw_landmarks = {k: raw_point(v, f"landmarks.{k}") for k, v in doc.get("landmarks", {}).items()}
+        if coordinates == "scan":
+            transform.from_landmarks(raw_landmarks, side, src)
+            for cname, cdoc in doc.get("contact", {}).items():  # origin: midpoint of the condyle centres
+                if isinstance(cdoc, dict) and "femur" in cdoc:
+                    fem = read_mesh(path.parent / str(cdoc["femur"]), transform, field=f"contact.{cname}.femur",
+                                    knee_file=src)
+                    transform.centres.append(fit_sphere(fem.vertices)[0])
+            transform.shift = np.mean(transform.centres, axis=0) if transform.centres else np.zeros(3)
+        landmarks = {k: transform(v) for k, v in raw_landmarks.items()}
         if "tibial_tuberosity" not in landmarks:
             raise InputError("missing (anterior/posterior loads act there)", source=src,
                              field="landmarks.tibial_tuberosity")
@@ -141,7 +160,7 @@ class Knee:
             for key in ("femur", "tibia"):
                 if key not in cdoc:
                     raise InputError("missing mesh file", source=src, field=f"contact.{cname}.{key}")
-                meshes[key] = read_mesh(path.parent / str(cdoc[key]), scale, mirror,
+                meshes[key] = read_mesh(path.parent / str(cdoc[key]), transform,
                                         field=f"contact.{cname}.{key}", knee_file=src)
             center, radius, rms = fit_sphere(meshes["femur"].vertices)
             if rms > MAX_SPHERE_FIT_RMS:
@@ -203,8 +222,44 @@ class Knee:
                     self.gate, self.landmarks, self.source, self.description, self.candidates)
 
 
-def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_file: str) -> trimesh.Trimesh:
-    """Load a cartilage mesh with trimesh, validate it and convert it to metres."""
+class _Transform:
+    """File coordinates -> the model's femoral frame (m): scale, optional rigid transform from
+    scanner coordinates built from ISB landmarks, mirror of a left knee, origin shift."""
+
+    def __init__(self, scale: float, mirror: np.ndarray):
+        self.scale, self.mirror = scale, mirror
+        self.rotation, self.origin, self.shift = np.eye(3), np.zeros(3), np.zeros(3)
+        self.centres: list[np.ndarray] = []
+
+    def from_landmarks(self, lm: dict[str, np.ndarray], side: str, src: str) -> None:
+        """ISB femoral frame (Wu et al. 2002): Y from the epicondyle midpoint to the hip centre,
+        Z along the epicondylar axis orthogonalised to Y, pointing right, X = Y x Z."""
+        need = ("hip_center", "medial_epicondyle", "lateral_epicondyle")
+        missing = [n for n in need if n not in lm]
+        if missing:
+            raise InputError(f"coordinates = 'scan' needs landmarks {', '.join(missing)}", source=src,
+                             field="landmarks")
+        mid = (lm["medial_epicondyle"] + lm["lateral_epicondyle"]) / 2
+        y = lm["hip_center"] - mid
+        z = lm["lateral_epicondyle"] - lm["medial_epicondyle"]
+        if side == "left":
+            z = -z  # ISB Z points right; the mirror below turns the lateral side to +Z
+        y = y / np.linalg.norm(y)
+        z = z - (z @ y) * y
+        if np.linalg.norm(z) < 1e-9:
+            raise InputError("epicondyles on the hip-knee line: frame undefined", source=src, field="landmarks")
+        z = z / np.linalg.norm(z)
+        self.rotation = np.vstack([np.cross(y, z), y, z])
+        self.origin = mid * self.scale
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        pts = np.atleast_2d(np.asarray(p, float))
+        out = (self.rotation @ (pts.T * self.scale - self.origin[:, None])).T * self.mirror - self.shift
+        return out[0] if np.ndim(p) == 1 else out
+
+
+def read_mesh(path: Path, transform: _Transform, *, field: str, knee_file: str) -> trimesh.Trimesh:
+    """Load a cartilage mesh with trimesh, validate it and convert it to the femoral frame (m)."""
     if not path.is_file():
         raise InputError(f"mesh file not found: {path}", source=knee_file, field=field)
     try:
@@ -217,8 +272,8 @@ def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_
     if not np.all(np.isfinite(mesh.vertices)):
         raise InputError(f"mesh {path.name} has non-finite vertices", source=knee_file, field=field)
     mesh = mesh.copy()
-    mesh.vertices = mesh.vertices * scale * mirror
-    if mirror[2] < 0:
+    mesh.vertices = transform(mesh.vertices)
+    if transform.mirror[2] < 0:
         mesh.invert()  # keep the face orientation after mirroring
     return mesh
 

@@ -131,3 +131,47 @@ def test_cli_process_exit_code_and_no_traceback(tmp_path):
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and proc.stderr.strip().count("\n") == 0
     assert "file not found" in proc.stderr
+
+
+def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
+    """The default knee moved by a rigid transform into 'scanner' coordinates, with coordinates =
+    'scan': the ISB frame is rebuilt from the landmarks and the model is the same."""
+    import numpy as np
+    import trimesh
+
+    from kneenlp.simulate import model_for
+
+    rot = trimesh.transformations.rotation_matrix(0.4, [0.3, 1.0, 0.2])[:3, :3]
+    shift = np.array([120.0, -35.0, 410.0])
+
+    def move(p):
+        return (rot @ np.asarray(p, float).T).T + shift
+
+    src = DEFAULT_KNEE.parent
+    text = (src / "knee.toml").read_text()
+    import re
+
+    def repl(m):
+        vals = move([float(v) for v in m.group(1).split(",")])
+        return "[" + ", ".join(f"{v:.12f}" for v in vals) + "]"
+
+    text = re.sub(r"\[(-?[\d.]+, -?[\d.]+, -?[\d.]+)\]", repl, text)
+    # the default knee's tibial landmarks are given in the tibial frame = femoral frame at reference
+    text = text.replace('units = "mm"', 'units = "mm"\ncoordinates = "scan"')
+    text = text.replace("../../parameters/table1.toml", str(src.parent.parent / "parameters" / "table1.toml"))
+    (tmp_path / "meshes").mkdir()
+    for f in (src / "meshes").glob("*.stl"):
+        mesh = trimesh.load(f)
+        mesh.vertices = move(mesh.vertices)
+        mesh.export(tmp_path / "meshes" / f.name)
+    (tmp_path / "knee.toml").write_text(text)
+    scan = Knee.load(tmp_path / "knee.toml")
+    ref = Knee.default()
+    m1, m2 = model_for(ref), model_for(scan)
+    q = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
+    load = np.array([50.0, 0, 0, 2.0, 0.5, 0])
+    r1 = np.asarray(m1.residual(q, m1.theta(), load, 0.3)).ravel()
+    r2 = np.asarray(m2.residual(q, m2.theta(), load, 0.3)).ravel()
+    assert np.allclose(r1, r2, rtol=1e-5, atol=1e-5), (r1, r2)
+    assert np.allclose(scan.compartments["medial"].sphere_center, ref.compartments["medial"].sphere_center,
+                       atol=1e-8)
