@@ -6,8 +6,9 @@ settings, in millimetres, either already in the ISB femoral frame (``coordinates
 the default) or in scanner coordinates (``coordinates = "scan"``): then the ISB femoral frame is
 built from the landmarks ``hip_center``, ``medial_epicondyle`` and ``lateral_epicondyle`` (Wu et al.
 2002) and its origin put midway between the fitted condyle centres, on the flexion axis.
-:meth:`Knee.load` validates the file and converts everything to SI.  A left knee (``side = "left"``) is mirrored into a right knee
-(Z -> -Z), which keeps the anatomical meaning of every coordinate.
+:meth:`Knee.load` validates the file and converts everything to SI.  A left knee
+(``side = "left"``) is mirrored into a right knee (Z -> -Z), which keeps the anatomical meaning of
+every coordinate.
 
 Each femoral condyle enters the contact model through the sphere fitted to its cartilage mesh
 (least squares, ``trimesh.nsphere.fit_nsphere``); the RMS distance of the mesh from that sphere is
