@@ -229,14 +229,18 @@ def cmd_design(args) -> int:
     return 0
 
 
+def _knee_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    p.add_argument("--parameters", help="parameter set TOML (reference values and fixed parameters)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="kneenlp", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate a laxity protocol (forward problem)")
     p.add_argument("--protocol", default="set3", help="protocol name (set1..set4) or TOML file")
-    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
-    p.add_argument("--parameters", help="parameter set TOML (default: the knee's)")
+    _knee_args(p)
     p.add_argument("--out", default="kneenlp-out", help="output directory")
     p.add_argument("--noise", default=None, help="also write measured.csv with noise: uniform:B | gaussian:S")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
@@ -248,8 +252,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("diagnose", help="model adequacy: where the fit fails and which effect is missing")
     p.add_argument("data", help="measured-data CSV")
-    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
-    p.add_argument("--parameters", help="parameter set TOML")
+    _knee_args(p)
     p.add_argument("--noise", default="uniform:0.5", help="noise model of the data (default uniform:0.5)")
     p.add_argument("--refit", type=int, default=4, help="refit the best N candidates (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the start scatter")
@@ -259,8 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("identify", help="identify ligament parameters from measured data (simultaneous NLP)")
     p.add_argument("data", help="measured-data CSV (as written by 'kneenlp simulate --noise')")
-    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
-    p.add_argument("--parameters", help="parameter set TOML: reference values and fixed parameters")
+    _knee_args(p)
     p.add_argument("--free", help="comma-separated parameters to identify (default: k and ref_strain of all)")
     p.add_argument("--noise", help="noise model of the data for the covariance, e.g. uniform:0.5")
     p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
@@ -278,8 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("compare-methods", help="simultaneous NLP vs the paper's nested Complex method")
     p.add_argument("data", help="measured-data CSV")
-    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
-    p.add_argument("--parameters", help="parameter set TOML")
+    _knee_args(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the start scatter / Complex")
     p.add_argument("--max-evals", type=int, default=5000, help="Complex evaluation budget")
     p.add_argument("--max-seconds", type=float, default=None, help="Complex wall-time budget")
@@ -306,8 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", help="measured-data CSV")
     p.add_argument("--format", required=True, choices=["nl", "casadi", "c"], help="export format")
     p.add_argument("--out", default="kneenlp-export", help="output directory")
-    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
-    p.add_argument("--parameters", help="parameter set TOML")
+    _knee_args(p)
     p.add_argument("--free", help="comma-separated parameters to identify")
     p.add_argument("--seed", type=int, default=0, help="seed of the start scatter")
     p.add_argument("--nl-common", default="defined", choices=["defined", "lifted"],
@@ -325,8 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", default="uniform:0.5", help="noise model (mm, deg)")
     p.add_argument("--robust", type=int, default=3, help="parameter sets averaged over (knee's + scatter draws)")
     p.add_argument("--free", help="comma-separated parameters to identify")
-    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
-    p.add_argument("--parameters", help="parameter set TOML")
+    _knee_args(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the robustness draws")
     p.add_argument("--out", default="designed_protocol.toml", help="protocol TOML to write")
     p.add_argument("--json", action="store_true", help="print JSON")
