@@ -13,7 +13,8 @@ fresh scatter draws) and keeps the best converged one.  A start whose solve fail
 off from an indefinite-Hessian region, about one seed in ten on Sets 1-3 in our measurements)
 is followed by up to ``restarts`` fresh draws (default 4); so is a solve that ends with a ligament
 parameter on its bound (k = 0 or 1e5 N, strain at +-30 %: the wrong-minimum signature of the
-prototype).  The best fit is kept and records how many starts were used.
+prototype), and, when the noise model is given, a solve whose misfit the noise cannot explain
+(chi-square p < 1e-9).  The best fit is kept and records how many starts were used.
 """
 
 from __future__ import annotations
@@ -163,7 +164,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     k = 0
 
     def good(f: Fit | None) -> bool:
-        return f is not None and f.success and not _at_bounds(f)
+        return f is not None and f.success and not _at_bounds(f) and not _implausible_misfit(f, noise_model)
 
     while k < max(1, multistart) or (not good(best) and k < max(1, multistart) + restarts):
         s = paper_scatter(model, free, rng)
@@ -183,6 +184,17 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         note = f"{k - max(1, multistart)} restart(s) after failed solves"
         best.message = f"{best.message}; {note}" if best.message else note
     return best
+
+
+def _implausible_misfit(fit: Fit, noise: NoiseModel | None) -> bool:
+    """With a known noise model, a misfit the noise cannot explain (chi-square p < 1e-9) marks a
+    wrong local minimum worth a restart (the best fit is kept either way)."""
+    if noise is None or noise.std <= 0:
+        return False
+    from scipy import stats
+
+    chi2 = float(np.sum(fit.residuals**2)) / noise.std**2
+    return bool(stats.chi2.sf(chi2, max(fit.residuals.size - len(fit.free), 1)) < 1e-9)
 
 
 def _at_bounds(fit: Fit) -> bool:
