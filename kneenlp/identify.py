@@ -32,7 +32,7 @@ from .fit import Fit
 from .forward import ForwardSolver
 from .knee import Knee
 from .model import KneeModel
-from .nlp import IdentificationNLP, build_nlp, check_free, default_free
+from .nlp import IdentificationNLP, build_nlp, check_free, default_free, map_threads
 from .noise import NoiseModel
 from .protocol import Protocol, available_protocols
 from .simulate import model_for
@@ -59,7 +59,7 @@ def paper_scatter(model: KneeModel, free: list[str], rng: np.random.Generator,
 
 
 def get_nlp(model: KneeModel, n_trials: int, free: list[str], solver: str, options: dict | None) -> IdentificationNLP:
-    key = (id(model), n_trials, tuple(free), solver, repr(sorted((options or {}).items())))
+    key = (id(model), n_trials, tuple(free), solver, repr(sorted((options or {}).items())), map_threads())
     nlp = _NLP_CACHE.get(key)
     if nlp is None or nlp.model is not model:
         nlp = build_nlp(model, n_trials, free, solver, options)

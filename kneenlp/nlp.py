@@ -13,7 +13,7 @@ flexions]``, so refitting other data or other fixed values never rebuilds or rec
 
 Speed choices: the residual is an MX graph around the vectorised contact (see
 :mod:`kneenlp.contact`), mapped over trials with ``map(T, "thread", 2)`` so both cores evaluate
-trials; it is *not* expanded to SX (that would inline every contact point of every trial, the
+trials (serial in study workers, see :func:`set_map_threads`); it is *not* expanded to SX (that would inline every contact point of every trial, the
 prototype's 75k-instruction-per-trial mistake).  IPOPT gets exact first and second derivatives
 from CasADi's AD (Lagrangian Hessian through the map) and uses MUMPS; the KKT system is tiny and
 block-sparse, so linear algebra is negligible next to function evaluations.
@@ -35,6 +35,19 @@ from .model import KneeModel
 # in [0.5, 10] %, modulus / 10 GN/m^3 in [0.1, 1000] GN/m^3.
 #: Bounds of the coordinates in user units (deg, deg, mm, mm, mm): the physiological envelope.
 Q_BOUNDS = np.array([30.0, 60.0, 25.0, 25.0, 25.0])
+
+_MAP_THREADS = 2
+
+
+def set_map_threads(n: int) -> None:
+    """Threads of the trial map in NLPs built from now on (1 = serial).  Study workers set 1:
+    they already run one process per core, and two threads each would oversubscribe the cores."""
+    global _MAP_THREADS
+    _MAP_THREADS = max(1, int(n))
+
+
+def map_threads() -> int:
+    return _MAP_THREADS
 
 
 def default_free(model: KneeModel) -> list[str]:
@@ -120,7 +133,10 @@ def nlp_expressions(model: KneeModel, n_trials: int, free: list[str], parallel: 
     theta = ca.vertcat(*[scales[pos[n]] * xp[pos[n]] if n in pos else theta_in[i]
                          for i, n in enumerate(model.parameter_names)])
     q_si = xq / ca.DM(TO_USER)  # deg, mm -> rad, m
-    mapped = model.residual.map(T, parallel, 2) if parallel == "thread" else model.residual.map(T, parallel)
+    if parallel == "thread" and _MAP_THREADS > 1:
+        mapped = model.residual.map(T, "thread", _MAP_THREADS)
+    else:
+        mapped = model.residual.map(T, "serial" if parallel == "thread" else parallel)
     g = ca.vec(mapped(q_si, theta, loads, flex))
     bias = model.measurement_bias(theta) * ca.DM(TO_USER)  # registration effects, mm / deg
     diff = xq + ca.repmat(bias, 1, T) - meas
@@ -143,7 +159,7 @@ def build_nlp(model: KneeModel, n_trials: int, free: list[str], solver: str = "i
     nlp = {"x": e.x, "p": e.p, "f": e.f, "g": e.g}
     opts = dict(options or {})
     if solver == "ipopt":
-        ipopt = {"tol": 1e-12, "acceptable_tol": 1e-9, "constr_viol_tol": 1e-9, "max_iter": 150,
+        ipopt = {"tol": 1e-10, "acceptable_tol": 1e-9, "constr_viol_tol": 1e-9, "max_iter": 150,
                  "print_level": 0, "linear_solver": "mumps", "mu_strategy": "monotone",
                  "nlp_scaling_method": "gradient-based", "sb": "yes"}
         ipopt.update(opts.pop("ipopt", {}))

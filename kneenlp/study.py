@@ -110,8 +110,17 @@ def run_sample(spec: StudySpec, set_name: str, index: int) -> dict:
     return row
 
 
+def _worker_sample(spec: StudySpec, set_name: str, index: int) -> dict:
+    """:func:`run_sample` in a worker process: one process per core, so the NLP's trial map runs
+    serially (two threads per process would oversubscribe the cores)."""
+    from .nlp import set_map_threads
+
+    set_map_threads(1)
+    return run_sample(spec, set_name, index)
+
+
 def _run_sample_args(args: tuple) -> dict:
-    return run_sample(*args)
+    return _worker_sample(*args)
 
 
 def write_atomic(path: Path, text: str) -> None:
@@ -218,7 +227,7 @@ def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, schedul
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
             client = Client(cluster)
         try:
-            futures = [client.submit(run_sample, spec, s, i, pure=False) for s, i in todo]
+            futures = [client.submit(_worker_sample, spec, s, i, pure=False) for s, i in todo]
             for fut in dask_completed(futures):
                 yield fut.result()
         finally:
