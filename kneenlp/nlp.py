@@ -13,8 +13,9 @@ flexions]``, so refitting other data or other fixed values never rebuilds or rec
 
 Speed choices: the residual is an MX graph around the vectorised contact (see
 :mod:`kneenlp.contact`), mapped over trials with ``map(T, "thread", 2)`` so both cores evaluate
-trials (serial in study workers, see :func:`set_map_threads`); it is *not* expanded to SX (that would inline every contact point of every trial, the
-prototype's 75k-instruction-per-trial mistake).  IPOPT gets exact first and second derivatives
+trials (serial in study workers, see :func:`set_map_threads`); it is *not* expanded to SX (that
+would inline every contact point of every trial, the prototype's 75k-instruction-per-trial
+mistake).  IPOPT gets exact first and second derivatives
 from CasADi's AD (Lagrangian Hessian through the map) and uses MUMPS; the KKT system is tiny and
 block-sparse, so linear algebra is negligible next to function evaluations.
 """
