@@ -61,21 +61,38 @@ def laxity_curves(table: pd.DataFrame, path: str | Path, title: str = "",
     return _save(fig, path)
 
 
-def ligament_forces(table: pd.DataFrame, ligaments: list[str], path: str | Path, title: str = "") -> Path:
-    """Grouped bars of each ligament's force (N) per load case (the paper's Fig. 2)."""
+def ligament_forces(table: pd.DataFrame, ligaments: list[str], path: str | Path, title: str = "",
+                    recruitment: pd.DataFrame | None = None) -> Path:
+    """Grouped bars of each ligament's force (N) per load case (the paper's Fig. 2); with
+    ``recruitment`` (:meth:`SimulationResult.recruitment`) a second panel shows each force's change
+    from the unloaded pose (N) and names the ligament that dominates each case."""
     n = len(table)
-    fig, ax = plt.subplots(figsize=(max(8, 0.45 * n), 4.5))
+    rows = 1 if recruitment is None else 2
+    fig, axes = plt.subplots(rows, 1, figsize=(max(8, 0.45 * n), 4.5 * rows), sharex=True, squeeze=False)
     width = 0.8 / len(ligaments)
     x = np.arange(n)
-    for j, lig in enumerate(ligaments):
-        ax.bar(x + (j - (len(ligaments) - 1) / 2) * width, table[f"{lig}_force_N"], width, label=lig)
-    ax.set_xticks(x)
-    ax.set_xticklabels(table["trial"], rotation=70, ha="right", fontsize=8)
-    ax.set_ylabel("ligament force [N]")
-    ax.legend()
-    ax.grid(axis="y", alpha=0.3)
+    panels = [(axes[0, 0], table, "force", "ligament force [N]")]
+    if recruitment is not None:
+        panels.append((axes[1, 0], recruitment, "force_change", "force change from unloaded pose [N]"))
+    for ax, frame, key, label in panels:
+        for j, lig in enumerate(ligaments):
+            ax.bar(x + (j - (len(ligaments) - 1) / 2) * width, frame[f"{lig}_{key}_N"], width, label=lig,
+                   color=f"C{j}")
+        ax.set_ylabel(label)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0, 0].legend()
+    if recruitment is not None:
+        ax = axes[1, 0]
+        ax.axhline(0.0, color="k", lw=0.6)
+        top = ax.get_ylim()[1]
+        for i, lig in enumerate(recruitment["dominant"]):
+            if lig:
+                ax.text(i, top, lig, ha="center", va="top", fontsize=7, rotation=90,
+                        color=f"C{ligaments.index(lig)}")
+    axes[-1, 0].set_xticks(x)
+    axes[-1, 0].set_xticklabels(table["trial"], rotation=70, ha="right", fontsize=8)
     if title:
-        ax.set_title(title)
+        axes[0, 0].set_title(title)
     return _save(fig, path)
 
 

@@ -78,6 +78,27 @@ class SimulationResult:
         df["strategy"] = [s.strategy for s in self.solutions]
         return df
 
+    def recruitment(self) -> pd.DataFrame:
+        """Each ligament's force change from the unloaded pose at the same flexion (N), one row per
+        trial, and ``dominant``: the ligament whose force rises most in that trial ("" if none
+        rises; NaN rows where the protocol has no unloaded trial at that flexion).
+
+        This is the reading of the paper's Fig. 2 ("a load case where the specific ligament is
+        loaded relatively more than other ligaments"): a trial dominated by one ligament is the
+        trial that isolates it."""
+        names = list(self.knee.ligaments)
+        forces = np.array([s.tension for s in self.solutions])
+        flex = [s.trial.flexion_deg for s in self.solutions]
+        base = {f: forces[j] for j, (s, f) in enumerate(zip(self.solutions, flex, strict=True))
+                if s.trial.direction == "none"}
+        change = np.array([forces[j] - base.get(f, np.nan) for j, f in enumerate(flex)])
+        df = pd.DataFrame(change, columns=[f"{n}_force_change_N" for n in names])
+        df.insert(0, "trial", [s.trial.id for s in self.solutions])
+        df.insert(1, "flexion_deg", flex)
+        df["dominant"] = ["" if not np.isfinite(row).all() or row.max() <= 0 else names[int(np.argmax(row))]
+                          for row in change]
+        return df
+
     def measured(self, noise: str | NoiseModel = "none", seed: int | None = 0) -> pd.DataFrame:
         """Measured-data table: the converged poses plus seeded noise (mm, deg)."""
         noise = NoiseModel.parse(noise)

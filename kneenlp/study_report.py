@@ -99,7 +99,7 @@ def analyse_study(study) -> dict:
     fig2_set = "set3" if "set3" in study.spec.sets else study.spec.sets[0]
     truth = _truth(study.spec, fig2_set)
     plots.ligament_forces(truth.table(), list(knee.ligaments), out / f"fig2_{truth.protocol.name}_forces.png",
-                          f"Ligament forces, {fig2_set} (true parameters)")
+                          f"Ligament forces, {fig2_set} (true parameters)", truth.recruitment())
     (out / "summary.md").write_text(_summary(study, df, table, failures, parquet))
     return table
 
