@@ -1,8 +1,8 @@
 """Noise studies: the paper's Monte Carlo (Table 3, Fig. 3) at any scale, locally or on Dask.
 
 For each protocol ("set") and sample index, the truth is simulated once, seeded noise is added
-(:func:`sample_seed`: derived from the study seed, the set name and the index only, so results
-are bit-identical whatever the executor and worker count) and the parameters are identified.
+(:func:`sample_seed`: derived from the study seed, the protocol's name and the index only, so
+results are bit-identical whatever the executor and worker count) and the parameters are identified.
 Every finished sample is written atomically to ``DIR/samples/<set>_<index>.json`` (temporary
 file + ``os.replace``): a study killed mid-run and started again with the same arguments skips
 what is done, and the estimates table has exactly one row per (set, sample).  ``DIR/study.json``
@@ -86,11 +86,12 @@ def run_sample(spec: StudySpec, set_name: str, index: int) -> dict:
     from .data import MeasuredData
     from .identify import identify
 
-    seed = sample_seed(spec.seed, set_name, index)
-    row: dict = {"set": set_name, "sample": index, "seed": seed}
+    row: dict = {"set": set_name, "sample": index, "seed": -1}
     t0 = time.perf_counter()
     try:
         truth = _truth(spec, set_name)
+        # the protocol's name, not the path it was given by: moving the file keeps the draws
+        seed = row["seed"] = sample_seed(spec.seed, truth.protocol.name, index)
         df = truth.measured(spec.noise, seed)
         from .conventions import coordinate_columns, coords_from_user
 

@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+import kneenlp
 from kneenlp.cli import main
 from kneenlp.study import StudySpec, run_study, sample_seed
 
@@ -47,6 +48,20 @@ def test_outputs_and_one_row_per_sample(small):
 def test_seeds_derive_from_study_seed_and_index_only():
     assert sample_seed(0, "set1", 5) == sample_seed(0, "set1", 5)
     assert len({sample_seed(0, s, i) for s in ("set1", "set2") for i in range(50)}) == 100
+
+
+def test_protocol_file_draws_do_not_depend_on_its_directory(tmp_path):
+    from kneenlp.study import run_sample
+
+    text = (kneenlp.knee.PROBLEMS / "protocols" / "set1.toml").read_text().replace('name = "set1"', 'name = "mine"')
+    rows_ = []
+    for where in ("a", "b/c"):
+        path = tmp_path / where / "mine.toml"
+        path.parent.mkdir(parents=True)
+        path.write_text(text)
+        rows_.append(run_sample(StudySpec(sets=(str(path),), samples=1, seed=3), str(path), 0))
+    assert rows_[0]["seed"] == rows_[1]["seed"] == sample_seed(3, "mine", 0)
+    assert rows_[0]["ACL.k"] == rows_[1]["ACL.k"] and rows_[0]["success"]
 
 
 def test_local_processes_give_identical_rows(small, tmp_path):
