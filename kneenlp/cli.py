@@ -176,7 +176,8 @@ def cmd_study(args) -> int:
     sets = tuple(f"set{s}" if s.strip().isdigit() else s.strip() for s in args.sets.split(","))
     spec = StudySpec(sets=sets, samples=args.samples, noise=args.noise, seed=args.seed, method=args.method,
                      knee=str(Path(args.knee).resolve()) if args.knee else None,
-                     free=tuple(f.strip() for f in args.free.split(",")) if args.free else None)
+                     free=tuple(f.strip() for f in args.free.split(",")) if args.free else None,
+                     start=args.start)
     from .noise import NoiseModel
 
     NoiseModel.parse(spec.noise)
@@ -300,6 +301,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"])
     p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
     p.add_argument("--free", help="comma-separated parameters to identify")
+    p.add_argument("--start", default="scatter", choices=["scatter", "truth"],
+                   help="fit starts: scattered like the paper (default) or at the true values")
     p.add_argument("--out", default="kneenlp-study", help="study directory (resumable)")
     p.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")

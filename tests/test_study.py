@@ -64,6 +64,19 @@ def test_protocol_file_draws_do_not_depend_on_its_directory(tmp_path):
     assert rows_[0]["ACL.k"] == rows_[1]["ACL.k"] and rows_[0]["success"]
 
 
+def test_truth_start_reaches_the_scatter_start_estimate(tmp_path):
+    from kneenlp.study import run_sample
+
+    rows_ = [run_sample(StudySpec(sets=("set2",), samples=1, seed=4, start=start), "set2", 0)
+             for start in ("scatter", "truth")]
+    assert rows_[0]["seed"] == rows_[1]["seed"] and rows_[0]["success"] and rows_[1]["success"]
+    for n in (f"{lig}.{p}" for lig in ("ACL", "PCL", "MCL", "LCL") for p in ("k", "ref_strain")):
+        assert rows_[1][n] == pytest.approx(rows_[0][n], rel=1e-6), n
+    assert rows_[1]["iterations"] <= rows_[0]["iterations"]
+    with pytest.raises(kneenlp.InputError, match="unknown start 'middle'"):
+        run_study(StudySpec(sets=("set1",), samples=1, start="middle"), tmp_path / "s", progress=False)
+
+
 def test_local_processes_give_identical_rows(small, tmp_path):
     other = run_study(small.spec, tmp_path / "two", workers=2, progress=False)
     pd.testing.assert_frame_equal(rows(small), rows(other))
