@@ -2,7 +2,7 @@
 
 Target (issue 5): <= 60 s on the 2-core machine.  Also prints the per-set mean time per fit and
 the extrapolated time of 1000 samples per set.
-Run: python benchmarks/bench_study.py [samples] [workers]
+Run: python benchmarks/bench_study.py [samples] [workers] [scatter|truth]
 """
 
 import sys
@@ -13,10 +13,10 @@ from pathlib import Path
 from kneenlp.study import StudySpec, run_study
 
 
-def main(samples: int = 20, workers: int = 2) -> None:
+def main(samples: int = 20, workers: int = 2, start: str = "scatter") -> None:
     out = Path(tempfile.mkdtemp()) / "study"
     t0 = time.perf_counter()
-    study = run_study(StudySpec(samples=samples, seed=0), out, workers=workers, progress=False, analyse=False)
+    study = run_study(StudySpec(samples=samples, seed=0, start=start), out, workers=workers, progress=False, analyse=False)
     run = time.perf_counter() - t0
     t1 = time.perf_counter()
     from kneenlp.study_report import analyse_study
@@ -24,7 +24,7 @@ def main(samples: int = 20, workers: int = 2) -> None:
     analyse_study(study)
     analysis = time.perf_counter() - t1
     df = study.load_rows()
-    print(f"{len(df)} fits ({samples} per set, {workers} workers): run {run:.1f} s, analysis {analysis:.1f} s, "
+    print(f"{len(df)} fits ({samples} per set, {workers} workers, {start} starts): run {run:.1f} s, analysis {analysis:.1f} s, "
           f"failed {int((~df['success'].astype(bool)).sum())}")
     per_set = df.groupby("set")["wall_seconds"].mean()
     for s, v in per_set.items():
@@ -34,4 +34,4 @@ def main(samples: int = 20, workers: int = 2) -> None:
 
 
 if __name__ == "__main__":
-    main(*(int(a) for a in sys.argv[1:3]))
+    main(*(int(a) for a in sys.argv[1:3]), *sys.argv[3:4])
