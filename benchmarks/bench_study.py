@@ -16,7 +16,8 @@ from kneenlp.study import StudySpec, run_study
 def main(samples: int = 20, workers: int = 2, start: str = "scatter") -> None:
     out = Path(tempfile.mkdtemp()) / "study"
     t0 = time.perf_counter()
-    study = run_study(StudySpec(samples=samples, seed=0, start=start), out, workers=workers, progress=False, analyse=False)
+    spec = StudySpec(samples=samples, seed=0, start=start)
+    study = run_study(spec, out, workers=workers, progress=False, analyse=False)
     run = time.perf_counter() - t0
     t1 = time.perf_counter()
     from kneenlp.study_report import analyse_study
@@ -24,8 +25,8 @@ def main(samples: int = 20, workers: int = 2, start: str = "scatter") -> None:
     analyse_study(study)
     analysis = time.perf_counter() - t1
     df = study.load_rows()
-    print(f"{len(df)} fits ({samples} per set, {workers} workers, {start} starts): run {run:.1f} s, analysis {analysis:.1f} s, "
-          f"failed {int((~df['success'].astype(bool)).sum())}")
+    print(f"{len(df)} fits ({samples} per set, {workers} workers, {start} starts): run {run:.1f} s, "
+          f"analysis {analysis:.1f} s, failed {int((~df['success'].astype(bool)).sum())}")
     per_set = df.groupby("set")["wall_seconds"].mean()
     for s, v in per_set.items():
         print(f"  {s}: {v:.2f} s per fit (one core)")
