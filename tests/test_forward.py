@@ -95,3 +95,14 @@ def test_warm_start_reproduces_cold_solution(model, set3):
     trials = [s.trial for s in set3.solutions]
     again = solver.solve(trials, model.theta(), {s.trial.id: s.q for s in set3.solutions})
     assert np.allclose([s.q for s in again], set3.q, atol=1e-10)
+
+
+def test_fig2_axes_scan_script_runs(capsys):
+    """docs/scripts/fig2_axes_scan.py (the evidence in docs/model.md) stays runnable."""
+    import runpy
+
+    scan = runpy.run_path(str(kneenlp.knee.PROBLEMS.parent / "docs" / "scripts" / "fig2_axes_scan.py"))
+    scan["main"](2, 2.0, 1)
+    out = capsys.readouterr().out
+    assert "2 knees, attachments moved by up to +-2 mm (seed 1)" in out
+    assert out.count("\nfemoral ") == 1 and out.count("\njoint ") == 1
