@@ -93,8 +93,9 @@ def cmd_simulate(args) -> int:
     table = result.table()
     table.to_csv(out / "kinematics.csv", index=False, float_format="%.10g")
     written = [out / "kinematics.csv"]
-    if any(t.direction == "none" for t in protocol.trials):
-        result.recruitment().to_csv(out / "ligament_recruitment.csv", index=False, float_format="%.6g")
+    recruitment = result.recruitment() if any(t.direction == "none" for t in protocol.trials) else None
+    if recruitment is not None:
+        recruitment.to_csv(out / "ligament_recruitment.csv", index=False, float_format="%.6g")
         written.append(out / "ligament_recruitment.csv")
     if args.noise not in (None, "none") and not result.failed:
         measured = result.measured(args.noise, args.seed)
@@ -105,7 +106,7 @@ def cmd_simulate(args) -> int:
         title = f"{knee.name} knee, {protocol.title or protocol.name}, loads along {axes} axes"
         written.append(plots.laxity_curves(table, out / "laxity.png", title))
         written.append(plots.ligament_forces(table, list(knee.ligaments), out / "ligament_forces.png", title,
-                                             result.recruitment()))
+                                             recruitment))
     summary = result.summary() | {"outputs": [str(p) for p in written]}
     if args.json:
         print(json.dumps(summary, indent=2))

@@ -99,7 +99,8 @@ def analyse_study(study) -> dict:
     fig2_set = "set3" if "set3" in study.spec.sets else study.spec.sets[0]
     truth = _truth(study.spec, fig2_set)
     plots.ligament_forces(truth.table(), list(knee.ligaments), out / f"fig2_{truth.protocol.name}_forces.png",
-                          f"Ligament forces, {fig2_set} (true parameters)", truth.recruitment())
+                          f"Ligament forces, {fig2_set} (true parameters)",
+                          truth.recruitment() if any(t.direction == "none" for t in truth.protocol.trials) else None)
     (out / "summary.md").write_text(_summary(study, df, table, failures, parquet))
     return table
 
