@@ -18,8 +18,8 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from kneenlp import Knee, Protocol
-from kneenlp.design import design, predicted_rse, write_protocol
-from kneenlp.simulate import model_for
+from kneenlp.inference.design import design, predicted_rse, write_protocol
+from kneenlp.simulation import model_for
 
 
 def main(mc: int = 0) -> None:
@@ -49,7 +49,7 @@ def main(mc: int = 0) -> None:
         ax.plot(r["cases"], 2 * r["worst_%"], "o" if name.startswith("set") else "s", ms=8)
         ax.annotate(name, (r["cases"], 2 * r["worst_%"]), textcoords="offset points", xytext=(5, 5), fontsize=8)
     if mc:
-        from kneenlp.study import StudySpec, run_study
+        from kneenlp.studies.study import StudySpec, run_study
 
         study = run_study(StudySpec(sets=(str(designs["R"]), "set4"), samples=mc, seed=5), tmp / "mc", progress=False)
         t3 = pd.read_csv(study.out / "table3.csv")

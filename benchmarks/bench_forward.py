@@ -10,8 +10,8 @@ import time
 import numpy as np
 
 from kneenlp import Knee, Protocol
-from kneenlp.forward import ForwardSolver
-from kneenlp.model import KneeModel
+from kneenlp.model.kneemodel import KneeModel
+from kneenlp.solvers.forward import ForwardSolver
 
 
 def main() -> None:

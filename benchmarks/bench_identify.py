@@ -11,8 +11,8 @@ import time
 from pathlib import Path
 
 import kneenlp
-from kneenlp.data import read_measured
-from kneenlp.identify import get_nlp, identify
+from kneenlp.experiment.measured import read_measured
+from kneenlp.inference.identify import get_nlp, identify
 
 
 def main(seed: int = 1) -> None:

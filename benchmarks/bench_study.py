@@ -10,7 +10,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from kneenlp.study import StudySpec, run_study
+from kneenlp.studies.study import StudySpec, run_study
 
 
 def main(samples: int = 20, workers: int = 2, start: str = "scatter") -> None:
@@ -20,7 +20,7 @@ def main(samples: int = 20, workers: int = 2, start: str = "scatter") -> None:
     study = run_study(spec, out, workers=workers, progress=False, analyse=False)
     run = time.perf_counter() - t0
     t1 = time.perf_counter()
-    from kneenlp.study_report import analyse_study
+    from kneenlp.studies.report import analyse_study
 
     analyse_study(study)
     analysis = time.perf_counter() - t1

@@ -9,13 +9,13 @@ Public API (see README.md)::
     result.table()                                # pandas table in mm / deg / N
 """
 
-from .errors import ConvergenceError, InputError
-from .knee import Knee
-from .model import KneeModel
-from .noise import NoiseModel
-from .parameters import ParameterSet
-from .protocol import Protocol, Trial
-from .simulate import SimulationResult, simulate
+from kneenlp.errors import ConvergenceError, InputError
+from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.protocol import Protocol, Trial
+from kneenlp.model.knee import Knee
+from kneenlp.model.kneemodel import KneeModel
+from kneenlp.model.parameters import ParameterSet
+from kneenlp.simulation import SimulationResult, simulate
 
 __version__ = "0.1.0"
 

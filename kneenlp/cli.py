@@ -12,11 +12,11 @@ import json
 import sys
 from pathlib import Path
 
-from .errors import ConvergenceError, InputError
+from kneenlp.errors import ConvergenceError, InputError
 
 
 def _knee(args):
-    from .knee import Knee
+    from kneenlp.model.knee import Knee
 
     knee = Knee.load(args.knee) if args.knee else Knee.default()
     if getattr(args, "parameters", None):
@@ -27,7 +27,7 @@ def _knee(args):
 def _effect_values(knee, specs: list[str]) -> dict[str, float]:
     """``NAME[:param=value,...]`` (display units, e.g. ``posterior_capsule:k=8000``,
     ``registration:anterior_translation=1.5``) -> parameter values in SI."""
-    from .simulate import model_for
+    from kneenlp.simulation import model_for
 
     model = model_for(knee)
     values: dict[str, float] = {}
@@ -51,8 +51,8 @@ def _effect_values(knee, specs: list[str]) -> dict[str, float]:
 
 
 def cmd_diagnose(args) -> int:
-    from .adequacy import diagnose
-    from .identify import identify
+    from kneenlp.inference.adequacy import diagnose
+    from kneenlp.inference.identify import identify
 
     knee = _knee(args)
     fit = identify(knee, args.data, seed=args.seed)
@@ -81,9 +81,9 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from . import plots
-    from .protocol import Protocol
-    from .simulate import simulate
+    from kneenlp.experiment.protocol import Protocol
+    from kneenlp.io import plots
+    from kneenlp.simulation import simulate
 
     knee = _knee(args)
     protocol = Protocol.load(args.protocol)
@@ -123,7 +123,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_identify(args) -> int:
-    from .identify import identify
+    from kneenlp.inference.identify import identify
 
     knee = _knee(args)
     free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
@@ -140,7 +140,7 @@ def cmd_identify(args) -> int:
 
 
 def cmd_compare_methods(args) -> int:
-    from .identify import identify
+    from kneenlp.inference.identify import identify
 
     knee = _knee(args)
     fits = [identify(knee, args.data, seed=args.seed),
@@ -172,14 +172,14 @@ def cmd_compare_methods(args) -> int:
 
 
 def cmd_study(args) -> int:
-    from .study import StudySpec, run_study
+    from kneenlp.studies.study import StudySpec, run_study
 
     sets = tuple(f"set{s}" if s.strip().isdigit() else s.strip() for s in args.sets.split(","))
     spec = StudySpec(sets=sets, samples=args.samples, noise=args.noise, seed=args.seed, method=args.method,
                      knee=str(Path(args.knee).resolve()) if args.knee else None,
                      free=tuple(f.strip() for f in args.free.split(",")) if args.free else None,
                      start=args.start)
-    from .noise import NoiseModel
+    from kneenlp.experiment.noise import NoiseModel
 
     NoiseModel.parse(spec.noise)
     if spec.samples < 1:
@@ -200,7 +200,7 @@ def cmd_study(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from .export import export_problem, write_export
+    from kneenlp.io.export import export_problem, write_export
 
     knee = _knee(args)
     free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
@@ -216,7 +216,7 @@ def cmd_export(args) -> int:
 
 
 def cmd_design(args) -> int:
-    from .design import candidate_pool, design, write_protocol
+    from kneenlp.inference.design import candidate_pool, design, write_protocol
 
     knee = _knee(args)
     flexions = tuple(float(f) for f in args.flexions.split(","))

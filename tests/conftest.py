@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 import kneenlp
-from kneenlp.simulate import model_for
+from kneenlp.simulation import model_for
 
 
 @pytest.fixture(scope="session")

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import kneenlp
-from kneenlp.adequacy import diagnose
+import kneenlp.io.resources
 from kneenlp.cli import main
-from kneenlp.data import read_measured
-from kneenlp.identify import identify
+from kneenlp.experiment.measured import read_measured
+from kneenlp.inference.adequacy import diagnose
+from kneenlp.inference.identify import identify
 
 NOISE = "uniform:0.5"
 SIGMA = 0.5 / np.sqrt(3)
@@ -52,10 +54,10 @@ def test_hidden_effect_is_found_added_and_explains_the_misfit(knee, tmp_path, pr
 def test_effect_outside_the_library_is_flagged_without_overclaiming(knee, tmp_path):
     """Data from a knee whose MCL inserts 10 mm more anteriorly on the tibia: inadequate, and
     the report says no candidate explains it."""
-    text = kneenlp.knee.DEFAULT_KNEE.read_text()
+    text = kneenlp.model.knee.default_knee_file().read_text()
     text = text.replace("tibia = [6.0, -84.0, -26.0]", "tibia = [16.0, -84.0, -26.0]")
-    text = text.replace("../../parameters/table1.toml", str(kneenlp.knee.PROBLEMS / "parameters" / "table1.toml"))
-    text = text.replace('"meshes/', f'"{kneenlp.knee.DEFAULT_KNEE.parent}/meshes/')
+    text = text.replace("../../parameters/table1.toml", str(kneenlp.io.resources.resource("parameters", "table1.toml")))
+    text = text.replace('"meshes/', f'"{kneenlp.model.knee.default_knee_file().parent}/meshes/')
     (tmp_path / "wrong.toml").write_text(text)
     other = kneenlp.Knee.load(tmp_path / "wrong.toml")
     path = tmp_path / "m.csv"
@@ -127,7 +129,7 @@ def test_user_effect_extension_point(tmp_path):
     """The complete example of docs/adequacy.md, run as written (file paths made temporary)."""
     import re
 
-    text = (kneenlp.knee.PROBLEMS.parent / "docs" / "adequacy.md").read_text()
+    text = ((Path(__file__).resolve().parents[1] / "docs") / "adequacy.md").read_text()
     code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
     code = code.replace('"compressed.csv"', repr(str(tmp_path / "compressed.csv")))
     scope: dict = {}

@@ -1,4 +1,4 @@
-"""Tests for :mod:`kneenlp.boxcomplex` (Box's Complex method with Complex-RF refinements)."""
+"""Tests for :mod:`kneenlp.solvers.boxcomplex` (Box's Complex method with Complex-RF refinements)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kneenlp.boxcomplex import (
+from kneenlp.solvers.boxcomplex import (
     STATUS_CALLBACK,
     STATUS_CONVERGED,
     STATUS_MAX_EVALS,

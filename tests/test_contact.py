@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from kneenlp.contact import compartment_function, smooth_gate, sphere_plane_force
+from kneenlp.model.contact import compartment_function, smooth_gate, sphere_plane_force
 
 K = 10e9  # N/m^3
 

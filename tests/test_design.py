@@ -10,8 +10,8 @@ import pytest
 
 import kneenlp
 from kneenlp.cli import main
-from kneenlp.design import candidate_pool, criterion_value, design, predicted_rse, write_protocol
-from kneenlp.protocol import Protocol
+from kneenlp.experiment.protocol import Protocol
+from kneenlp.inference.design import candidate_pool, criterion_value, design, predicted_rse, write_protocol
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def test_designed_protocol_monte_carlo(tmp_path):
     """22 designed cases vs Set 4's 60, 200 Monte Carlo samples each (issue 8), which also checks
     issue 5's requirement: Set 4's Monte Carlo standard deviations agree with the linearised
     prediction within 25 %."""
-    from kneenlp.study import StudySpec, run_study
+    from kneenlp.studies.study import StudySpec, run_study
 
     r = design(max_cases=22, criterion="A", robust=3)
     path = write_protocol(r, tmp_path / "designed.toml")

@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 
 import kneenlp
-from kneenlp import anatomy
+import kneenlp.io.resources
 from kneenlp.cli import main
 from kneenlp.conventions import TO_USER
-from kneenlp.data import read_measured
-from kneenlp.export import export_problem, nl_function, write_export
-from kneenlp.identify import identify
+from kneenlp.experiment.measured import read_measured
+from kneenlp.inference.identify import identify
+from kneenlp.io.export import export_problem, nl_function, write_export
+from kneenlp.model import anatomy
 
 
 @pytest.fixture(scope="module")
@@ -30,8 +31,8 @@ def coarse_case(tmp_path_factory):
     for c in anatomy.DEFAULT_COMPARTMENTS:
         anatomy.condyle_mesh(c).export(d / "meshes" / f"femur_{c.name}.stl")
         anatomy.plateau_mesh(c, spacing=3.0).export(d / "meshes" / f"tibia_{c.name}.stl")
-    text = (kneenlp.knee.DEFAULT_KNEE).read_text().replace(
-        "../../parameters/table1.toml", str(kneenlp.knee.PROBLEMS / "parameters" / "table1.toml"))
+    text = (kneenlp.model.knee.default_knee_file()).read_text().replace(
+        "../../parameters/table1.toml", str(kneenlp.io.resources.resource("parameters", "table1.toml")))
     (d / "knee.toml").write_text(text)
     knee = kneenlp.Knee.load(d / "knee.toml")
     kneenlp.simulate(knee, "set1").measured("uniform:0.5", 1).to_csv(d / "m.csv", index=False)
@@ -85,7 +86,7 @@ def test_nl_read_by_scip(coarse_case, tmp_path):
     pyscipopt = pytest.importorskip("pyscipopt")
     _, _, fit, prob, x_opt, _ = coarse_case
     write_export(prob, "nl", tmp_path, nl_common="lifted")  # SCIP copies defined variables at every use
-    from kneenlp.nlwriter import _Graph, _node_values
+    from kneenlp.io.nlwriter import _Graph, _node_values
 
     sx, order = nl_function(prob)
     xs = x_opt[order]
@@ -116,7 +117,7 @@ def _eval_inputs(prob, x_opt):
 
 
 def _reference(prob, x_opt):
-    from kneenlp.export import _derivative_functions
+    from kneenlp.io.export import _derivative_functions
 
     args = _eval_inputs(prob, x_opt)
     out = {}

@@ -1,12 +1,15 @@
 """Forward laxity simulation on the default knee: convergence, plausibility, signs."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import kneenlp
+import kneenlp.io.resources
 from kneenlp.conventions import coords_to_user
-from kneenlp.forward import ForwardSolver
-from kneenlp.protocol import Protocol, Trial
+from kneenlp.experiment.protocol import Protocol, Trial
+from kneenlp.solvers.forward import ForwardSolver
 
 PRIMARY = {"anterior": (3, 1), "posterior": (3, -1), "varus": (0, 1), "valgus": (0, -1),
            "internal": (1, 1), "external": (1, -1)}
@@ -65,7 +68,7 @@ def test_paper_fig2_isolating_load_cases(knee, axes):
     ``docs/scripts/fig2_axes_scan.py``: 0 of 36 knees with attachments moved by +-5 mm)."""
     import tomllib
 
-    doc = tomllib.loads((kneenlp.knee.PROBLEMS / "protocols" / "set3.toml").read_text())
+    doc = tomllib.loads((kneenlp.io.resources.resource("protocols", "set3.toml")).read_text())
     doc["load_axes"] = axes
     rec = kneenlp.simulate(knee, Protocol.from_dict(doc)).recruitment().set_index("trial")
     dominant = rec["dominant"]
@@ -101,7 +104,7 @@ def test_fig2_axes_scan_script_runs(capsys):
     """docs/scripts/fig2_axes_scan.py (the evidence in docs/model.md) stays runnable."""
     import runpy
 
-    scan = runpy.run_path(str(kneenlp.knee.PROBLEMS.parent / "docs" / "scripts" / "fig2_axes_scan.py"))
+    scan = runpy.run_path(str((Path(__file__).resolve().parents[1] / "docs") / "scripts" / "fig2_axes_scan.py"))
     scan["main"](2, 2.0, 1)
     out = capsys.readouterr().out
     assert "2 knees, attachments moved by up to +-2 mm (seed 1)" in out

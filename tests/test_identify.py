@@ -10,9 +10,9 @@ import pytest
 import kneenlp
 from kneenlp.cli import main
 from kneenlp.conventions import coords_to_user
-from kneenlp.data import MeasuredData, read_measured
-from kneenlp.forward import ForwardSolver
-from kneenlp.identify import identify
+from kneenlp.experiment.measured import MeasuredData, read_measured
+from kneenlp.inference.identify import identify
+from kneenlp.solvers.forward import ForwardSolver
 
 
 def measured(knee, protocol, noise, seed, tmp_path):

@@ -10,16 +10,16 @@ from pathlib import Path
 import pytest
 
 from kneenlp.cli import main
-from kneenlp.data import read_measured
 from kneenlp.errors import InputError
-from kneenlp.knee import DEFAULT_KNEE, Knee
-from kneenlp.parameters import ParameterSet
-from kneenlp.protocol import Protocol
+from kneenlp.experiment.measured import read_measured
+from kneenlp.experiment.protocol import Protocol
+from kneenlp.model.knee import Knee, default_knee_file
+from kneenlp.model.parameters import ParameterSet
 
 
 @pytest.fixture()
 def knee_copy(tmp_path):
-    src = DEFAULT_KNEE.parent
+    src = default_knee_file().parent
     dst = tmp_path / "knee"
     shutil.copytree(src, dst)
     shutil.copy(src.parent.parent / "parameters" / "table1.toml", tmp_path / "table1.toml")
@@ -139,7 +139,7 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     import numpy as np
     import trimesh
 
-    from kneenlp.simulate import model_for
+    from kneenlp.simulation import model_for
 
     rot = trimesh.transformations.rotation_matrix(0.4, [0.3, 1.0, 0.2])[:3, :3]
     shift = np.array([120.0, -35.0, 410.0])
@@ -147,7 +147,7 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     def move(p):
         return (rot @ np.asarray(p, float).T).T + shift
 
-    src = DEFAULT_KNEE.parent
+    src = default_knee_file().parent
     text = (src / "knee.toml").read_text()
     import re
 

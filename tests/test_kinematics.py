@@ -2,7 +2,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from kneenlp.kinematics import tibial_pose
+from kneenlp.model.kinematics import tibial_pose
 
 
 def pose(flexion_deg, q):

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from kneenlp.ligament import force_strain, force_strain_numpy, slack_length
+from kneenlp.model.ligament import force_strain, force_strain_numpy, slack_length
 
 K, EPS_L = 10000.0, 0.03
 

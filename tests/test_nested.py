@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 import kneenlp
-from kneenlp.boxcomplex import minimize_complex
 from kneenlp.cli import main
-from kneenlp.data import read_measured
-from kneenlp.identify import identify
-from kneenlp.nested import NestedObjective
+from kneenlp.experiment.measured import read_measured
+from kneenlp.inference.identify import identify
+from kneenlp.solvers.boxcomplex import minimize_complex
+from kneenlp.solvers.nested import NestedObjective
 
 
 def noisy(knee, protocol, seed, tmp_path):

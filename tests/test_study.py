@@ -14,8 +14,9 @@ import pandas as pd
 import pytest
 
 import kneenlp
+import kneenlp.io.resources
 from kneenlp.cli import main
-from kneenlp.study import StudySpec, run_study, sample_seed
+from kneenlp.studies.study import StudySpec, run_study, sample_seed
 
 VOLATILE = ["seconds", "wall_seconds"]
 
@@ -51,9 +52,9 @@ def test_seeds_derive_from_study_seed_and_index_only():
 
 
 def test_protocol_file_draws_do_not_depend_on_its_directory(tmp_path):
-    from kneenlp.study import run_sample
+    from kneenlp.studies.study import run_sample
 
-    text = (kneenlp.knee.PROBLEMS / "protocols" / "set1.toml").read_text().replace('name = "set1"', 'name = "mine"')
+    text = kneenlp.io.resources.resource("protocols", "set1.toml").read_text().replace('name = "set1"', 'name = "mine"')
     rows_ = []
     for where in ("a", "b/c"):
         path = tmp_path / where / "mine.toml"
@@ -65,7 +66,7 @@ def test_protocol_file_draws_do_not_depend_on_its_directory(tmp_path):
 
 
 def test_truth_start_reaches_the_scatter_start_estimate(tmp_path):
-    from kneenlp.study import run_sample
+    from kneenlp.studies.study import run_sample
 
     rows_ = [run_sample(StudySpec(sets=("set2",), samples=1, seed=4, start=start), "set2", 0)
              for start in ("scatter", "truth")]
@@ -135,6 +136,6 @@ def test_protocol_files_as_sets_stay_inside_the_study(tmp_path):
 
 
 def kneenlp_problems():
-    from kneenlp.knee import PROBLEMS
+    from kneenlp.io.resources import resource
 
-    return PROBLEMS
+    return resource()

@@ -3,7 +3,7 @@
 Moves every ligament attachment of the default knee (both ends, each coordinate) by a uniform
 random offset of +-SPREAD mm, simulates Set 3 with the loads fixed in the femoral frame (the
 paper's choice) and along the joint axes, and counts the knees in which each of the paper's three
-isolating load cases holds (:meth:`kneenlp.simulate.SimulationResult.recruitment`): anterior
+isolating load cases holds (:meth:`kneenlp.simulation.SimulationResult.recruitment`): anterior
 134 N at 0 deg -> ACL, valgus 10 N m at 0 deg -> MCL, varus 10 N m at 30 deg -> LCL.
 Knees with a trial that does not converge are counted separately.
 
@@ -17,15 +17,16 @@ import tomllib
 import numpy as np
 
 import kneenlp
-from kneenlp.knee import Ligament
-from kneenlp.model import KneeModel
-from kneenlp.protocol import Protocol
+import kneenlp.io.resources
+from kneenlp.experiment.protocol import Protocol
+from kneenlp.model.knee import Ligament
+from kneenlp.model.kneemodel import KneeModel
 
 CASES = {"ACL": "anterior_134N_flex0", "MCL": "valgus_10Nm_flex0", "LCL": "varus_10Nm_flex30"}
 
 
 def set3(axes: str) -> Protocol:
-    doc = tomllib.loads((kneenlp.knee.PROBLEMS / "protocols" / "set3.toml").read_text())
+    doc = tomllib.loads((kneenlp.io.resources.resource("protocols", "set3.toml")).read_text())
     doc["load_axes"] = axes
     return Protocol.from_dict(doc)
 

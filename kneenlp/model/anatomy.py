@@ -10,7 +10,7 @@ are listed in ``docs/anatomy-sources.md``; this module only turns them into mesh
   ``y = y0 + x^2 / (2 R_sag) + z^2 / (2 R_cor)`` (concave for positive radii) whose lowest point
   touches the condyle in the reference pose.
 
-Run ``python -m kneenlp.anatomy DIR`` to (re)write the STL files of the default knee.
+Run ``python -m kneenlp.model.anatomy DIR`` to (re)write the STL files of the default knee.
 """
 
 from __future__ import annotations
@@ -92,6 +92,6 @@ def write_default_meshes(directory: Path) -> list[Path]:
 
 
 if __name__ == "__main__":  # pragma: no cover - maintenance script
-    out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("problems/knees/default/meshes")
+    out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("kneenlp/resources/knees/default/meshes")
     for p in write_default_meshes(out):
         print(p)

@@ -7,7 +7,7 @@ continuous at both kinks); kneenlp uses it exactly, without smoothing: Newton an
 on it, and the identified parameters then refer to the paper's law, not an approximation.  It is
 written branch-free as ``k t^2 / (4 eps_l) + k max(eps - 2 eps_l, 0)`` with
 ``t = min(max(eps, 0), 2 eps_l)``, identical to Eq. (1) and expressible in every NLP exchange
-format (no conditionals; see :mod:`kneenlp.export`).
+format (no conditionals; see :mod:`kneenlp.io.export`).
 
 Strain ``eps = (l - l0) / l0`` with slack length ``l0 = l_r / (1 + eps_r)`` where ``l_r`` is the
 length in the reference pose and ``eps_r`` the reference strain (Eq. 2-3).

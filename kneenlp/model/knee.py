@@ -1,6 +1,6 @@
 """A knee: geometry (cartilage meshes, ligament attachments, frames) plus a default parameter set.
 
-A knee is described by a TOML file (see ``problems/knees/default/knee.toml``) that names its
+A knee is described by a TOML file (see ``kneenlp/resources/knees/default/knee.toml``) that names its
 cartilage meshes (STL/PLY/OBJ, read with trimesh), ligament attachments, landmarks and contact
 settings, in millimetres, either already in the ISB femoral frame (``coordinates = "femoral"``,
 the default) or in scanner coordinates (``coordinates = "scan"``): then the ISB femoral frame is
@@ -25,12 +25,16 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .errors import InputError
-from .parameters import ParameterSet, number, read_toml
+from kneenlp.errors import InputError
+from kneenlp.io.resources import resource
+from kneenlp.model.parameters import ParameterSet, number, read_toml
 
-PROBLEMS = Path(__file__).resolve().parent.parent / "problems"
-DEFAULT_KNEE = PROBLEMS / "knees" / "default" / "knee.toml"
 MAX_SPHERE_FIT_RMS = 1e-3  # m
+
+
+def default_knee_file() -> Path:
+    """The knee TOML of the embedded default knee (inside the installed package)."""
+    return resource("knees", "default", "knee.toml")
 
 
 @dataclass(frozen=True)
@@ -85,12 +89,12 @@ class Knee:
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
     source: str | None = None
     description: str = ""
-    candidates: list = field(default_factory=list)  # kneenlp.effects.Effect from [candidates.*]
+    candidates: list = field(default_factory=list)  # kneenlp.model.effects.Effect from [candidates.*]
 
     @classmethod
     def default(cls) -> Knee:
         """The embedded default knee with the paper's Table 1 properties."""
-        return cls.load(DEFAULT_KNEE)
+        return cls.load(default_knee_file())
 
     @classmethod
     def load(cls, path: str | Path, parameters: str | Path | ParameterSet | None = None) -> Knee:
@@ -174,7 +178,7 @@ class Knee:
             raise InputError("no compartments ([contact.medial], [contact.lateral])", source=src,
                              field="contact")
 
-        from .effects import bundle
+        from kneenlp.model.effects import bundle
 
         candidates = []
         for cname, cdoc in doc.get("candidates", {}).items():

@@ -6,7 +6,7 @@
   of freedom with its p-value (for uniform noise the statistic is less dispersed than chi-square,
   so the test is conservative), and every residual larger than the noise bound flagged;
 * a residual map (trials x coordinates, in units of sigma) with the worst entries in words;
-* a ranking of the candidate effects (:mod:`kneenlp.effects`) by the score (Lagrange-multiplier)
+* a ranking of the candidate effects (:mod:`kneenlp.model.effects`) by the score (Lagrange-multiplier)
   test from the base fit's Gauss-Newton sensitivities, no refit needed:
   ``LM = (S' M r)' (S' M S)^-1 (S' M r) / sigma^2`` with ``S = d q / d phi`` of the effect's
   parameters (implicit-function theorem through every trial's equilibrium), ``M`` projecting out
@@ -30,9 +30,9 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from .conventions import COORDINATE_UNITS, COORDINATES
-from .fit import Fit
-from .noise import NoiseModel
+from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
+from kneenlp.experiment.noise import NoiseModel
+from kneenlp.inference.fit import Fit
 
 ADEQUATE_P = 0.01
 
@@ -98,7 +98,7 @@ class Diagnosis:
                 "recommended": rec.effect if rec else None, "verdict": self.verdict}
 
     def to_json(self) -> str:
-        from .serialize import dumps
+        from kneenlp.io.serialize import dumps
 
         return dumps(self.summary())
 
@@ -123,8 +123,8 @@ class Diagnosis:
 
     def figures(self, out: str | Path) -> list[Path]:
         """Residual heat map and measured vs predicted laxity curves (mm, deg)."""
-        from . import plots
-        from .data import measured_frame
+        from kneenlp.experiment.measured import measured_frame
+        from kneenlp.io import plots
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -180,7 +180,7 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
 
 def rank_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> list[EffectScore]:
     """Score test of every candidate effect (see module docstring), best first."""
-    from .identify import sensitivities
+    from kneenlp.inference.identify import sensitivities
 
     model = fit.model
     r = fit.residuals.ravel()
@@ -218,7 +218,7 @@ def rank_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> li
 def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
     """Refit with the effect's parameters free, starting from the base estimate and the one-step
     estimate of the effect (clipped to its bounds)."""
-    from .identify import identify
+    from kneenlp.inference.identify import identify
 
     model = fit.model
     start = dict(fit.params)

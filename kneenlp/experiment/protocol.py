@@ -1,6 +1,6 @@
 """Laxity protocols: what was done to the knee (load cases at prescribed flexion angles).
 
-A protocol is a TOML file (``problems/protocols/set1.toml`` ... ``set4.toml`` hold the paper's
+A protocol is a TOML file (``kneenlp/resources/protocols/set1.toml`` ... ``set4.toml`` hold the paper's
 Table 2).  Each ``[[cases]]`` entry gives a ``direction`` (none, anterior, posterior, varus,
 valgus, internal, external) with ``magnitude`` values (N for anterior/posterior forces, N m for
 moments; positive numbers, the direction gives the sign) and ``flexion`` angles (deg); every
@@ -26,12 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .conventions import DIRECTIONS, LOAD_AXES, LOAD_COMPONENTS, load_vector
-from .errors import InputError, unknown_name
-from .knee import PROBLEMS
-from .parameters import number, read_toml
+from kneenlp.conventions import DIRECTIONS, LOAD_AXES, LOAD_COMPONENTS, load_vector
+from kneenlp.errors import InputError, unknown_name
+from kneenlp.io.resources import resource
+from kneenlp.model.parameters import number, read_toml
 
-PROTOCOL_DIR = PROBLEMS / "protocols"
+PROTOCOL_DIR = resource("protocols")
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,7 @@ class Protocol:
 
     @classmethod
     def load(cls, name_or_path: str | Path) -> Protocol:
-        """Load a protocol by name (``set1`` ... ``set4``, or any file in ``problems/protocols``)
+        """Load a protocol by name (``set1`` ... ``set4``, or any file in ``kneenlp/resources/protocols``)
         or by path to a TOML file."""
         path = Path(name_or_path)
         if not path.suffix:
@@ -169,5 +169,5 @@ class Protocol:
 
 
 def available_protocols() -> list[str]:
-    """Names of the protocols shipped in ``problems/protocols``."""
+    """Names of the protocols shipped in ``kneenlp/resources/protocols``."""
     return sorted(p.stem for p in PROTOCOL_DIR.glob("*.toml"))

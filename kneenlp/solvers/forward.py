@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from .model import KneeModel
-from .protocol import Trial
+from kneenlp.experiment.protocol import Trial
+from kneenlp.model.kneemodel import KneeModel
 
 COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m: slightly penetrated
 #: Largest |coordinate| of a plausible knee pose (rad, rad, m, m, m).

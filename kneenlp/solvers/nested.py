@@ -7,7 +7,7 @@ mapped CasADi call, failures retried with load ramping), and the objective is th
 penalty, as in the paper: a trial whose largest equilibrium residual exceeds 1e-3 N or N m, and a
 negative stiffness (in units of 1e4 N), add their squared violation times 100.
 
-The optimizer is :func:`kneenlp.boxcomplex.minimize_complex` over the scaled parameters
+The optimizer is :func:`kneenlp.solvers.boxcomplex.minimize_complex` over the scaled parameters
 (k / 1e4 N, strains / 1 %) within the NLP's bounds; by default its 2n+1 points are scattered
 like the paper's population (+-500 N, +-0.02 around the knee's parameter set).
 """
@@ -18,11 +18,11 @@ import time
 
 import numpy as np
 
-from .boxcomplex import minimize_complex
-from .conventions import coords_to_user
-from .data import MeasuredData
-from .forward import ForwardSolver
-from .model import KneeModel
+from kneenlp.conventions import coords_to_user
+from kneenlp.experiment.measured import MeasuredData
+from kneenlp.model.kneemodel import KneeModel
+from kneenlp.solvers.boxcomplex import minimize_complex
+from kneenlp.solvers.forward import ForwardSolver
 
 PENALTY = 100.0
 CONSTRAINT_TOL = 1e-3  # N or N m, the paper's FDK tolerance

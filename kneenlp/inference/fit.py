@@ -7,9 +7,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .conventions import COORDINATE_UNITS, COORDINATES, coordinate_columns
-from .data import MeasuredData
-from .model import KneeModel
+from kneenlp.conventions import COORDINATE_UNITS, COORDINATES, coordinate_columns
+from kneenlp.experiment.measured import MeasuredData
+from kneenlp.model.kneemodel import KneeModel
 
 
 @dataclass
@@ -49,7 +49,7 @@ class Fit:
     @property
     def predicted_user(self) -> np.ndarray:
         """The model's measured coordinates (T x 5, mm and deg), including any registration bias."""
-        from .conventions import coords_to_user
+        from kneenlp.conventions import coords_to_user
 
         return coords_to_user(self.q_pred) + self.model.bias_user(self.theta)
 
@@ -176,7 +176,7 @@ class Fit:
         }
 
     def to_json(self) -> str:
-        from .serialize import dumps
+        from kneenlp.io.serialize import dumps
 
         return dumps(self.summary())
 

@@ -15,7 +15,7 @@ The forward rootfinder, the simultaneous identification NLP and the nested objec
 this same function.  It is built once per knee with the parameters as symbols, so changing a
 parameter value never rebuilds it.  Structure (for speed of derivatives): an SX kinematics
 function gives each condyle centre in the tibial frame, the mapped per-point contact functions of
-:mod:`kneenlp.contact` give the contact wrenches, and an SX balance function adds ligaments and
+:mod:`kneenlp.model.contact` give the contact wrenches, and an SX balance function adds ligaments and
 loads and projects everything onto the generalised coordinates.
 """
 
@@ -26,11 +26,11 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from .contact import compartment_function
-from .kinematics import generalized_forces, tibial_pose
-from .knee import Knee
-from .ligament import force_strain, slack_length
-from .parameters import (
+from kneenlp.model.contact import compartment_function
+from kneenlp.model.kinematics import generalized_forces, tibial_pose
+from kneenlp.model.knee import Knee
+from kneenlp.model.ligament import force_strain, slack_length
+from kneenlp.model.parameters import (
     LIGAMENT_KINDS,
     MODULUS_INFO,
     ParameterInfo,
@@ -39,10 +39,10 @@ from .parameters import (
 
 
 class KneeModel:
-    """Symbolic equilibrium model of a :class:`~kneenlp.knee.Knee` (built once, reused)."""
+    """Symbolic equilibrium model of a :class:`~kneenlp.model.knee.Knee` (built once, reused)."""
 
     def __init__(self, knee: Knee, extra_effects: list | None = None):
-        from .effects import builtin_effects
+        from kneenlp.model.effects import builtin_effects
 
         self.knee = knee
         self.ligament_names = list(knee.ligaments)
@@ -96,7 +96,7 @@ class KneeModel:
             moment += ca.cross(arm, f_vec)
             strains.append(eps)
             tensions.append(tension)
-        from .effects import PoseContext
+        from kneenlp.model.effects import PoseContext
 
         ctx = PoseContext(R, p, q, ca.horzcat(*centres),
                           np.column_stack([c.sphere_center for c in knee.compartments.values()]))
@@ -160,7 +160,7 @@ class KneeModel:
         values = dict(values or {})
         for n in values:
             if n not in self.parameter_names:
-                from .errors import unknown_name
+                from kneenlp.errors import unknown_name
 
                 raise unknown_name("parameter", n, self.parameter_names)
         out = []
@@ -175,7 +175,7 @@ class KneeModel:
 
     def bias_user(self, theta: np.ndarray) -> np.ndarray:
         """Measurement bias (mm, deg) that the effects add to the model's coordinates."""
-        from .conventions import TO_USER
+        from kneenlp.conventions import TO_USER
 
         return np.asarray(self.measurement_bias(theta)).ravel() * TO_USER
 
@@ -184,13 +184,13 @@ class KneeModel:
         for e in self.effects:
             if e.name == name:
                 return e
-        from .errors import unknown_name
+        from kneenlp.errors import unknown_name
 
         raise unknown_name("effect", name, [e.name for e in self.effects])
 
     def index(self, name: str) -> int:
         """Position of parameter ``name`` in ``theta``."""
-        from .errors import unknown_name
+        from kneenlp.errors import unknown_name
 
         try:
             return self.parameter_names.index(name)

@@ -1,13 +1,13 @@
 """Export the identification NLP for other solvers: AMPL .nl, CasADi serialised functions, C code.
 
-The exported problem is exactly :mod:`kneenlp.nlp`'s NLP for one knee, one data set and one set of
+The exported problem is exactly :mod:`kneenlp.solvers.nlp`'s NLP for one knee, one data set and one set of
 free parameters, with the data substituted (``.nl``) or supplied as the parameter vector ``p``
 (CasADi and C).  Decision variables: the free parameters scaled to order one (value / scale, the
 scale and unit are in ``problem.json``) and every trial's five coordinates in mm and deg.
 Constraints: every trial's five equilibrium residuals (N m, N m, N, N, N), all ``= 0``.
 Objective: the sum of squared model-minus-measured coordinates (mm^2 + deg^2).
 
-* ``nl``: ``kneenlp.nl`` (+ ``.row``/``.col`` names) written by :mod:`kneenlp.nlwriter`; variables
+* ``nl``: ``kneenlp.nl`` (+ ``.row``/``.col`` names) written by :mod:`kneenlp.io.nlwriter`; variables
   in .nl order (coordinates first, they appear nonlinearly in the objective too);
 * ``casadi``: ``nlp_f``, ``nlp_g``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l`` as
   ``*.casadi`` files for ``casadi.Function.load`` (no kneenlp needed), inputs ``(x, p)``
@@ -27,12 +27,12 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from .conventions import COORDINATE_UNITS, COORDINATES, RESIDUAL_NAMES, RESIDUAL_UNITS, coords_to_user
-from .data import MeasuredData, read_measured
-from .errors import InputError
-from .knee import Knee
-from .nlp import check_free, default_free, nlp_expressions
-from .simulate import model_for
+from kneenlp.conventions import COORDINATE_UNITS, COORDINATES, RESIDUAL_NAMES, RESIDUAL_UNITS, coords_to_user
+from kneenlp.errors import InputError
+from kneenlp.experiment.measured import MeasuredData, read_measured
+from kneenlp.model.knee import Knee
+from kneenlp.simulation import model_for
+from kneenlp.solvers.nlp import check_free, default_free, nlp_expressions
 
 FORMATS = ("nl", "casadi", "c")
 
@@ -63,8 +63,8 @@ class ExportProblem:
 
 def export_problem(knee: Knee | None, data: MeasuredData | str | Path, *, free: list[str] | None = None,
                    start: dict[str, float] | None = None, seed: int = 0) -> ExportProblem:
-    """Build the identification NLP of ``data`` with a start like :func:`kneenlp.identify.identify`'s."""
-    from .identify import _forward_solver, paper_scatter
+    """Build the identification NLP of ``data`` with a start like :func:`kneenlp.inference.identify.identify`'s."""
+    from kneenlp.inference.identify import _forward_solver, paper_scatter
 
     knee = knee or Knee.default()
     model = model_for(knee)
@@ -122,7 +122,7 @@ def nl_function(prob: ExportProblem) -> tuple[ca.Function, np.ndarray]:
 def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: str = "defined") -> list[Path]:
     """Write ``prob`` in format ``fmt`` (nl, casadi, c) into directory ``out``; returns the files.
 
-    ``nl_common``: see :func:`kneenlp.nlwriter.write_nl` (``"lifted"`` for SCIP)."""
+    ``nl_common``: see :func:`kneenlp.io.nlwriter.write_nl` (``"lifted"`` for SCIP)."""
     if fmt not in FORMATS:
         raise InputError(f"unknown export format {fmt!r}; known: {', '.join(FORMATS)}", field="--format")
     out = Path(out)
@@ -130,7 +130,7 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
     files: list[Path] = []
     extra: dict = {}
     if fmt == "nl":
-        from .nlwriter import write_nl
+        from kneenlp.io.nlwriter import write_nl
 
         fn, order = nl_function(prob)
         nq = len(order) - prob.n_free

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from kneenlp.errors import InputError
 
 KINDS = ("none", "uniform", "gaussian")
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import InputError, unknown_name
+from kneenlp.errors import InputError, unknown_name
 
 _CACHE: dict = {}
 STARTS = ("scatter", "truth")
@@ -66,7 +66,7 @@ def sample_seed(study_seed: int, set_name: str, index: int) -> int:
 
 
 def _knee(spec: StudySpec):
-    from .knee import Knee
+    from kneenlp.model.knee import Knee
 
     key = ("knee", spec.knee)
     if key not in _CACHE:
@@ -75,7 +75,7 @@ def _knee(spec: StudySpec):
 
 
 def _truth(spec: StudySpec, set_name: str):
-    from .simulate import simulate
+    from kneenlp.simulation import simulate
 
     key = ("truth", spec.knee, set_name)
     if key not in _CACHE:
@@ -88,10 +88,10 @@ def _truth(spec: StudySpec, set_name: str):
 
 def run_sample(spec: StudySpec, set_name: str, index: int) -> dict:
     """Simulate, add noise and identify one sample; returns one result row (never raises)."""
-    from .data import MeasuredData
-    from .identify import identify
-    from .nlp import default_free
-    from .simulate import model_for
+    from kneenlp.experiment.measured import MeasuredData
+    from kneenlp.inference.identify import identify
+    from kneenlp.simulation import model_for
+    from kneenlp.solvers.nlp import default_free
 
     row: dict = {"set": set_name, "sample": index, "seed": -1}
     t0 = time.perf_counter()
@@ -100,7 +100,7 @@ def run_sample(spec: StudySpec, set_name: str, index: int) -> dict:
         # the protocol's name, not the path it was given by: moving the file keeps the draws
         seed = row["seed"] = sample_seed(spec.seed, truth.protocol.name, index)
         df = truth.measured(spec.noise, seed)
-        from .conventions import coordinate_columns, coords_from_user
+        from kneenlp.conventions import coordinate_columns, coords_from_user
 
         data = MeasuredData([s.trial for s in truth.solutions],
                             coords_from_user(df[coordinate_columns()].to_numpy()), set_name,
@@ -125,7 +125,7 @@ def run_sample(spec: StudySpec, set_name: str, index: int) -> dict:
 def _worker_sample(spec: StudySpec, set_name: str, index: int) -> dict:
     """:func:`run_sample` in a worker process: one process per core, so the NLP's trial map runs
     serially (two threads per process would oversubscribe the cores)."""
-    from .nlp import set_map_threads
+    from kneenlp.solvers.nlp import set_map_threads
 
     set_map_threads(1)
     return run_sample(spec, set_name, index)
@@ -203,7 +203,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
     ``workers`` local processes (default: all cores; 1 = in this process), or Dask: ``scheduler``
     (address ``tcp://HOST:PORT``) or ``dask_local`` (a LocalCluster with ``workers`` processes).
     """
-    from .protocol import Protocol
+    from kneenlp.experiment.protocol import Protocol
 
     for s in spec.sets:
         Protocol.load(s)  # validates names early
@@ -220,7 +220,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
             bar.update(1)
     bar.close()
     if analyse:
-        from .study_report import analyse_study
+        from kneenlp.studies.report import analyse_study
 
         analyse_study(study)
     return study

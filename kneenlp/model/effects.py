@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from .conventions import COORDINATE_UNITS, COORDINATES, TO_USER
-from .ligament import force_strain, slack_length
+from kneenlp.conventions import COORDINATE_UNITS, COORDINATES, TO_USER
+from kneenlp.model.ligament import force_strain, slack_length
 
 
 @dataclass(frozen=True)

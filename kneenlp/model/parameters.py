@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError, unknown_name
+from kneenlp.errors import InputError, unknown_name
 
 #: Per parameter kind: accepted file units with their factor to SI, and the display unit.
 UNIT_FACTORS: dict[str, dict[str, float]] = {
@@ -96,7 +96,7 @@ class ParameterSet:
 
     @classmethod
     def load(cls, path: str | Path) -> ParameterSet:
-        """Read a parameter-set TOML file (see ``problems/parameters/table1.toml``)."""
+        """Read a parameter-set TOML file (see ``kneenlp/resources/parameters/table1.toml``)."""
         path = Path(path)
         doc = read_toml(path)
         src = str(path)

@@ -1,8 +1,8 @@
 """Identify ligament parameters from measured laxity data: ``identify(knee, data, ...) -> Fit``.
 
-``method="simultaneous"`` solves the single NLP of :mod:`kneenlp.nlp` with IPOPT (or another
+``method="simultaneous"`` solves the single NLP of :mod:`kneenlp.solvers.nlp` with IPOPT (or another
 CasADi ``nlpsol`` plugin given by ``solver``); ``method="nested"`` runs the paper's Complex
-optimizer around per-trial rootfinders (:mod:`kneenlp.nested`) on the same objective.
+optimizer around per-trial rootfinders (:mod:`kneenlp.solvers.nested`) on the same objective.
 
 Start: parameters from ``start`` (dict, SI) or the paper's scatter around the knee's parameter
 set (uniform +-500 N on every k, +-0.02 on every reference strain, +-10 % on other kinds; seeded);
@@ -25,17 +25,17 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from .conventions import TO_USER, coords_to_user
-from .data import MeasuredData, read_measured
-from .errors import InputError, unknown_name
-from .fit import Fit
-from .forward import ForwardSolver
-from .knee import Knee
-from .model import KneeModel
-from .nlp import IdentificationNLP, build_nlp, check_free, default_free, map_threads
-from .noise import NoiseModel
-from .protocol import Protocol, available_protocols
-from .simulate import model_for
+from kneenlp.conventions import TO_USER, coords_to_user
+from kneenlp.errors import InputError, unknown_name
+from kneenlp.experiment.measured import MeasuredData, read_measured
+from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.protocol import Protocol, available_protocols
+from kneenlp.inference.fit import Fit
+from kneenlp.model.knee import Knee
+from kneenlp.model.kneemodel import KneeModel
+from kneenlp.simulation import model_for
+from kneenlp.solvers.forward import ForwardSolver
+from kneenlp.solvers.nlp import IdentificationNLP, build_nlp, check_free, default_free, map_threads
 
 METHODS = ("simultaneous", "nested")
 _NLP_CACHE: dict[tuple, IdentificationNLP] = {}
@@ -128,7 +128,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     weighted : weight each coordinate by its inverse noise variance (needs ``noise``).
     multistart : number of starts; the best converged one is kept.
     restarts : extra scatter draws tried when no start has converged yet.
-    with_effects : candidate effects (:mod:`kneenlp.effects`) whose parameters are freed too,
+    with_effects : candidate effects (:mod:`kneenlp.model.effects`) whose parameters are freed too,
         starting at their neutral values (e.g. ``["posterior_capsule"]``).
     nested_options : for ``method="nested"``: ``max_evals``, ``max_seconds``, ``xtol``, ``ftol``
         of the Complex optimizer, or ``initial`` (a list of starting parameter dicts, SI).
@@ -218,7 +218,7 @@ def _noise_variance(noise_model, objective, weights, n_par):
 
 
 def _nested(model, data, free, start, rng, seed, weights, noise_model, options) -> Fit:
-    from .nested import nested_fit
+    from kneenlp.solvers.nested import nested_fit
 
     initial = options.pop("initial", None)
     if initial is None:

@@ -12,7 +12,7 @@ the NLP parameter vector ``p = [theta (all parameters, SI), measured poses, weig
 flexions]``, so refitting other data or other fixed values never rebuilds or recompiles it.
 
 Speed choices: the residual is an MX graph around the vectorised contact (see
-:mod:`kneenlp.contact`), mapped over trials with ``map(T, "thread", 2)`` so both cores evaluate
+:mod:`kneenlp.model.contact`), mapped over trials with ``map(T, "thread", 2)`` so both cores evaluate
 trials (serial in study workers, see :func:`set_map_threads`); it is *not* expanded to SX (that
 would inline every contact point of every trial, the prototype's 75k-instruction-per-trial
 mistake).  IPOPT gets exact first and second derivatives
@@ -27,9 +27,9 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .conventions import TO_USER
-from .errors import InputError, unknown_name
-from .model import KneeModel
+from kneenlp.conventions import TO_USER
+from kneenlp.errors import InputError, unknown_name
+from kneenlp.model.kneemodel import KneeModel
 
 # Scales and bounds of every parameter live in its ParameterInfo (kneenlp/parameters.py and
 # kneenlp/effects.py): k / 1e4 N in [0, 1e5] N, strains / 1 % in [-30, 30] %, linear strain limit

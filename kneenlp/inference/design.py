@@ -26,13 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import MeasuredData
-from .errors import InputError
-from .forward import ForwardSolver
-from .knee import Knee
-from .model import KneeModel
-from .noise import NoiseModel
-from .protocol import Protocol, Trial, trial_id
+from kneenlp.errors import InputError
+from kneenlp.experiment.measured import MeasuredData
+from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.protocol import Protocol, Trial, trial_id
+from kneenlp.model.knee import Knee
+from kneenlp.model.kneemodel import KneeModel
+from kneenlp.solvers.forward import ForwardSolver
 
 CRITERIA = ("A", "D", "W", "R")
 #: The paper's largest magnitude per direction (N or N m).
@@ -61,7 +61,7 @@ def relative_information(model: KneeModel, trials, free: list[str], theta: np.nd
 
     Trials whose equilibrium cannot be solved at ``theta`` contribute nothing (and are reported
     by the caller through :func:`design`'s ``failed`` list)."""
-    from .identify import sensitivities
+    from kneenlp.inference.identify import sensitivities
 
     sols = ForwardSolver(model).solve(list(trials), theta)
     ok = [s.converged for s in sols]
@@ -132,9 +132,9 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
            robust: int = 3, seed: int = 0, name: str | None = None,
            reference: Protocol | str = "set4") -> DesignResult:
     """Choose at most ``max_cases`` trials of ``pool`` minimising ``criterion`` (see module doc)."""
-    from .identify import paper_scatter
-    from .nlp import check_free, default_free
-    from .simulate import model_for
+    from kneenlp.inference.identify import paper_scatter
+    from kneenlp.simulation import model_for
+    from kneenlp.solvers.nlp import check_free, default_free
 
     if criterion not in CRITERIA:
         raise InputError(f"unknown criterion {criterion!r}; known: {', '.join(CRITERIA)}", field="--criterion")

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .knee import PROBLEMS
-from .noise import NoiseModel
+from kneenlp.experiment.noise import NoiseModel
+from kneenlp.io.resources import resource
 
 
 def _write_csv(df: pd.DataFrame, path: Path) -> None:
-    from .study import write_atomic
+    from kneenlp.studies.study import write_atomic
 
     buf = io.StringIO()
     df.to_csv(buf, index=False, float_format="%.10g")
@@ -38,11 +38,11 @@ def _write_parquet(df: pd.DataFrame, path: Path) -> bool:
 
 def predicted_std(study, set_name: str) -> dict[str, float]:
     """Linearised (Gauss-Newton) standard deviation of each free parameter at the true values (SI)."""
-    from .data import MeasuredData
-    from .identify import sensitivities
-    from .nlp import default_free
-    from .simulate import model_for
-    from .study import _knee, _truth
+    from kneenlp.experiment.measured import MeasuredData
+    from kneenlp.inference.identify import sensitivities
+    from kneenlp.simulation import model_for
+    from kneenlp.solvers.nlp import default_free
+    from kneenlp.studies.study import _knee, _truth
 
     knee = _knee(study.spec)
     model = model_for(knee)
@@ -58,8 +58,8 @@ def predicted_std(study, set_name: str) -> dict[str, float]:
 def analyse_study(study) -> dict:
     """Write estimates.csv/.parquet, table3.csv, failures.csv, fig3_boxplots.png,
     fig2_set3_forces.png and summary.md into the study directory; return the Table 3 frame."""
-    from . import plots
-    from .study import _knee, _truth
+    from kneenlp.io import plots
+    from kneenlp.studies.study import _knee, _truth
 
     out = study.out
     df = study.load_rows()
@@ -106,7 +106,7 @@ def analyse_study(study) -> dict:
 
 
 def _paper_table() -> pd.DataFrame:
-    return pd.read_csv(PROBLEMS / "paper" / "table3_stiffness.csv", comment="#")
+    return pd.read_csv(resource("paper", "table3_stiffness.csv"), comment="#")
 
 
 def _summary(study, df, table, failures, parquet) -> str:
@@ -133,7 +133,7 @@ def _summary(study, df, table, failures, parquet) -> str:
         lines.append(f"| {r['set']} | {r['ligament']}.{r['parameter']} [{r['unit']}] | {r['true']:.3g} | "
                      f"{r['min']:.4g} | {r['max']:.4g} | {r['range']:.3g} | {r['mc_std']:.3g} | "
                      f"{r['predicted_std']:.3g} | {pmin} | {pmax} |")
-    ranges = tomllib.loads((PROBLEMS / "paper" / "ranges.toml").read_text())
+    ranges = tomllib.loads(resource("paper", "ranges.toml").read_text())
     lines += ["", "Paper (text): Sets 1-3 ranges up to "
               + ", ".join(f"{k} {v} kN" for k, v in ranges["sets_1_to_3"]["k_kN"].items()) + "; "
               + ", ".join(f"{k} {v} %" for k, v in ranges["sets_1_to_3"]["ref_strain_pct"].items())

@@ -16,7 +16,7 @@ column                         meaning
 ``anterior_translation_mm``    measured anterior (+) / posterior (-) translation (mm)
 ``proximal_translation_mm``    measured proximal (+) / distal (-) translation (mm)
 ``protocol`` (optional)        protocol name the trials come from (e.g. ``set3``)
-``load_axes`` (optional)       ``femoral`` (default) or ``joint``, see :mod:`kneenlp.protocol`
+``load_axes`` (optional)       ``femoral`` (default) or ``joint``, see :mod:`kneenlp.experiment.protocol`
 =============================  ===============================================================
 
 Other columns (e.g. ligament forces written by ``simulate``) are ignored; a column that names a
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .conventions import (
+from kneenlp.conventions import (
     COORDINATES,
     LOAD_AXES,
     LOAD_COMPONENTS,
@@ -39,8 +39,8 @@ from .conventions import (
     coords_from_user,
     load_columns,
 )
-from .errors import InputError
-from .protocol import Protocol, Trial
+from kneenlp.errors import InputError
+from kneenlp.experiment.protocol import Protocol, Trial
 
 REQUIRED = ["trial", "flexion_deg", *load_columns(), *coordinate_columns()]
 
@@ -59,7 +59,7 @@ class MeasuredData:
 
     @property
     def q_user(self) -> np.ndarray:
-        from .conventions import coords_to_user
+        from kneenlp.conventions import coords_to_user
 
         return coords_to_user(self.q)
 

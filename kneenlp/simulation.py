@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .conventions import coords_to_user
-from .data import measured_frame
-from .forward import ForwardSolver, TrialSolution
-from .knee import Knee
-from .model import KneeModel
-from .noise import NoiseModel
-from .protocol import Protocol
+from kneenlp.conventions import coords_to_user
+from kneenlp.experiment.measured import measured_frame
+from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.protocol import Protocol
+from kneenlp.model.knee import Knee
+from kneenlp.model.kneemodel import KneeModel
+from kneenlp.solvers.forward import ForwardSolver, TrialSolution
 
 _MODELS: dict[int, KneeModel] = {}
 
@@ -103,7 +103,7 @@ class SimulationResult:
         """Measured-data table: the converged poses plus seeded noise (mm, deg)."""
         noise = NoiseModel.parse(noise)
         if self.failed:
-            from .errors import ConvergenceError
+            from kneenlp.errors import ConvergenceError
 
             raise ConvergenceError("cannot write measured data: trials did not converge: "
                                    + ", ".join(s.trial.id for s in self.failed), self)
