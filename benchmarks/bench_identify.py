@@ -26,7 +26,7 @@ def main(seed: int = 1) -> None:
         t0 = time.perf_counter()
         fit = identify(knee, data, seed=seed)
         total = time.perf_counter() - t0
-        nlp = get_nlp(fit.model, len(data), fit.free, "ipopt", None)
+        nlp = get_nlp(fit.problem, "ipopt", None, 2)
         st = nlp.solver.stats()
         n_unknowns = len(fit.free) + 5 * len(data)
         print(f"{name}: {len(data)} trials, {n_unknowns} unknowns, status {fit.status}")

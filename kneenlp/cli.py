@@ -16,12 +16,16 @@ from kneenlp.errors import ConvergenceError, InputError
 
 
 def _knee(args):
+    """The knee model of the --knee, --parameters and --element options."""
     from kneenlp.model.knee import Knee
+    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.model.plugins import load_elements
 
     knee = Knee.load(args.knee) if args.knee else Knee.default()
     if getattr(args, "parameters", None):
         knee = knee.with_parameters(args.parameters)
-    return knee
+    elements = getattr(args, "element", None)
+    return KneeModel(knee, load_elements(elements)) if elements else knee
 
 
 def _effect_values(knee, specs: list[str]) -> dict[str, float]:
@@ -36,17 +40,22 @@ def _effect_values(knee, specs: list[str]) -> dict[str, float]:
         effect = model.effect(name)
         for item in filter(None, rest.split(",")):
             key, eq, val = item.partition("=")
-            full = f"{name}.{key.strip()}"
-            info = model.parameter_info[model.index(full)]
+            key = key.strip()
+            full = key if key in effect.parameters else f"{name}.{key}"
+            if full not in effect.parameters:
+                raise InputError(f"unknown parameter {key!r} of effect {name}; known: "
+                                 + ", ".join(n.removeprefix(f"{name}.") for n in effect.parameters),
+                                 field="--with-effect")
             if not eq:
                 raise InputError(f"expected PARAM=VALUE in {spec!r}", field="--with-effect")
             try:
-                values[full] = float(val) / info.to_user
+                values[full] = float(val) / model.parameter(full).to_user
             except ValueError:
                 raise InputError(f"value of {full} is not a number: {val!r}", field="--with-effect") from None
         if not rest and effect.parameters:
-            raise InputError(f"give the strength, e.g. {name}:{effect.parameters[0].name.split('.', 1)[1]}=VALUE "
-                             f"({effect.parameters[0].unit})", field="--with-effect")
+            first = effect.parameters[0]
+            raise InputError(f"give the strength, e.g. {name}:{first.removeprefix(name + '.')}=VALUE "
+                             f"({model.parameter(first).unit})", field="--with-effect")
     return values
 
 
@@ -58,24 +67,7 @@ def cmd_diagnose(args) -> int:
     fit = identify(knee, args.data, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit)
     if args.out:
-        out = Path(args.out)
-        d.figures(out)
-        d.residual_map.to_csv(out / "residual_map.csv", float_format="%.6g")
-        (out / "diagnosis.json").write_text(d.to_json())
-        rec = d.recommended
-        if rec is not None:  # before/after: figures of the refit and the parameters side by side
-            after = d.refits[rec.effect]
-            diagnose(after, args.noise, refit=0).figures(out / f"after_{rec.effect}")
-            rows = []
-            for n in after.free:
-                info = after.model.parameter_info[after.model.index(n)]
-                rows.append({"parameter": n, "unit": info.unit,
-                             "before": fit.params[n] * info.to_user if n in fit.params else None,
-                             "after": after.params[n] * info.to_user, "after_stderr": after.stderr[n] * info.to_user})
-            import pandas as pd
-
-            pd.DataFrame(rows).to_csv(out / f"parameters_before_after_{rec.effect}.csv", index=False,
-                                      float_format="%.6g")
+        d.write(args.out)
     print(d.to_json() if args.json else d.report())
     return 0
 
@@ -103,9 +95,9 @@ def cmd_simulate(args) -> int:
         written.append(out / "measured.csv")
     if not args.no_plots:
         axes = "/".join(sorted({t.axes for t in protocol.trials}))
-        title = f"{knee.name} knee, {protocol.title or protocol.name}, loads along {axes} axes"
+        title = f"{result.knee.name} knee, {protocol.title or protocol.name}, loads along {axes} axes"
         written.append(plots.laxity_curves(table, out / "laxity.png", title))
-        written.append(plots.ligament_forces(table, list(knee.ligaments), out / "ligament_forces.png", title,
+        written.append(plots.ligament_forces(table, list(result.knee.ligaments), out / "ligament_forces.png", title,
                                              recruitment))
     summary = result.summary() | {"outputs": [str(p) for p in written]}
     if args.json:
@@ -178,7 +170,7 @@ def cmd_study(args) -> int:
     spec = StudySpec(sets=sets, samples=args.samples, noise=args.noise, seed=args.seed, method=args.method,
                      knee=str(Path(args.knee).resolve()) if args.knee else None,
                      free=tuple(f.strip() for f in args.free.split(",")) if args.free else None,
-                     start=args.start)
+                     start=args.start, elements=tuple(args.element), with_effects=tuple(args.with_effect))
     from kneenlp.experiment.noise import NoiseModel
 
     NoiseModel.parse(spec.noise)
@@ -204,7 +196,7 @@ def cmd_export(args) -> int:
 
     knee = _knee(args)
     free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
-    prob = export_problem(knee, args.data, free=free, seed=args.seed)
+    prob = export_problem(knee, args.data, free=free, seed=args.seed, with_effects=args.with_effect)
     files = write_export(prob, args.format, args.out, nl_common=args.nl_common)
     if args.json:
         print(json.dumps({"format": args.format, "files": [str(f) for f in files],
@@ -236,9 +228,12 @@ def cmd_design(args) -> int:
     return 0
 
 
-def _knee_args(p: argparse.ArgumentParser) -> None:
+def _knee_args(p: argparse.ArgumentParser, parameters: bool = True) -> None:
     p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
-    p.add_argument("--parameters", help="parameter set TOML (reference values and fixed parameters)")
+    if parameters:
+        p.add_argument("--parameters", help="parameter set TOML (reference values and fixed parameters)")
+    p.add_argument("--element", action="append", default=[], metavar="MODULE:FACTORY",
+                   help="add user force elements made by this importable factory (repeatable)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -300,8 +295,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", default="uniform:0.5", help="uniform:B or gaussian:SIGMA (mm, deg)")
     p.add_argument("--seed", type=int, default=0, help="study seed; each sample's seed derives from it")
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"])
-    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    _knee_args(p, parameters=False)
     p.add_argument("--free", help="comma-separated parameters to identify")
+    p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
+                   help="also identify this candidate effect's parameters (repeatable)")
     p.add_argument("--start", default="scatter", choices=["scatter", "truth"],
                    help="fit starts: scattered like the paper (default) or at the true values")
     p.add_argument("--out", default="kneenlp-study", help="study directory (resumable)")
@@ -319,6 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
     _knee_args(p)
     p.add_argument("--free", help="comma-separated parameters to identify")
     p.add_argument("--seed", type=int, default=0, help="seed of the start scatter")
+    p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
+                   help="also free this candidate effect's parameters (repeatable)")
     p.add_argument("--nl-common", default="defined", choices=["defined", "lifted"],
                    help="shared subexpressions as .nl defined variables (default) or lifted auxiliary variables")
     p.add_argument("--json", action="store_true", help="print JSON")

@@ -86,6 +86,12 @@ RESIDUAL_NAMES: tuple[str, ...] = (
 RESIDUAL_UNITS: tuple[str, ...] = ("N m", "N m", "N", "N", "N")
 
 
+#: The physiological envelope of a knee pose in user units (deg, deg, mm, mm, mm): the largest
+#: plausible |coordinate|.  The forward solver rejects equilibria outside it; the identification
+#: NLP bounds its pose variables with it.
+POSE_ENVELOPE_USER = np.array([30.0, 60.0, 25.0, 25.0, 25.0])
+
+
 def coords_to_user(q: np.ndarray) -> np.ndarray:
     """Convert free coordinates from SI (rad, m) to user units (deg, mm); last axis has length 5."""
     return np.asarray(q, dtype=float) * TO_USER

@@ -16,20 +16,13 @@ from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Protocol
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
-from kneenlp.solvers.forward import ForwardSolver, TrialSolution
-
-_MODELS: dict[int, KneeModel] = {}
+from kneenlp.solvers.forward import TrialSolution, forward_solver
 
 
 def model_for(knee: Knee | KneeModel) -> KneeModel:
-    """The (cached) CasADi model of ``knee``: built once per knee object.  A :class:`KneeModel`
-    (e.g. one built with extra user effects) is returned as it is."""
-    if isinstance(knee, KneeModel):
-        return knee
-    key = id(knee)
-    if key not in _MODELS or _MODELS[key].knee is not knee:
-        _MODELS[key] = KneeModel(knee)
-    return _MODELS[key]
+    """The CasADi model of ``knee``, built once per knee object (:attr:`Knee.model`).  A
+    :class:`KneeModel` (e.g. one built with extra user elements) is returned as it is."""
+    return knee if isinstance(knee, KneeModel) else knee.model
 
 
 @dataclass
@@ -61,18 +54,18 @@ class SimulationResult:
         return np.array([s.q for s in self.solutions])
 
     def table(self) -> pd.DataFrame:
-        """One row per trial: loads, coordinates (mm, deg), ligament strain (%) and force (N),
-        contact force per compartment (N), convergence."""
+        """One row per trial: loads, coordinates (mm, deg), every force element's outputs (ligament
+        strain in % and force in N, contact force per compartment in N and penetration in mm; the
+        unit is in each column name), convergence."""
         trials = [s.trial for s in self.solutions]
         df = measured_frame(trials, coords_to_user(self.q), self.protocol.name)
-        names = list(self.knee.ligaments)
-        for j, n in enumerate(names):
-            df[f"{n}_strain_pct"] = [100 * s.strain[j] for s in self.solutions]
-        for j, n in enumerate(names):
-            df[f"{n}_force_N"] = [s.tension[j] for s in self.solutions]
-        for j, c in enumerate(self.knee.compartments):
-            df[f"contact_{c}_N"] = [s.contact_force[j] for s in self.solutions]
-            df[f"penetration_{c}_mm"] = [1e3 * s.max_penetration[j] for s in self.solutions]
+        model = self.model or model_for(self.knee)
+        theta = model.theta(self.parameters)
+        for element, out in model.outputs:
+            if element.candidate and all(theta[model.index(n)] == model.parameter(n).neutral
+                                         for n in element.frees()):
+                continue  # a candidate element that is switched off adds nothing to report
+            df[out.column] = [out.to_user * s.outputs[out.column] for s in self.solutions]
         df["converged"] = [s.converged for s in self.solutions]
         df["max_residual"] = [s.max_residual for s in self.solutions]
         df["strategy"] = [s.strategy for s in self.solutions]
@@ -87,7 +80,7 @@ class SimulationResult:
         loaded relatively more than other ligaments"): a trial dominated by one ligament is the
         trial that isolates it."""
         names = list(self.knee.ligaments)
-        forces = np.array([s.tension for s in self.solutions])
+        forces = np.array([[s.outputs[f"{n}_force_N"] for n in names] for s in self.solutions])
         flex = [s.trial.flexion_deg for s in self.solutions]
         base = {f: forces[j] for j, (s, f) in enumerate(zip(self.solutions, flex, strict=True))
                 if s.trial.direction == "none"}
@@ -146,7 +139,7 @@ def simulate(knee: Knee | KneeModel | None = None, protocol: Protocol | str = "s
     knee = model.knee
     protocol = protocol if isinstance(protocol, Protocol) else Protocol.load(protocol)
     theta = model.theta(parameters)
-    solver = ForwardSolver(model, tol=tol)
+    solver = forward_solver(model, tol)
     t0 = time.perf_counter()
     sols = solver.solve(protocol.trials, theta)
     seconds = time.perf_counter() - t0

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -123,17 +122,3 @@ def test_negative_control_false_alarm_rate(knee, tmp_path):
         alarms += (not d.adequate)
     print(f"false alarms: {alarms} / 30")
     assert alarms / 30 < 0.05
-
-
-def test_user_effect_extension_point(tmp_path):
-    """The complete example of docs/adequacy.md, run as written (file paths made temporary)."""
-    import re
-
-    text = ((Path(__file__).resolve().parents[1] / "docs") / "adequacy.md").read_text()
-    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
-    code = code.replace('"compressed.csv"', repr(str(tmp_path / "compressed.csv")))
-    scope: dict = {}
-    exec(compile(code, "docs/adequacy.md", "exec"), scope)
-    fit = scope["fit"]
-    assert fit.success
-    assert abs(fit.params["compression.force"] - 300.0) <= 3 * fit.stderr["compression.force"]

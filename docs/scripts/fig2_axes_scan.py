@@ -19,8 +19,8 @@ import numpy as np
 import kneenlp
 import kneenlp.io.resources
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.model.knee import Ligament
 from kneenlp.model.kneemodel import KneeModel
+from kneenlp.model.ligament import Bundle, Ligament
 
 CASES = {"ACL": "anterior_134N_flex0", "MCL": "valgus_10Nm_flex0", "LCL": "varus_10Nm_flex30"}
 
@@ -40,7 +40,7 @@ def main(knees: int = 40, spread_mm: float = 5.0, seed: int = 0) -> None:
     failed = 0
     for _ in range(knees):
         d = 1e-3 * spread_mm
-        ligaments = {n: Ligament(n, lig.femur + rng.uniform(-d, d, 3), lig.tibia + rng.uniform(-d, d, 3))
+        ligaments = {n: Ligament(n, [Bundle(lig.femur + rng.uniform(-d, d, 3), lig.tibia + rng.uniform(-d, d, 3))])
                      for n, lig in base.ligaments.items()}
         model = KneeModel(dataclasses.replace(base, ligaments=ligaments))
         results = {axes: kneenlp.simulate(model, p) for axes, p in protocols.items()}

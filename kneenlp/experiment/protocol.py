@@ -89,6 +89,31 @@ class Protocol:
     def __len__(self) -> int:
         return len(self.trials)
 
+    def to_dict(self) -> dict:
+        """The protocol as a protocol-file document (one case per trial); ``from_dict`` of it gives
+        the same trials."""
+        axes = {t.axes for t in self.trials}
+        if len(axes) > 1:
+            raise InputError("trials with different load axes cannot be written to one protocol file",
+                             source=self.source, field="load_axes")
+        cases = []
+        for t in self.trials:
+            if t.direction == "combined":
+                cases.append({"name": t.id.rsplit("_flex", 1)[0], "loads": dict(t.loads), "flexion": [t.flexion_deg]})
+            elif t.direction == "none":
+                cases.append({"direction": "none", "flexion": [t.flexion_deg]})
+            else:
+                cases.append({"direction": t.direction, "magnitude": [t.magnitude], "flexion": [t.flexion_deg]})
+        return {"name": self.name, "title": self.title, "description": self.description,
+                "load_axes": axes.pop() if axes else "femoral", "cases": cases}
+
+    def to_toml(self, header: list[str] | None = None) -> str:
+        """Protocol-file text (TOML written by tomli-w) with ``header`` lines as comments."""
+        import tomli_w
+
+        lines = [*(header or []), "magnitude: N for anterior/posterior, N m for moments; flexion: deg."]
+        return "".join(f"# {line}\n" for line in lines) + tomli_w.dumps(self.to_dict())
+
     def trial(self, tid: str) -> Trial:
         for t in self.trials:
             if t.id == tid:

@@ -33,6 +33,8 @@ from scipy import stats
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.inference.fit import Fit
+from kneenlp.inference.statistics import chi_square_test
+from kneenlp.io.atomic import write_text_atomic
 
 ADEQUATE_P = 0.01
 
@@ -121,6 +123,29 @@ class Diagnosis:
         lines.append(f"[[Verdict]] {self.verdict}")
         return "\n".join(lines)
 
+    def write(self, out: str | Path) -> list[Path]:
+        """Figures, ``residual_map.csv`` and ``diagnosis.json`` into ``out``; with a recommended
+        effect also the refit's figures (``after_<effect>/``) and the parameters before and after
+        it (``parameters_before_after_<effect>.csv``, display units)."""
+        out = Path(out)
+        files = self.figures(out)
+        self.residual_map.to_csv(out / "residual_map.csv", float_format="%.6g")
+        files += [out / "residual_map.csv", write_text_atomic(out / "diagnosis.json", self.to_json())]
+        rec = self.recommended
+        if rec is not None:
+            after = self.refits[rec.effect]
+            files += diagnose(after, self.noise, refit=0).figures(out / f"after_{rec.effect}")
+            rows = []
+            for n in after.free:
+                par = after.model.parameter(n)
+                rows.append({"parameter": n, "unit": par.unit,
+                             "before": self.fit.params[n] * par.to_user if n in self.fit.params else None,
+                             "after": after.params[n] * par.to_user, "after_stderr": after.stderr[n] * par.to_user})
+            path = out / f"parameters_before_after_{rec.effect}.csv"
+            pd.DataFrame(rows).to_csv(path, index=False, float_format="%.6g")
+            files.append(path)
+        return files
+
     def figures(self, out: str | Path) -> list[Path]:
         """Residual heat map and measured vs predicted laxity curves (mm, deg)."""
         from kneenlp.experiment.measured import measured_frame
@@ -151,10 +176,8 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
     noise = NoiseModel.parse(noise)
     sigma = noise.std
     r = fit.residuals
-    n_obs, n_par = r.size, len(fit.free)
-    dof = max(n_obs - n_par, 1)
-    chi2 = float(np.sum(r**2) / sigma**2)
-    p_value = float(stats.chi2.sf(chi2, dof))
+    n_obs = r.size
+    chi2, dof, p_value = chi_square_test(r, fit.weights, sigma**2, len(fit.free))
     rms = float(np.sqrt(np.mean(r**2)))
     expected = float(sigma * np.sqrt(dof / n_obs))
     flagged = []
@@ -180,8 +203,6 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
 
 def rank_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> list[EffectScore]:
     """Score test of every candidate effect (see module docstring), best first."""
-    from kneenlp.inference.identify import sensitivities
-
     model = fit.model
     r = fit.residuals.ravel()
     w = np.sqrt(fit.weights.ravel())
@@ -197,14 +218,14 @@ def rank_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> li
         names = [n for n in e.free_names() if n not in fit.free]
         if not names:
             continue
-        scales = np.array([model.parameter_info[model.index(n)].scale for n in names])
-        s_e = sensitivities(model, fit.data, fit.theta, fit.q_pred, names) * scales * w[:, None]
+        scales = np.array([model.parameter(n).scale for n in names])
+        s_e = fit.problem.sensitivities(fit.q_pred, fit.theta, names) * scales * w[:, None]
         a = s_e.T @ proj @ s_e
         g = s_e.T @ proj @ rw
         step = -np.linalg.pinv(a) @ g
         reduction = float(g @ np.linalg.pinv(a) @ g)
-        stiff = [n.endswith(".k") and model.parameter_info[model.index(n)].neutral == 0.0 for n in names]
-        if len(names) == 1 and stiff[0] and step[0] < 0:
+        one_sided = model.parameter(names[0]).one_sided
+        if len(names) == 1 and one_sided and step[0] < 0:
             reduction, step = 0.0, np.zeros(1)
         stat = reduction / sigma**2
         scores.append(EffectScore(
@@ -223,13 +244,14 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
     model = fit.model
     start = dict(fit.params)
     for n, v in score.one_step.items():
-        info = model.parameter_info[model.index(n)]
-        base = info.neutral if info.neutral is not None else fit.theta[model.index(n)]
-        start[n] = float(np.clip(base + v, info.lower, info.upper))
+        par = model.parameter(n)
+        base = par.neutral if par.neutral is not None else fit.theta[model.index(n)]
+        start[n] = float(np.clip(base + v, *par.bounds))
     free = [*fit.free, *score.parameters]
-    new = identify(model, fit.data, free=free, start=start)
+    fixed = fit.problem.fixed
+    new = identify(model, fit.data, free=free, start=start, fixed=fixed)
     if not new.success or new.objective > fit.objective:  # retry from the base fit, effect neutral
-        again = identify(model, fit.data, free=free, start=dict(fit.params))
+        again = identify(model, fit.data, free=free, start=dict(fit.params), fixed=fixed)
         if again.success and (not new.success or again.objective < new.objective):
             new = again
     n_obs = fit.residuals.size

@@ -27,12 +27,14 @@ from pathlib import Path
 import numpy as np
 
 from kneenlp.errors import InputError
-from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Protocol, Trial, trial_id
+from kneenlp.inference.problem import IdentificationProblem, default_free
+from kneenlp.inference.statistics import fisher_information
+from kneenlp.io.atomic import write_text_atomic
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
-from kneenlp.solvers.forward import ForwardSolver
+from kneenlp.solvers.forward import forward_solver
 
 CRITERIA = ("A", "D", "W", "R")
 #: The paper's largest magnitude per direction (N or N m).
@@ -55,24 +57,18 @@ def candidate_pool(flexions=(0.0, 15.0, 30.0, 45.0, 60.0), levels=(1.0, 0.6, 0.2
     return Protocol("pool", tuple(trials), "candidate pool", "all directions, levels and flexions")
 
 
-def relative_information(model: KneeModel, trials, free: list[str], theta: np.ndarray,
-                         noise_std: float) -> np.ndarray:
-    """Per-trial Fisher information in relative parameter units, shape (n_trials, n, n).
+def relative_information(problem: IdentificationProblem, theta: np.ndarray) -> np.ndarray:
+    """Per-trial Fisher information of ``problem``'s trials in relative parameter units, shape
+    (n_trials, n, n), at parameters ``theta`` with the problem's noise level.
 
     Trials whose equilibrium cannot be solved at ``theta`` contribute nothing (and are reported
     by the caller through :func:`design`'s ``failed`` list)."""
-    from kneenlp.inference.identify import sensitivities
-
-    sols = ForwardSolver(model).solve(list(trials), theta)
-    ok = [s.converged for s in sols]
+    sols = forward_solver(problem.model).solve(list(problem.trials), theta)
+    ok = np.array([s.converged for s in sols])
     q = np.array([s.q for s in sols])
-    data = MeasuredData(list(trials), q)
-    s = sensitivities(model, data, theta, q, free)  # (5T, n), mm/deg per SI unit
-    values = np.array([theta[model.index(n)] for n in free])
-    s_rel = s * values  # per unit relative change
-    blocks = s_rel.reshape(len(trials), 5, len(free))
-    info = np.einsum("tki,tkj->tij", blocks, blocks) / noise_std**2
-    info[~np.array(ok)] = 0.0
+    values = np.array([theta[problem.model.index(n)] for n in problem.free])
+    info = fisher_information(problem.sensitivities(q, theta) * values, problem.noise.std)  # per unit relative change
+    info[~ok] = 0.0
     return info
 
 
@@ -104,25 +100,18 @@ class DesignResult:
     history: list[tuple[int, float]] = field(default_factory=list)
 
     def to_toml(self) -> str:
-        lines = [f"# Designed by kneenlp: {self.criterion}-optimal, {len(self.protocol)} load cases.",
-                 "# Predicted relative standard errors (uniform noise, linearised): "
-                 + ", ".join(f"{n} {100 * v:.2f} %" for n, v in self.predicted_rse.items()),
-                 "# magnitude: N for anterior/posterior, N m for moments; flexion: deg.",
-                 f'name = "{self.protocol.name}"', f'title = "{self.protocol.title}"',
-                 f'description = "{self.protocol.description}"', ""]
-        for t in self.protocol.trials:
-            lines += ["[[cases]]", f'direction = "{t.direction}"']
-            if t.direction != "none":
-                lines.append(f"magnitude = [{t.magnitude!r}]")
-            lines += [f"flexion = [{t.flexion_deg!r}]", ""]
-        return "\n".join(lines)
+        header = [f"Designed by kneenlp: {self.criterion}-optimal, {len(self.protocol)} load cases.",
+                  "Predicted relative standard errors (uniform noise, linearised): "
+                  + ", ".join(f"{n} {100 * v:.2f} %" for n, v in self.predicted_rse.items())]
+        return self.protocol.to_toml(header)
 
 
 def predicted_rse(model: KneeModel, protocol: Protocol, free: list[str], noise: str | NoiseModel,
                   theta: np.ndarray | None = None) -> dict[str, float]:
     """Linearised relative standard error of each free parameter for ``protocol``."""
-    theta = model.theta() if theta is None else theta
-    info = relative_information(model, protocol.trials, free, theta, NoiseModel.parse(noise).std).sum(axis=0)
+    problem = IdentificationProblem(model, protocol.trials, free, noise=NoiseModel.parse(noise))
+    theta = problem.theta() if theta is None else theta
+    info = relative_information(problem, theta).sum(axis=0)
     cov = np.linalg.pinv(info)
     return {n: float(np.sqrt(cov[i, i])) for i, n in enumerate(free)}
 
@@ -132,9 +121,7 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
            robust: int = 3, seed: int = 0, name: str | None = None,
            reference: Protocol | str = "set4") -> DesignResult:
     """Choose at most ``max_cases`` trials of ``pool`` minimising ``criterion`` (see module doc)."""
-    from kneenlp.inference.identify import paper_scatter
     from kneenlp.simulation import model_for
-    from kneenlp.solvers.nlp import check_free, default_free
 
     if criterion not in CRITERIA:
         raise InputError(f"unknown criterion {criterion!r}; known: {', '.join(CRITERIA)}", field="--criterion")
@@ -142,19 +129,20 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
         raise InputError(f"must be >= 1, got {max_cases}", field="--max-cases")
     knee = knee or Knee.default()
     model = model_for(knee)
-    free = check_free(model, free or default_free(model))
     pool = pool or candidate_pool()
-    std = NoiseModel.parse(noise).std
+    problem = IdentificationProblem(model, pool.trials, list(free or default_free(model)),
+                                    noise=NoiseModel.parse(noise))
+    free = problem.free
     rng = np.random.default_rng(seed)
-    thetas = [model.theta()] + [model.theta(paper_scatter(model, free, rng)) for _ in range(max(0, robust - 1))]
-    infos = np.array([relative_information(model, pool.trials, free, th, std) for th in thetas])  # (R, T, n, n)
+    thetas = [problem.theta()] + [problem.theta(problem.scatter(rng)) for _ in range(max(0, robust - 1))]
+    infos = np.array([relative_information(problem, th) for th in thetas])  # (R, T, n, n)
     n_par = len(free)
     ridge = 1e-9 * np.eye(n_par)
     ref_se = [None] * len(thetas)
     if criterion == "R":
         ref = reference if isinstance(reference, Protocol) else Protocol.load(reference)
-        ref_se = [np.sqrt(np.diag(np.linalg.pinv(relative_information(model, ref.trials, free, th, std).sum(axis=0))))
-                  for th in thetas]
+        ref_problem = IdentificationProblem(model, ref.trials, free, noise=problem.noise)
+        ref_se = [np.sqrt(np.diag(np.linalg.pinv(relative_information(ref_problem, th).sum(axis=0)))) for th in thetas]
 
     def value(selected: list[int]) -> float:
         if not selected:
@@ -199,7 +187,8 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
 
 
 def write_protocol(result: DesignResult, path: str | Path) -> Path:
+    """Write the designed protocol (atomically); the file loads back as the same protocol."""
     path = Path(path)
-    path.write_text(result.to_toml())
+    write_text_atomic(path, result.to_toml())
     Protocol.load(path)  # the written file is a normal, valid protocol
     return path

@@ -3,28 +3,31 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import pandas as pd
 
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES, coordinate_columns
 from kneenlp.experiment.measured import MeasuredData
+from kneenlp.inference.problem import IdentificationProblem
+from kneenlp.inference.statistics import chi_square_test, gauss_newton_covariance, noise_variance, svd_rank
 from kneenlp.model.kneemodel import KneeModel
 
 
 @dataclass
 class Fit:
-    """Identified parameters of a knee from measured laxity data.
+    """Identified parameters of a knee from measured laxity data (lmfit's MinimizerResult).
 
     Values are SI inside (``params``, ``stderr``: N per unit strain, fractions, N/m^3); the
     report, tables and JSON use the display units (N, %, GN/m^3).  ``q_pred`` are the model's
     poses at the estimate (SI), ``residuals`` the model minus measured coordinates (mm, deg).
+    ``objective`` is the problem's weighted sum of squared residuals at the estimate, whatever the
+    method (mm^2 + deg^2 times the weights).
     """
 
-    model: KneeModel
-    data: MeasuredData
+    problem: IdentificationProblem
     method: str
-    free: list[str]
     params: dict[str, float]
     theta: np.ndarray  # full parameter vector (SI) at the estimate
     objective: float
@@ -34,8 +37,7 @@ class Fit:
     seconds: float
     max_residual: float  # largest equilibrium residual at the solution (N or N m)
     q_pred: np.ndarray  # (T, 5) SI
-    sensitivity: np.ndarray  # (5T, n_free): d q_user / d p (SI parameter units)
-    weights: np.ndarray  # (T, 5)
+    sensitivity: np.ndarray  # (5T, n_free): d y / d p (mm or deg per SI parameter unit)
     noise_variance: np.ndarray  # (T, 5), mm^2 / deg^2
     noise_source: str  # "given" or "estimated"
     start: dict[str, float] = field(default_factory=dict)
@@ -45,34 +47,90 @@ class Fit:
     solver: str = "ipopt"
     extra: dict = field(default_factory=dict)
 
+    @classmethod
+    def build(cls, problem: IdentificationProblem, method: str, theta: np.ndarray, q: np.ndarray,
+              **kwargs) -> Fit:
+        """A fit at parameters ``theta`` and poses ``q`` (SI): objective, sensitivities and noise
+        variance all from the problem's one observation function."""
+        objective = problem.objective(q, theta)
+        variance, source = noise_variance(problem.noise, objective, problem.weights, problem.n_free)
+        return cls(problem, method, problem.values(theta), np.asarray(theta, float), objective,
+                   q_pred=np.asarray(q, float), sensitivity=problem.sensitivities(q, theta),
+                   noise_variance=variance, noise_source=source, **kwargs)
+
+    # ------------------------------------------------------------------ the problem's parts
+    @property
+    def model(self) -> KneeModel:
+        return self.problem.model
+
+    @property
+    def free(self) -> list[str]:
+        return self.problem.free
+
+    @property
+    def weights(self) -> np.ndarray:
+        return self.problem.weights
+
+    @property
+    def data(self) -> MeasuredData:
+        return self.problem.data
+
     # ------------------------------------------------------------------ derived
     @property
     def predicted_user(self) -> np.ndarray:
-        """The model's measured coordinates (T x 5, mm and deg), including any registration bias."""
-        from kneenlp.conventions import coords_to_user
-
-        return coords_to_user(self.q_pred) + self.model.bias_user(self.theta)
+        """The model's measured coordinates (T x 5, mm and deg), including any measurement bias."""
+        return self.problem.observe(self.q_pred, self.theta)
 
     @property
     def residuals(self) -> np.ndarray:
         """Model minus measured coordinates (T x 5, mm and deg)."""
-        return self.predicted_user - self.data.q_user
+        return self.problem.residuals(self.q_pred, self.theta)
 
     @property
     def scales(self) -> np.ndarray:
-        return np.array([self.model.parameter_info[self.model.index(n)].scale for n in self.free])
+        return self.problem.scales
 
+    @property
+    def n_observations(self) -> int:
+        return 5 * self.problem.n_trials
+
+    @property
+    def dof(self) -> int:
+        """Degrees of freedom of the residuals: observations minus free parameters."""
+        return max(self.n_observations - len(self.free), 1)
+
+    def chi_square(self, sigma: float | None = None) -> float:
+        """Weighted residual sum over the noise variance (given, else estimated)."""
+        return chi_square_test(self.residuals, self.weights, self.noise_variance if sigma is None else sigma**2,
+                               len(self.free))[0]
+
+    @property
+    def reduced_chi_square(self) -> float:
+        return self.chi_square() / self.dof
+
+    @property
+    def aic(self) -> float:
+        """Akaike information criterion of the least-squares fit, ``N ln(RSS/N) + 2 p``."""
+        n = self.n_observations
+        return float(n * np.log(max(self.objective, 1e-300) / n) + 2 * len(self.free))
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion, ``N ln(RSS/N) + p ln N``."""
+        n = self.n_observations
+        return float(n * np.log(max(self.objective, 1e-300) / n) + len(self.free) * np.log(n))
+
+    @cached_property
     def _svd(self):
-        s_scaled = self.sensitivity * self.scales  # columns per unit of scaled parameter
+        """SVD of the weighted, scaled sensitivity matrix (computed once)."""
         w = np.sqrt(self.weights.ravel())[:, None]
-        return np.linalg.svd(w * s_scaled, full_matrices=True)
+        return np.linalg.svd(w * self.sensitivity * self.scales, full_matrices=True)
 
     @property
     def rank(self) -> int:
         """Numerical rank of the (weighted, scaled) sensitivity matrix: how many parameter
         directions the data determine (relative singular-value threshold 1e-6)."""
-        _, sv, _ = self._svd()
-        return int(np.sum(sv > 1e-6 * sv.max())) if sv.size and sv.max() > 0 else 0
+        return svd_rank(self._svd[1])
 
     @property
     def identifiable(self) -> bool:
@@ -80,42 +138,16 @@ class Fit:
 
     def unidentifiable_directions(self) -> list[dict[str, float]]:
         """Parameter combinations (scaled units) the data cannot determine."""
-        vt = self._svd()[2]
-        dirs = []
-        for i in range(self.rank, len(self.free)):
-            v = vt[i]
-            dirs.append({n: float(c) for n, c in zip(self.free, v, strict=True) if abs(c) > 0.05})
-        return dirs
+        vt = self._svd[2]
+        return [{n: float(c) for n, c in zip(self.free, vt[i], strict=True) if abs(c) > 0.05}
+                for i in range(self.rank, len(self.free))]
 
-    @property
+    @cached_property
     def covariance(self) -> np.ndarray:
-        """Gauss-Newton (linearised) covariance of the free parameters (SI units).
-
-        Sandwich form ``A^-1 S' W Sigma W S A^-1`` with ``A = S' W S`` (reduces to
-        ``sigma^2 (S'S)^-1`` for an unweighted fit with equal noise).  Directions the data do not
-        determine get infinite variance.
-        """
-        s = self.sensitivity
-        w = self.weights.ravel()
-        sig = self.noise_variance.ravel()
-        a = s.T @ (w[:, None] * s)
-        b = s.T @ ((w * sig * w)[:, None] * s)
-        # pseudo-inverse in scaled units, with the rank cut of `rank`
-        d = self.scales
-        a_s = a * np.outer(d, d)
-        u, sv, vt = np.linalg.svd(a_s)
-        keep = sv > (1e-12 * sv.max() if sv.size else 0)
-        keep[self.rank:] = False
-        inv = (vt[keep].T / sv[keep]) @ u[:, keep].T
-        cov_s = inv @ (b * np.outer(d, d)) @ inv.T
-        cov = cov_s * np.outer(d, d)
-        if not self.identifiable:
-            for direction in self.unidentifiable_directions():
-                for n in direction:
-                    i = self.free.index(n)
-                    cov[i, :] = cov[:, i] = np.nan
-                    cov[i, i] = np.inf
-        return cov
+        """Gauss-Newton (linearised) covariance of the free parameters (SI units); directions the
+        data do not determine get infinite variance (see :func:`gauss_newton_covariance`)."""
+        return gauss_newton_covariance(self.sensitivity, self.weights, self.noise_variance, self.scales,
+                                       self.free)
 
     @property
     def stderr(self) -> dict[str, float]:
@@ -129,7 +161,7 @@ class Fit:
 
     # ------------------------------------------------------------------ presentation
     def _info(self, name):
-        return self.model.parameter_info[self.model.index(name)]
+        return self.model.parameter(name)
 
     def params_user(self) -> dict[str, float]:
         return {n: self.params[n] * self._info(n).to_user for n in self.free}
@@ -159,6 +191,10 @@ class Fit:
             "stderr_display": self.stderr_user(),
             "units_display": {n: self._info(n).unit for n in self.free},
             "objective": self.objective,
+            "chi_square": self.chi_square(),
+            "reduced_chi_square": self.reduced_chi_square,
+            "aic": self.aic,
+            "bic": self.bic,
             "rms": self.rms,
             "iterations": self.iterations,
             "evaluations": self.evaluations,
@@ -189,6 +225,9 @@ class Fit:
             f"free parameters {len(self.free)})",
             f"    objective       = {self.objective:.6g}  (sum of squared residuals, mm^2 + deg^2)",
             f"    RMS residual    = {self.rms:.4g} (mm, deg)",
+            f"    chi-square      = {self.chi_square():.4g}  reduced = {self.reduced_chi_square:.4g}  "
+            f"(dof {self.dof})",
+            f"    AIC, BIC        = {self.aic:.4g}, {self.bic:.4g}",
             f"    iterations      = {self.iterations}   evaluations = {self.evaluations}",
             f"    time            = {self.seconds:.3f} s (build {self.build_seconds:.3f} s)",
             f"    max equilibrium residual = {self.max_residual:.2e} (N, N m)",

@@ -22,90 +22,32 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import casadi as ca
 import numpy as np
+from scipy import stats
 
-from kneenlp.conventions import TO_USER, coords_to_user
-from kneenlp.errors import InputError, unknown_name
+from kneenlp.conventions import TO_USER
+from kneenlp.errors import unknown_name
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Protocol, available_protocols
 from kneenlp.inference.fit import Fit
+from kneenlp.inference.problem import IdentificationProblem
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.simulation import model_for
-from kneenlp.solvers.forward import ForwardSolver
-from kneenlp.solvers.nlp import IdentificationNLP, build_nlp, check_free, default_free, map_threads
+from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.nlp import IdentificationNLP, build_nlp
 
 METHODS = ("simultaneous", "nested")
-_NLP_CACHE: dict[tuple, IdentificationNLP] = {}
 
 
-def paper_scatter(model: KneeModel, free: list[str], rng: np.random.Generator,
-                  reference: dict[str, float] | None = None) -> dict[str, float]:
-    """Uniform scatter around ``reference`` (default: the knee's parameter set), as in the paper:
-    +-500 N on stiffnesses, +-0.02 on reference strains, +-10 % on other parameters (SI)."""
-    ref = reference or dict(zip(model.parameter_names, model.theta(), strict=True))
-    out = {}
-    for n in free:
-        info = model.parameter_info[model.index(n)]
-        if info.neutral is not None:  # effect parameters start at their neutral value
-            out[n] = info.neutral
-            continue
-        kind = n.rsplit(".", 1)[-1]
-        half = {"k": 500.0, "ref_strain": 0.02}.get(kind, 0.1 * abs(ref[n]))
-        out[n] = float(min(max(ref[n] + rng.uniform(-half, half), info.lower), info.upper))
-    return out
-
-
-def get_nlp(model: KneeModel, n_trials: int, free: list[str], solver: str, options: dict | None) -> IdentificationNLP:
-    key = (id(model), n_trials, tuple(free), solver, repr(sorted((options or {}).items())), map_threads())
-    nlp = _NLP_CACHE.get(key)
-    if nlp is None or nlp.model is not model:
-        nlp = build_nlp(model, n_trials, free, solver, options)
-        _NLP_CACHE[key] = nlp
-    return nlp
-
-
-def sensitivities(model: KneeModel, data: MeasuredData, theta: np.ndarray, q: np.ndarray,
-                  free: list[str]) -> np.ndarray:
-    """``d q_user / d p_free`` (5T x n_free; mm or deg per SI parameter unit) at equilibrium poses
-    ``q`` (SI), by the implicit-function theorem through each trial's equilibrium."""
-    jac = _jacobians(model)
-    idx = [model.index(n) for n in free]
-    d_bias = TO_USER[:, None] * np.asarray(_bias_jacobian(model)(theta))[:, idx]  # registration effects
-    rows = []
-    for t, qi in zip(data.trials, q, strict=True):
-        dq, dth = (np.asarray(v) for v in jac(qi, theta, t.load, t.flexion))
-        try:
-            rows.append(-TO_USER[:, None] * np.linalg.solve(dq, dth[:, idx]) + d_bias)
-        except np.linalg.LinAlgError:  # singular equilibrium (e.g. a failed solve): least squares
-            rows.append(-TO_USER[:, None] * (np.linalg.pinv(dq) @ dth[:, idx]) + d_bias)
-    return np.vstack(rows)
-
-
-def _bias_jacobian(model: KneeModel) -> ca.Function:
-    fn = getattr(model, "_bias_jac", None)
-    if fn is None:
-        fn = model.measurement_bias.factory("bias_jac", ["theta"], ["jac:bias:theta"])
-        model._bias_jac = fn
-    return fn
-
-
-def _forward_solver(model: KneeModel) -> ForwardSolver:
-    fs = getattr(model, "_forward_solver", None)
-    if fs is None:
-        fs = ForwardSolver(model)
-        model._forward_solver = fs
-    return fs
-
-
-def _jacobians(model: KneeModel) -> ca.Function:
-    fn = getattr(model, "_jac_q_theta", None)
-    if fn is None:
-        fn = model.residual.factory("jac_q_theta", ["q", "theta", "load", "flexion"], ["jac:r:q", "jac:r:theta"])
-        model._jac_q_theta = fn
-    return fn
+def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, threads: int) -> IdentificationNLP:
+    """The NLP solver of ``problem``'s layout, built once per model (kept in ``model.solvers``)."""
+    key = ("nlp", problem.n_trials, tuple(problem.free), solver, repr(sorted((options or {}).items())), threads)
+    solvers = problem.model.solvers
+    if key not in solvers:
+        solvers[key] = build_nlp(problem, solver, options, threads)
+    return solvers[key]
 
 
 def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: str = "simultaneous", *,
@@ -113,14 +55,16 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
              noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
              solver: str = "ipopt", solver_options: dict | None = None,
              protocol: Protocol | str | None = None, restarts: int = 4,
-             nested_options: dict | None = None, with_effects: list[str] | None = None) -> Fit:
+             nested_options: dict | None = None, with_effects: list[str] | None = None,
+             fixed: dict[str, float] | None = None, threads: int = 2) -> Fit:
     """Identify the ``free`` parameters of ``knee`` from measured ``data``.
 
     Parameters
     ----------
-    knee : the knee (geometry + reference parameter set); ``None`` for the default knee.
+    knee : the knee (geometry + reference parameter set) or a :class:`KneeModel` (e.g. with user
+        elements); ``None`` for the default knee.
     data : measured data or the path of a measured-data CSV (mm, deg).
-    method : ``"simultaneous"`` (one IPOPT program for all trials and parameters).
+    method : ``"simultaneous"`` (one IPOPT program for all trials and parameters) or ``"nested"``.
     free : names of the parameters to identify (default: k and ref_strain of every ligament).
     start : starting values (SI) by name; missing ones are scattered like the paper (``seed``).
     noise : noise model of the measurements (e.g. ``"uniform:0.5"``): gives the noise variance of
@@ -130,14 +74,17 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     restarts : extra scatter draws tried when no start has converged yet.
     with_effects : candidate effects (:mod:`kneenlp.model.effects`) whose parameters are freed too,
         starting at their neutral values (e.g. ``["posterior_capsule"]``).
+    fixed : values (SI, by name) of fixed parameters replacing the knee's parameter set, as
+        ``simulate(parameters=...)`` does.
     nested_options : for ``method="nested"``: ``max_evals``, ``max_seconds``, ``xtol``, ``ftol``
         of the Complex optimizer, or ``initial`` (a list of starting parameter dicts, SI).
     solver : CasADi nlpsol plugin (``ipopt``, ``sqpmethod``, ...), options in ``solver_options``.
     protocol : protocol the data must match (by default the one named in the data, if known).
+    threads : threads of the NLP's trial map (1 in study workers, which run one process per core).
     """
     if method not in METHODS:
         raise unknown_name("method", method, METHODS)
-    model = model_for(knee or Knee.default())  # a KneeModel with user effects is accepted too
+    model = model_for(knee or Knee.default())
     if not isinstance(data, MeasuredData):
         data = read_measured(data)
     proto = protocol if isinstance(protocol, Protocol) or protocol is None else Protocol.load(protocol)
@@ -145,32 +92,23 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         proto = Protocol.load(data.protocol)
     if proto is not None:
         data.check_protocol(proto)
-    free = list(free or default_free(model))
-    for name in with_effects or []:
-        free += [n for n in model.effect(name).free_names() if n not in free]
-    free = check_free(model, free)
-    noise_model = NoiseModel.parse(noise) if noise is not None else None
-    if weighted and (noise_model is None or noise_model.std == 0):
-        raise InputError("weighted fit needs a noise model with non-zero level", field="noise")
-    weights = np.full((len(data), 5), 1.0 / noise_model.std**2 if weighted else 1.0)
-    if start:
-        for n in start:
-            if n not in free:
-                raise unknown_name("free parameter", n, free)
+    problem = IdentificationProblem.from_data(model, data, free, noise=noise, weighted=weighted, fixed=fixed,
+                                              with_effects=with_effects or ())
+    start = problem.check_start(start)
     rng = np.random.default_rng(seed)
     if method == "nested":
-        return _nested(model, data, free, start, rng, seed, weights, noise_model, dict(nested_options or {}))
+        return _nested(problem, start, rng, seed, dict(nested_options or {}))
     best: Fit | None = None
     k = 0
 
     def good(f: Fit | None) -> bool:
-        return f is not None and f.success and not _at_bounds(f) and not _implausible_misfit(f, noise_model)
+        return f is not None and f.success and not _at_bounds(f) and not _implausible_misfit(f)
 
     while k < max(1, multistart) or (not good(best) and k < max(1, multistart) + restarts):
-        s = paper_scatter(model, free, rng)
+        s = problem.scatter(rng)
         if k == 0 and start:
             s.update(start)
-        fit = _simultaneous(model, data, free, s, weights, noise_model, solver, solver_options)
+        fit = solve_simultaneous(problem, s, solver, solver_options, threads)
         if best is None or (good(fit) and not good(best)) or \
                 (fit.success and good(fit) == good(best) and fit.objective < best.objective) or \
                 (fit.success and not best.success):
@@ -186,99 +124,74 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     return best
 
 
-def _implausible_misfit(fit: Fit, noise: NoiseModel | None) -> bool:
+def _implausible_misfit(fit: Fit) -> bool:
     """With a known noise model, a misfit the noise cannot explain (chi-square p < 1e-9) marks a
     wrong local minimum worth a restart (the best fit is kept either way)."""
+    noise = fit.problem.noise
     if noise is None or noise.std <= 0:
         return False
-    from scipy import stats
-
-    chi2 = float(np.sum(fit.residuals**2)) / noise.std**2
-    return bool(stats.chi2.sf(chi2, max(fit.residuals.size - len(fit.free), 1)) < 1e-9)
+    return bool(stats.chi2.sf(fit.chi_square(noise.std), fit.dof) < 1e-9)
 
 
 def _at_bounds(fit: Fit) -> bool:
     """True if a ligament parameter sits on its bound (the prototype's wrong-minimum signature)."""
-    for n in fit.free:
-        info = fit.model.parameter_info[fit.model.index(n)]
-        if info.neutral is not None or n == "contact.modulus":
+    for p in fit.problem.parameters:
+        if p.neutral is not None or p.kind not in ("k", "ref_strain", "lin_strain"):
             continue
-        span = info.upper - info.lower
-        if min(fit.params[n] - info.lower, info.upper - fit.params[n]) <= 1e-6 * span:
+        lo, hi = p.bounds
+        if min(fit.params[p.name] - lo, hi - fit.params[p.name]) <= 1e-6 * (hi - lo):
             return True
     return False
 
 
-def _noise_variance(noise_model, objective, weights, n_par):
-    if noise_model is not None:
-        return (np.full(weights.shape, noise_model.std**2),
-                f"given ({noise_model}: std {noise_model.std:.4g} mm or deg)")
-    s2 = objective / max(weights.size - n_par, 1) / float(np.mean(weights))
-    return np.full(weights.shape, s2), f"estimated from residuals (std {np.sqrt(s2):.4g} mm or deg)"
-
-
-def _nested(model, data, free, start, rng, seed, weights, noise_model, options) -> Fit:
+def _nested(problem: IdentificationProblem, start: dict, rng: np.random.Generator, seed: int, options: dict) -> Fit:
     from kneenlp.solvers.nested import nested_fit
 
     initial = options.pop("initial", None)
-    if initial is None:
-        clouds = [paper_scatter(model, free, rng) for _ in range(2 * len(free) + 1)]
+    if initial is None:  # the paper's population; effect parameters spread from neutral too
+        initial = [problem.scatter(rng, spread_effects=i > 0) for i in range(2 * problem.n_free + 1)]
         if start:
-            clouds[0].update(start)
-        initial = clouds
-    cloud = np.array([[c[n] for n in free] for c in initial])
-    out = nested_fit(model, data, free, weights, cloud, seed=seed, **options)
-    params = dict(zip(free, out["values"], strict=True))
-    theta = model.theta(params)
-    q = out["q"]
+            initial[0].update(start)
+    cloud = np.array([[c[n] for n in problem.free] for c in initial])
+    out = nested_fit(problem, cloud, seed=seed, **options)
+    theta = problem.theta(out["values"])
+    q, res = out["q"], out["result"]
     max_res = float(np.max(out["residual"]))
-    res = out["result"]
-    psi = float(np.sum(weights * (coords_to_user(q) - data.q_user) ** 2))
-    variance, source = _noise_variance(noise_model, psi, weights, len(free))
-    return Fit(model=model, data=data, method="nested", free=list(free), params=params, theta=theta,
-               objective=psi, status=res.message, success=bool(res.success) and max_res <= 1e-6,
-               iterations=int(res.nit), seconds=out["seconds"], max_residual=max_res, q_pred=q,
-               sensitivity=sensitivities(model, data, theta, q, free), weights=weights, noise_variance=variance,
-               noise_source=source, start=dict(zip(free, cloud[0], strict=True)), evaluations=out["trial_solves"],
-               message=f"{res.nfev} objective evaluations", solver="complex",
-               extra={"objective_evaluations": res.nfev, "history": res.history})
+    return Fit.build(problem, "nested", theta, q, status=res.message, success=bool(res.success) and max_res <= 1e-6,
+                     iterations=int(res.nit), seconds=out["seconds"], max_residual=max_res,
+                     start=dict(zip(problem.free, cloud[0], strict=True)), evaluations=out["trial_solves"],
+                     message=f"{res.nfev} objective evaluations", solver="complex",
+                     extra={"objective_evaluations": res.nfev, "history": res.history})
 
 
-def _simultaneous(model, data, free, start, weights, noise_model, solver, solver_options) -> Fit:
+def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
+                       solver_options: dict | None = None, threads: int = 2) -> Fit:
+    """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter)."""
     t0 = time.perf_counter()
-    nlp = get_nlp(model, len(data), free, solver, solver_options)
-    theta0 = model.theta(start)
+    nlp = get_nlp(problem, solver, solver_options, threads)
+    theta0 = problem.theta(start)
+    data = problem.data
     # equilibrium-consistent start: Newton on all trials at once from the measured poses,
     # per-trial ramping for the few that fail; a trial that still fails starts at its data
-    q0, res0 = _forward_solver(model).solve_batch(data.trials, theta0, data.q)
+    q0, res0 = forward_solver(problem.model).solve_batch(data.trials, theta0, data.q)
     ok = res0 <= 1e-6
-    q0_user = np.where(ok[:, None], coords_to_user(q0), data.q_user)
+    q0_user = np.where(ok[:, None], q0 * TO_USER, problem.measured)
     n_fail_start = int(np.sum(~ok))
-    loads = np.array([t.load for t in data.trials])
-    flex = np.array([t.flexion for t in data.trials])
-    p = nlp.pack_p(model.theta(), data.q_user, weights, loads, flex)
-    x0 = nlp.pack_x([start[n] for n in free], q0_user)
+    x0 = nlp.pack_x([start[n] for n in problem.free], q0_user)
     t1 = time.perf_counter()
-    sol = nlp.solver(x0=x0, p=p, lbx=nlp.lbx, ubx=nlp.ubx, lbg=0, ubg=0)
+    sol = nlp.solver(x0=x0, p=problem.data_vector(), lbx=nlp.lbx, ubx=nlp.ubx, lbg=0, ubg=0)
     seconds = time.perf_counter() - t1
-    stats = nlp.solver.stats()
+    st = nlp.solver.stats()
     values, q_user = nlp.unpack_x(sol["x"])
-    params = dict(zip(free, values, strict=True))
-    theta = model.theta(params)
-    q = q_user / TO_USER
     g = np.asarray(sol["g"]).ravel()
     max_res = float(np.max(np.abs(g))) if g.size else 0.0
-    sens = sensitivities(model, data, theta, q, free)
-    objective = float(sol["f"])
-    variance, source = _noise_variance(noise_model, objective, weights, len(free))
-    success = bool(stats.get("success", False)) and max_res <= 1e-6
+    success = bool(st.get("success", False)) and max_res <= 1e-6
     msg = "" if n_fail_start == 0 else f"{n_fail_start} trial(s) could not be solved at the start; started at data"
-    if bool(stats.get("success", False)) and max_res > 1e-6:
+    if bool(st.get("success", False)) and max_res > 1e-6:
         msg = (msg + "; " if msg else "") + f"equilibrium residual {max_res:.2e} above 1e-6"
-    return Fit(model=model, data=data, method="simultaneous", free=list(free), params=params, theta=theta,
-               objective=objective, status=str(stats.get("return_status", "unknown")), success=success,
-               iterations=int(stats.get("iter_count", -1)), seconds=seconds, max_residual=max_res, q_pred=q,
-               sensitivity=sens, weights=weights, noise_variance=variance, noise_source=source,
-               start=dict(start), build_seconds=nlp.build_seconds, evaluations=int(stats.get("iter_count", -1)),
-               message=msg, solver=nlp.solver_name,
-               extra={"start_seconds": t1 - t0})
+    return Fit.build(problem, "simultaneous", problem.theta(values), q_user / TO_USER,
+                     status=str(st.get("return_status", "unknown")), success=success,
+                     iterations=int(st.get("iter_count", -1)), seconds=seconds, max_residual=max_res,
+                     start=dict(start), build_seconds=nlp.build_seconds, evaluations=int(st.get("iter_count", -1)),
+                     message=msg, solver=nlp.solver_name,
+                     extra={"start_seconds": t1 - t0, "solver_objective": float(sol["f"])})

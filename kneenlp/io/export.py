@@ -30,9 +30,12 @@ import numpy as np
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES, RESIDUAL_NAMES, RESIDUAL_UNITS, coords_to_user
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import MeasuredData, read_measured
+from kneenlp.inference.problem import IdentificationProblem
 from kneenlp.model.knee import Knee
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.simulation import model_for
-from kneenlp.solvers.nlp import check_free, default_free, nlp_expressions
+from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.nlp import nlp_expressions
 
 FORMATS = ("nl", "casadi", "c")
 
@@ -61,37 +64,35 @@ class ExportProblem:
         return ca.Function("nlp", [self.x, self.p], [self.f, self.g], ["x", "p"], ["f", "g"])
 
 
-def export_problem(knee: Knee | None, data: MeasuredData | str | Path, *, free: list[str] | None = None,
-                   start: dict[str, float] | None = None, seed: int = 0) -> ExportProblem:
-    """Build the identification NLP of ``data`` with a start like :func:`kneenlp.inference.identify.identify`'s."""
-    from kneenlp.inference.identify import _forward_solver, paper_scatter
-
-    knee = knee or Knee.default()
-    model = model_for(knee)
+def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, *,
+                   free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
+                   with_effects: list[str] | None = None, fixed: dict[str, float] | None = None) -> ExportProblem:
+    """Build the identification NLP of ``data`` with a start like
+    :func:`kneenlp.inference.identify.identify`'s (``knee`` may be a model with user elements)."""
+    model = model_for(knee or Knee.default())
     if not isinstance(data, MeasuredData):
         data = read_measured(data)
-    free = check_free(model, free or default_free(model))
-    T = len(data)
-    e = nlp_expressions(model, T, free, parallel="serial")
-    values = paper_scatter(model, free, np.random.default_rng(seed))
-    values.update(start or {})
-    q0, res = _forward_solver(model).solve_batch(data.trials, model.theta(values), data.q)
+    problem = IdentificationProblem.from_data(model, data, free, fixed=fixed, with_effects=with_effects or ())
+    free = problem.free
+    T = problem.n_trials
+    e = nlp_expressions(problem, parallel="serial")
+    values = problem.scatter(np.random.default_rng(seed))
+    values.update(problem.check_start(start))
+    q0, res = forward_solver(model).solve_batch(data.trials, problem.theta(values), data.q)
     q0_user = np.where((res <= 1e-6)[:, None], coords_to_user(q0), data.q_user)
-    loads = np.array([t.load for t in data.trials])
-    flex = np.array([t.flexion for t in data.trials])
-    p = np.concatenate([model.theta(), data.q_user.ravel(), np.ones(5 * T), loads.ravel(), flex])
-    x0 = np.concatenate([np.array([values[n] for n in free]) / e.scales, q0_user.ravel()])
-    info = {n: model.parameter_info[model.index(n)] for n in free}
+    x0 = np.concatenate([np.array([values[n] for n in free]) / problem.scales, q0_user.ravel()])
     var_names = list(free) + [f"{t.id}.{c}" for t in data.trials for c in COORDINATES]
-    var_units = [f"{info[n].unit} x {e.scales[i] * info[n].to_user:g}" for i, n in enumerate(free)]
+    var_units = [f"{p.unit} x {p.scale * p.to_user:g}" for p in problem.parameters]
     var_units += list(COORDINATE_UNITS) * T
     con_names = [f"{t.id}.eq_{r}" for t in data.trials for r in RESIDUAL_NAMES]
-    meta = {"knee": knee.source, "data": data.source, "protocol": data.protocol, "trials": [t.id for t in data.trials],
-            "parameters": dict(zip(model.parameter_names, model.theta().tolist(), strict=True)),
+    meta = {"knee": model.knee.source, "data": data.source, "protocol": data.protocol,
+            "trials": [t.id for t in data.trials],
+            "parameters": dict(zip(model.parameter_names, problem.theta().tolist(), strict=True)),
+            "elements": [f"{type(el).__module__}.{type(el).__name__}:{el.name}" for el in model.elements],
             "start_seed": seed}
-    return ExportProblem(e.f, e.g, e.x, e.p, p, x0, e.lbx, e.ubx, var_names, var_units, con_names,
-                         list(RESIDUAL_UNITS) * T, {n: float(s) for n, s in zip(free, e.scales, strict=True)},
-                         len(free), meta)
+    return ExportProblem(e.f, e.g, e.x, e.p, problem.data_vector(), x0, e.lbx, e.ubx, var_names, var_units,
+                         con_names, list(RESIDUAL_UNITS) * T,
+                         {n: float(s) for n, s in zip(free, problem.scales, strict=True)}, len(free), meta)
 
 
 def _derivative_functions(prob: ExportProblem) -> list[ca.Function]:

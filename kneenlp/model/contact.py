@@ -24,6 +24,12 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from kneenlp.model.elements import Output, Pose, StagedElement
+from kneenlp.model.parameters import Parameter
+
+#: The cartilage pressure modulus, shared by every contact element.
+MODULUS = Parameter("contact.modulus", "modulus", "elastic-foundation pressure modulus")
+
 
 def smooth_gate(d, delta):
     """C2-smooth ``max(d, 0)``: zero for ``d <= 0``, ``d - delta/2`` for ``d >= delta``.
@@ -76,3 +82,41 @@ def sphere_plane_force(modulus: float, radius: float, depth: float) -> float:
     ``K``, ``pi K d^2 (R - d/3)``; both tend to ``pi K R d^2`` for ``d << R``.)
     """
     return float(np.pi * modulus * depth**2 * (radius - depth))
+
+
+class SphereContact(StagedElement):
+    """Elastic-foundation contact of one compartment: a femoral sphere (centre in the femoral
+    frame, radius, m) against tibial cartilage samples (tibial frame, m; areas m^2).
+
+    The sphere is an explicit analytic choice of the knee file, never an approximation of a mesh.
+    Parameter: ``contact.modulus`` (shared by every compartment).  Outputs: the contact force
+    magnitude (N) and the largest penetration (mm).
+    """
+
+    def __init__(self, compartment: str, centre: np.ndarray, radius: float, points: np.ndarray,
+                 areas: np.ndarray, gate: float):
+        self.name, self.compartment = f"contact_{compartment}", compartment
+        self.centre, self.radius = np.asarray(centre, float), float(radius)
+        self.points, self.areas, self.gate = np.asarray(points, float), np.asarray(areas, float), float(gate)
+        self.description = f"{compartment} compartment: sphere vs tibial cartilage"
+
+    def parameters(self) -> list[Parameter]:
+        return [MODULUS]
+
+    def probe(self, pose: Pose, values: dict) -> ca.SX:
+        return ca.vertcat(pose.to_tibial(self.centre), values[MODULUS.name])
+
+    def surface(self) -> ca.Function:
+        fn = compartment_function(self.compartment, self.points, self.areas, self.gate)
+        probe = ca.MX.sym("probe", 4)
+        force, moment = fn(probe[:3], probe[3], self.radius)
+        return ca.Function(f"surface_{self.compartment}", [probe], [force, moment], ["probe"], ["force", "moment"])
+
+    def outputs(self) -> list[Output]:
+        return [Output("force", f"contact_{self.compartment}_N", "N"),
+                Output("penetration", f"penetration_{self.compartment}_mm", "mm", 1e3)]
+
+    def report(self, probe: ca.MX, force: ca.MX) -> list[ca.MX]:
+        pts = ca.DM(self.points.T)
+        diff = pts - ca.repmat(probe[:3], 1, pts.shape[1])
+        return [ca.norm_2(force), self.radius - ca.sqrt(ca.mmin(ca.sum1(diff * diff)))]

@@ -27,6 +27,9 @@ import trimesh
 
 from kneenlp.errors import InputError
 from kneenlp.io.resources import resource
+from kneenlp.model.contact import SphereContact
+from kneenlp.model.elements import ForceElement
+from kneenlp.model.ligament import Bundle, Ligament
 from kneenlp.model.parameters import ParameterSet, number, read_toml
 
 MAX_SPHERE_FIT_RMS = 1e-3  # m
@@ -35,20 +38,6 @@ MAX_SPHERE_FIT_RMS = 1e-3  # m
 def default_knee_file() -> Path:
     """The knee TOML of the embedded default knee (inside the installed package)."""
     return resource("knees", "default", "knee.toml")
-
-
-@dataclass(frozen=True)
-class Ligament:
-    """A single-bundle ligament line element (positions in m)."""
-
-    name: str
-    femur: np.ndarray  # femoral frame
-    tibia: np.ndarray  # tibial frame
-
-    @property
-    def reference_length(self) -> float:
-        """Length (m) in the reference pose, where the tibial and femoral frames coincide."""
-        return float(np.linalg.norm(self.femur - self.tibia))
 
 
 @dataclass(frozen=True)
@@ -89,7 +78,7 @@ class Knee:
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
     source: str | None = None
     description: str = ""
-    candidates: list = field(default_factory=list)  # kneenlp.model.effects.Effect from [candidates.*]
+    candidates: list[Ligament] = field(default_factory=list)  # [candidates.*]: bundles with stiffness 0
 
     @classmethod
     def default(cls) -> Knee:
@@ -145,8 +134,8 @@ class Knee:
             for key in ("femur", "tibia"):
                 if key not in lig:
                     raise InputError("missing attachment", source=src, field=f"ligaments.{name}.{key}")
-            ligaments[name] = Ligament(name, point(lig["femur"], f"ligaments.{name}.femur"),
-                                       point(lig["tibia"], f"ligaments.{name}.tibia"))
+            ligaments[name] = Ligament(name, [Bundle(point(lig["femur"], f"ligaments.{name}.femur"),
+                                                     point(lig["tibia"], f"ligaments.{name}.tibia"))])
             if ligaments[name].reference_length < 1e-3:
                 raise InputError("attachments closer than 1 mm", source=src, field=f"ligaments.{name}")
 
@@ -178,8 +167,6 @@ class Knee:
             raise InputError("no compartments ([contact.medial], [contact.lateral])", source=src,
                              field="contact")
 
-        from kneenlp.model.effects import bundle
-
         candidates = []
         for cname, cdoc in doc.get("candidates", {}).items():
             fld = f"candidates.{cname}"
@@ -192,7 +179,8 @@ class Knee:
             fem = [point(v, f"{fld}.femur") for v in fem]
             tib = [point(v, f"{fld}.tibia") for v in tib]
             ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / 100.0
-            candidates.append(bundle(cname, fem, tib, ref, str(cdoc.get("description", ""))))
+            candidates.append(Ligament(cname, [Bundle(f, t) for f, t in zip(fem, tib, strict=True)], candidate=True,
+                                       defaults={"ref_strain": ref}, description=str(cdoc.get("description", ""))))
         if isinstance(parameters, ParameterSet):
             params = parameters
         elif parameters is not None:
@@ -219,6 +207,24 @@ class Knee:
     @property
     def ligament_names(self) -> list[str]:
         return list(self.ligaments)
+
+    @cached_property
+    def model(self):
+        """The CasADi model of this knee (:class:`~kneenlp.model.kneemodel.KneeModel`), built once."""
+        from kneenlp.model.kneemodel import KneeModel  # the model is built from the knee
+
+        return KneeModel(self)
+
+    def elements(self) -> list[ForceElement]:
+        """The knee's force elements: its ligaments, one contact element per compartment and the
+        candidate bundles of its file (neutral: stiffness 0)."""
+        contact = [SphereContact(c.name, c.sphere_center, c.sphere_radius, c.points, c.areas, self.gate)
+                   for c in self.compartments.values()]
+        return [*self.ligaments.values(), *contact, *self.candidates]
+
+    def condyle_centres(self) -> list[np.ndarray]:
+        """Centre of each femoral condyle (femoral frame, m): where the meniscus springs act."""
+        return [c.sphere_center for c in self.compartments.values()]
 
     def with_parameters(self, parameters: ParameterSet | str | Path) -> Knee:
         """The same geometry with another parameter set."""

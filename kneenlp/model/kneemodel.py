@@ -1,4 +1,4 @@
-"""The CasADi model of a knee: ONE equilibrium residual function used by every solver.
+"""The CasADi model of a knee: the sum of its force elements, ONE equilibrium residual function.
 
 ``KneeModel(knee).residual`` is the function ``(q, theta, load, flexion) -> r``:
 
@@ -7,16 +7,18 @@
 * ``load`` (6): ``[Fx, Fy, Fz, Mx, My, Mz]`` in the femoral frame; the force acts at the tibial
   tuberosity, the moment is pure (N, N m),
 * ``flexion`` (1): prescribed flexion (rad),
-* ``r`` (5): generalised forces of ligaments + contact + load for the five free coordinates
-  (N m for the rotations, N for the translations); equilibrium is ``r = 0``.  The flexion moment
-  is reacted and does not appear.
+* ``r`` (5): generalised forces of all elements + load for the five free coordinates (N m for the
+  rotations, N for the translations); equilibrium is ``r = 0``.  The flexion moment is reacted.
 
-The forward rootfinder, the simultaneous identification NLP and the nested objective all call
-this same function.  It is built once per knee with the parameters as symbols, so changing a
-parameter value never rebuilds it.  Structure (for speed of derivatives): an SX kinematics
-function gives each condyle centre in the tibial frame, the mapped per-point contact functions of
-:mod:`kneenlp.model.contact` give the contact wrenches, and an SX balance function adds ligaments and
-loads and projects everything onto the generalised coordinates.
+``KneeModel.observation`` is THE map from a pose to what is measured, ``(q, theta) -> y`` with
+``y`` the five coordinates in mm and deg plus any measurement bias of the elements.
+
+The forward rootfinder, the simultaneous NLP, the nested objective, sensitivities and export all
+call these functions.  They are built once per model with the parameters as symbols, so changing
+a parameter value never rebuilds them.  Structure (for the speed of derivatives): an SX function
+gives every staged element's probe, the staged elements' MX surface functions give their
+wrenches, and an SX balance function adds every other element and the load and projects all onto
+the generalised coordinates (see :mod:`kneenlp.model.elements`).
 """
 
 from __future__ import annotations
@@ -26,178 +28,181 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from kneenlp.model.contact import compartment_function
+from kneenlp.conventions import TO_USER
+from kneenlp.errors import InputError, unknown_name
+from kneenlp.model.effects import Effect, builtin_elements, builtin_groups
+from kneenlp.model.elements import ForceElement, Output, Pose, StagedElement
 from kneenlp.model.kinematics import generalized_forces, tibial_pose
 from kneenlp.model.knee import Knee
-from kneenlp.model.ligament import force_strain, slack_length
-from kneenlp.model.parameters import (
-    LIGAMENT_KINDS,
-    MODULUS_INFO,
-    ParameterInfo,
-    ligament_parameter_info,
-)
+from kneenlp.model.parameters import Parameter
 
 
 class KneeModel:
-    """Symbolic equilibrium model of a :class:`~kneenlp.model.knee.Knee` (built once, reused)."""
+    """Symbolic equilibrium model of a :class:`~kneenlp.model.knee.Knee` (built once, reused).
 
-    def __init__(self, knee: Knee, extra_effects: list | None = None):
-        from kneenlp.model.effects import builtin_effects
+    ``extra_elements`` adds user force elements (e.g. a candidate effect, see
+    ``docs/architecture.md``) to the knee's own and the built-in candidate elements.
+    """
 
+    def __init__(self, knee: Knee, extra_elements: list[ForceElement] | None = None):
         self.knee = knee
+        self.elements: list[ForceElement] = [*knee.elements(), *builtin_elements(knee.condyle_centres()),
+                                             *(extra_elements or [])]
+        names = [e.name for e in self.elements]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise InputError(f"two force elements are called {dup[0]!r}", field="elements")
         self.ligament_names = list(knee.ligaments)
         self.compartment_names = list(knee.compartments)
-        self.effects = [*knee.candidates, *builtin_effects(self.ligament_names), *(extra_effects or [])]
-        self.parameter_info: list[ParameterInfo] = [
-            ligament_parameter_info(lig, kind) for lig in self.ligament_names for kind in LIGAMENT_KINDS
-        ] + [MODULUS_INFO]
-        self.n_base = len(self.parameter_info)
-        for e in self.effects:
-            for ep in e.parameters:
-                self.parameter_info.append(ParameterInfo(ep.name, ep.unit, ep.to_user, ep.description, ep.lower,
-                                                         ep.upper, ep.scale, ep.neutral))
-        self.parameter_names = [p.name for p in self.parameter_info]
-        if len(set(self.parameter_names)) != len(self.parameter_names):
-            raise ValueError(f"duplicate parameter names: {self.parameter_names}")
+        params: dict[str, Parameter] = {}
+        for e in self.elements:
+            for p in e.parameters():
+                if p.name in params and params[p.name] != p:
+                    raise InputError(f"parameter {p.name!r} declared twice with different metadata",
+                                     field=e.name)
+                params.setdefault(p.name, p)
+        self.parameters: list[Parameter] = list(params.values())
+        self.parameter_names = [p.name for p in self.parameters]
+        self._index = {n: i for i, n in enumerate(self.parameter_names)}
+        self.effects: list[Effect] = [Effect(e.name, e.description, tuple(e.frees()))
+                                      for e in self.elements if e.candidate]
+        self.effects += builtin_groups(self.ligament_names)
+        #: solvers built for this model (forward rootfinders, identification NLPs), keyed by their
+        #: layout; filled by :mod:`kneenlp.solvers`, so each is built once per model
+        self.solvers: dict[tuple, object] = {}
         self._build()
 
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
-        knee = self.knee
-        n_lig = len(self.ligament_names)
-        n_comp = len(self.compartment_names)
         q = ca.SX.sym("q", 5)
         flexion = ca.SX.sym("flexion")
-        R, p, axes = tibial_pose(flexion, q)
-        centres = [R.T @ (ca.DM(c.sphere_center) - p) for c in knee.compartments.values()]
-        kin = ca.Function("kinematics", [q, flexion], [ca.horzcat(*centres)], ["q", "flexion"], ["centres"])
-
         theta = ca.SX.sym("theta", len(self.parameter_names))
-        values = {n: theta[i] for i, n in enumerate(self.parameter_names)}
-        offset = sum((e.flexion_offset(values) for e in self.effects), ca.SX(0))
-        bias = sum((e.measurement_bias(values) for e in self.effects), ca.SX.zeros(5))
-        flex_eff = ca.Function("flexion_effective", [flexion, theta], [flexion + offset])
-        self.measurement_bias = ca.Function("measurement_bias", [theta], [bias], ["theta"], ["bias"])
         load = ca.SX.sym("load", 6)
-        fc = ca.SX.sym("contact_force", 3, n_comp)  # tibial frame
-        mc = ca.SX.sym("contact_moment", 3, n_comp)  # tibial frame, about the tibial origin
-        force = R @ ca.sum2(fc)
-        moment = R @ ca.sum2(mc)
-        strains, tensions = [], []
-        for i, lig in enumerate(knee.ligaments.values()):
-            k, eps_r, eps_l = theta[3 * i], theta[3 * i + 1], theta[3 * i + 2]
-            arm = R @ ca.DM(lig.tibia)
-            u = ca.DM(lig.femur) - (p + arm)
-            length = ca.norm_2(u)
-            eps = length / slack_length(lig.reference_length, eps_r) - 1
-            tension = force_strain(eps, k, eps_l)
-            f_vec = tension * u / length
-            force += f_vec
-            moment += ca.cross(arm, f_vec)
-            strains.append(eps)
-            tensions.append(tension)
-        from kneenlp.model.effects import PoseContext
-
-        ctx = PoseContext(R, p, q, ca.horzcat(*centres),
-                          np.column_stack([c.sphere_center for c in knee.compartments.values()]))
-        for e in self.effects:
-            f_e, m_e = e.wrench(ctx, values)
+        values = {n: theta[i] for i, n in enumerate(self.parameter_names)}
+        flex_e = flexion + sum((e.flexion_offset(values) for e in self.elements), ca.SX(0))
+        R, p, axes = tibial_pose(flex_e, q)
+        pose = Pose(R, p, q, flex_e)
+        staged = [e for e in self.elements if isinstance(e, StagedElement)]
+        plain = [e for e in self.elements if not isinstance(e, StagedElement)]
+        probes = [e.probe(pose, values) for e in staged]
+        kin = ca.Function("probes", [q, flexion, theta], probes)
+        stage_f = [ca.SX.sym(f"{e.name}_force", 3) for e in staged]
+        stage_m = [ca.SX.sym(f"{e.name}_moment", 3) for e in staged]
+        force = sum((R @ f for f in stage_f), ca.SX.zeros(3))
+        moment = sum((R @ m for m in stage_m), ca.SX.zeros(3))
+        for e in plain:
+            f_e, m_e = e.wrench(pose, values)
             force += f_e
             moment += m_e
-        arm = R @ ca.DM(knee.tuberosity)
         force += load[0:3]
-        moment += ca.cross(arm, load[0:3]) + load[3:6]
+        moment += ca.cross(R @ ca.DM(self.knee.tuberosity), load[0:3]) + load[3:6]
         residual = generalized_forces(q, p, axes, force, moment)
-        contact_fem = R @ fc  # contact forces in the femoral frame, per compartment
-        balance = ca.Function(
-            "balance",
-            [q, flexion, theta, load, fc, mc],
-            [residual, ca.vertcat(*strains), ca.vertcat(*tensions), contact_fem],
-            ["q", "flexion", "theta", "load", "contact_force", "contact_moment"],
-            ["residual", "strain", "tension", "contact_force_femoral"],
-        )
+        plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
+        balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 
-        contact_fns = [
-            compartment_function(c.name, c.points, c.areas, knee.gate) for c in knee.compartments.values()
-        ]
-        radii = [c.sphere_radius for c in knee.compartments.values()]
-        i_mod = self.parameter_names.index("contact.modulus")
+        bias = [b for e in self.elements if (b := e.measurement_bias(values)) is not None]
+        y = q * ca.DM(TO_USER) + (sum(bias, ca.SX.zeros(5)) * ca.DM(TO_USER) if bias else 0)
+        self.observation = ca.Function("observation", [q, theta], [y], ["q", "theta"], ["y"])
 
-        qm = ca.MX.sym("q", 5)
-        flexm = ca.MX.sym("flexion")
-        thetam = ca.MX.sym("theta", len(self.parameter_names))
-        loadm = ca.MX.sym("load", 6)
-        flex_e = flex_eff(flexm, thetam)
-        cen = kin(qm, flex_e)
-        fcs, mcs = [], []
-        for j, fn in enumerate(contact_fns):
-            f_j, m_j = fn(cen[:, j], thetam[i_mod], radii[j])
-            fcs.append(f_j)
-            mcs.append(m_j)
-        res, eps, ten, cf = balance(qm, flex_e, thetam, loadm, ca.horzcat(*fcs), ca.horzcat(*mcs))
+        qm, flexm = ca.MX.sym("q", 5), ca.MX.sym("flexion")
+        thetam, loadm = ca.MX.sym("theta", len(self.parameter_names)), ca.MX.sym("load", 6)
+        pr = kin(qm, flexm, thetam) if staged else []
+        pr = [pr] if isinstance(pr, ca.MX) else list(pr)
+        fm = [e.surface()(pr_j) for e, pr_j in zip(staged, pr, strict=True)]
+        res, out_plain = balance(qm, flexm, thetam, loadm, *[f for f, _ in fm], *[m for _, m in fm])
         names_in = ["q", "theta", "load", "flexion"]
         self.residual = ca.Function("residual", [qm, thetam, loadm, flexm], [res], names_in, ["r"])
-        depth = ca.vertcat(*[radii[j] - self._min_distance(contact_fns[j], cen[:, j], j) for j in range(n_comp)])
-        self.details = ca.Function(
-            "details",
-            [qm, thetam, loadm, flexm],
-            [res, eps, ten, cf, depth],
-            names_in,
-            ["r", "strain", "tension", "contact_force", "max_penetration"],
-        )
-        self._n_lig = n_lig
-
-    def _min_distance(self, _fn: ca.Function, centre: ca.MX, j: int) -> ca.MX:
-        """Smallest distance (m) from the condyle centre to a tibial sample point (for reports)."""
-        pts = ca.DM(self.knee.compartments[self.compartment_names[j]].points.T)
-        diff = pts - ca.repmat(centre, 1, pts.shape[1])
-        return ca.sqrt(ca.mmin(ca.sum1(diff * diff)))
+        # outputs for tables, in the order of :attr:`outputs`
+        out_staged = {e.name: e.report(pr_j, f) for e, pr_j, (f, _) in zip(staged, pr, fm, strict=True)}
+        k = 0
+        columns = []
+        for e in self.elements:
+            if isinstance(e, StagedElement):
+                columns += out_staged[e.name]
+            else:
+                n = len(e.outputs())
+                columns += [out_plain[k + i] for i in range(n)]
+                k += n
+        self.details = ca.Function("details", [qm, thetam, loadm, flexm],
+                                   [res, ca.vertcat(*columns) if columns else ca.MX(0, 1)], names_in,
+                                   ["r", "outputs"])
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def outputs(self) -> list[tuple[ForceElement, Output]]:
+        """Every element's outputs, in the order of the ``details`` function's ``outputs``."""
+        return [(e, o) for e in self.elements for o in e.outputs()]
+
+    @property
+    def parameter_info(self) -> list[Parameter]:
+        """Metadata of every parameter, in ``theta`` order."""
+        return self.parameters
+
+    def parameter(self, name: str) -> Parameter:
+        """Metadata of parameter ``name``."""
+        return self.parameters[self.index(name)]
+
     def theta(self, values: dict[str, float] | None = None) -> np.ndarray:
-        """Full parameter vector (SI): the knee's parameter set, effect parameters at neutral,
-        ``values`` (by name) overriding."""
+        """Full parameter vector (SI): the knee's parameter set, candidate parameters at neutral,
+        other defaults of the elements, ``values`` (by name) overriding."""
         values = dict(values or {})
         for n in values:
-            if n not in self.parameter_names:
-                from kneenlp.errors import unknown_name
-
-                raise unknown_name("parameter", n, self.parameter_names)
+            self.index(n)
         out = []
-        for info in self.parameter_info:
-            if info.name in values:
-                out.append(float(values[info.name]))
-            elif info.neutral is not None:
-                out.append(info.neutral)
+        for p in self.parameters:
+            if p.name in values:
+                out.append(float(values[p.name]))
+            elif p.neutral is not None:
+                out.append(p.neutral)
+            elif p.name in self.knee.parameters:
+                out.append(self.knee.parameters[p.name])
+            elif p.default is not None:
+                out.append(p.default)
             else:
-                out.append(self.knee.parameters[info.name])
+                raise InputError(f"parameter set {self.knee.parameters.name} lacks {p.name}",
+                                 source=self.knee.parameters.source, field=p.name)
         return np.array(out, dtype=float)
 
+    def observe(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Measured coordinates (T x 5, mm and deg) of poses ``q`` (T x 5, SI) at ``theta``."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        return np.asarray(self.observation.map(len(q))(q.T, theta)).T
+
     def bias_user(self, theta: np.ndarray) -> np.ndarray:
-        """Measurement bias (mm, deg) that the effects add to the model's coordinates."""
-        from kneenlp.conventions import TO_USER
+        """Measurement bias (mm, deg) that the elements add to the model's coordinates."""
+        return self.observe(np.zeros(5), theta)[0]
 
-        return np.asarray(self.measurement_bias(theta)).ravel() * TO_USER
-
-    def effect(self, name: str):
+    def effect(self, name: str) -> Effect:
         """The candidate effect called ``name``."""
         for e in self.effects:
             if e.name == name:
                 return e
-        from kneenlp.errors import unknown_name
-
         raise unknown_name("effect", name, [e.name for e in self.effects])
+
+    def element(self, name: str) -> ForceElement:
+        for e in self.elements:
+            if e.name == name:
+                return e
+        raise unknown_name("force element", name, [e.name for e in self.elements])
 
     def index(self, name: str) -> int:
         """Position of parameter ``name`` in ``theta``."""
-        from kneenlp.errors import unknown_name
-
         try:
-            return self.parameter_names.index(name)
-        except ValueError:
+            return self._index[name]
+        except KeyError:
             raise unknown_name("parameter", name, self.parameter_names) from None
 
     @cached_property
     def residual_jacobian(self) -> ca.Function:
         """``(q, theta, load, flexion) -> dr/dq`` (5 x 5)."""
         return self.residual.factory("residual_jac", ["q", "theta", "load", "flexion"], ["jac:r:q"])
+
+    @cached_property
+    def jacobians(self) -> ca.Function:
+        """``(q, theta, load, flexion) -> (dr/dq, dr/dtheta)``: the implicit-function sensitivities."""
+        return self.residual.factory("jac_q_theta", ["q", "theta", "load", "flexion"], ["jac:r:q", "jac:r:theta"])
+
+    @cached_property
+    def observation_jacobians(self) -> ca.Function:
+        """``(q, theta) -> (dy/dq, dy/dtheta)`` of :attr:`observation`."""
+        return self.observation.factory("observation_jac", ["q", "theta"], ["jac:y:q", "jac:y:theta"])

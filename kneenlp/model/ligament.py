@@ -15,8 +15,13 @@ length in the reference pose and ``eps_r`` the reference strain (Eq. 2-3).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import casadi as ca
 import numpy as np
+
+from kneenlp.model.elements import ForceElement, Output, Pose
+from kneenlp.model.parameters import LIGAMENT_KINDS, Parameter, ligament_parameters
 
 
 def force_strain(eps, k, eps_l):
@@ -36,3 +41,92 @@ def force_strain_numpy(eps: np.ndarray, k: float, eps_l: float) -> np.ndarray:
 def slack_length(reference_length, ref_strain):
     """Slack length ``l0 = l_r / (1 + eps_r)`` (Eq. 2), same unit as ``reference_length``."""
     return reference_length / (1 + ref_strain)
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """One line element: femoral attachment (femoral frame) and tibial attachment (tibial frame), m."""
+
+    femur: np.ndarray
+    tibia: np.ndarray
+
+    @property
+    def reference_length(self) -> float:
+        """Length (m) in the reference pose, where the tibial and femoral frames coincide."""
+        return float(np.linalg.norm(np.asarray(self.femur) - np.asarray(self.tibia)))
+
+
+class ToeLinearLaw:
+    """The paper's Eq. (1) (Blankevoort & Huiskes 1991): parameters ``k`` and ``lin_strain``."""
+
+    kinds = ("k", "lin_strain")
+
+    def tension(self, strain, values: dict) -> object:
+        return force_strain(strain, values["k"], values["lin_strain"])
+
+
+class Ligament(ForceElement):
+    """A ligament: one or more bundles (line elements) sharing one law's parameters and a
+    reference strain.  A *candidate* ligament (e.g. the posterior capsule named in a knee file)
+    has stiffness 0 in the knee's parameter set; adding it as an effect frees its stiffness.
+
+    Outputs: strain (%, the largest over the bundles) and force (N, the sum over the bundles).
+    """
+
+    def __init__(self, name: str, bundles: list[Bundle], *, law: ToeLinearLaw | None = None,
+                 candidate: bool = False, defaults: dict[str, float] | None = None, description: str = ""):
+        if not bundles:
+            raise ValueError(f"ligament {name} has no bundles")
+        self.name, self.bundles, self.law = name, list(bundles), law or ToeLinearLaw()
+        self.candidate, self.description = candidate, description
+        self._defaults = dict(defaults or {})
+
+    @property
+    def femur(self) -> np.ndarray:
+        """Femoral attachment of the first bundle (m)."""
+        return self.bundles[0].femur
+
+    @property
+    def tibia(self) -> np.ndarray:
+        """Tibial attachment of the first bundle (m)."""
+        return self.bundles[0].tibia
+
+    @property
+    def reference_length(self) -> float:
+        return self.bundles[0].reference_length
+
+    def parameters(self) -> list[Parameter]:
+        neutral = {"k": 0.0} if self.candidate else None
+        defaults = ({"k": 0.0, "lin_strain": 0.03} | self._defaults) if self.candidate else self._defaults
+        return ligament_parameters(self.name, defaults, neutral)
+
+    def frees(self) -> list[str]:
+        return [f"{self.name}.k"] if self.candidate else super().frees()
+
+    def _bundle_terms(self, pose: Pose, values: dict):
+        own = {kind: values[f"{self.name}.{kind}"] for kind in LIGAMENT_KINDS}
+        for b in self.bundles:
+            arm = pose.R @ ca.DM(b.tibia)
+            u = ca.DM(b.femur) - (pose.p + arm)
+            length = ca.norm_2(u)
+            strain = length / slack_length(b.reference_length, own["ref_strain"]) - 1
+            tension = self.law.tension(strain, own)
+            yield arm, u / length, strain, tension
+
+    def wrench(self, pose: Pose, values: dict) -> tuple[ca.SX, ca.SX]:
+        force, moment = ca.SX.zeros(3), ca.SX.zeros(3)
+        for arm, direction, _, tension in self._bundle_terms(pose, values):
+            f = tension * direction
+            force += f
+            moment += ca.cross(arm, f)
+        return force, moment
+
+    def outputs(self) -> list[Output]:
+        return [Output("strain", f"{self.name}_strain_pct", "%", 100.0), Output("force", f"{self.name}_force_N", "N")]
+
+    def output_values(self, pose: Pose, values: dict) -> list[ca.SX]:
+        terms = list(self._bundle_terms(pose, values))
+        strain = terms[0][2]
+        for t in terms[1:]:
+            strain = ca.fmax(strain, t[2])
+        return [strain, sum((t[3] for t in terms), ca.SX(0))]

@@ -18,47 +18,111 @@ import numpy as np
 
 from kneenlp.errors import InputError, unknown_name
 
-#: Per parameter kind: accepted file units with their factor to SI, and the display unit.
-UNIT_FACTORS: dict[str, dict[str, float]] = {
-    "k": {"N": 1.0, "kN": 1e3},
-    "ref_strain": {"%": 1e-2, "1": 1.0},
-    "lin_strain": {"%": 1e-2, "1": 1.0},
-    "modulus": {"GN/m^3": 1e9, "N/mm^3": 1e9, "N/m^3": 1.0},
+
+@dataclass(frozen=True)
+class Kind:
+    """What every parameter of one physical kind shares: units, bounds, NLP scale, start scatter.
+
+    ``file_units`` maps the units accepted in data files to their factor to SI; ``unit`` is the
+    display unit (``to_user`` converts SI to it).  ``scatter`` is the half-width of the paper's
+    start scatter, in SI (absolute) or as a fraction of the value (``relative``).
+    """
+
+    unit: str
+    to_user: float
+    lower: float
+    upper: float
+    scale: float
+    scatter: float
+    relative: bool = False
+    file_units: tuple[tuple[str, float], ...] = ()
+    text: str = ""
+
+
+#: The one table of parameter metadata (SI inside; display units at the user boundary).
+KINDS: dict[str, Kind] = {
+    "k": Kind("N", 1.0, 0.0, 1e5, 1e4, 500.0, False, (("N", 1.0), ("kN", 1e3)), "stiffness, N per unit strain"),
+    "ref_strain": Kind("%", 100.0, -0.3, 0.3, 1e-2, 0.02, False, (("%", 1e-2), ("1", 1.0)),
+                       "reference strain at the reference pose"),
+    "lin_strain": Kind("%", 100.0, 0.005, 0.1, 1e-2, 0.1, True, (("%", 1e-2), ("1", 1.0)),
+                       "linear strain limit of the toe region"),
+    "modulus": Kind("GN/m^3", 1e-9, 1e8, 1e12, 1e10, 0.1, True,
+                    (("GN/m^3", 1e9), ("N/mm^3", 1e9), ("N/m^3", 1.0)), "elastic-foundation pressure modulus"),
+    "spring": Kind("N/mm", 1e-3, 0.0, 1e7, 1e5, 1e4, False, (("N/mm", 1e3), ("N/m", 1.0)), "spring stiffness"),
+    "angle": Kind("deg", 180 / np.pi, -0.2, 0.2, 1e-2, np.deg2rad(1.0), False, (("deg", np.pi / 180),), "angle"),
+    "length": Kind("mm", 1e3, -0.01, 0.01, 1e-3, 0.5e-3, False, (("mm", 1e-3), ("m", 1.0)), "length"),
+    "force": Kind("N", 1.0, -1e4, 1e4, 100.0, 50.0, False, (("N", 1.0),), "force"),
 }
-DISPLAY_UNITS: dict[str, str] = {"k": "N", "ref_strain": "%", "lin_strain": "%", "modulus": "GN/m^3"}
+#: Parameters every ligament of the paper's law has, in this order.
 LIGAMENT_KINDS: tuple[str, ...] = ("k", "ref_strain", "lin_strain")
+#: Accepted file units per kind (factor to SI) and display unit per kind (parameter-set files).
+UNIT_FACTORS: dict[str, dict[str, float]] = {k: dict(v.file_units) for k, v in KINDS.items()}
+DISPLAY_UNITS: dict[str, str] = {k: v.unit for k, v in KINDS.items()}
 
 
 @dataclass(frozen=True)
-class ParameterInfo:
-    """Metadata of one model parameter: display unit and the factor SI -> display."""
+class Parameter:
+    """Metadata of one model parameter (lmfit's Parameter without the value: values live in
+    parameter sets and fits).  Everything that depends on a parameter's kind (display unit, bounds,
+    NLP scale, start scatter) is taken from :data:`KINDS` here and nowhere else.
+
+    ``default`` is the value used when the knee's parameter set does not give one (``None``: the
+    set must give it).  ``neutral`` is the value at which a candidate element contributes nothing
+    (e.g. an added bundle's stiffness 0); ``one_sided`` marks a neutral value on a bound, so an
+    effect can only act in one direction from it (score tests then count only that side).
+    """
 
     name: str
-    unit: str
-    to_user: float
+    kind: str | Kind  # a key of KINDS, or a Kind of the caller's own
     description: str = ""
-    lower: float = -np.inf  # SI bounds used by the identification NLP
-    upper: float = np.inf
-    scale: float = 1.0  # the NLP works with value / scale
-    neutral: float | None = None  # value at which an effect parameter switches the effect off
+    default: float | None = None
+    neutral: float | None = None
+    lower: float | None = None  # SI; None: the kind's bound
+    upper: float | None = None
+
+    @property
+    def meta(self) -> Kind:
+        return self.kind if isinstance(self.kind, Kind) else KINDS[self.kind]
+
+    @property
+    def unit(self) -> str:
+        return self.meta.unit
+
+    @property
+    def to_user(self) -> float:
+        return self.meta.to_user
+
+    @property
+    def scale(self) -> float:
+        return self.meta.scale
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """(lower, upper) in SI."""
+        return (self.meta.lower if self.lower is None else self.lower,
+                self.meta.upper if self.upper is None else self.upper)
+
+    @property
+    def one_sided(self) -> bool:
+        return self.neutral is not None and self.neutral in self.bounds
+
+    def scatter(self, value: float, rng: np.random.Generator) -> float:
+        """A start drawn uniformly around ``value`` (the paper's scatter: +-500 N on stiffnesses,
+        +-0.02 on reference strains, +-10 % on others), clipped to the bounds (SI)."""
+        half = self.meta.scatter * (abs(value) if self.meta.relative else 1.0)
+        lo, hi = self.bounds
+        step = rng.uniform(-half, half)
+        if self.one_sided and value == self.neutral:  # from a neutral bound: into the feasible side
+            step = abs(step) if self.neutral == lo else -abs(step)
+        return float(min(max(value + step, lo), hi))
 
 
-def ligament_parameter_info(ligament: str, kind: str) -> ParameterInfo:
-    """Metadata of a ligament parameter ``kind`` (k, ref_strain, lin_strain)."""
-    unit = DISPLAY_UNITS[kind]
-    factor = 1.0 / UNIT_FACTORS[kind][unit]
-    lower, upper, scale = {"k": (0.0, 1e5, 1e4), "ref_strain": (-0.3, 0.3, 1e-2),
-                           "lin_strain": (0.005, 0.1, 1e-2)}[kind]
-    text = {
-        "k": "stiffness, N per unit strain",
-        "ref_strain": "reference strain at the reference pose",
-        "lin_strain": "linear strain limit of the toe region",
-    }[kind]
-    return ParameterInfo(f"{ligament}.{kind}", unit, factor, f"{ligament} {text}", lower, upper, scale)
-
-
-MODULUS_INFO = ParameterInfo("contact.modulus", "GN/m^3", 1e-9, "elastic-foundation pressure modulus",
-                             1e8, 1e12, 1e10)
+def ligament_parameters(ligament: str, defaults: Mapping[str, float] | None = None,
+                        neutral: Mapping[str, float] | None = None) -> list[Parameter]:
+    """The three parameters of a ligament with the paper's law (k, ref_strain, lin_strain)."""
+    defaults, neutral = dict(defaults or {}), dict(neutral or {})
+    return [Parameter(f"{ligament}.{kind}", kind, f"{ligament} {KINDS[kind].text}", defaults.get(kind),
+                      neutral.get(kind)) for kind in LIGAMENT_KINDS]
 
 
 @dataclass

@@ -127,18 +127,18 @@ import math
 import numbers
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import OptimizeResult
 
 __all__ = [
+    "RESULT_FIELDS",
     "STATUS_CALLBACK",
     "STATUS_CONVERGED",
     "STATUS_MAX_EVALS",
     "STATUS_MAX_SECONDS",
-    "ComplexResult",
     "forgetting_factor",
     "minimize_complex",
     "retraction_eps",
@@ -162,50 +162,9 @@ _MESSAGES = {
 }
 
 
-@dataclass(frozen=True)
-class ComplexResult:
-    """Result of :func:`minimize_complex`.
-
-    Attributes
-    ----------
-    x : ndarray, shape (n,)
-        Best point ever evaluated.
-    fun : float
-        Objective value at ``x`` (``inf`` if no finite value was ever obtained).
-    nfev : int
-        Number of objective evaluations (always ``<= max_evals``).
-    nit : int
-        Number of iterations (reflections).
-    success : bool
-        True when the convergence criterion (``xtol`` and ``ftol``) was met.
-    status : int
-        0 converged, 1 ``max_evals`` reached, 2 ``max_seconds`` elapsed, 3 stopped by callback.
-    message : str
-        Human-readable stopping reason.
-    history : ndarray, shape (nfev, 2)
-        One row ``(evaluation number, best f so far)`` per evaluation.
-    population : ndarray, shape (k, n)
-        Final complex (only the evaluated points if a budget ran out during initialisation).
-    population_f : ndarray, shape (k,)
-        Raw objective values of ``population`` (non-finite values stored as ``inf``).
-    x_spread : float
-        Final relative spread ``max_j (max_i x_ij - min_i x_ij) / s_j`` of the complex.
-    f_spread : float
-        Final spread ``max f - min f`` of the complex (``inf`` if any value is infinite).
-    """
-
-    x: FloatArray
-    fun: float
-    nfev: int
-    nit: int
-    success: bool
-    status: int
-    message: str
-    history: FloatArray = field(repr=False)
-    population: FloatArray = field(repr=False)
-    population_f: FloatArray = field(repr=False)
-    x_spread: float = math.inf
-    f_spread: float = math.inf
+#: Fields of the :class:`scipy.optimize.OptimizeResult` that :func:`minimize_complex` returns.
+RESULT_FIELDS = ("x", "fun", "nfev", "nit", "success", "status", "message", "history", "population",
+                 "population_f", "x_spread", "f_spread")
 
 
 class _Stop(Exception):
@@ -379,7 +338,7 @@ def minimize_complex(
     seed: int | np.random.Generator | None = None,
     callback: Callable[[FloatArray, float, int], Any] | None = None,
     refinements: bool = True,
-) -> ComplexResult:
+) -> OptimizeResult:
     """Minimise ``fun`` over a box with Box's Complex method and the Complex-RF refinements.
 
     The exact algorithm is described in the module docstring.
@@ -431,8 +390,33 @@ def minimize_complex(
 
     Returns
     -------
-    ComplexResult
-        Best point and value, counters, stopping reason, history and final complex.
+    scipy.optimize.OptimizeResult
+        Best point and value, counters, stopping reason, history and final complex:
+
+    x : ndarray, shape (n,)
+        Best point ever evaluated.
+    fun : float
+        Objective value at ``x`` (``inf`` if no finite value was ever obtained).
+    nfev : int
+        Number of objective evaluations (always ``<= max_evals``).
+    nit : int
+        Number of iterations (reflections).
+    success : bool
+        True when the convergence criterion (``xtol`` and ``ftol``) was met.
+    status : int
+        0 converged, 1 ``max_evals`` reached, 2 ``max_seconds`` elapsed, 3 stopped by callback.
+    message : str
+        Human-readable stopping reason.
+    history : ndarray, shape (nfev, 2)
+        One row ``(evaluation number, best f so far)`` per evaluation.
+    population : ndarray, shape (k, n)
+        Final complex (only the evaluated points if a budget ran out during initialisation).
+    population_f : ndarray, shape (k,)
+        Raw objective values of ``population`` (non-finite values stored as ``inf``).
+    x_spread : float
+        Final relative spread ``max_j (max_i x_ij - min_i x_ij) / s_j`` of the complex.
+    f_spread : float
+        Final spread ``max f - min f`` of the complex (``inf`` if any value is infinite).
 
     Raises
     ------
@@ -557,7 +541,7 @@ def minimize_complex(
     pop_f = values[:n_done].copy()
     best_x = evaluate.best_x.copy() if evaluate.best_x is not None else pop[0].copy()
     history = np.asarray(evaluate.history, dtype=float).reshape(-1, 2)
-    return ComplexResult(
+    return OptimizeResult(
         x=best_x,
         fun=evaluate.best_f,
         nfev=evaluate.nfev,

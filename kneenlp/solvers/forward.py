@@ -23,12 +23,14 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from kneenlp.conventions import POSE_ENVELOPE_USER, TO_USER
 from kneenlp.experiment.protocol import Trial
+from kneenlp.model.elements import StagedElement
 from kneenlp.model.kneemodel import KneeModel
 
 COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m: slightly penetrated
 #: Largest |coordinate| of a plausible knee pose (rad, rad, m, m, m).
-ENVELOPE = np.array([np.deg2rad(30.0), np.deg2rad(60.0), 0.025, 0.025, 0.025])
+ENVELOPE = POSE_ENVELOPE_USER / TO_USER
 
 
 @dataclass
@@ -41,10 +43,8 @@ class TrialSolution:
     max_residual: float  # N or N m
     strategy: str  # "newton", "ramp" or "failed"
     reason: str = ""  # why a trial did not converge
-    strain: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    tension: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    contact_force: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per compartment, N
-    max_penetration: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per compartment, m
+    #: every force element's outputs at the pose, by table column (SI: strain as a fraction, N, m)
+    outputs: dict[str, float] = field(default_factory=dict)
 
 
 class ForwardSolver:
@@ -63,6 +63,8 @@ class ForwardSolver:
         self.rootfinder = ca.rootfinder("forward", "newton", g, opts)
         self.eval_residual = g
         self._batch: dict[int, tuple[ca.Function, ca.Function]] = {}
+        self._contact_columns = [o.column for e, o in model.outputs
+                                 if isinstance(e, StagedElement) and o.name == "force"]
 
     def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Newton on all trials in one mapped CasADi call (fast path for repeated solves).
@@ -111,7 +113,7 @@ class ForwardSolver:
         sol = self._solution(trial, theta, q, bool(res <= self.tol), res, strategy)
         if not sol.converged:
             sol.strategy, sol.reason = "failed", f"residual {res:.3g} > tolerance {self.tol:g}"
-        elif np.any(np.abs(q) > ENVELOPE) or not np.any(sol.contact_force > 0):
+        elif np.any(np.abs(q) > ENVELOPE) or not any(sol.outputs[c] > 0 for c in self._contact_columns):
             sol.converged, sol.strategy = False, "failed"
             sol.reason = "equilibrium found only at an implausible (dislocated) pose"
         return sol
@@ -134,13 +136,9 @@ class ForwardSolver:
         return q, res
 
     def _solution(self, trial, theta, q, converged, res, strategy) -> TrialSolution:
-        out = self.model.details(q, theta, trial.load, trial.flexion)
-        contact = np.asarray(out[3])
-        return TrialSolution(
-            trial, q, converged, res, strategy,
-            strain=np.asarray(out[1]).ravel(), tension=np.asarray(out[2]).ravel(),
-            contact_force=np.linalg.norm(contact, axis=0), max_penetration=np.asarray(out[4]).ravel(),
-        )
+        values = np.asarray(self.model.details(q, theta, trial.load, trial.flexion)[1]).ravel()
+        columns = [o.column for _, o in self.model.outputs]
+        return TrialSolution(trial, q, converged, res, strategy, outputs=dict(zip(columns, values, strict=True)))
 
     def solve(self, trials: list[Trial] | tuple[Trial, ...], theta: np.ndarray,
               q_start: dict[str, np.ndarray] | None = None) -> list[TrialSolution]:
@@ -177,3 +175,11 @@ def _is_unloaded(t: Trial) -> bool:
 
 def _unloaded(t: Trial) -> Trial:
     return Trial(f"none_flex{t.flexion_deg:g}", t.flexion_deg, {}, "none", 0.0)
+
+
+def forward_solver(model: KneeModel, tol: float = 1e-6) -> ForwardSolver:
+    """The model's forward solver for ``tol``, built once per model (kept in ``model.solvers``)."""
+    key = ("forward", tol)
+    if key not in model.solvers:
+        model.solvers[key] = ForwardSolver(model, tol=tol)
+    return model.solvers[key]

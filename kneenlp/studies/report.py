@@ -13,15 +13,16 @@ import numpy as np
 import pandas as pd
 
 from kneenlp.experiment.noise import NoiseModel
+from kneenlp.io.atomic import write_text_atomic
 from kneenlp.io.resources import resource
+from kneenlp.studies.truth import study_model, study_truth
 
 
 def _write_csv(df: pd.DataFrame, path: Path) -> None:
-    from kneenlp.studies.study import write_atomic
 
     buf = io.StringIO()
     df.to_csv(buf, index=False, float_format="%.10g")
-    write_atomic(path, buf.getvalue())
+    write_text_atomic(path, buf.getvalue())
 
 
 def _write_parquet(df: pd.DataFrame, path: Path) -> bool:
@@ -38,20 +39,19 @@ def _write_parquet(df: pd.DataFrame, path: Path) -> bool:
 
 def predicted_std(study, set_name: str) -> dict[str, float]:
     """Linearised (Gauss-Newton) standard deviation of each free parameter at the true values (SI)."""
-    from kneenlp.experiment.measured import MeasuredData
-    from kneenlp.inference.identify import sensitivities
-    from kneenlp.simulation import model_for
-    from kneenlp.solvers.nlp import default_free
-    from kneenlp.studies.study import _knee, _truth
+    from kneenlp.inference.problem import IdentificationProblem, default_free
+    from kneenlp.inference.statistics import gauss_newton_covariance
 
-    knee = _knee(study.spec)
-    model = model_for(knee)
-    truth = _truth(study.spec, set_name)
-    free = list(study.spec.free) if study.spec.free else default_free(model)
-    data = MeasuredData([s.trial for s in truth.solutions], truth.q, set_name)
-    s = sensitivities(model, data, model.theta(), truth.q, free)
-    var = NoiseModel.parse(study.spec.noise).std ** 2
-    cov = var * np.linalg.pinv(s.T @ s)
+    spec = study.spec
+    model = study_model(spec.knee, tuple(spec.elements))
+    truth = study_truth(spec.knee, tuple(spec.elements), set_name)
+    free = list(spec.free) if spec.free else default_free(model)
+    for name in spec.with_effects:
+        free += [n for n in model.effect(name).free_names() if n not in free]
+    problem = IdentificationProblem(model, [s.trial for s in truth.solutions], free)
+    theta = problem.theta()
+    cov = gauss_newton_covariance(problem.sensitivities(truth.q, theta), problem.weights,
+                                  NoiseModel.parse(spec.noise).std ** 2, problem.scales, free)
     return {n: float(np.sqrt(cov[i, i])) for i, n in enumerate(free)}
 
 
@@ -59,24 +59,24 @@ def analyse_study(study) -> dict:
     """Write estimates.csv/.parquet, table3.csv, failures.csv, fig3_boxplots.png,
     fig2_set3_forces.png and summary.md into the study directory; return the Table 3 frame."""
     from kneenlp.io import plots
-    from kneenlp.studies.study import _knee, _truth
 
     out = study.out
     df = study.load_rows()
     _write_csv(df, out / "estimates.csv")
     parquet = _write_parquet(df, out / "estimates.parquet")
-    knee = _knee(study.spec)
-    truth_vals = knee.parameters.values
+    model = study_model(study.spec.knee, tuple(study.spec.elements))
+    knee = model.knee
+    truth_vals = dict(zip(model.parameter_names, model.theta(), strict=True))
     ok = df[df["success"].astype(bool)] if not df.empty else df
     failures = df[~df["success"].astype(bool)] if not df.empty else df
     _write_csv(failures, out / "failures.csv")
-    params = [c for c in df.columns if c.endswith(".k") or c.endswith(".ref_strain")]
+    params = [c for c in df.columns if c in model.parameter_names and model.parameter(c).kind in ("k", "ref_strain")]
     rows = []
     for set_name in study.spec.sets:
         sub = ok[ok["set"] == set_name]
         pred = predicted_std(study, set_name)
         for p in params:
-            lig, kind = p.split(".")
+            lig, kind = p.rsplit(".", 1)
             f = 1e-3 if kind == "k" else 100.0
             vals = sub[p].to_numpy(dtype=float) * f
             rows.append({
@@ -97,11 +97,11 @@ def analyse_study(study) -> dict:
     plots.study_boxplots(ok, table, study.spec.sets, out / "fig3_boxplots.png",
                          f"{len(ok)} fits, noise {study.spec.noise}")
     fig2_set = "set3" if "set3" in study.spec.sets else study.spec.sets[0]
-    truth = _truth(study.spec, fig2_set)
+    truth = study_truth(study.spec.knee, tuple(study.spec.elements), fig2_set)
     plots.ligament_forces(truth.table(), list(knee.ligaments), out / f"fig2_{truth.protocol.name}_forces.png",
                           f"Ligament forces, {fig2_set} (true parameters)",
                           truth.recruitment() if any(t.direction == "none" for t in truth.protocol.trials) else None)
-    (out / "summary.md").write_text(_summary(study, df, table, failures, parquet))
+    write_text_atomic(out / "summary.md", _summary(study, df, table, failures, parquet))
     return table
 
 

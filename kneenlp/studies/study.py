@@ -27,8 +27,8 @@ import numpy as np
 import pandas as pd
 
 from kneenlp.errors import InputError, unknown_name
+from kneenlp.io.atomic import write_text_atomic
 
-_CACHE: dict = {}
 STARTS = ("scatter", "truth")
 
 
@@ -42,6 +42,10 @@ class StudySpec:
     seed: int = 0
     method: str = "simultaneous"
     knee: str | None = None  # knee TOML path; None = embedded default knee
+    #: user force elements by import path ("module:factory", see kneenlp.model.plugins)
+    elements: tuple[str, ...] = ()
+    #: candidate effects freed in every fit (e.g. ("posterior_capsule",))
+    with_effects: tuple[str, ...] = ()
     free: tuple[str, ...] | None = None
     nested_max_evals: int = 6000
     #: where each fit starts: "scatter" (the paper: +-500 N and +-0.02 around the reference values,
@@ -65,52 +69,34 @@ def sample_seed(study_seed: int, set_name: str, index: int) -> int:
     return int(ss.generate_state(1, dtype=np.uint32)[0])
 
 
-def _knee(spec: StudySpec):
-    from kneenlp.model.knee import Knee
+def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2) -> dict:
+    """Simulate, add noise and identify one sample; returns one result row (never raises).
 
-    key = ("knee", spec.knee)
-    if key not in _CACHE:
-        _CACHE[key] = Knee.load(spec.knee) if spec.knee else Knee.default()
-    return _CACHE[key]
-
-
-def _truth(spec: StudySpec, set_name: str):
-    from kneenlp.simulation import simulate
-
-    key = ("truth", spec.knee, set_name)
-    if key not in _CACHE:
-        res = simulate(_knee(spec), set_name)
-        if res.failed:
-            raise InputError(f"truth simulation of {set_name} failed: {', '.join(s.trial.id for s in res.failed)}")
-        _CACHE[key] = res
-    return _CACHE[key]
-
-
-def run_sample(spec: StudySpec, set_name: str, index: int) -> dict:
-    """Simulate, add noise and identify one sample; returns one result row (never raises)."""
+    ``threads`` of the NLP's trial map: 1 in worker processes (one process per core already)."""
+    from kneenlp.conventions import coordinate_columns, coords_from_user
     from kneenlp.experiment.measured import MeasuredData
     from kneenlp.inference.identify import identify
-    from kneenlp.simulation import model_for
-    from kneenlp.solvers.nlp import default_free
+    from kneenlp.inference.problem import default_free
+    from kneenlp.studies.truth import study_model, study_truth
 
     row: dict = {"set": set_name, "sample": index, "seed": -1}
     t0 = time.perf_counter()
     try:
-        truth = _truth(spec, set_name)
+        model = study_model(spec.knee, tuple(spec.elements))
+        truth = study_truth(spec.knee, tuple(spec.elements), set_name)
         # the protocol's name, not the path it was given by: moving the file keeps the draws
         seed = row["seed"] = sample_seed(spec.seed, truth.protocol.name, index)
         df = truth.measured(spec.noise, seed)
-        from kneenlp.conventions import coordinate_columns, coords_from_user
-
         data = MeasuredData([s.trial for s in truth.solutions],
                             coords_from_user(df[coordinate_columns()].to_numpy()), set_name,
                             f"{set_name} sample {index}")
         free = list(spec.free) if spec.free else None
         start = None
         if spec.start == "truth":
-            start = {n: truth.parameters[n] for n in (free or default_free(model_for(_knee(spec))))}
-        fit = identify(_knee(spec), data, spec.method, free=free, seed=seed, start=start, noise=spec.noise,
-                       nested_options={"max_evals": spec.nested_max_evals})
+            start = {n: truth.parameters[n] for n in (free or default_free(model))}
+        fit = identify(model, data, spec.method, free=free, seed=seed, start=start, noise=spec.noise,
+                       nested_options={"max_evals": spec.nested_max_evals}, with_effects=list(spec.with_effects),
+                       threads=threads)
         row.update(status=fit.status, success=fit.success, objective=fit.objective, iterations=fit.iterations,
                    evaluations=fit.evaluations, max_residual=fit.max_residual, seconds=fit.seconds,
                    message=fit.message)
@@ -125,20 +111,11 @@ def run_sample(spec: StudySpec, set_name: str, index: int) -> dict:
 def _worker_sample(spec: StudySpec, set_name: str, index: int) -> dict:
     """:func:`run_sample` in a worker process: one process per core, so the NLP's trial map runs
     serially (two threads per process would oversubscribe the cores)."""
-    from kneenlp.solvers.nlp import set_map_threads
-
-    set_map_threads(1)
-    return run_sample(spec, set_name, index)
+    return run_sample(spec, set_name, index, threads=1)
 
 
 def _run_sample_args(args: tuple) -> dict:
     return _worker_sample(*args)
-
-
-def write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 @dataclass
@@ -171,14 +148,14 @@ class Study:
                 diff = ", ".join(f"{k}: {old.get(k)!r} -> {v!r}" for k, v in mine.items() if old.get(k) != v)
                 raise InputError(f"holds a study with other arguments ({diff}); use another --out",
                                  source=str(spec_file))
-        write_atomic(spec_file, json.dumps(asdict(self.spec), indent=2))
+        write_text_atomic(spec_file, json.dumps(asdict(self.spec), indent=2))
 
     def pending(self) -> list[tuple[str, int]]:
         return [(s, i) for s, i in self.spec.tasks() if not self.sample_path(s, i).exists()]
 
     def record(self, row: dict) -> None:
         clean = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in row.items()}
-        write_atomic(self.sample_path(row["set"], row["sample"]), json.dumps(clean))
+        write_text_atomic(self.sample_path(row["set"], row["sample"]), json.dumps(clean))
 
     def load_rows(self) -> pd.DataFrame:
         rows = []

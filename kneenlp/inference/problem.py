@@ -1,0 +1,204 @@
+"""The identification problem: one labelled experiment that every estimator and design consumes.
+
+An :class:`IdentificationProblem` holds the model, the trials (what was done), the measured
+coordinates (or none, for design), the noise model and weights, which parameters are free and the
+values of the fixed ones.  From it:
+
+* the simultaneous NLP (:mod:`kneenlp.solvers.nlp`) takes its data vector, scales and bounds;
+* the nested objective (:mod:`kneenlp.solvers.nested`) evaluates :meth:`objective`;
+* :meth:`sensitivities` gives ``d y / d p`` through every trial's equilibrium (the covariance of
+  a fit, the score tests of adequacy and the Fisher information of design all use it);
+* export writes its NLP.
+
+Every comparison of model and measurement goes through the model's ONE observation function
+(:attr:`kneenlp.model.kneemodel.KneeModel.observation`): predicted coordinates in mm and deg,
+including any measurement bias of the model's elements.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kneenlp.conventions import TO_USER
+from kneenlp.errors import InputError, unknown_name
+from kneenlp.experiment.measured import MeasuredData
+from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.protocol import Trial
+from kneenlp.model.kneemodel import KneeModel
+from kneenlp.model.parameters import Parameter
+
+
+def default_free(model: KneeModel) -> list[str]:
+    """k and reference strain of every ligament (8 values for the four-ligament knee)."""
+    return [f"{lig}.{k}" for lig in model.ligament_names for k in ("k", "ref_strain")]
+
+
+def check_free(model: KneeModel, free: Sequence[str]) -> list[str]:
+    """The free parameter names, validated (known, not repeated, not empty)."""
+    for name in free:
+        model.index(name)
+    if len(set(free)) != len(free):
+        raise InputError(f"free parameters repeated: {', '.join(free)}", field="free")
+    if not free:
+        raise InputError("no free parameters", field="free")
+    return list(free)
+
+
+@dataclass
+class IdentificationProblem:
+    """Model + trials + measurements (or none) + noise/weights + free and fixed parameters."""
+
+    model: KneeModel
+    trials: tuple[Trial, ...]
+    free: list[str]
+    measured: np.ndarray | None = None  # (T, 5) mm and deg
+    weights: np.ndarray | None = None  # (T, 5) per mm^2 or deg^2; None: all 1
+    noise: NoiseModel | None = None
+    fixed: dict[str, float] = field(default_factory=dict)  # values (SI) replacing the knee's parameter set
+    source: str | None = None
+    protocol: str | None = None
+
+    def __post_init__(self) -> None:
+        self.trials = tuple(self.trials)
+        self.free = check_free(self.model, self.free)
+        for n in self.fixed:
+            self.model.index(n)
+        if self.weights is None:
+            self.weights = np.ones((len(self.trials), 5))
+        if self.measured is not None:
+            self.measured = np.asarray(self.measured, dtype=float)
+            if self.measured.shape != (len(self.trials), 5):
+                raise InputError(f"measured coordinates have shape {self.measured.shape}, "
+                                 f"expected ({len(self.trials)}, 5)", source=self.source)
+
+    @classmethod
+    def from_data(cls, model: KneeModel, data: MeasuredData, free: Sequence[str] | None = None, *,
+                  noise: str | NoiseModel | None = None, weighted: bool = False,
+                  fixed: Mapping[str, float] | None = None,
+                  with_effects: Sequence[str] = ()) -> IdentificationProblem:
+        """The problem of identifying ``free`` (default: k and ref_strain of every ligament, plus
+        the parameters of ``with_effects``) from measured ``data``."""
+        free = list(free or default_free(model))
+        for name in with_effects:
+            free += [n for n in model.effect(name).free_names() if n not in free]
+        noise_model = NoiseModel.parse(noise) if noise is not None else None
+        if weighted and (noise_model is None or noise_model.std == 0):
+            raise InputError("weighted fit needs a noise model with non-zero level", field="noise")
+        weights = np.full((len(data), 5), 1.0 / noise_model.std**2 if weighted else 1.0)
+        return cls(model, tuple(data.trials), free, data.q_user, weights, noise_model, dict(fixed or {}),
+                   data.source, data.protocol)
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def n_trials(self) -> int:
+        return len(self.trials)
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free)
+
+    @property
+    def parameters(self) -> list[Parameter]:
+        """Metadata of the free parameters."""
+        return [self.model.parameter(n) for n in self.free]
+
+    @property
+    def scales(self) -> np.ndarray:
+        return np.array([p.scale for p in self.parameters])
+
+    @property
+    def lower(self) -> np.ndarray:
+        return np.array([p.bounds[0] for p in self.parameters])
+
+    @property
+    def upper(self) -> np.ndarray:
+        return np.array([p.bounds[1] for p in self.parameters])
+
+    @property
+    def loads(self) -> np.ndarray:
+        return np.array([t.load for t in self.trials]).reshape(-1, 6)
+
+    @property
+    def flexions(self) -> np.ndarray:
+        return np.array([t.flexion for t in self.trials])
+
+    @property
+    def data(self) -> MeasuredData:
+        """The measurements as :class:`MeasuredData` (SI poses)."""
+        if self.measured is None:
+            raise InputError("this problem has no measurements (a design problem)")
+        return MeasuredData(list(self.trials), self.measured / TO_USER, self.protocol, self.source)
+
+    def theta(self, values: Mapping[str, float] | Sequence[float] | np.ndarray | None = None) -> np.ndarray:
+        """Full parameter vector (SI): fixed values, then the free ``values`` (dict or in order)."""
+        if values is not None and not isinstance(values, Mapping):
+            values = dict(zip(self.free, np.asarray(values, dtype=float).ravel(), strict=True))
+        return self.model.theta({**self.fixed, **(values or {})})
+
+    def values(self, theta: np.ndarray) -> dict[str, float]:
+        """The free parameters' values (SI) in a full parameter vector."""
+        return {n: float(theta[self.model.index(n)]) for n in self.free}
+
+    def data_vector(self) -> np.ndarray:
+        """The NLP's parameter vector: ``[theta (fixed values, SI), measured (T x 5), weights (T x 5),
+        loads (T x 6), flexions (T)]``; refitting other data never rebuilds the NLP."""
+        meas = self.measured if self.measured is not None else np.zeros((self.n_trials, 5))
+        return np.concatenate([self.theta(), meas.ravel(), self.weights.ravel(), self.loads.ravel(), self.flexions])
+
+    # ------------------------------------------------------------------ the one comparison
+    def observe(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Predicted measurements (T x 5, mm and deg) of poses ``q`` (T x 5, SI)."""
+        return self.model.observe(q, theta)
+
+    def residuals(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Model minus measured coordinates (T x 5, mm and deg)."""
+        if self.measured is None:
+            raise InputError("this problem has no measurements (a design problem)")
+        return self.observe(q, theta) - self.measured
+
+    def objective(self, q: np.ndarray, theta: np.ndarray) -> float:
+        """Weighted sum of squared residuals (mm^2 + deg^2 times the weights): the paper's Psi'Psi."""
+        r = self.residuals(q, theta)
+        return float(np.sum(self.weights * r**2)) if np.all(np.isfinite(r)) else np.inf
+
+    def sensitivities(self, q: np.ndarray, theta: np.ndarray, names: Sequence[str] | None = None) -> np.ndarray:
+        """``d y / d p`` (5T x n; mm or deg per SI unit of each parameter ``names``, default the free
+        ones) at equilibrium poses ``q`` (T x 5, SI): the implicit-function theorem through every
+        trial's equilibrium, ``dq/dp = -(dr/dq)^-1 dr/dp``, then the observation's chain rule."""
+        model = self.model
+        idx = [model.index(n) for n in (self.free if names is None else names)]
+        rows = []
+        for t, qi in zip(self.trials, np.asarray(q, dtype=float), strict=True):
+            dq, dth = (np.asarray(v) for v in model.jacobians(qi, theta, t.load, t.flexion))
+            dy_dq, dy_dth = (np.asarray(v) for v in model.observation_jacobians(qi, theta))
+            try:
+                dq_dp = -np.linalg.solve(dq, dth[:, idx])
+            except np.linalg.LinAlgError:  # singular equilibrium (e.g. a failed solve): least squares
+                dq_dp = -np.linalg.pinv(dq) @ dth[:, idx]
+            rows.append(dy_dq @ dq_dp + dy_dth[:, idx])
+        return np.vstack(rows)
+
+    # ------------------------------------------------------------------ starts
+    def scatter(self, rng: np.random.Generator, reference: Mapping[str, float] | None = None, *,
+                spread_effects: bool = False) -> dict[str, float]:
+        """A start like the paper's: uniform scatter around ``reference`` (default: the fixed
+        values and the knee's parameter set) with each parameter's scatter width (SI).  Candidate
+        parameters start at their neutral value, or scattered from it (towards the inside of a
+        one-sided bound) with ``spread_effects`` (the nested Complex needs a spread population)."""
+        ref = reference or self.values(self.theta())
+        out = {}
+        for p in self.parameters:
+            if p.neutral is not None and not spread_effects:
+                out[p.name] = p.neutral
+                continue
+            out[p.name] = p.scatter(p.neutral if p.neutral is not None else ref[p.name], rng)
+        return out
+
+    def check_start(self, start: Mapping[str, float] | None) -> dict[str, float]:
+        for n in start or {}:
+            if n not in self.free:
+                raise unknown_name("free parameter", n, self.free)
+        return dict(start or {})
