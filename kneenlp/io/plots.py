@@ -1,4 +1,4 @@
-"""Figures (matplotlib, Agg backend): laxity curves and ligament forces per load case.
+"""Figures (matplotlib Figure objects, no pyplot): laxity curves and ligament forces per load case.
 
 Every axis states its unit (mm, deg, N, N m).
 """
@@ -7,12 +7,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
+import matplotlib as mpl
 import numpy as np
 import pandas as pd
+from matplotlib.figure import Figure
 
 PANELS = (
     ("anterior_force_N", "anterior_translation_mm", "anterior (+) / posterior (-) force [N]",
@@ -31,9 +29,9 @@ def laxity_curves(table: pd.DataFrame, path: str | Path, title: str = "",
     anterior and posterior), including the unloaded trial at that flexion.  ``measured`` adds data
     points and ``band`` (mm/deg) a +-band around the model curve.
     """
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4))
+    fig, axes = _subplots(1, 3, figsize=(13, 4))
     flexions = sorted(table["flexion_deg"].unique())
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colors = mpl.rcParams["axes.prop_cycle"].by_key()["color"]
     load_cols = [p[0] for p in PANELS]
     for ax, (lcol, ccol, xlabel, ylabel) in zip(axes, PANELS, strict=True):
         for i, flex in enumerate(flexions):
@@ -68,7 +66,7 @@ def ligament_forces(table: pd.DataFrame, ligaments: list[str], path: str | Path,
     from the unloaded pose (N) and names the ligament that dominates each case."""
     n = len(table)
     rows = 1 if recruitment is None else 2
-    fig, axes = plt.subplots(rows, 1, figsize=(max(8, 0.45 * n), 4.5 * rows), sharex=True, squeeze=False)
+    fig, axes = _subplots(rows, 1, figsize=(max(8, 0.45 * n), 4.5 * rows), sharex=True, squeeze=False)
     width = 0.8 / len(ligaments)
     x = np.arange(n)
     panels = [(axes[0, 0], table, "force", "ligament force [N]")]
@@ -102,7 +100,7 @@ def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str
     Top row: stiffness k (kN per unit strain); bottom row: reference strain (%).
     """
     ligs = list(dict.fromkeys(table["ligament"])) if len(table) else []
-    fig, axes = plt.subplots(2, max(len(ligs), 1), figsize=(3.2 * max(len(ligs), 1), 6.5), squeeze=False)
+    fig, axes = _subplots(2, max(len(ligs), 1), figsize=(3.2 * max(len(ligs), 1), 6.5), squeeze=False)
     for j, lig in enumerate(ligs):
         for i, (kind, unit, f) in enumerate((("k", "kN", 1e-3), ("ref_strain", "%", 100.0))):
             ax = axes[i, j]
@@ -132,7 +130,7 @@ def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str
 
 def residual_map(rmap: pd.DataFrame, path: str | Path, title: str = "") -> Path:
     """Heat map of residuals (trials x coordinates) in units of the noise standard deviation."""
-    fig, ax = plt.subplots(figsize=(6.5, max(3.0, 0.22 * len(rmap) + 1.5)))
+    fig, ax = _subplots(figsize=(6.5, max(3.0, 0.22 * len(rmap) + 1.5)))
     lim = max(3.0, float(np.nanmax(np.abs(rmap.to_numpy()))))
     im = ax.imshow(rmap.to_numpy(), cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
     ax.set_yticks(range(len(rmap)))
@@ -147,9 +145,16 @@ def residual_map(rmap: pd.DataFrame, path: str | Path, title: str = "") -> Path:
     return _save(fig, path)
 
 
+def _subplots(*args, **kwargs):
+    """A figure and its axes without pyplot: no global figure registry and no backend switch, so
+    importing or calling kneenlp never changes the user's matplotlib backend."""
+    figsize = kwargs.pop("figsize", None)
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(*args, **kwargs)
+
+
 def _save(fig, path: str | Path) -> Path:
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
