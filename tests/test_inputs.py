@@ -170,8 +170,8 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     m1, m2 = model_for(ref), model_for(scan)
     q = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
     load = np.array([50.0, 0, 0, 2.0, 0.5, 0])
-    r1 = np.asarray(m1.residual(q, m1.theta(), load, 0.3)).ravel()
-    r2 = np.asarray(m2.residual(q, m2.theta(), load, 0.3)).ravel()
+    r1 = np.asarray(m1.evaluate(q, m1.theta(), load, 0.3)).ravel()
+    r2 = np.asarray(m2.evaluate(q, m2.theta(), load, 0.3)).ravel()
     assert np.allclose(r1, r2, rtol=1e-5, atol=1e-5), (r1, r2)
     assert np.allclose(scan.compartments["medial"].sphere_center, ref.compartments["medial"].sphere_center,
                        atol=1e-8)

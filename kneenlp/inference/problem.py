@@ -142,11 +142,28 @@ class IdentificationProblem:
         """The free parameters' values (SI) in a full parameter vector."""
         return {n: float(theta[self.model.index(n)]) for n in self.free}
 
-    def data_vector(self) -> np.ndarray:
+    def data_vector(self, ws: np.ndarray | None = None) -> np.ndarray:
         """The NLP's parameter vector: ``[theta (fixed values, SI), measured (T x 5), weights (T x 5),
-        loads (T x 6), flexions (T)]``; refitting other data never rebuilds the NLP."""
+        loads (T x 6), flexions (T), contact working sets (T x ws_size)]``; refitting other data
+        never rebuilds the NLP.  ``ws``: from :meth:`working_sets` (required when the model uses
+        working sets)."""
         meas = self.measured if self.measured is not None else np.zeros((self.n_trials, 5))
-        return np.concatenate([self.theta(), meas.ravel(), self.weights.ravel(), self.loads.ravel(), self.flexions])
+        ws = np.zeros((self.n_trials, 0)) if ws is None else np.asarray(ws, float)
+        if ws.shape != (self.n_trials, self.model.ws_size):
+            raise ValueError(f"working sets of shape {ws.shape}, expected ({self.n_trials}, {self.model.ws_size})")
+        return np.concatenate([self.theta(), meas.ravel(), self.weights.ravel(), self.loads.ravel(), self.flexions,
+                               ws.ravel()])
+
+    def working_sets(self, q: np.ndarray, theta: np.ndarray) -> tuple[list[list[np.ndarray]], np.ndarray]:
+        """Each trial's contact working sets at poses ``q`` (T x 5, SI): indices and the packed
+        inputs (T x ws_size)."""
+        out = [self.model.working_set(qi, theta, t.flexion) for t, qi in zip(self.trials, q, strict=True)]
+        return [o[0] for o in out], np.array([o[1] for o in out]).reshape(self.n_trials, self.model.ws_size)
+
+    def left_out_penetration(self, q: np.ndarray, theta: np.ndarray, indices: list[list[np.ndarray]]) -> np.ndarray:
+        """Per trial, the largest penetration (m) of a sample point outside its working sets."""
+        return np.array([self.model.left_out_penetration(qi, theta, t.flexion, idx)
+                         for t, qi, idx in zip(self.trials, q, indices, strict=True)])
 
     # ------------------------------------------------------------------ the one comparison
     def observe(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -172,7 +189,8 @@ class IdentificationProblem:
         idx = [model.index(n) for n in (self.free if names is None else names)]
         rows = []
         for t, qi in zip(self.trials, np.asarray(q, dtype=float), strict=True):
-            dq, dth = (np.asarray(v) for v in model.jacobians(qi, theta, t.load, t.flexion))
+            ws = model.working_set(qi, theta, t.flexion)[1]
+            dq, dth = (np.asarray(v) for v in model.jacobians(qi, theta, t.load, t.flexion, ws))
             dy_dq, dy_dth = (np.asarray(v) for v in model.observation_jacobians(qi, theta))
             try:
                 dq_dp = -np.linalg.solve(dq, dth[:, idx])

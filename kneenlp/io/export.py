@@ -90,7 +90,8 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
             "parameters": dict(zip(model.parameter_names, problem.theta().tolist(), strict=True)),
             "elements": [f"{type(el).__module__}.{type(el).__name__}:{el.name}" for el in model.elements],
             "start_seed": seed}
-    return ExportProblem(e.f, e.g, e.x, e.p, problem.data_vector(), x0, e.lbx, e.ubx, var_names, var_units,
+    ws = problem.working_sets(q0, problem.theta(values))[1]  # contact working sets at the start poses
+    return ExportProblem(e.f, e.g, e.x, e.p, problem.data_vector(ws), x0, e.lbx, e.ubx, var_names, var_units,
                          con_names, list(RESIDUAL_UNITS) * T,
                          {n: float(s) for n, s in zip(free, problem.scales, strict=True)}, len(free), meta)
 
@@ -164,7 +165,9 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
         "scaling": {n: {"scale": s, "meaning": f"variable = {n} [SI] / {s:g}"} for n, s in prob.scales.items()},
         "p": prob.p_value.tolist(),
         "p_layout": "theta (all model parameters, SI, in 'parameters' order), measured coordinates (T x 5, "
-                    "mm/deg), weights (T x 5), loads (T x 6, N and N m, femoral frame), flexion (T, rad)",
+                    "mm/deg), weights (T x 5), loads (T x 6, N and N m, femoral frame), flexion (T, rad), "
+                    "contact working sets at the start poses (T x ws_size: x, y, z in m and area in m^2 per "
+                    "point; empty without working sets)",
         "source": prob.meta,
         "files": [f.name for f in files],
         **({"nl": extra} if extra else {}),

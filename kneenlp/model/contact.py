@@ -42,36 +42,33 @@ def smooth_gate(d, delta):
     return t2 * t * (1 / delta**2) - t2 * t2 * (1 / (2 * delta**3)) + (ca.fmax(d, delta) - delta)
 
 
+def sphere_wrench(c, modulus, radius, x, areas, delta: float):
+    """Force and moment (about the tibial origin) on the tibia of a sphere (centre ``c``, tibial
+    frame, radius in m) pressed into sample points ``x`` (3 x N) with ``areas`` (1 x N), tibial
+    frame; the points may be constants or symbols.  A few vector operations whatever ``N`` is:
+    with ``s_i = p_i A_i / |x_i - c|``, ``S0 = sum s_i`` and ``S1 = sum s_i x_i``,
+    force ``F = S1 - c S0`` and moment ``M = c x S1``."""
+    sq = ca.sum1(x * x)  # 1 x N
+    dist = ca.sqrt(sq - 2 * (c.T @ x) + ca.dot(c, c))
+    s = modulus * areas * smooth_gate(radius - dist, delta) / dist
+    s1 = x @ s.T
+    return s1 - c * ca.sum2(s), ca.cross(c, s1)
+
+
 def compartment_function(name: str, points: np.ndarray, areas: np.ndarray, delta: float) -> ca.Function:
-    """Contact wrench of one compartment, ``(c, K, R) -> (force, moment)`` in the tibial frame.
+    """Contact wrench of one compartment with every point, ``(c, K, R) -> (force, moment)`` in the
+    tibial frame (:func:`sphere_wrench` with the points as constants).
 
-    Parameters
-    ----------
-    points : (N, 3) tibial cartilage sample points, tibial frame, m.
-    areas : (N,) area of each sample (m^2).
-    delta : gate width (m).
-
-    The returned function's inputs are the condyle sphere centre ``c`` in the tibial frame (m),
-    the pressure modulus ``K`` (N/m^3) and the sphere radius ``R`` (m); outputs are the force on
-    the tibia (N) and its moment about the tibial origin (N m).  The points enter as constant
-    vectors, so the graph has a few dozen vector operations whatever ``N`` is.
+    ``points`` (N, 3) tibial cartilage samples (tibial frame, m), ``areas`` (N,) m^2, ``delta``
+    gate width (m).  Inputs: sphere centre ``c`` in the tibial frame (m), modulus ``K`` (N/m^3),
+    radius ``R`` (m); outputs: force on the tibia (N), moment about the tibial origin (N m).
     """
     points = np.asarray(points, dtype=float)
-    areas = np.asarray(areas, dtype=float).ravel()
-    x = ca.DM(points.T)  # 3 x N
-    c = ca.MX.sym("c", 3)
-    modulus = ca.MX.sym("K")
-    radius = ca.MX.sym("R")
-    dist2 = ca.DM(np.sum(points**2, axis=1)).T - 2 * (c.T @ x) + ca.dot(c, c)  # 1 x N
-    dist = ca.sqrt(dist2)
-    s = modulus * ca.DM(areas).T * smooth_gate(radius - dist, delta) / dist
-    s0 = ca.sum2(s)
-    s1 = x @ s.T
-    force = s1 - c * s0
-    moment = ca.cross(c, s1)
-    return ca.Function(
-        f"contact_{name}", [c, modulus, radius], [force, moment], ["c", "K", "R"], ["force", "moment"]
-    )
+    c, modulus, radius = ca.MX.sym("c", 3), ca.MX.sym("K"), ca.MX.sym("R")
+    force, moment = sphere_wrench(c, modulus, radius, ca.DM(points.T), ca.DM(np.asarray(areas, float).ravel()).T,
+                                  delta)
+    return ca.Function(f"contact_{name}", [c, modulus, radius], [force, moment], ["c", "K", "R"],
+                       ["force", "moment"])
 
 
 def sphere_plane_force(modulus: float, radius: float, depth: float) -> float:
@@ -94,10 +91,11 @@ class SphereContact(StagedElement):
     """
 
     def __init__(self, compartment: str, centre: np.ndarray, radius: float, points: np.ndarray,
-                 areas: np.ndarray, gate: float):
+                 areas: np.ndarray, gate: float, working_set_size: int = 0):
         self.name, self.compartment = f"contact_{compartment}", compartment
         self.centre, self.radius = np.asarray(centre, float), float(radius)
         self.points, self.areas, self.gate = np.asarray(points, float), np.asarray(areas, float), float(gate)
+        self.working_set_size = int(working_set_size)
         self.description = f"{compartment} compartment: sphere vs tibial cartilage"
 
     def parameters(self) -> list[Parameter]:
@@ -106,11 +104,12 @@ class SphereContact(StagedElement):
     def probe(self, pose: Pose, values: dict) -> ca.SX:
         return ca.vertcat(pose.to_tibial(self.centre), values[MODULUS.name])
 
-    def surface(self) -> ca.Function:
-        fn = compartment_function(self.compartment, self.points, self.areas, self.gate)
-        probe = ca.MX.sym("probe", 4)
-        force, moment = fn(probe[:3], probe[3], self.radius)
-        return ca.Function(f"surface_{self.compartment}", [probe], [force, moment], ["probe"], ["force", "moment"])
+    def surface_wrench(self, probe, x, areas):
+        return sphere_wrench(probe[:3], probe[3], self.radius, x, areas, self.gate)
+
+    def clearance(self, R, p, values):
+        centre = np.asarray(R).T @ (self.centre - np.asarray(p).ravel())
+        return np.linalg.norm(self.points - centre, axis=1) - self.radius
 
     def outputs(self) -> list[Output]:
         return [Output("force", f"contact_{self.compartment}_N", "N"),

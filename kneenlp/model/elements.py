@@ -27,6 +27,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import casadi as ca
+import numpy as np
 
 from kneenlp.model.parameters import Parameter
 
@@ -102,20 +103,62 @@ class ForceElement:
 
 
 class StagedElement(ForceElement, ABC):
-    """An element whose force comes from an expensive surface computation (see module docstring).
+    """An element whose force comes from an expensive surface computation over tibial sample
+    points (see module docstring).
 
-    Subclasses give :meth:`probe` (SX column from the pose and parameters) and :meth:`surface`
-    (a CasADi Function ``probe -> (force, moment)`` in the *tibial* frame, moment about the tibial
-    origin), and optionally :meth:`report` (MX outputs computed only for result tables).
+    Subclasses give :meth:`probe` (SX column from the pose and parameters), :meth:`surface_wrench`
+    (MX expressions of the probe and the sample points) and :meth:`clearance` (numeric gap of
+    every sample point at a pose), and optionally :meth:`report`.
+
+    Working sets: with ``working_set_size = n`` (0 < n < number of points) only the ``n`` points
+    nearest to contact at a trial's pose enter the residual (as an input of the model's functions,
+    so one compiled function serves every working set); the solvers recompute them after each
+    solve and re-solve when a point left out penetrates (:meth:`KneeModel.working_set`).
     """
+
+    points: np.ndarray  # (N, 3) tibial sample points, tibial frame, m
+    areas: np.ndarray  # (N,) area of each sample, m^2
+    working_set_size: int = 0
+
+    @property
+    def n_working(self) -> int:
+        """Points per working set (0: no working set, every point always counts)."""
+        n = int(self.working_set_size)
+        return n if 0 < n < len(self.points) else 0
 
     @abstractmethod
     def probe(self, pose: Pose, values: dict[str, ca.SX]) -> ca.SX:
-        """Everything :meth:`surface` needs, as one SX column (e.g. a sphere centre, tibial frame)."""
+        """Everything :meth:`surface_wrench` needs of the pose and parameters, one SX column."""
 
     @abstractmethod
-    def surface(self) -> ca.Function:
-        """``probe -> (force, moment)`` on the tibia, tibial frame, moment about the tibial origin."""
+    def surface_wrench(self, probe: ca.MX, x: ca.MX | ca.DM, areas: ca.MX | ca.DM) -> tuple[ca.MX, ca.MX]:
+        """Force and moment (about the tibial origin) on the tibia, tibial frame, from the sample
+        points ``x`` (3 x n, tibial frame, m) with ``areas`` (1 x n, m^2)."""
+
+    @abstractmethod
+    def clearance(self, R: np.ndarray, p: np.ndarray, values: dict[str, float]) -> np.ndarray:
+        """Gap (m) of every sample point from the femoral surface at pose ``(R, p)``: negative
+        where the point penetrates.  Numeric; used to choose and check working sets."""
+
+    def surface(self, probe_size: int) -> ca.Function:
+        """``(probe, ws) -> (force, moment)``; ``ws`` packs the working set's points and areas
+        (4 x n_working, column-major) or is empty (then every point counts, as constants)."""
+        n = self.n_working
+        probe = ca.MX.sym("probe", probe_size)
+        ws = ca.MX.sym("ws", 4 * n)
+        if n:
+            w = ca.reshape(ws, 4, n)
+            x, a = w[:3, :], w[3, :]
+        else:
+            x, a = ca.DM(np.asarray(self.points, float).T), ca.DM(np.asarray(self.areas, float)).T
+        force, moment = self.surface_wrench(probe, x, a)
+        return ca.Function(f"surface_{self.name}", [probe, ws], [force, moment], ["probe", "ws"],
+                           ["force", "moment"])
+
+    def pack(self, indices: np.ndarray) -> np.ndarray:
+        """The working-set input for the sample points ``indices``."""
+        pts = np.asarray(self.points, float)[indices]
+        return np.column_stack([pts, np.asarray(self.areas, float)[indices]]).ravel()
 
     def report(self, probe: ca.MX, force: ca.MX) -> list[ca.MX]:
         """Values of :meth:`outputs` from the probe and the surface's force (tibial frame)."""

@@ -1,12 +1,14 @@
 """The CasADi model of a knee: the sum of its force elements, ONE equilibrium residual function.
 
-``KneeModel(knee).residual`` is the function ``(q, theta, load, flexion) -> r``:
+``KneeModel(knee).residual`` is the function ``(q, theta, load, flexion, ws) -> r``:
 
 * ``q`` (5): free coordinates ``[varus, internal, lateral, anterior, proximal]`` (rad, m),
 * ``theta`` (n): all model parameters in :attr:`KneeModel.parameter_names` order (SI),
 * ``load`` (6): ``[Fx, Fy, Fz, Mx, My, Mz]`` in the femoral frame; the force acts at the tibial
   tuberosity, the moment is pure (N, N m),
 * ``flexion`` (1): prescribed flexion (rad),
+* ``ws``: the contact working sets of the trial (:meth:`KneeModel.working_set`; empty when no
+  contact element uses working sets),
 * ``r`` (5): generalised forces of all elements + load for the five free coordinates (N m for the
   rotations, N for the translations); equilibrium is ``r = 0``.  The flexion moment is reacted.
 
@@ -104,14 +106,21 @@ class KneeModel:
         y = q * ca.DM(TO_USER) + (sum(bias, ca.SX.zeros(5)) * ca.DM(TO_USER) if bias else 0)
         self.observation = ca.Function("observation", [q, theta], [y], ["q", "theta"], ["y"])
 
+        self.pose = ca.Function("pose", [q, flexion, theta], [R, p], ["q", "flexion", "theta"], ["R", "p"])
+        self.staged = staged
+        sizes = [4 * e.n_working for e in staged]
+        self.ws_slices = [slice(a, a + s) for a, s in zip(np.cumsum([0, *sizes[:-1]]), sizes, strict=True)]
+        self.ws_size = int(sum(sizes))
+
         qm, flexm = ca.MX.sym("q", 5), ca.MX.sym("flexion")
         thetam, loadm = ca.MX.sym("theta", len(self.parameter_names)), ca.MX.sym("load", 6)
+        wsm = ca.MX.sym("ws", self.ws_size)
         pr = kin(qm, flexm, thetam) if staged else []
         pr = [pr] if isinstance(pr, ca.MX) else list(pr)
-        fm = [e.surface()(pr_j) for e, pr_j in zip(staged, pr, strict=True)]
+        fm = [e.surface(probes[j].numel())(pr[j], wsm[self.ws_slices[j]]) for j, e in enumerate(staged)]
         res, out_plain = balance(qm, flexm, thetam, loadm, *[f for f, _ in fm], *[m for _, m in fm])
-        names_in = ["q", "theta", "load", "flexion"]
-        self.residual = ca.Function("residual", [qm, thetam, loadm, flexm], [res], names_in, ["r"])
+        names_in = ["q", "theta", "load", "flexion", "ws"]
+        self.residual = ca.Function("residual", [qm, thetam, loadm, flexm, wsm], [res], names_in, ["r"])
         # outputs for tables, in the order of :attr:`outputs`
         out_staged = {e.name: e.report(pr_j, f) for e, pr_j, (f, _) in zip(staged, pr, fm, strict=True)}
         k = 0
@@ -123,9 +132,45 @@ class KneeModel:
                 n = len(e.outputs())
                 columns += [out_plain[k + i] for i in range(n)]
                 k += n
-        self.details = ca.Function("details", [qm, thetam, loadm, flexm],
+        self.details = ca.Function("details", [qm, thetam, loadm, flexm, wsm],
                                    [res, ca.vertcat(*columns) if columns else ca.MX(0, 1)], names_in,
                                    ["r", "outputs"])
+
+    # ------------------------------------------------------------------ working sets
+    def working_set(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> tuple[list[np.ndarray], np.ndarray]:
+        """The contact working sets at a pose: for every staged element with a working set, the
+        indices of its ``n_working`` points of smallest clearance, and the packed ``ws`` input of
+        the model's functions (empty when no element uses working sets)."""
+        if not self.ws_size:
+            return [], np.zeros(0)
+        R, p = (np.asarray(v) for v in self.pose(q, flexion, theta))
+        values = dict(zip(self.parameter_names, np.asarray(theta, float).ravel(), strict=True))
+        indices, packed = [], []
+        for e in self.staged:
+            if e.n_working:
+                idx = np.sort(np.argpartition(e.clearance(R, p, values), e.n_working - 1)[: e.n_working])
+                indices.append(idx)
+                packed.append(e.pack(idx))
+        return indices, np.concatenate(packed)
+
+    def left_out_penetration(self, q: np.ndarray, theta: np.ndarray, flexion: float,
+                             indices: list[np.ndarray]) -> float:
+        """Largest penetration (m) of a sample point left out of the working sets ``indices`` at a
+        pose (negative: every left-out point is clear of the surface, the working sets are valid)."""
+        if not self.ws_size:
+            return -np.inf
+        R, p = (np.asarray(v) for v in self.pose(q, flexion, theta))
+        values = dict(zip(self.parameter_names, np.asarray(theta, float).ravel(), strict=True))
+        worst = -np.inf
+        for e, idx in zip([e for e in self.staged if e.n_working], indices, strict=True):
+            gap = e.clearance(R, p, values)
+            gap[idx] = np.inf
+            worst = max(worst, float(-gap.min()))
+        return worst
+
+    def evaluate(self, q: np.ndarray, theta: np.ndarray, load: np.ndarray, flexion: float) -> np.ndarray:
+        """The equilibrium residual (5) at a pose with the working sets of that pose (numeric)."""
+        return np.asarray(self.residual(q, theta, load, flexion, self.working_set(q, theta, flexion)[1])).ravel()
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -194,13 +239,14 @@ class KneeModel:
 
     @cached_property
     def residual_jacobian(self) -> ca.Function:
-        """``(q, theta, load, flexion) -> dr/dq`` (5 x 5)."""
-        return self.residual.factory("residual_jac", ["q", "theta", "load", "flexion"], ["jac:r:q"])
+        """``(q, theta, load, flexion, ws) -> dr/dq`` (5 x 5)."""
+        return self.residual.factory("residual_jac", ["q", "theta", "load", "flexion", "ws"], ["jac:r:q"])
 
     @cached_property
     def jacobians(self) -> ca.Function:
-        """``(q, theta, load, flexion) -> (dr/dq, dr/dtheta)``: the implicit-function sensitivities."""
-        return self.residual.factory("jac_q_theta", ["q", "theta", "load", "flexion"], ["jac:r:q", "jac:r:theta"])
+        """``(q, theta, load, flexion, ws) -> (dr/dq, dr/dtheta)``: the implicit-function sensitivities."""
+        return self.residual.factory("jac_q_theta", ["q", "theta", "load", "flexion", "ws"],
+                                     ["jac:r:q", "jac:r:theta"])
 
     @cached_property
     def observation_jacobians(self) -> ca.Function:

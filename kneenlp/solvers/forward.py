@@ -54,9 +54,9 @@ class ForwardSolver:
         self.model = model
         self.tol = tol
         q = ca.MX.sym("q", 5)
-        par = ca.MX.sym("par", len(model.parameter_names) + 7)
         n = len(model.parameter_names)
-        r = model.residual(q, par[:n], par[n : n + 6], par[n + 6])
+        par = ca.MX.sym("par", n + 7 + model.ws_size)
+        r = model.residual(q, par[:n], par[n : n + 6], par[n + 6], par[n + 7 :])
         g = ca.Function("equilibrium", [q, par], [r])
         opts = {"abstol": min(tol * 1e-3, 1e-9), "abstolStep": 1e-16, "max_iter": max_iter,
                 "error_on_fail": False, "line_search": True}
@@ -77,8 +77,11 @@ class ForwardSolver:
         if fns is None:
             fns = (self.rootfinder.map(n), self.eval_residual.map(n))
             self._batch[n] = fns
-        par = np.column_stack([self._par(theta, t.load, t.flexion) for t in trials])
-        q = np.asarray(fns[0](np.asarray(q0, dtype=float).T, par)).T
+        q0 = np.asarray(q0, dtype=float)
+        par = np.column_stack([self._par(theta, t.load, t.flexion, q0[i]) for i, t in enumerate(trials)])
+        q = np.asarray(fns[0](q0.T, par)).T
+        if self.model.ws_size:  # the residual with the working sets of the solution
+            par = np.column_stack([self._par(theta, t.load, t.flexion, q[i]) for i, t in enumerate(trials)])
         res = np.max(np.abs(np.asarray(fns[1](q.T, par))), axis=0)
         res[~np.isfinite(res)] = np.inf
         for i in np.flatnonzero(~(res <= self.tol)):
@@ -87,18 +90,36 @@ class ForwardSolver:
                 q[i], res[i] = sol.q, sol.max_residual
         return q, res
 
-    def _par(self, theta: np.ndarray, load: np.ndarray, flexion: float) -> np.ndarray:
-        return np.concatenate([theta, load, [flexion]])
+    def _par(self, theta: np.ndarray, load: np.ndarray, flexion: float, q_ws: np.ndarray | None = None) -> np.ndarray:
+        """Rootfinder parameters; the contact working sets are those of pose ``q_ws``."""
+        ws = self.model.working_set(q_ws, theta, flexion)[1] if self.model.ws_size else np.zeros(0)
+        return np.concatenate([theta, load, [flexion], ws])
 
     def residual_norm(self, q: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0) -> float:
-        r = self.eval_residual(q, self._par(theta, scale * trial.load, trial.flexion))
+        """Largest residual at pose ``q`` (N or N m), with the working sets of ``q`` itself; inf if
+        a sample point outside them penetrates (the working sets are then too small)."""
+        if self.model.ws_size:
+            idx, _ = self.model.working_set(q, theta, trial.flexion)
+            if self.model.left_out_penetration(q, theta, trial.flexion, idx) > 0:
+                return np.inf
+        r = self.eval_residual(q, self._par(theta, scale * trial.load, trial.flexion, q))
         val = float(np.max(np.abs(np.asarray(r))))
         return val if np.isfinite(val) else np.inf
 
     def _newton(self, q0: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0):
-        q = np.asarray(self.rootfinder(q0, self._par(theta, scale * trial.load, trial.flexion))).ravel()
-        if not np.all(np.isfinite(q)):
-            return q, np.inf
+        """Newton from ``q0`` with the working sets of ``q0``; while a point left out of them
+        penetrates at the solution, again from the solution with its own working sets."""
+        q_ws = q0
+        for _ in range(4):
+            q = np.asarray(self.rootfinder(q0, self._par(theta, scale * trial.load, trial.flexion, q_ws))).ravel()
+            if not np.all(np.isfinite(q)):
+                return q, np.inf
+            if not self.model.ws_size:
+                break
+            idx, _ = self.model.working_set(q_ws, theta, trial.flexion)
+            if self.model.left_out_penetration(q, theta, trial.flexion, idx) <= 0:
+                break
+            q0 = q_ws = q
         return q, self.residual_norm(q, theta, trial, scale)
 
     def solve_trial(self, trial: Trial, theta: np.ndarray, q0: np.ndarray | None = None,
@@ -136,7 +157,8 @@ class ForwardSolver:
         return q, res
 
     def _solution(self, trial, theta, q, converged, res, strategy) -> TrialSolution:
-        values = np.asarray(self.model.details(q, theta, trial.load, trial.flexion)[1]).ravel()
+        ws = self.model.working_set(q, theta, trial.flexion)[1]
+        values = np.asarray(self.model.details(q, theta, trial.load, trial.flexion, ws)[1]).ravel()
         columns = [o.column for _, o in self.model.outputs]
         return TrialSolution(trial, q, converged, res, strategy, outputs=dict(zip(columns, values, strict=True)))
 

@@ -60,12 +60,14 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
     scales = problem.scales
     xp = ca.MX.sym("p_free", nf)
     xq = ca.MX.sym("q_user", 5, T)
-    par = ca.MX.sym("data", n_theta + 5 * T + 5 * T + 6 * T + T)
+    nw = model.ws_size
+    par = ca.MX.sym("data", n_theta + 5 * T + 5 * T + 6 * T + T + nw * T)
     theta_in = par[:n_theta]
     meas = ca.reshape(par[n_theta : n_theta + 5 * T], 5, T)
     w = ca.reshape(par[n_theta + 5 * T : n_theta + 10 * T], 5, T)
     loads = ca.reshape(par[n_theta + 10 * T : n_theta + 16 * T], 6, T)
-    flex = ca.reshape(par[n_theta + 16 * T :], 1, T)
+    flex = ca.reshape(par[n_theta + 16 * T : n_theta + 17 * T], 1, T)
+    ws = ca.reshape(par[n_theta + 17 * T :], nw, T)
     # theta element by element, so that fixed parameters (e.g. the contact modulus) depend on no
     # decision variable structurally: the Hessian then never seeds the contact with parameter
     # directions (a dense selection matrix made it ~2x slower).
@@ -77,7 +79,7 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
         mapped = model.residual.map(T, "thread", threads)
     else:
         mapped = model.residual.map(T, "serial" if parallel == "thread" else parallel)
-    g = ca.vec(mapped(q_si, theta, loads, flex))
+    g = ca.vec(mapped(q_si, theta, loads, flex, ws))
     diff = model.observation.map(T)(q_si, theta) - meas
     f = ca.sum1(ca.sum2(w * diff * diff))
     lbx = np.concatenate([problem.lower / scales, np.tile(-POSE_ENVELOPE_USER, T)])
