@@ -67,3 +67,19 @@ def test_contact_is_differentiable(model):
     ws = model.working_set(q, model.theta(), 0.0)[1]
     jac = np.asarray(model.residual_jacobian(q, model.theta(), np.zeros(6), 0.0, ws))
     assert np.all(np.isfinite(jac)) and np.linalg.matrix_rank(jac) == 5
+
+
+def test_working_sets_reproduce_the_full_contact():
+    """With 300 of ~1000 points per compartment in each trial's working set, Set 3 solves to the
+    poses of the full contact; too small a working set is reported, never silently kept."""
+    import dataclasses
+
+    import kneenlp
+
+    knee = kneenlp.Knee.default()
+    full = kneenlp.simulate(knee, "set3")
+    ws = kneenlp.simulate(dataclasses.replace(knee, working_set=300), "set3")
+    assert ws.converged == len(full.solutions)
+    assert np.abs(ws.q - full.q).max() < 1e-9
+    tiny = kneenlp.simulate(dataclasses.replace(knee, working_set=5), "set3")
+    assert tiny.failed and all(not np.isfinite(s.max_residual) or s.max_residual > 1e-6 for s in tiny.failed)

@@ -18,6 +18,7 @@ contact law would then misrepresent it.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -75,6 +76,7 @@ class Knee:
     tuberosity: np.ndarray  # tibial frame, m
     parameters: ParameterSet
     gate: float = 1e-5  # m
+    working_set: int = 0  # contact sample points per compartment and trial (0: all)
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
     source: str | None = None
     description: str = ""
@@ -143,9 +145,13 @@ class Knee:
         gate = number(contact.get("gate", 0.01), src, "contact.gate") * scale
         if gate <= 0:
             raise InputError("must be > 0", source=src, field="contact.gate")
+        working_set = contact.get("working_set", 0)
+        if isinstance(working_set, bool) or not isinstance(working_set, int) or working_set < 0:
+            raise InputError(f"must be an integer >= 0 (0: every point), got {working_set!r}", source=src,
+                             field="contact.working_set")
         compartments = {}
         for cname, cdoc in contact.items():
-            if cname == "gate":
+            if cname in ("gate", "working_set"):
                 continue
             if not isinstance(cdoc, dict):
                 raise InputError("must be a table with 'femur' and 'tibia' meshes", source=src,
@@ -201,7 +207,7 @@ class Knee:
                              source=src, field="parameters")
         return cls(name=str(doc.get("name", path.stem)), ligaments=ligaments,
                    compartments=compartments, tuberosity=landmarks["tibial_tuberosity"],
-                   parameters=params, gate=gate, landmarks=landmarks, source=src,
+                   parameters=params, gate=gate, working_set=working_set, landmarks=landmarks, source=src,
                    description=str(doc.get("description", "")), candidates=candidates)
 
     @property
@@ -218,8 +224,8 @@ class Knee:
     def elements(self) -> list[ForceElement]:
         """The knee's force elements: its ligaments, one contact element per compartment and the
         candidate bundles of its file (neutral: stiffness 0)."""
-        contact = [SphereContact(c.name, c.sphere_center, c.sphere_radius, c.points, c.areas, self.gate)
-                   for c in self.compartments.values()]
+        contact = [SphereContact(c.name, c.sphere_center, c.sphere_radius, c.points, c.areas, self.gate,
+                                 self.working_set) for c in self.compartments.values()]
         return [*self.ligaments.values(), *contact, *self.candidates]
 
     def condyle_centres(self) -> list[np.ndarray]:
@@ -229,8 +235,7 @@ class Knee:
     def with_parameters(self, parameters: ParameterSet | str | Path) -> Knee:
         """The same geometry with another parameter set."""
         params = parameters if isinstance(parameters, ParameterSet) else ParameterSet.load(parameters)
-        return Knee(self.name, self.ligaments, self.compartments, self.tuberosity, params,
-                    self.gate, self.landmarks, self.source, self.description, self.candidates)
+        return dataclasses.replace(self, parameters=params)
 
 
 class _Transform:
