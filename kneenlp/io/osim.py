@@ -35,6 +35,7 @@ import math
 import os
 import re
 import xml.etree.ElementTree as ET
+from abc import ABC, abstractmethod
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -129,11 +130,12 @@ def _apply(X: np.ndarray, p: Sequence[float]) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 # OpenSim functions (used by CustomJoint TransformAxis)
 # --------------------------------------------------------------------------------------
-class _Function:
+class _Function(ABC):
     """Callable f(x0, x1, ...) -> float built from an OpenSim Function element."""
 
-    def __call__(self, *x: float) -> float:  # pragma: no cover - interface
-        raise NotImplementedError
+    @abstractmethod
+    def __call__(self, *x: float) -> float:
+        """The function's value at the coordinate values ``x``."""
 
 
 class _Constant(_Function):
