@@ -1,16 +1,17 @@
-"""Cartilage surfaces of the embedded default knee, built with trimesh.
+"""Cartilage surfaces of the synthetic example knee (``Knee.named("synthetic")``), built with trimesh.
 
-The default knee is a right knee in the ISB femoral frame (X anterior, Y proximal, Z lateral, mm,
+The synthetic knee is a right knee in the ISB femoral frame (X anterior, Y proximal, Z lateral, mm,
 origin on the flexion axis midway between the condyle centres).  Its dimensions and their sources
 are listed in ``docs/anatomy-sources.md``; this module only turns them into meshes:
 
-* femoral cartilage of each condyle: the distal-posterior part of a sphere (the condyle's
-  flexion-facet circle, Iwaki et al. 2000), centred on the flexion axis;
+* femoral cartilage of each condyle: an explicit sphere of the knee file (the condyle's
+  flexion-facet circle, Iwaki et al. 2000), centred on the flexion axis; :func:`condyle_mesh`
+  tessellates its distal-posterior part for pictures;
 * tibial cartilage of each plateau: an elliptical patch of the surface
   ``y = y0 + x^2 / (2 R_sag) + z^2 / (2 R_cor)`` (concave for positive radii) whose lowest point
   touches the condyle in the reference pose.
 
-Run ``python -m kneenlp.model.anatomy DIR`` to (re)write the STL files of the default knee.
+Run ``python -m kneenlp.model.anatomy DIR`` to (re)write the tibial STL files of the synthetic knee.
 """
 
 from __future__ import annotations
@@ -80,18 +81,17 @@ def plateau_mesh(c: Compartment, spacing: float = 1.0) -> trimesh.Trimesh:
 
 
 def write_default_meshes(directory: Path) -> list[Path]:
-    """Write the default knee's four cartilage STL files into ``directory``."""
+    """Write the synthetic knee's two tibial cartilage STL files into ``directory``."""
     directory.mkdir(parents=True, exist_ok=True)
     written = []
     for c in DEFAULT_COMPARTMENTS:
-        for bone, mesh in (("femur", condyle_mesh(c)), ("tibia", plateau_mesh(c))):
-            path = directory / f"{bone}_{c.name}.stl"
-            mesh.export(path)
-            written.append(path)
+        path = directory / f"tibia_{c.name}.stl"
+        plateau_mesh(c).export(path)
+        written.append(path)
     return written
 
 
 if __name__ == "__main__":  # pragma: no cover - maintenance script
-    out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("kneenlp/resources/knees/default/meshes")
+    out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("kneenlp/resources/knees/synthetic/meshes")
     for p in write_default_meshes(out):
         print(p)

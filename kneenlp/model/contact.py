@@ -104,8 +104,8 @@ class SphereContact(StagedElement):
     def probe(self, pose: Pose, values: dict) -> ca.SX:
         return ca.vertcat(pose.to_tibial(self.centre), values[MODULUS.name])
 
-    def surface_wrench(self, probe, x, areas):
-        return sphere_wrench(probe[:3], probe[3], self.radius, x, areas, self.gate)
+    def surface_wrench(self, probe, data):
+        return sphere_wrench(probe[:3], probe[3], self.radius, data[:3, :], data[3, :], self.gate)
 
     def clearance(self, R, p, values):
         centre = np.asarray(R).T @ (self.centre - np.asarray(p).ravel())
@@ -115,7 +115,6 @@ class SphereContact(StagedElement):
         return [Output("force", f"contact_{self.compartment}_N", "N"),
                 Output("penetration", f"penetration_{self.compartment}_mm", "mm", 1e3)]
 
-    def report(self, probe: ca.MX, force: ca.MX) -> list[ca.MX]:
-        pts = ca.DM(self.points.T)
-        diff = pts - ca.repmat(probe[:3], 1, pts.shape[1])
+    def report(self, probe: ca.MX, data, force: ca.MX) -> list[ca.MX]:
+        diff = data[:3, :] - ca.repmat(probe[:3], 1, data.shape[1])
         return [ca.norm_2(force), self.radius - ca.sqrt(ca.mmin(ca.sum1(diff * diff)))]

@@ -42,17 +42,23 @@ class Effect:
 class Meniscus(ForceElement):
     """Springs (N/m) between each condyle centre and its reference position over the plateau,
     acting in the tibial transverse plane (X, Z of the tibial frame): the menisci's resistance to
-    condylar translation.  ``meniscus.k`` in N/mm, neutral 0."""
+    condylar translation.  ``meniscus.k`` in N/mm.
+
+    A candidate (neutral 0) unless the knee file declares its menisci (``[menisci] stiffness``,
+    N/mm): then it is part of the base model with that default stiffness."""
 
     name = "meniscus"
     description = "menisci: resistance to condylar translation over the plateau"
-    candidate = True
 
-    def __init__(self, centres: list[np.ndarray]):
+    def __init__(self, centres: list[np.ndarray], stiffness: float | None = None):
         self.centres = [np.asarray(c, float) for c in centres]  # femoral frame, m
+        self.stiffness = stiffness  # N/m, None: a candidate
+        self.candidate = stiffness is None
 
     def parameters(self) -> list[Parameter]:
-        return [Parameter("meniscus.k", "spring", "meniscal spring stiffness per compartment", 0.0, 0.0)]
+        if self.candidate:
+            return [Parameter("meniscus.k", "spring", "meniscal spring stiffness per compartment", 0.0, 0.0)]
+        return [Parameter("meniscus.k", "spring", "meniscal spring stiffness per compartment", self.stiffness)]
 
     def wrench(self, pose: Pose, values: dict) -> tuple[ca.SX, ca.SX]:
         k = values["meniscus.k"]
@@ -102,9 +108,10 @@ def parameter_group(name: str, names: list[str], description: str) -> Effect:
     return Effect(name, description, tuple(names))
 
 
-def builtin_elements(centres: list[np.ndarray]) -> list[ForceElement]:
-    """The candidate elements every knee model carries (neutral until freed)."""
-    return [Meniscus(centres), FlexionOffset(), Registration()]
+def builtin_elements(centres: list[np.ndarray], meniscus: bool = True) -> list[ForceElement]:
+    """The candidate elements every knee model carries (neutral until freed); ``meniscus=False``
+    for a knee whose menisci are part of its base model."""
+    return [*([Meniscus(centres)] if meniscus else []), FlexionOffset(), Registration()]
 
 
 def builtin_groups(ligaments: list[str]) -> list[Effect]:

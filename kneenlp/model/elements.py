@@ -107,22 +107,30 @@ class StagedElement(ForceElement, ABC):
     points (see module docstring).
 
     Subclasses give :meth:`probe` (SX column from the pose and parameters), :meth:`surface_wrench`
-    (MX expressions of the probe and the sample points) and :meth:`clearance` (numeric gap of
-    every sample point at a pose), and optionally :meth:`report`.
+    (MX expressions of the probe and a matrix of per-point data) and :meth:`clearance` (numeric
+    gap of every sample point at a pose), and optionally :meth:`select`, :meth:`pack` and
+    :meth:`report`.
 
-    Working sets: with ``working_set_size = n`` (0 < n < number of points) only the ``n`` points
-    nearest to contact at a trial's pose enter the residual (as an input of the model's functions,
-    so one compiled function serves every working set); the solvers recompute them after each
-    solve and re-solve when a point left out penetrates (:meth:`KneeModel.working_set`).
+    Working sets: with ``n_working = n > 0`` only ``n`` slots of per-point data (``ws_width``
+    numbers each, :meth:`pack`) enter the residual, as an input of the model's functions, so one
+    compiled function serves every working set.  The data are taken at a pose (the points that can
+    touch there and, for a mesh, the local expansion of the surface at each point); the solvers
+    retake them at every solution and solve again until the solution is consistent with the data
+    it was solved with (:meth:`KneeModel.working_set`).  ``n_working = 0`` (only for elements
+    whose :meth:`constant_data` exists) uses every point as a constant.
     """
 
     points: np.ndarray  # (N, 3) tibial sample points, tibial frame, m
     areas: np.ndarray  # (N,) area of each sample, m^2
     working_set_size: int = 0
+    #: numbers per working-set slot (rows of the matrix :meth:`surface_wrench` receives)
+    ws_width: int = 4
+    #: frame of :meth:`surface_wrench`'s force and moment: "tibial" or "femoral"
+    wrench_frame: str = "tibial"
 
     @property
     def n_working(self) -> int:
-        """Points per working set (0: no working set, every point always counts)."""
+        """Slots per working set (0: no working set, every point always counts)."""
         n = int(self.working_set_size)
         return n if 0 < n < len(self.points) else 0
 
@@ -131,35 +139,42 @@ class StagedElement(ForceElement, ABC):
         """Everything :meth:`surface_wrench` needs of the pose and parameters, one SX column."""
 
     @abstractmethod
-    def surface_wrench(self, probe: ca.MX, x: ca.MX | ca.DM, areas: ca.MX | ca.DM) -> tuple[ca.MX, ca.MX]:
-        """Force and moment (about the tibial origin) on the tibia, tibial frame, from the sample
-        points ``x`` (3 x n, tibial frame, m) with ``areas`` (1 x n, m^2)."""
+    def surface_wrench(self, probe: ca.MX, data: ca.MX | ca.DM) -> tuple[ca.MX, ca.MX]:
+        """Force and moment (about the tibial origin) on the tibia, in :attr:`wrench_frame`, from
+        the per-point ``data`` (``ws_width`` x n; rows as :meth:`pack` writes them)."""
 
     @abstractmethod
     def clearance(self, R: np.ndarray, p: np.ndarray, values: dict[str, float]) -> np.ndarray:
         """Gap (m) of every sample point from the femoral surface at pose ``(R, p)``: negative
         where the point penetrates.  Numeric; used to choose and check working sets."""
 
-    def surface(self, probe_size: int) -> ca.Function:
-        """``(probe, ws) -> (force, moment)``; ``ws`` packs the working set's points and areas
-        (4 x n_working, column-major) or is empty (then every point counts, as constants)."""
-        n = self.n_working
-        probe = ca.MX.sym("probe", probe_size)
-        ws = ca.MX.sym("ws", 4 * n)
-        if n:
-            w = ca.reshape(ws, 4, n)
-            x, a = w[:3, :], w[3, :]
-        else:
-            x, a = ca.DM(np.asarray(self.points, float).T), ca.DM(np.asarray(self.areas, float)).T
-        force, moment = self.surface_wrench(probe, x, a)
-        return ca.Function(f"surface_{self.name}", [probe, ws], [force, moment], ["probe", "ws"],
-                           ["force", "moment"])
+    def constant_data(self) -> np.ndarray:
+        """Per-point data of every point (``ws_width`` x N) for ``n_working = 0``."""
+        return np.vstack([np.asarray(self.points, float).T, np.asarray(self.areas, float)[None, :]])
 
-    def pack(self, indices: np.ndarray) -> np.ndarray:
-        """The working-set input for the sample points ``indices``."""
+    def select(self, R: np.ndarray, p: np.ndarray, values: dict[str, float]) -> np.ndarray:
+        """The working set at a pose: indices of the ``n_working`` points of smallest clearance."""
+        gap = self.clearance(R, p, values)
+        return np.sort(np.argpartition(gap, self.n_working - 1)[: self.n_working])
+
+    def pack(self, indices: np.ndarray, R: np.ndarray, p: np.ndarray, values: dict[str, float]) -> np.ndarray:
+        """The working-set input (``ws_width * n_working`` numbers, column-major) for the sample
+        points ``indices`` at pose ``(R, p)``."""
         pts = np.asarray(self.points, float)[indices]
         return np.column_stack([pts, np.asarray(self.areas, float)[indices]]).ravel()
 
-    def report(self, probe: ca.MX, force: ca.MX) -> list[ca.MX]:
-        """Values of :meth:`outputs` from the probe and the surface's force (tibial frame)."""
+    def surface(self, probe_size: int, with_report: bool = False) -> ca.Function:
+        """``(probe, ws) -> (force, moment)`` and, ``with_report``, the values of :meth:`outputs`
+        too; ``ws`` packs the working set (``ws_width`` x n_working, column-major) or is empty
+        (every point, as constants)."""
+        n = self.n_working
+        probe = ca.MX.sym("probe", probe_size)
+        ws = ca.MX.sym("ws", self.ws_width * n)
+        data = ca.reshape(ws, self.ws_width, n) if n else ca.DM(self.constant_data())
+        force, moment = self.surface_wrench(probe, data)
+        outs = [force, moment, *(self.report(probe, data, force) if with_report else [])]
+        return ca.Function(f"surface_{self.name}", [probe, ws], outs)
+
+    def report(self, probe: ca.MX, data: ca.MX | ca.DM, force: ca.MX) -> list[ca.MX]:
+        """Values of :meth:`outputs` from the probe, the per-point data and the surface's force."""
         return []

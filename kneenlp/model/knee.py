@@ -1,19 +1,21 @@
-"""A knee: geometry (cartilage meshes, ligament attachments, frames) plus a default parameter set.
+"""A knee: geometry (articular surfaces, ligament attachments, frames) plus a default parameter set.
 
-A knee is described by a TOML file (see ``kneenlp/resources/knees/default/knee.toml``) that names its
-cartilage meshes (STL/PLY/OBJ, read with trimesh), ligament attachments, landmarks and contact
-settings, in millimetres, either already in the ISB femoral frame (``coordinates = "femoral"``,
-the default) or in scanner coordinates (``coordinates = "scan"``): then the ISB femoral frame is
-built from the landmarks ``hip_center``, ``medial_epicondyle`` and ``lateral_epicondyle`` (Wu et al.
-2002) and its origin put midway between the fitted condyle centres, on the flexion axis.
-:meth:`Knee.load` validates the file and converts everything to SI.  A left knee
-(``side = "left"``) is mirrored into a right knee (Z -> -Z), which keeps the anatomical meaning of
-every coordinate.
+A knee is described by a TOML file (e.g. ``kneenlp/resources/knees/default/knee.toml``, the
+Lenhart 2015 knee) that names its cartilage meshes (STL/PLY/OBJ, read with trimesh), ligament
+attachments, landmarks and contact settings (:mod:`kneenlp.model.articular`), in millimetres
+(``units = "mm"``) or metres (``units = "m"``, as OpenSim files are), either already in the
+femoral frame (``coordinates = "femoral"``, the default) or in scanner coordinates
+(``coordinates = "scan"``), which are mapped into the femoral frame by the method ``frame``
+(:mod:`kneenlp.model.frames`: cylinder fits to the condyles, or ISB landmarks).  Tibial points
+are given in the tibial frame, which coincides with the femoral frame in the reference pose (the
+pose of the scan).  :meth:`Knee.load` validates the file and converts everything to SI.  A left
+knee (``side = "left"``) is mirrored into a right knee (Z -> -Z), which keeps the anatomical
+meaning of every coordinate.
 
-Each femoral condyle enters the contact model through the sphere fitted to its cartilage mesh
-(least squares, ``trimesh.nsphere.fit_nsphere``); the RMS distance of the mesh from that sphere is
-kept in :attr:`Compartment.fit_rms` and a knee whose fit is worse than 1 mm is rejected, since the
-contact law would then misrepresent it.
+Knees shipped with the package are loaded by name: ``Knee.named("synthetic")``; the default is
+the real Lenhart 2015 knee (:func:`available_knees`).  :meth:`Knee.report` says how the surfaces
+and frames were built: the tibial split, the condyle split, the flexion-axis fit and the distance
+field's measured error.
 """
 
 from __future__ import annotations
@@ -26,49 +28,52 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from kneenlp.errors import InputError
+from kneenlp.errors import InputError, unknown_name
+from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
 from kneenlp.io.resources import resource
+from kneenlp.model.articular import (
+    COMPARTMENT_KEYS,
+    CONTACT_SETTINGS,
+    Compartment,
+    FemoralSurface,
+    femoral_box,
+    field_summary,
+    mesh_path,
+    split_tibia,
+    tibial_samples,
+)
 from kneenlp.model.contact import SphereContact
+from kneenlp.model.effects import Meniscus
 from kneenlp.model.elements import ForceElement
+from kneenlp.model.frames import FRAME_METHODS, Frame, angle_deg, axes_from_flexion, landmark_axes
 from kneenlp.model.ligament import Bundle, Ligament
+from kneenlp.model.mesh_contact import MeshContact
 from kneenlp.model.parameters import ParameterSet, number, read_toml
 
-MAX_SPHERE_FIT_RMS = 1e-3  # m
+#: The knee ``Knee.default()`` loads.
+DEFAULT_KNEE = "default"
+
+
+def available_knees() -> list[str]:
+    """Names of the knees shipped with the package."""
+    return sorted(p.parent.name for p in resource("knees").glob("*/knee.toml"))
+
+
+def knee_file(name: str = DEFAULT_KNEE) -> Path:
+    """The knee TOML of a shipped knee (inside the installed package)."""
+    if name not in available_knees():
+        raise unknown_name("knee", name, available_knees())
+    return resource("knees", name, "knee.toml")
 
 
 def default_knee_file() -> Path:
-    """The knee TOML of the embedded default knee (inside the installed package)."""
-    return resource("knees", "default", "knee.toml")
-
-
-@dataclass(frozen=True)
-class Compartment:
-    """One tibiofemoral compartment: condyle sphere and tibial cartilage samples (SI)."""
-
-    name: str
-    femur_mesh: trimesh.Trimesh  # femoral frame, m
-    tibia_mesh: trimesh.Trimesh  # tibial frame, m
-    sphere_center: np.ndarray  # femoral frame, m
-    sphere_radius: float  # m
-    fit_rms: float  # m
-
-    @cached_property
-    def points(self) -> np.ndarray:
-        """Tibial cartilage sample points: mesh vertices (N x 3, m, tibial frame)."""
-        return np.asarray(self.tibia_mesh.vertices, dtype=float)
-
-    @cached_property
-    def areas(self) -> np.ndarray:
-        """Area lumped to each sample point: a third of each adjacent face (m^2)."""
-        m = self.tibia_mesh
-        a = np.zeros(len(m.vertices))
-        np.add.at(a, m.faces.ravel(), np.repeat(m.area_faces / 3.0, 3))
-        return a
+    """The knee TOML of the embedded default knee."""
+    return knee_file(DEFAULT_KNEE)
 
 
 @dataclass
 class Knee:
-    """Geometry of a (right) knee and its default mechanical parameters."""
+    """Geometry of a (right) knee and its default mechanical parameters (SI)."""
 
     name: str
     ligaments: dict[str, Ligament]
@@ -76,139 +81,33 @@ class Knee:
     tuberosity: np.ndarray  # tibial frame, m
     parameters: ParameterSet
     gate: float = 1e-5  # m
-    working_set: int = 0  # contact sample points per compartment and trial (0: all)
+    working_set: int = 0  # contact slots per compartment and trial (0: automatic / every point)
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
     source: str | None = None
     description: str = ""
     candidates: list[Ligament] = field(default_factory=list)  # [candidates.*]: bundles with stiffness 0
+    femur: FemoralSurface | None = None  # the femoral surface of the mesh compartments
+    axis: FlexionAxis | None = None  # fitted flexion axis (femoral frame)
+    margin: float = 1e-3  # m: tibial points closer than this enter a working set
+    menisci: float | None = None  # N/m: transverse meniscus springs of the base model ([menisci])
+    notes: list[str] = field(default_factory=list)  # how the file became this knee
 
     @classmethod
     def default(cls) -> Knee:
-        """The embedded default knee with the paper's Table 1 properties."""
+        """The embedded default knee (the Lenhart 2015 knee, Table 1 properties)."""
         return cls.load(default_knee_file())
 
     @classmethod
+    def named(cls, name: str) -> Knee:
+        """A knee shipped with the package, by name (:func:`available_knees`)."""
+        return cls.load(knee_file(name))
+
+    @classmethod
     def load(cls, path: str | Path, parameters: str | Path | ParameterSet | None = None) -> Knee:
-        """Read and validate a knee description TOML; see module docstring for the format."""
-        path = Path(path)
-        src = str(path)
-        doc = read_toml(path)
-        side = doc.get("side", "right")
-        if side not in ("right", "left"):
-            raise InputError(f"must be 'right' or 'left', got {side!r}", source=src, field="side")
-        units = doc.get("units", "mm")
-        if units not in ("mm", "m"):
-            raise InputError(f"must be 'mm' or 'm', got {units!r}", source=src, field="units")
-        scale = 1e-3 if units == "mm" else 1.0
-        mirror = np.array([1.0, 1.0, -1.0 if side == "left" else 1.0])
-        coordinates = doc.get("coordinates", "femoral")
-        if coordinates not in ("femoral", "scan"):
-            raise InputError(f"must be 'femoral' or 'scan', got {coordinates!r}", source=src, field="coordinates")
-        transform = _Transform(scale, mirror)
-
-        def raw_point(value: object, fld: str) -> np.ndarray:
-            if not isinstance(value, list) or len(value) != 3:
-                raise InputError(f"expected [x, y, z] in {units}, got {value!r}", source=src, field=fld)
-            return np.array([number(v, src, fld) for v in value])
-
-        def point(value: object, fld: str) -> np.ndarray:
-            return transform(raw_point(value, fld))
-
-        raw_landmarks = {k: raw_point(v, f"landmarks.{k}") for k, v in doc.get("landmarks", {}).items()}
-        if coordinates == "scan":
-            transform.from_landmarks(raw_landmarks, side, src)
-            for cname, cdoc in doc.get("contact", {}).items():  # origin: midpoint of the condyle centres
-                if isinstance(cdoc, dict) and "femur" in cdoc:
-                    fem = read_mesh(path.parent / str(cdoc["femur"]), transform, field=f"contact.{cname}.femur",
-                                    knee_file=src)
-                    transform.centres.append(fit_sphere(fem.vertices)[0])
-            transform.shift = np.mean(transform.centres, axis=0) if transform.centres else np.zeros(3)
-        landmarks = {k: transform(v) for k, v in raw_landmarks.items()}
-        if "tibial_tuberosity" not in landmarks:
-            raise InputError("missing (anterior/posterior loads act there)", source=src,
-                             field="landmarks.tibial_tuberosity")
-
-        ligs_doc = doc.get("ligaments")
-        if not isinstance(ligs_doc, dict) or not ligs_doc:
-            raise InputError("missing table [ligaments.<NAME>]", source=src, field="ligaments")
-        ligaments = {}
-        for name, lig in ligs_doc.items():
-            for key in ("femur", "tibia"):
-                if key not in lig:
-                    raise InputError("missing attachment", source=src, field=f"ligaments.{name}.{key}")
-            ligaments[name] = Ligament(name, [Bundle(point(lig["femur"], f"ligaments.{name}.femur"),
-                                                     point(lig["tibia"], f"ligaments.{name}.tibia"))])
-            if ligaments[name].reference_length < 1e-3:
-                raise InputError("attachments closer than 1 mm", source=src, field=f"ligaments.{name}")
-
-        contact = doc.get("contact", {})
-        gate = number(contact.get("gate", 0.01), src, "contact.gate") * scale
-        if gate <= 0:
-            raise InputError("must be > 0", source=src, field="contact.gate")
-        working_set = contact.get("working_set", 0)
-        if isinstance(working_set, bool) or not isinstance(working_set, int) or working_set < 0:
-            raise InputError(f"must be an integer >= 0 (0: every point), got {working_set!r}", source=src,
-                             field="contact.working_set")
-        compartments = {}
-        for cname, cdoc in contact.items():
-            if cname in ("gate", "working_set"):
-                continue
-            if not isinstance(cdoc, dict):
-                raise InputError("must be a table with 'femur' and 'tibia' meshes", source=src,
-                                 field=f"contact.{cname}")
-            meshes = {}
-            for key in ("femur", "tibia"):
-                if key not in cdoc:
-                    raise InputError("missing mesh file", source=src, field=f"contact.{cname}.{key}")
-                meshes[key] = read_mesh(path.parent / str(cdoc[key]), transform,
-                                        field=f"contact.{cname}.{key}", knee_file=src)
-            center, radius, rms = fit_sphere(meshes["femur"].vertices)
-            if rms > MAX_SPHERE_FIT_RMS:
-                raise InputError(f"femoral cartilage deviates {rms * 1e3:.2f} mm RMS from a sphere "
-                                 "(limit 1 mm); the contact model needs a condyle-like surface",
-                                 source=src, field=f"contact.{cname}.femur")
-            compartments[cname] = Compartment(cname, meshes["femur"], meshes["tibia"], center,
-                                              radius, rms)
-        if not compartments:
-            raise InputError("no compartments ([contact.medial], [contact.lateral])", source=src,
-                             field="contact")
-
-        candidates = []
-        for cname, cdoc in doc.get("candidates", {}).items():
-            fld = f"candidates.{cname}"
-            if cdoc.get("kind") != "bundle":
-                raise InputError(f"unknown candidate kind {cdoc.get('kind')!r}; known: bundle", source=src,
-                                 field=f"{fld}.kind")
-            fem, tib = cdoc.get("femur"), cdoc.get("tibia")
-            if not isinstance(fem, list) or not isinstance(tib, list) or len(fem) != len(tib) or not fem:
-                raise InputError("femur and tibia must be equally long lists of [x, y, z]", source=src, field=fld)
-            fem = [point(v, f"{fld}.femur") for v in fem]
-            tib = [point(v, f"{fld}.tibia") for v in tib]
-            ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / 100.0
-            candidates.append(Ligament(cname, [Bundle(f, t) for f, t in zip(fem, tib, strict=True)], candidate=True,
-                                       defaults={"ref_strain": ref}, description=str(cdoc.get("description", ""))))
-        if isinstance(parameters, ParameterSet):
-            params = parameters
-        elif parameters is not None:
-            params = ParameterSet.load(parameters)
-        elif "parameters" in doc:
-            params = ParameterSet.load(path.parent / str(doc["parameters"]))
-        else:
-            raise InputError("no parameter set: give 'parameters = FILE' or pass one", source=src,
-                             field="parameters")
-        extra = sorted({n.split(".")[0] for n in params.names()} - set(ligaments) - {"contact"})
-        if extra:
-            raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)}",
-                             source=params.source or src, field="ligaments")
-        missing = [f"{n}.{k}" for n in ligaments for k in ("k", "ref_strain", "lin_strain")
-                   if f"{n}.{k}" not in params]
-        if missing:
-            raise InputError(f"parameter set {params.source or params.name} lacks {', '.join(missing)}",
-                             source=src, field="parameters")
-        return cls(name=str(doc.get("name", path.stem)), ligaments=ligaments,
-                   compartments=compartments, tuberosity=landmarks["tibial_tuberosity"],
-                   parameters=params, gate=gate, working_set=working_set, landmarks=landmarks, source=src,
-                   description=str(doc.get("description", "")), candidates=candidates)
+        """Read and validate a knee TOML (or the name of a shipped knee); see module docstring."""
+        if isinstance(path, str) and path in available_knees() and not Path(path).exists():
+            path = knee_file(path)
+        return _KneeFile(Path(path)).knee(parameters)
 
     @property
     def ligament_names(self) -> list[str]:
@@ -221,61 +120,353 @@ class Knee:
 
         return KneeModel(self)
 
+    def working_slots(self, compartment: Compartment) -> int:
+        """Working-set slots of a compartment: the file's ``contact.working_set``, or for mesh
+        contact automatically a third of its tibial points (every solve checks that no point
+        left out penetrates)."""
+        if self.working_set:
+            return self.working_set
+        return 0 if compartment.sphere else int(np.ceil(len(compartment.points) / 3))
+
     def elements(self) -> list[ForceElement]:
         """The knee's force elements: its ligaments, one contact element per compartment and the
         candidate bundles of its file (neutral: stiffness 0)."""
-        contact = [SphereContact(c.name, c.sphere_center, c.sphere_radius, c.points, c.areas, self.gate,
-                                 self.working_set) for c in self.compartments.values()]
-        return [*self.ligaments.values(), *contact, *self.candidates]
+        contact: list[ForceElement] = []
+        for c in self.compartments.values():
+            if c.sphere:
+                contact.append(SphereContact(c.name, c.centre, c.sphere_radius, c.points, c.areas, self.gate,
+                                             self.working_slots(c)))
+            else:
+                contact.append(MeshContact(c.name, self.femur.field, c.points, c.areas, self.gate,
+                                           self.working_slots(c), self.margin, self.femur.mesh.vertices,
+                                           self.femur.offset))
+        menisci = [Meniscus(self.condyle_centres(), self.menisci)] if self.menisci is not None else []
+        return [*self.ligaments.values(), *contact, *menisci, *self.candidates]
 
     def condyle_centres(self) -> list[np.ndarray]:
         """Centre of each femoral condyle (femoral frame, m): where the meniscus springs act."""
-        return [c.sphere_center for c in self.compartments.values()]
+        return [c.centre for c in self.compartments.values()]
 
     def with_parameters(self, parameters: ParameterSet | str | Path) -> Knee:
         """The same geometry with another parameter set."""
         params = parameters if isinstance(parameters, ParameterSet) else ParameterSet.load(parameters)
         return dataclasses.replace(self, parameters=params)
 
+    def report(self) -> str:
+        """How the knee file became this model: frames, splits, fits and surface representations
+        (builds the femoral distance field if it is not built yet)."""
+        lines = [f"knee {self.name!r} ({self.source or 'in memory'})", *self.notes]
+        if self.menisci is not None:
+            lines.append(f"menisci: transverse springs of {self.menisci * 1e-3:g} N/mm per compartment at the "
+                         "condyle centres (part of the base model)")
+        for c in self.compartments.values():
+            what = (f"explicit sphere, radius {c.sphere_radius * 1e3:.1f} mm, centre "
+                    f"({', '.join(f'{v * 1e3:.1f}' for v in c.centre)}) mm" if c.sphere else "femoral mesh surface")
+            lines.append(f"{c.name}: {len(c.points)} tibial points ({c.areas.sum() * 1e6:.0f} mm^2) against the "
+                         f"{what}; working set {self.working_slots(c) or 'all'} points")
+        if self.femur is not None:
+            lines += [self.femur.describe(), field_summary(self.femur.field)]
+        return "\n".join(lines)
 
-class _Transform:
-    """File coordinates -> the model's femoral frame (m): scale, optional rigid transform from
-    scanner coordinates built from ISB landmarks, mirror of a left knee, origin shift."""
 
-    def __init__(self, scale: float, mirror: np.ndarray):
-        self.scale, self.mirror = scale, mirror
-        self.rotation, self.origin, self.shift = np.eye(3), np.zeros(3), np.zeros(3)
-        self.centres: list[np.ndarray] = []
+class _KneeFile:
+    """One knee TOML being read: its document, units and the map into the femoral frame."""
 
-    def from_landmarks(self, lm: dict[str, np.ndarray], side: str, src: str) -> None:
-        """ISB femoral frame (Wu et al. 2002): Y from the epicondyle midpoint to the hip centre,
-        Z along the epicondylar axis orthogonalised to Y, pointing right, X = Y x Z."""
-        need = ("hip_center", "medial_epicondyle", "lateral_epicondyle")
-        missing = [n for n in need if n not in lm]
+    def __init__(self, path: Path):
+        self.path, self.src = path, str(path)
+        self.doc = read_toml(path)
+        doc, src = self.doc, self.src
+        side = doc.get("side", "right")
+        if side not in ("right", "left"):
+            raise InputError(f"must be 'right' or 'left', got {side!r}", source=src, field="side")
+        self.units = doc.get("units", "mm")
+        if self.units not in ("mm", "m"):
+            raise InputError(f"must be 'mm' or 'm', got {self.units!r}", source=src, field="units")
+        self.scale = 1e-3 if self.units == "mm" else 1.0
+        self.mirror = np.array([1.0, 1.0, -1.0 if side == "left" else 1.0])
+        self.coordinates = doc.get("coordinates", "femoral")
+        if self.coordinates not in ("femoral", "scan"):
+            raise InputError(f"must be 'femoral' or 'scan', got {self.coordinates!r}", source=src,
+                             field="coordinates")
+        self.frame = Frame.identity()
+        self.notes: list[str] = []
+
+    # ------------------------------------------------------------------ raw values (scan, m, right knee)
+    def raw_point(self, value: object, fld: str) -> np.ndarray:
+        if not isinstance(value, list) or len(value) != 3:
+            raise InputError(f"expected [x, y, z] in {self.units}, got {value!r}", source=self.src, field=fld)
+        return np.array([number(v, self.src, fld) for v in value]) * self.scale * self.mirror
+
+    def length(self, table: dict, key: str, default_mm: float, fld: str, positive: bool = True) -> float:
+        """A length setting in the file's unit -> m (defaults are given in mm, whatever the unit)."""
+        if key not in table:
+            return default_mm * 1e-3
+        value = number(table[key], self.src, fld) * self.scale
+        if value < 0 or (positive and value == 0):
+            raise InputError(f"must be {'> 0' if positive else '>= 0'}", source=self.src, field=fld)
+        return value
+
+    def mesh(self, value: object, fld: str) -> trimesh.Trimesh:
+        """A mesh named in the file, in scan coordinates (m, mirrored for a left knee)."""
+        return read_mesh(mesh_path(self.path.parent, value, self.src, fld), self.scale, self.mirror,
+                         field=fld, knee_file=self.src)
+
+    def point(self, value: object, fld: str) -> np.ndarray:
+        return self.frame(self.raw_point(value, fld))
+
+    # ------------------------------------------------------------------ the knee
+    def knee(self, parameters) -> Knee:
+        doc, src = self.doc, self.src
+        landmarks_raw = doc.get("landmarks", {})
+        if not isinstance(landmarks_raw, dict):
+            raise InputError("must be a table of [x, y, z] points", source=src, field="landmarks")
+        raw_landmarks = {k: self.raw_point(v, f"landmarks.{k}") for k, v in landmarks_raw.items()}
+        geometry = self.contact(raw_landmarks)
+        landmarks = {k: self.frame(v) for k, v in raw_landmarks.items()}
+        if "tibial_tuberosity" not in landmarks:
+            raise InputError("missing (anterior/posterior loads act there)", source=src,
+                             field="landmarks.tibial_tuberosity")
+        ligaments = self.ligaments()
+        candidates = self.candidates()
+        params = self.parameter_set(parameters, ligaments)
+        contact = doc.get("contact", {})
+        working_set = contact.get("working_set", 0)
+        if isinstance(working_set, bool) or not isinstance(working_set, int) or working_set < 0:
+            raise InputError(f"must be an integer >= 0 (0: automatic), got {working_set!r}", source=src,
+                             field="contact.working_set")
+        return Knee(name=str(doc.get("name", self.path.stem)), ligaments=ligaments,
+                    compartments=geometry["compartments"], tuberosity=landmarks["tibial_tuberosity"],
+                    parameters=params, gate=self.length(contact, "gate", 0.01, "contact.gate"),
+                    working_set=working_set, landmarks=landmarks, source=src,
+                    description=str(doc.get("description", "")), candidates=candidates, femur=geometry["femur"],
+                    axis=geometry["axis"], margin=self.length(contact, "margin", 1.0, "contact.margin"),
+                    menisci=self.menisci(), notes=self.notes)
+
+    def menisci(self) -> float | None:
+        """``[menisci] stiffness`` (N/mm per compartment) -> N/m, or None (menisci not modelled)."""
+        doc = self.doc.get("menisci")
+        if doc is None:
+            return None
+        if not isinstance(doc, dict) or "stiffness" not in doc:
+            raise InputError("must be a table with stiffness (N/mm per compartment)", source=self.src,
+                             field="menisci")
+        k = number(doc["stiffness"], self.src, "menisci.stiffness")
+        if k < 0:
+            raise InputError("must be >= 0", source=self.src, field="menisci.stiffness")
+        return k * 1e3
+
+    def contact(self, raw_landmarks: dict[str, np.ndarray]) -> dict:
+        """Read the articular surfaces, build the femoral frame from them and map everything into it."""
+        src = self.src
+        contact = self.doc.get("contact", {})
+        if not isinstance(contact, dict):
+            raise InputError("must be a table", source=src, field="contact")
+        tables = {k: v for k, v in contact.items() if k not in CONTACT_SETTINGS}
+        for name, table in tables.items():
+            if not isinstance(table, dict):
+                raise InputError(f"unknown setting {name!r}; known: {', '.join(CONTACT_SETTINGS)}, or a "
+                                 "[contact.<compartment>] table", source=src, field=f"contact.{name}")
+            for key in table:
+                if key not in COMPARTMENT_KEYS:
+                    raise InputError(f"unknown key {key!r}; known: {', '.join(COMPARTMENT_KEYS)}", source=src,
+                                     field=f"contact.{name}.{key}")
+        # tibial cartilage, scan coordinates
+        tibiae: dict[str, trimesh.Trimesh] = {}
+        approx = self.approximate_axes(raw_landmarks)
+        if "tibia" in contact:
+            if any("tibia" in t for t in tables.values()):
+                raise InputError("give the tibial cartilage either once for both plateaus or per compartment",
+                                 source=src, field="contact.tibia")
+            whole = self.mesh(contact["tibia"], "contact.tibia")
+            tibiae, _, how = split_tibia(whole, approx[2])
+            self.notes.append(f"tibial cartilage split into plateaus: {how}")
+            unknown = set(tables) - set(tibiae)
+            if unknown:
+                raise InputError(f"compartment {sorted(unknown)[0]!r} has no plateau; the split gives medial, lateral",
+                                 source=src, field="contact")
+        for name, table in tables.items():
+            if "tibia" in table:
+                tibiae[name] = self.mesh(table["tibia"], f"contact.{name}.tibia")
+            elif name not in tibiae:
+                raise InputError("missing mesh file", source=src, field=f"contact.{name}.tibia")
+        if not tibiae:
+            raise InputError("no tibial cartilage: give contact.tibia or [contact.medial] and [contact.lateral]",
+                             source=src, field="contact")
+        # femoral surface and explicit spheres, scan coordinates
+        spheres = {}
+        for name, table in tables.items():
+            if ("sphere_center" in table) != ("sphere_radius" in table):
+                raise InputError("an explicit sphere needs both sphere_center and sphere_radius", source=src,
+                                 field=f"contact.{name}")
+            if "sphere_center" in table:
+                if "femur" in table:
+                    raise InputError("give either a femoral mesh or an explicit sphere", source=src,
+                                     field=f"contact.{name}")
+                radius = self.length(table, "sphere_radius", 0.0, f"contact.{name}.sphere_radius")
+                spheres[name] = (self.raw_point(table["sphere_center"], f"contact.{name}.sphere_center"), radius)
+        femur_parts, sources = [], []
+        if "femur" in contact:
+            femur_parts.append(self.mesh(contact["femur"], "contact.femur"))
+            sources.append(str(contact["femur"]))
+        for name, table in tables.items():
+            if "femur" in table:
+                femur_parts.append(self.mesh(table["femur"], f"contact.{name}.femur"))
+                sources.append(str(table["femur"]))
+        mesh_compartments = [n for n in tibiae if n not in spheres]
+        if mesh_compartments and not femur_parts:
+            raise InputError(f"compartment {mesh_compartments[0]!r} has neither a femoral mesh (contact.femur) "
+                             "nor an explicit sphere (sphere_center, sphere_radius)", source=src, field="contact")
+        femur_raw = trimesh.util.concatenate(femur_parts) if femur_parts else None
+        offset = self.length(contact, "femur_offset", 0.0, "contact.femur_offset", positive=False)
+        # condyle split and flexion axis (scan coordinates), then the frame
+        axis = split = None
+        if femur_raw is not None:
+            cents = {n: m.vertices.mean(axis=0) for n, m in tibiae.items()}
+            if {"medial", "lateral"} <= set(cents):
+                med, lat = cents["medial"], cents["lateral"]
+            else:
+                s = {n: c @ approx[2] for n, c in cents.items()}
+                med, lat = cents[min(s, key=s.get)], cents[max(s, key=s.get)]
+            split = split_condyles(femur_raw, med, lat, approx[1])
+            try:
+                axis = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
+            except (ValueError, np.linalg.LinAlgError, TypeError) as exc:
+                raise InputError(f"cannot fit cylinders to the femoral condyles ({exc})", source=src,
+                                 field="contact.femur") from None
+            self.notes.append(f"femoral condyles split by a {split.describe()}")
+        self.frame = self.build_frame(axis, spheres, raw_landmarks, approx)
+        self.notes.append(f"frame: {self.frame.how}")
+        if axis is not None:
+            axis = axis.mapped(self.frame.rotation, self.frame.origin)
+            self.notes.append(f"flexion axis: {axis.describe(offset)}; "
+                              f"{angle_deg(axis.direction, [0, 0, 1]):.2f} deg from the femoral Z axis, "
+                              f"{np.linalg.norm(np.cross(axis.point, axis.direction)) * 1e3:.2f} mm from the origin")
+        # compartments in the femoral (tibial) frame
+        compartments = {}
+        for name, raw in tibiae.items():
+            mesh = self.frame.mesh(raw)
+            points, areas = tibial_samples(mesh)
+            if name in spheres:
+                centre, radius = self.frame(spheres[name][0]), spheres[name][1]
+            else:
+                centre, radius = self.condyle_centre(axis, points), None
+            compartments[name] = Compartment(name, mesh, points, areas, centre, radius)
+        femur = None
+        if femur_raw is not None and mesh_compartments:
+            fmesh = self.frame.mesh(femur_raw)
+            pts = np.vstack([compartments[n].points for n in mesh_compartments])
+            spacing = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing")
+            femur = FemoralSurface(fmesh, offset, spacing, femoral_box(fmesh, pts, axis), sources)
+        return {"compartments": compartments, "femur": femur, "axis": axis}
+
+    def approximate_axes(self, raw_landmarks: dict[str, np.ndarray]) -> np.ndarray:
+        """Anterior, proximal and lateral directions of the scan (rows), good enough to choose the
+        regions the fits use: from the ISB landmarks when the file has them, else the scan's axes."""
+        if self.coordinates == "scan" and {"hip_center", "medial_epicondyle", "lateral_epicondyle"} <= set(raw_landmarks):
+            return landmark_axes(raw_landmarks, self.src)
+        return np.eye(3)
+
+    def build_frame(self, axis: FlexionAxis | None, spheres: dict, raw_landmarks: dict, approx: np.ndarray) -> Frame:
+        if self.coordinates == "femoral":
+            if "frame" in self.doc:
+                raise InputError("only with coordinates = 'scan'", source=self.src, field="frame")
+            return Frame.identity()
+        method = self.doc.get("frame", "cylinders" if axis is not None else "landmarks")
+        if method not in FRAME_METHODS:
+            raise InputError(f"must be one of {', '.join(FRAME_METHODS)}, got {method!r}", source=self.src,
+                             field="frame")
+        if method == "cylinders":
+            if axis is None:
+                raise InputError("frame = 'cylinders' needs a femoral mesh (contact.femur)", source=self.src,
+                                 field="frame")
+            hip = raw_landmarks.get("hip_center")
+            up = hip - axis.point if hip is not None else approx[1]
+            rotation = axes_from_flexion(axis.direction, up)
+            why = "hip centre" if hip is not None else "the scan's proximal axis (no landmarks.hip_center)"
+            return Frame(rotation, axis.point,
+                         f"cylinders: Z = flexion axis, origin = knee centre (midpoint of the cylinder centres), "
+                         f"Y towards the {why}; femoral axes in scan coordinates X "
+                         f"({', '.join(f'{v:.3f}' for v in rotation[0])}), Y "
+                         f"({', '.join(f'{v:.3f}' for v in rotation[1])}), Z "
+                         f"({', '.join(f'{v:.3f}' for v in rotation[2])})")
+        rotation = landmark_axes(raw_landmarks, self.src)
+        centres = [c for c, _ in spheres.values()] if axis is None else [axis.medial.centre, axis.lateral.centre]
+        origin = np.mean(centres, axis=0)
+        return Frame(rotation, origin, "landmarks (ISB: hip centre and epicondyles), origin at the midpoint of "
+                                       f"the condyle centres; flexion axis {'fitted' if axis else 'not fitted'}")
+
+    @staticmethod
+    def condyle_centre(axis: FlexionAxis | None, points: np.ndarray) -> np.ndarray:
+        """The cylinder centre of the condyle on the side of the plateau ``points``."""
+        if axis is None:
+            return np.array([0.0, 0.0, np.sign(points[:, 2].mean()) * 0.02])
+        side = (points.mean(axis=0) - axis.point) @ axis.direction
+        return axis.lateral.centre if side >= 0 else axis.medial.centre
+
+    def ligaments(self) -> dict[str, Ligament]:
+        src = self.src
+        ligs_doc = self.doc.get("ligaments")
+        if not isinstance(ligs_doc, dict) or not ligs_doc:
+            raise InputError("missing table [ligaments.<NAME>]", source=src, field="ligaments")
+        ligaments = {}
+        for name, lig in ligs_doc.items():
+            if not isinstance(lig, dict):
+                raise InputError("must be a table with femur and tibia attachments", source=src,
+                                 field=f"ligaments.{name}")
+            for key in ("femur", "tibia"):
+                if key not in lig:
+                    raise InputError("missing attachment", source=src, field=f"ligaments.{name}.{key}")
+            ligaments[name] = Ligament(name, [Bundle(self.point(lig["femur"], f"ligaments.{name}.femur"),
+                                                     self.point(lig["tibia"], f"ligaments.{name}.tibia"))])
+            if ligaments[name].reference_length < 1e-3:
+                raise InputError("attachments closer than 1 mm", source=src, field=f"ligaments.{name}")
+        return ligaments
+
+    def candidates(self) -> list[Ligament]:
+        src = self.src
+        out = []
+        for cname, cdoc in self.doc.get("candidates", {}).items():
+            fld = f"candidates.{cname}"
+            if not isinstance(cdoc, dict):
+                raise InputError("must be a table with kind, femur and tibia", source=src, field=fld)
+            if cdoc.get("kind") != "bundle":
+                raise InputError(f"unknown candidate kind {cdoc.get('kind')!r}; known: bundle", source=src,
+                                 field=f"{fld}.kind")
+            fem, tib = cdoc.get("femur"), cdoc.get("tibia")
+            if not isinstance(fem, list) or not isinstance(tib, list) or len(fem) != len(tib) or not fem:
+                raise InputError("femur and tibia must be equally long lists of [x, y, z]", source=src, field=fld)
+            fem = [self.point(v, f"{fld}.femur") for v in fem]
+            tib = [self.point(v, f"{fld}.tibia") for v in tib]
+            ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / 100.0
+            out.append(Ligament(cname, [Bundle(f, t) for f, t in zip(fem, tib, strict=True)], candidate=True,
+                                defaults={"ref_strain": ref}, description=str(cdoc.get("description", ""))))
+        return out
+
+    def parameter_set(self, parameters, ligaments: dict[str, Ligament]) -> ParameterSet:
+        src = self.src
+        if isinstance(parameters, ParameterSet):
+            params = parameters
+        elif parameters is not None:
+            params = ParameterSet.load(parameters)
+        elif "parameters" in self.doc:
+            params = ParameterSet.load(self.path.parent / str(self.doc["parameters"]))
+        else:
+            raise InputError("no parameter set: give 'parameters = FILE' or pass one", source=src,
+                             field="parameters")
+        extra = sorted({n.split(".")[0] for n in params.names()} - set(ligaments) - {"contact"})
+        if extra:
+            raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)}",
+                             source=params.source or src, field="ligaments")
+        missing = [f"{n}.{k}" for n in ligaments for k in ("k", "ref_strain", "lin_strain")
+                   if f"{n}.{k}" not in params]
         if missing:
-            raise InputError(f"coordinates = 'scan' needs landmarks {', '.join(missing)}", source=src,
-                             field="landmarks")
-        mid = (lm["medial_epicondyle"] + lm["lateral_epicondyle"]) / 2
-        y = lm["hip_center"] - mid
-        z = lm["lateral_epicondyle"] - lm["medial_epicondyle"]
-        if side == "left":
-            z = -z  # ISB Z points right; the mirror below turns the lateral side to +Z
-        y = y / np.linalg.norm(y)
-        z = z - (z @ y) * y
-        if np.linalg.norm(z) < 1e-9:
-            raise InputError("epicondyles on the hip-knee line: frame undefined", source=src, field="landmarks")
-        z = z / np.linalg.norm(z)
-        self.rotation = np.vstack([np.cross(y, z), y, z])
-        self.origin = mid * self.scale
-
-    def __call__(self, p: np.ndarray) -> np.ndarray:
-        pts = np.atleast_2d(np.asarray(p, float))
-        out = (self.rotation @ (pts.T * self.scale - self.origin[:, None])).T * self.mirror - self.shift
-        return out[0] if np.ndim(p) == 1 else out
+            raise InputError(f"parameter set {params.source or params.name} lacks {', '.join(missing)}",
+                             source=src, field="parameters")
+        return params
 
 
-def read_mesh(path: Path, transform: _Transform, *, field: str, knee_file: str) -> trimesh.Trimesh:
-    """Load a cartilage mesh with trimesh, validate it and convert it to the femoral frame (m)."""
+def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_file: str) -> trimesh.Trimesh:
+    """Load a mesh with trimesh, validate it and convert it to metres (mirrored for a left knee)."""
     if not path.is_file():
         raise InputError(f"mesh file not found: {path}", source=knee_file, field=field)
     try:
@@ -288,14 +479,7 @@ def read_mesh(path: Path, transform: _Transform, *, field: str, knee_file: str) 
     if not np.all(np.isfinite(mesh.vertices)):
         raise InputError(f"mesh {path.name} has non-finite vertices", source=knee_file, field=field)
     mesh = mesh.copy()
-    mesh.vertices = transform(mesh.vertices)
-    if transform.mirror[2] < 0:
+    mesh.vertices = np.asarray(mesh.vertices, float) * scale * mirror
+    if mirror[2] < 0:
         mesh.invert()  # keep the face orientation after mirroring
     return mesh
-
-
-def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """Least-squares sphere through ``points``: (centre, radius, RMS radial deviation)."""
-    center, radius, _ = trimesh.nsphere.fit_nsphere(np.asarray(points, dtype=float))
-    dev = np.linalg.norm(points - center, axis=1) - radius
-    return np.asarray(center, dtype=float), float(radius), float(np.sqrt(np.mean(dev**2)))

@@ -48,7 +48,8 @@ class KneeModel:
 
     def __init__(self, knee: Knee, extra_elements: list[ForceElement] | None = None):
         self.knee = knee
-        self.elements: list[ForceElement] = [*knee.elements(), *builtin_elements(knee.condyle_centres()),
+        self.elements: list[ForceElement] = [*knee.elements(),
+                                             *builtin_elements(knee.condyle_centres(), knee.menisci is None),
                                              *(extra_elements or [])]
         names = [e.name for e in self.elements]
         dup = sorted({n for n in names if names.count(n) > 1})
@@ -90,8 +91,11 @@ class KneeModel:
         kin = ca.Function("probes", [q, flexion, theta], probes)
         stage_f = [ca.SX.sym(f"{e.name}_force", 3) for e in staged]
         stage_m = [ca.SX.sym(f"{e.name}_moment", 3) for e in staged]
-        force = sum((R @ f for f in stage_f), ca.SX.zeros(3))
-        moment = sum((R @ m for m in stage_m), ca.SX.zeros(3))
+        # staged wrenches arrive in the element's frame: tibial ones are rotated into the femoral
+        force = sum((R @ f if e.wrench_frame == "tibial" else f for e, f in zip(staged, stage_f, strict=True)),
+                    ca.SX.zeros(3))
+        moment = sum((R @ m if e.wrench_frame == "tibial" else m for e, m in zip(staged, stage_m, strict=True)),
+                     ca.SX.zeros(3))
         for e in plain:
             f_e, m_e = e.wrench(pose, values)
             force += f_e
@@ -108,7 +112,7 @@ class KneeModel:
 
         self.pose = ca.Function("pose", [q, flexion, theta], [R, p], ["q", "flexion", "theta"], ["R", "p"])
         self.staged = staged
-        sizes = [4 * e.n_working for e in staged]
+        sizes = [e.ws_width * e.n_working for e in staged]
         self.ws_slices = [slice(a, a + s) for a, s in zip(np.cumsum([0, *sizes[:-1]]), sizes, strict=True)]
         self.ws_size = int(sum(sizes))
 
@@ -117,12 +121,13 @@ class KneeModel:
         wsm = ca.MX.sym("ws", self.ws_size)
         pr = kin(qm, flexm, thetam) if staged else []
         pr = [pr] if isinstance(pr, ca.MX) else list(pr)
-        fm = [e.surface(probes[j].numel())(pr[j], wsm[self.ws_slices[j]]) for j, e in enumerate(staged)]
-        res, out_plain = balance(qm, flexm, thetam, loadm, *[f for f, _ in fm], *[m for _, m in fm])
+        fm = [e.surface(probes[j].numel()).call([pr[j], wsm[self.ws_slices[j]]]) for j, e in enumerate(staged)]
+        res, out_plain = balance(qm, flexm, thetam, loadm, *[o[0] for o in fm], *[o[1] for o in fm])
         names_in = ["q", "theta", "load", "flexion", "ws"]
         self.residual = ca.Function("residual", [qm, thetam, loadm, flexm, wsm], [res], names_in, ["r"])
         # outputs for tables, in the order of :attr:`outputs`
-        out_staged = {e.name: e.report(pr_j, f) for e, pr_j, (f, _) in zip(staged, pr, fm, strict=True)}
+        out_staged = {e.name: e.surface(probes[j].numel(), True).call([pr[j], wsm[self.ws_slices[j]]])[2:]
+                      for j, e in enumerate(staged)}
         k = 0
         columns = []
         for e in self.elements:
@@ -135,11 +140,15 @@ class KneeModel:
         self.details = ca.Function("details", [qm, thetam, loadm, flexm, wsm],
                                    [res, ca.vertcat(*columns) if columns else ca.MX(0, 1)], names_in,
                                    ["r", "outputs"])
+        ws_of_pose = self.working_sets_function(1)(qm, thetam, flexm) if self.ws_size else ca.MX(0, 1)
+        self.equilibrium = ca.Function("equilibrium", [qm, thetam, loadm, flexm],
+                                       [self.residual(qm, thetam, loadm, flexm, ws_of_pose)],
+                                       ["q", "theta", "load", "flexion"], ["r"])
 
     # ------------------------------------------------------------------ working sets
     def working_set(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> tuple[list[np.ndarray], np.ndarray]:
         """The contact working sets at a pose: for every staged element with a working set, the
-        indices of its ``n_working`` points of smallest clearance, and the packed ``ws`` input of
+        indices of its chosen points (:meth:`StagedElement.select`) and the packed ``ws`` input of
         the model's functions (empty when no element uses working sets)."""
         if not self.ws_size:
             return [], np.zeros(0)
@@ -148,9 +157,9 @@ class KneeModel:
         indices, packed = [], []
         for e in self.staged:
             if e.n_working:
-                idx = np.sort(np.argpartition(e.clearance(R, p, values), e.n_working - 1)[: e.n_working])
+                idx = e.select(R, p, values)
                 indices.append(idx)
-                packed.append(e.pack(idx))
+                packed.append(e.pack(idx, R, p, values))
         return indices, np.concatenate(packed)
 
     def left_out_penetration(self, q: np.ndarray, theta: np.ndarray, flexion: float,
@@ -167,6 +176,16 @@ class KneeModel:
             gap[idx] = np.inf
             worst = max(worst, float(-gap.min()))
         return worst
+
+    def working_sets_function(self, n_trials: int) -> ca.Function:
+        """The working sets of ``n_trials`` poses as a CasADi function with zero derivative
+        (:class:`~kneenlp.model.workingsets.WorkingSets`), built once per number of trials."""
+        key = ("working_sets", n_trials)
+        if key not in self.solvers:
+            from kneenlp.model.workingsets import WorkingSets
+
+            self.solvers[key] = WorkingSets(self, n_trials, f"working_sets_{n_trials}")
+        return self.solvers[key]
 
     def evaluate(self, q: np.ndarray, theta: np.ndarray, load: np.ndarray, flexion: float) -> np.ndarray:
         """The equilibrium residual (5) at a pose with the working sets of that pose (numeric)."""
@@ -238,13 +257,9 @@ class KneeModel:
             raise unknown_name("parameter", name, self.parameter_names) from None
 
     @cached_property
-    def residual_jacobian(self) -> ca.Function:
-        """``(q, theta, load, flexion, ws) -> dr/dq`` (5 x 5)."""
-        return self.residual.factory("residual_jac", ["q", "theta", "load", "flexion", "ws"], ["jac:r:q"])
-
-    @cached_property
     def jacobians(self) -> ca.Function:
-        """``(q, theta, load, flexion, ws) -> (dr/dq, dr/dtheta)``: the implicit-function sensitivities."""
+        """``(q, theta, load, flexion, ws) -> (dr/dq, dr/dtheta)`` with the working sets ``ws`` of
+        the pose ``q`` (:meth:`working_set`): the implicit-function sensitivities."""
         return self.residual.factory("jac_q_theta", ["q", "theta", "load", "flexion", "ws"],
                                      ["jac:r:q", "jac:r:theta"])
 

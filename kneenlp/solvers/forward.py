@@ -1,8 +1,9 @@
-"""Forward laxity simulation: solve each trial's static equilibrium with a CasADi rootfinder.
+"""Forward laxity simulation: solve each trial's static equilibrium.
 
 Strategy per trial (all with the model's one residual function):
 
-1. Newton (CasADi ``newton`` rootfinder with line search) from a warm start: the solution of the
+1. Newton (:mod:`kneenlp.solvers.newton`: damped, affine-invariant step control, the contact
+   working sets retaken at every iterate) from a warm start: the solution of the
    previous trial at the same flexion, else the no-load pose at that flexion, else the cold start
    (tibia 0.3 mm proximal of the reference pose, i.e. slightly penetrated, so that contact has
    stiffness from the first iteration);
@@ -20,13 +21,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import casadi as ca
 import numpy as np
 
 from kneenlp.conventions import POSE_ENVELOPE_USER, TO_USER
 from kneenlp.experiment.protocol import Trial
 from kneenlp.model.elements import StagedElement
 from kneenlp.model.kneemodel import KneeModel
+from kneenlp.solvers.newton import EquilibriumNewton
 
 COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m: slightly penetrated
 #: Largest |coordinate| of a plausible knee pose (rad, rad, m, m, m).
@@ -50,76 +51,54 @@ class TrialSolution:
 class ForwardSolver:
     """Per-trial equilibrium solver for one model; the rootfinder is built once."""
 
-    def __init__(self, model: KneeModel, tol: float = 1e-6, max_iter: int = 50):
+    def __init__(self, model: KneeModel, tol: float = 1e-6, max_iter: int = 60):
         self.model = model
         self.tol = tol
-        q = ca.MX.sym("q", 5)
-        n = len(model.parameter_names)
-        par = ca.MX.sym("par", n + 7 + model.ws_size)
-        r = model.residual(q, par[:n], par[n : n + 6], par[n + 6], par[n + 7 :])
-        g = ca.Function("equilibrium", [q, par], [r])
-        opts = {"abstol": min(tol * 1e-3, 1e-9), "abstolStep": 1e-16, "max_iter": max_iter,
-                "error_on_fail": False, "line_search": True}
-        self.rootfinder = ca.rootfinder("forward", "newton", g, opts)
-        self.eval_residual = g
-        self._batch: dict[int, tuple[ca.Function, ca.Function]] = {}
+        self.max_iter = max_iter
+        self.newton = EquilibriumNewton(model)
         self._contact_columns = [o.column for e, o in model.outputs
                                  if isinstance(e, StagedElement) and o.name == "force"]
 
     def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Newton on all trials in one mapped CasADi call (fast path for repeated solves).
+        """Newton on all trials at once (one mapped CasADi call per iteration; the fast path for
+        repeated solves).
 
         Returns poses (T x 5, SI) and each trial's largest residual; trials above ``tol`` are
         retried one by one with :meth:`solve_trial` (load ramping) before being returned.
         """
-        n = len(trials)
-        fns = self._batch.get(n)
-        if fns is None:
-            fns = (self.rootfinder.map(n), self.eval_residual.map(n))
-            self._batch[n] = fns
         q0 = np.asarray(q0, dtype=float)
-        par = np.column_stack([self._par(theta, t.load, t.flexion, q0[i]) for i, t in enumerate(trials)])
-        q = np.asarray(fns[0](q0.T, par)).T
-        if self.model.ws_size:  # the residual with the working sets of the solution
-            par = np.column_stack([self._par(theta, t.load, t.flexion, q[i]) for i, t in enumerate(trials)])
-        res = np.max(np.abs(np.asarray(fns[1](q.T, par))), axis=0)
-        res[~np.isfinite(res)] = np.inf
+        out = self.newton.solve(q0, theta, np.array([t.load for t in trials]), np.array([t.flexion for t in trials]),
+                                self.tol, self.max_iter)
+        q = out.q
+        res = np.array([self.residual_norm(q[i], theta, t) if out.residual[i] <= self.tol else out.residual[i]
+                        for i, t in enumerate(trials)]) if self.model.ws_size else out.residual
         for i in np.flatnonzero(~(res <= self.tol)):
             sol = self.solve_trial(trials[i], theta, q0[i], None)
             if sol.max_residual < res[i]:
                 q[i], res[i] = sol.q, sol.max_residual
         return q, res
 
-    def _par(self, theta: np.ndarray, load: np.ndarray, flexion: float, q_ws: np.ndarray | None = None) -> np.ndarray:
-        """Rootfinder parameters; the contact working sets are those of pose ``q_ws``."""
-        ws = self.model.working_set(q_ws, theta, flexion)[1] if self.model.ws_size else np.zeros(0)
-        return np.concatenate([theta, load, [flexion], ws])
-
     def residual_norm(self, q: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0) -> float:
-        """Largest residual at pose ``q`` (N or N m), with the working sets of ``q`` itself; inf if
-        a sample point outside them penetrates (the working sets are then too small)."""
+        """Largest equilibrium residual at pose ``q`` (N or N m), with the working sets of ``q``
+        itself; inf if a contact point left out of them penetrates (too few working-set slots, or
+        contact outside the represented femoral surface)."""
+        if not np.all(np.isfinite(q)):
+            return np.inf
         if self.model.ws_size:
             idx, _ = self.model.working_set(q, theta, trial.flexion)
             if self.model.left_out_penetration(q, theta, trial.flexion, idx) > 0:
                 return np.inf
-        r = self.eval_residual(q, self._par(theta, scale * trial.load, trial.flexion, q))
-        val = float(np.max(np.abs(np.asarray(r))))
+        r = self.model.evaluate(q, theta, scale * trial.load, trial.flexion)
+        val = float(np.max(np.abs(r)))
         return val if np.isfinite(val) else np.inf
 
     def _newton(self, q0: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0):
-        """Newton from ``q0`` with the working sets of ``q0``; while a point left out of them
-        penetrates at the solution, again from the solution with its own working sets."""
-        q_ws = q0
-        for _ in range(4):
-            q = np.asarray(self.rootfinder(q0, self._par(theta, scale * trial.load, trial.flexion, q_ws))).ravel()
-            if not np.all(np.isfinite(q)):
-                return q, np.inf
-            if not self.model.ws_size:
-                break
-            idx, _ = self.model.working_set(q_ws, theta, trial.flexion)
-            if self.model.left_out_penetration(q, theta, trial.flexion, idx) <= 0:
-                break
-            q0 = q_ws = q
+        """Newton from ``q0``: the pose and its residual (:meth:`residual_norm`)."""
+        out = self.newton.solve(np.asarray(q0, float)[None, :], theta, scale * trial.load[None, :],
+                                np.array([trial.flexion]), self.tol, self.max_iter)
+        q = out.q[0]
+        if not out.residual[0] <= self.tol:
+            return q, float(out.residual[0])
         return q, self.residual_norm(q, theta, trial, scale)
 
     def solve_trial(self, trial: Trial, theta: np.ndarray, q0: np.ndarray | None = None,

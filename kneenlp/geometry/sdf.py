@@ -1,0 +1,236 @@
+"""A smooth signed-distance field of a surface: a narrow band on a grid, as a tricubic B-spline.
+
+The femoral articular surface enters the contact model through its signed distance ``d(x)``
+(metres, negative inside the femur).  :class:`DistanceField` stores the exact distance to a mesh
+(optionally to its outward offset ``{x : d_mesh(x) = offset}``, e.g. subchondral bone plus the
+cartilage thickness, which needs no offset mesh that could fold) at the nodes of a regular grid,
+clipped to the band ``-depth <= d <= band``, and interpolates it with a cubic B-spline
+(``scipy.ndimage.spline_filter`` coefficients): C2 everywhere, so Newton and exact-Hessian IPOPT
+see continuous first and second derivatives.  Its error against the exact distance is measured
+when it is built (:attr:`DistanceField.info`) and reported with the knee.
+
+Evaluation is NumPy (:meth:`DistanceField.evaluate`: value, gradient and Hessian at many points
+at once); the contact element expands it to second order around each contact point's current
+position (:mod:`kneenlp.model.mesh_contact`).  Outside the grid and more than ``band`` outside
+the surface the field is the constant ``band`` (no contact).
+
+Build once per surface and keep: :func:`cached_field` stores fields on disk keyed by a hash of the
+mesh and the settings (``$KNEENLP_CACHE`` or the user cache directory).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.ndimage import map_coordinates, spline_filter
+from scipy.spatial import cKDTree
+
+from kneenlp.geometry.distance import MeshDistance
+
+#: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
+FORMAT_VERSION = 1
+
+
+def _weights(t: np.ndarray, order: int) -> np.ndarray:
+    """Cubic B-spline weights of the 4 nodes around fractional position ``t`` (N,) and their first
+    or second derivatives with respect to ``t``: (N, 4)."""
+    s = 1.0 - t
+    if order == 0:
+        return np.stack([s**3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3], axis=1) / 6
+    if order == 1:
+        return np.stack([-(s**2), 3 * t**2 - 4 * t, -3 * t**2 + 2 * t + 1, t**2], axis=1) / 2
+    return np.stack([s, 3 * t - 2, 1 - 3 * t, t], axis=1)
+
+
+@dataclass
+class DistanceField:
+    """Tricubic B-spline of a clipped signed distance on the grid ``origin + spacing * (i, j, k)``
+    (metres, in the frame of the mesh it was built from)."""
+
+    origin: np.ndarray
+    spacing: float
+    coeffs: np.ndarray  # (nx, ny, nz) B-spline coefficients, m
+    band: float  # clip outside the surface, m
+    depth: float  # clip inside the surface, m
+    info: dict = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(int(s) for s in self.coeffs.shape)
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """Box (2 x 3, m) in which the field is evaluated (one node inside the outer layer)."""
+        lo = self.origin + self.spacing
+        return np.array([lo, self.origin + self.spacing * (np.array(self.shape) - 2)])
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_mesh(cls, mesh: trimesh.Trimesh, box: np.ndarray, *, spacing: float = 5e-4, offset: float = 0.0,
+                  band: float = 1.5e-3, depth: float = 2.5e-3, n_check: int = 4000,
+                  rng_seed: int = 0) -> DistanceField:
+        """Build from a triangle mesh with outward normals (metres).
+
+        ``box`` (2 x 3, m) is the region to represent (padded here by the spline's support);
+        ``offset`` (m) moves the represented surface outward (``d = d_mesh - offset``).  Exact
+        distances are computed for the nodes that can lie within the band; the others take the
+        clip value with the sign of their nearest vertex normal.  The field is then checked
+        against exact distances at ``n_check`` random points within ``band`` of the surface
+        inside ``box`` (``info['error_rms']``, ``info['error_max']``, m).
+        """
+        t0 = time.perf_counter()
+        lo = np.asarray(box[0], float) - 3 * spacing
+        hi = np.asarray(box[1], float) + 3 * spacing
+        shape = tuple(int(np.ceil((hi[i] - lo[i]) / spacing)) + 1 for i in range(3))
+        axes = [lo[i] + spacing * np.arange(shape[i]) for i in range(3)]
+        nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        exact = MeshDistance(mesh)
+        # nearest-sample distance bounds the true distance within one facet radius
+        samples = np.vstack([mesh.vertices, mesh.triangles_center])
+        facet = float(np.percentile(np.linalg.norm(mesh.triangles - mesh.triangles_center[:, None], axis=2), 99.9))
+        reach = offset + max(band, depth) + facet + 2 * spacing
+        approx, nearest = cKDTree(samples).query(nodes, 1, distance_upper_bound=reach)
+        near = np.isfinite(approx) & (approx >= offset - depth - facet - 2 * spacing)
+        d = np.empty(len(nodes))
+        far = np.flatnonzero(~near)
+        dv, iv = cKDTree(mesh.vertices).query(nodes[far], 1)
+        outward = np.einsum("ij,ij->i", nodes[far] - mesh.vertices[iv], mesh.vertex_normals[iv]) >= 0
+        d[far] = np.where(outward, band, -depth)
+        d[near] = exact(nodes[near], certify=False)[0] - offset
+        values = np.clip(d, -depth, band).reshape(shape)
+        # float32 coefficients, as stored: a field built now and one read from the cache are identical
+        coeffs = spline_filter(values, order=3, mode="mirror").astype(np.float32).astype(np.float64)
+        out = cls(lo, float(spacing), coeffs, float(band), float(depth))
+        t1 = time.perf_counter()
+        # accuracy: random points on the represented surface moved along its normal within the band
+        rng = np.random.default_rng(rng_seed)
+        pts, face = trimesh.sample.sample_surface(mesh, 4 * n_check, seed=rng_seed)
+        inside = np.all((pts >= box[0]) & (pts <= box[1]), axis=1)
+        pts, face = pts[inside][:n_check], face[inside][:n_check]
+        test = pts + mesh.face_normals[face] * (offset + rng.uniform(-0.6 * depth, 0.6 * band, (len(pts), 1)))
+        d_exact = exact(test)[0] - offset
+        keep = (d_exact > -0.6 * depth) & (d_exact < 0.6 * band) & np.all((test >= box[0]) & (test <= box[1]), axis=1)
+        err = out.evaluate(test[keep])[0] - d_exact[keep]
+        out.info = {"nodes": int(np.prod(shape)), "exact_nodes": int(near.sum()), "spacing_mm": spacing * 1e3,
+                    "offset_mm": offset * 1e3, "band_mm": band * 1e3, "depth_mm": depth * 1e3,
+                    "error_rms_um": float(np.sqrt(np.mean(err**2)) * 1e6) if err.size else float("nan"),
+                    "error_max_um": float(np.max(np.abs(err)) * 1e6) if err.size else float("nan"),
+                    "checked_points": int(err.size), "build_seconds": t1 - t0,
+                    "check_seconds": time.perf_counter() - t1, "megabytes": coeffs.nbytes / 1e6}
+        return out
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, points: np.ndarray, order: int = 0):
+        """Signed distance (N,) at ``points`` (N x 3, m); with ``order`` >= 1 also the gradient
+        (N x 3), with ``order`` 2 also the Hessian (N x 3 x 3).  Points outside the grid get
+        ``band`` with zero derivatives."""
+        x = np.asarray(points, dtype=float).reshape(-1, 3)
+        n = len(x)
+        u = (x - self.origin) / self.spacing
+        i0 = np.floor(u).astype(np.int64)
+        ok = np.all((i0 >= 1) & (i0 <= np.array(self.shape) - 3), axis=1)
+        d = np.full(n, self.band)
+        if order == 0:
+            if np.any(ok):
+                d[ok] = map_coordinates(self.coeffs, u[ok].T, order=3, prefilter=False)
+            return d, None, None
+        grad, hess = np.zeros((n, 3)), (np.zeros((n, 3, 3)) if order >= 2 else None)
+        if not np.any(ok):
+            return d, grad, hess
+        t = u[ok] - i0[ok]
+        strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1])
+        off = np.arange(-1, 3)
+        patch = (off[:, None, None] * strides[0] + off[None, :, None] * strides[1] + off[None, None, :]).ravel()
+        c = self.coeffs.reshape(-1)[(i0[ok] @ strides)[:, None] + patch].reshape(-1, 4, 4, 4)
+        w = [[_weights(t[:, a], k) for k in range(order + 1)] for a in range(3)]
+        cz = [np.einsum("nijk,nk->nij", c, w[2][k]) for k in range(order + 1)]
+        val = {}
+        for kz in range(order + 1):
+            for ky in range(order + 1 - kz):
+                cyz = np.einsum("nij,nj->ni", cz[kz], w[1][ky])
+                for kx in range(order + 1 - kz - ky):
+                    val[kx, ky, kz] = np.einsum("ni,ni->n", cyz, w[0][kx]) / self.spacing ** (kx + ky + kz)
+        d[ok] = val[0, 0, 0]
+        grad[ok] = np.stack([val[1, 0, 0], val[0, 1, 0], val[0, 0, 1]], axis=1)
+        if order >= 2:
+            hh = np.empty((int(ok.sum()), 3, 3))
+            for a in range(3):
+                for b in range(a, 3):
+                    k = [0, 0, 0]
+                    k[a] += 1
+                    k[b] += 1
+                    hh[:, a, b] = hh[:, b, a] = val[tuple(k)]
+            hess[ok] = hh
+        return d, grad, hess
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | Path) -> None:
+        """Write to a compressed ``.npz`` atomically (coefficients as float32: 1e-7 relative)."""
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
+        try:
+            np.savez_compressed(tmp, origin=self.origin, spacing=self.spacing, coeffs=self.coeffs.astype(np.float32),
+                                band=self.band, depth=self.depth, info=json.dumps(self.info))
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    @classmethod
+    def load(cls, path: str | Path) -> DistanceField:
+        with np.load(path) as z:
+            return cls(np.asarray(z["origin"], float), float(z["spacing"]), np.asarray(z["coeffs"], np.float64),
+                       float(z["band"]), float(z["depth"]), json.loads(str(z["info"])))
+
+
+def cache_dir() -> Path | None:
+    """Where built fields are kept: ``$KNEENLP_CACHE``, else ``$XDG_CACHE_HOME/kneenlp``, else
+    ``~/.cache/kneenlp``; ``None`` if it cannot be created (fields are then rebuilt each time)."""
+    env = os.environ.get("KNEENLP_CACHE")
+    base = Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "kneenlp"
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    return base if os.access(base, os.W_OK) else None
+
+
+def field_key(mesh: trimesh.Trimesh, box: np.ndarray, **settings: float) -> str:
+    """Hash of everything a field depends on: vertices, faces, box and settings."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    h.update(np.round(np.asarray(box, float), 9).tobytes())
+    h.update(json.dumps({**settings, "version": FORMAT_VERSION}, sort_keys=True).encode())
+    return h.hexdigest()[:24]
+
+
+def cached_field(mesh: trimesh.Trimesh, box: np.ndarray, progress=None, **settings: float) -> DistanceField:
+    """:meth:`DistanceField.from_mesh`, read from the cache when an identical field was built
+    before; ``progress`` (callable taking a message) is told when a build starts."""
+    key = field_key(mesh, box, **settings)
+    where = cache_dir()
+    path = where / f"field-{key}.npz" if where else None
+    if path is not None and path.is_file():
+        try:
+            out = DistanceField.load(path)
+            out.info["cached"] = str(path)
+            return out
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged entry is rebuilt
+    if progress is not None:
+        progress("building the femoral distance field (once per surface; cached)")
+    out = DistanceField.from_mesh(mesh, box, **settings)
+    if path is not None:
+        try:
+            out.save(path)
+            out.info["cached"] = str(path)
+        except OSError:
+            pass
+    return out

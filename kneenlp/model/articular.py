@@ -1,0 +1,139 @@
+"""The articular surfaces of a knee file: tibial compartments and the femoral surface.
+
+The ``[contact]`` table of a knee file (lengths in the file's unit) names::
+
+    [contact]
+    femur = "femur.stl"          # femoral articular surface, both condyles in one mesh ...
+    femur_offset = 2.0           # ... or the bone under it, the articular surface this far outside
+    tibia = "tibia.stl"          # tibial cartilage of both plateaus: split automatically ...
+    [contact.medial]             # ... or one table per compartment
+    tibia = "tibia_medial.stl"
+    femur = "femur_medial.stl"   # optional: femoral meshes of all compartments form one surface
+    sphere_center = [0, 0, -21]  # an explicit analytic sphere instead of the femoral mesh
+    sphere_radius = 22.0
+
+plus ``gate`` (width of the contact gate), ``margin`` (gap below which a tibial point enters a
+working set), ``working_set`` (slots per compartment and trial, 0: automatic) and
+``grid_spacing`` (of the femoral distance field).  A sphere is only ever used where the file
+asks for one; a femoral mesh is always represented as itself (:mod:`kneenlp.model.mesh_contact`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from kneenlp.errors import InputError
+from kneenlp.geometry.axes import CondyleSplit, FlexionAxis, split_plateaus, touchable_box
+from kneenlp.geometry.distance import vertex_areas
+from kneenlp.geometry.sdf import DistanceField, cached_field
+
+log = logging.getLogger("kneenlp")
+
+#: Keys of the ``[contact]`` table that are settings, not compartments.
+CONTACT_SETTINGS = ("gate", "margin", "working_set", "grid_spacing", "femur", "femur_offset", "tibia")
+#: Keys of a ``[contact.<compartment>]`` table.
+COMPARTMENT_KEYS = ("tibia", "femur", "sphere_center", "sphere_radius")
+
+
+@dataclass(frozen=True)
+class Compartment:
+    """One tibiofemoral compartment (SI): its tibial cartilage and the femoral condyle above it.
+
+    ``centre`` is the condyle centre in the femoral frame (the explicit sphere's centre, else the
+    centre of the cylinder fitted to the condyle); ``sphere_radius`` is set only for a compartment
+    whose femoral surface the knee file gives as an explicit sphere around ``centre``."""
+
+    name: str
+    tibia_mesh: trimesh.Trimesh  # tibial frame, m
+    points: np.ndarray  # tibial sample points (N x 3, tibial frame, m): the mesh vertices
+    areas: np.ndarray  # area lumped to each point (N,), m^2
+    centre: np.ndarray
+    sphere_radius: float | None = None
+
+    @property
+    def sphere(self) -> bool:
+        return self.sphere_radius is not None
+
+
+@dataclass
+class FemoralSurface:
+    """The femoral articular surface: ``mesh`` (femoral frame, m) moved outward by ``offset`` (m;
+    the cartilage thickness when the mesh is the subchondral bone), represented by a distance
+    field with ``spacing`` (m) over ``box`` (the part the tibia can touch, 2 x 3, m)."""
+
+    mesh: trimesh.Trimesh
+    offset: float
+    spacing: float
+    box: np.ndarray
+    sources: list[str] = field(default_factory=list)
+
+    @cached_property
+    def field(self) -> DistanceField:
+        """The distance field, built once per surface and kept in the on-disk cache."""
+        return cached_field(self.mesh, self.box, progress=log.info, spacing=self.spacing, offset=self.offset)
+
+    def describe(self) -> str:
+        what = (f"{' + '.join(self.sources) or 'mesh'} ({len(self.mesh.faces)} faces)"
+                + (f", articular surface {self.offset * 1e3:g} mm outside it" if self.offset else ""))
+        lo, hi = self.box * 1e3
+        return (f"femoral surface: {what}; distance field on a {self.spacing * 1e3:g} mm grid over "
+                f"[{lo[0]:.0f}, {hi[0]:.0f}] x [{lo[1]:.0f}, {hi[1]:.0f}] x [{lo[2]:.0f}, {hi[2]:.0f}] mm "
+                "(the region the tibia can touch between -5 and 100 deg flexion)")
+
+
+def field_summary(fld: DistanceField) -> str:
+    """How well the field represents the exact surface (from its build check)."""
+    i = fld.info
+    cached = " (read from the cache)" if "cached" in i else ""
+    return (f"distance-field error against exact distances in the touchable region: RMS "
+            f"{i.get('error_rms_um', float('nan')):.1f} um, max {i.get('error_max_um', float('nan')):.1f} um "
+            f"({i.get('checked_points', 0)} points within the band){cached}")
+
+
+def split_tibia(mesh: trimesh.Trimesh, lateral: np.ndarray) -> tuple[dict[str, trimesh.Trimesh], dict, str]:
+    """Split a tibial cartilage mesh holding both plateaus (:func:`split_plateaus`): the medial and
+    lateral sub-meshes, their vertex indices in ``mesh`` and how the split was made."""
+    parts, how = split_plateaus(mesh, lateral)
+    meshes = {}
+    for name, idx in parts.items():
+        keep = np.zeros(len(mesh.vertices), dtype=bool)
+        keep[idx] = True
+        faces = np.flatnonzero(keep[mesh.faces].all(axis=1))
+        meshes[name] = mesh.submesh([faces], append=True)
+    return meshes, parts, how
+
+
+def tibial_samples(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points (the vertices, m) and their lumped areas (m^2) of tibial cartilage."""
+    return np.asarray(mesh.vertices, dtype=float), vertex_areas(mesh)
+
+
+def femoral_box(femur: trimesh.Trimesh, tibia_points: np.ndarray, axis: FlexionAxis | None) -> np.ndarray:
+    """The region of the femoral surface the tibia can touch (femoral frame): about the fitted
+    flexion axis, or about the frame's Z axis through the origin without one."""
+    point = axis.point if axis is not None else np.zeros(3)
+    direction = axis.direction if axis is not None else np.array([0.0, 0.0, 1.0])
+    return touchable_box(femur.vertices, tibia_points, point, direction)
+
+
+@dataclass
+class Geometry:
+    """What the contact section of a knee file became, with the sentences that report it."""
+
+    compartments: dict[str, Compartment]
+    femur: FemoralSurface | None
+    axis: FlexionAxis | None
+    split: CondyleSplit | None
+    notes: list[str]
+
+
+def mesh_path(base: Path, value: object, source: str, fld: str) -> Path:
+    if not isinstance(value, str) or not value:
+        raise InputError(f"expected a mesh file name, got {value!r}", source=source, field=fld)
+    return base / value

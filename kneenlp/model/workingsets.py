@@ -1,0 +1,69 @@
+"""Working sets as a function of the pose inside CasADi graphs, with zero derivative.
+
+:meth:`KneeModel.working_set` takes, at a pose, the data of the contact points that can touch
+(and, for mesh contact, the surface's expansion at each of them).  :class:`WorkingSets` wraps it as
+a CasADi function of the poses of ``T`` trials (``q`` 5 x T, ``theta``, ``flexion`` 1 x T ->
+``ws`` ws_size x T) whose derivative is declared structurally zero.  Feeding it to the model's
+residual gives the *equilibrium* function: at every point a solver evaluates it, its value and its
+first derivatives are those of the contact surfaces themselves (the working-set data equal them
+to first order at the point where they are taken), and the second derivatives omit only the
+third derivatives of the femoral distance field (piecewise constant in a cubic spline).  So the
+forward Newton iteration and IPOPT work on the exact contact model without re-solves.
+
+The last evaluation is memoised: a solver evaluates value, Jacobian and Hessian at the same point.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+
+class WorkingSets(ca.Callback):
+    """``(q, theta, flexion) -> ws`` for ``n_trials`` trials of ``model`` (see module docstring)."""
+
+    def __init__(self, model, n_trials: int, name: str = "working_sets"):
+        ca.Callback.__init__(self)
+        self.model, self.n_trials = model, int(n_trials)
+        self.n_theta = len(model.parameter_names)
+        self._key: bytes | None = None
+        self._value: np.ndarray | None = None
+        self.construct(name, {})
+
+    def get_n_in(self) -> int:
+        return 3
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ("q", "theta", "flexion")[i]
+
+    def get_name_out(self, i: int) -> str:
+        return "ws"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(*((5, self.n_trials), (self.n_theta, 1), (1, self.n_trials))[i])
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.model.ws_size, self.n_trials)
+
+    def eval(self, arg):
+        q, theta, flexion = (np.asarray(a, dtype=float) for a in arg)
+        key = q.tobytes() + theta.tobytes() + flexion.tobytes()
+        if key != self._key:
+            cols = [self.model.working_set(q[:, j], theta.ravel(), float(flexion.ravel()[j]))[1]
+                    for j in range(self.n_trials)]
+            self._value = np.column_stack(cols) if cols else np.zeros((self.model.ws_size, 0))
+            self._key = key
+        return [ca.DM(self._value)]
+
+    def has_jacobian(self) -> bool:
+        return True
+
+    def get_jacobian(self, name, inames, onames, opts):
+        ins = [ca.MX.sym(n, self.get_sparsity_in(i)) for i, n in enumerate(inames[:3])]
+        ins.append(ca.MX.sym(inames[3], self.get_sparsity_out(0)))
+        rows = self.model.ws_size * self.n_trials
+        outs = [ca.MX(ca.Sparsity(rows, self.get_sparsity_in(i).numel())) for i in range(3)]
+        return ca.Function(name, ins, outs, inames, onames, opts)
