@@ -28,6 +28,15 @@ def _knee(args):
     return KneeModel(knee, load_elements(elements)) if elements else knee
 
 
+def _knee_reference(value: str | None) -> str | None:
+    """A --knee value as study workers get it: a shipped knee's name, or an absolute path."""
+    from kneenlp.model.knee import available_knees
+
+    if value is None or (value in available_knees() and not Path(value).exists()):
+        return value
+    return str(Path(value).resolve())
+
+
 def _effect_values(knee, specs: list[str]) -> dict[str, float]:
     """``NAME[:param=value,...]`` (display units, e.g. ``posterior_capsule:k=8000``,
     ``registration:anterior_translation=1.5``) -> parameter values in SI."""
@@ -168,7 +177,7 @@ def cmd_study(args) -> int:
 
     sets = tuple(f"set{s}" if s.strip().isdigit() else s.strip() for s in args.sets.split(","))
     spec = StudySpec(sets=sets, samples=args.samples, noise=args.noise, seed=args.seed, method=args.method,
-                     knee=str(Path(args.knee).resolve()) if args.knee else None,
+                     knee=_knee_reference(args.knee),
                      free=tuple(f.strip() for f in args.free.split(",")) if args.free else None,
                      start=args.start, elements=tuple(args.element), with_effects=tuple(args.with_effect))
     from kneenlp.experiment.noise import NoiseModel
@@ -228,8 +237,31 @@ def cmd_design(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    from kneenlp.errors import unknown_name
+    from kneenlp.experiment.protocol import Protocol
+    from kneenlp.io import views
+    from kneenlp.simulation import simulate
+
+    views.require_plotly()
+    protocol = Protocol.load(args.protocol)
+    known = [t.id for t in protocol.trials]
+    for tid in args.trial or []:
+        if tid not in known:
+            raise unknown_name("trial", tid, known)
+    chosen = list(dict.fromkeys(args.trial)) if args.trial else views.default_view_trials(protocol)
+    result = simulate(_knee(args), protocol)
+    written = views.write_views(result, chosen, args.out)
+    failed = [s for s in result.failed if s.trial.id in chosen]
+    for s in failed:
+        print(f"NOT CONVERGED: {s.trial.id}: {s.reason}")
+    print("\n".join(str(p) for p in written))
+    return 1 if failed else 0
+
+
 def _knee_args(p: argparse.ArgumentParser, parameters: bool = True) -> None:
-    p.add_argument("--knee", help="knee description TOML (default: the embedded knee)")
+    p.add_argument("--knee", help="knee description TOML, or the name of a shipped knee: default (Lenhart 2015, "
+                                  "the default), synthetic")
     if parameters:
         p.add_argument("--parameters", help="parameter set TOML (reference values and fixed parameters)")
     p.add_argument("--element", action="append", default=[], metavar="MODULE:FACTORY",
@@ -338,6 +370,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="designed_protocol.toml", help="protocol TOML to write")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_design)
+
+    p = sub.add_parser("view", help="pictures of simulated trials: pressure maps and 3-D views (PNG, HTML)")
+    p.add_argument("--protocol", default="set3", help="protocol name (set1..set4) or TOML file")
+    p.add_argument("--trial", nargs="+", action="extend", metavar="ID",
+                   help="trials to draw (default: the unloaded trials and one loaded trial per direction at the "
+                        "first flexion)")
+    _knee_args(p)
+    p.add_argument("--out", default="kneenlp-view", help="output directory")
+    p.set_defaults(func=cmd_view)
     return parser
 
 

@@ -53,10 +53,10 @@ def test_hidden_effect_is_found_added_and_explains_the_misfit(knee, tmp_path, pr
 def test_effect_outside_the_library_is_flagged_without_overclaiming(knee, tmp_path):
     """Data from a knee whose MCL inserts 10 mm more anteriorly on the tibia: inadequate, and
     the report says no candidate explains it."""
-    text = kneenlp.model.knee.default_knee_file().read_text()
+    text = kneenlp.model.knee.knee_file("synthetic").read_text()
     text = text.replace("tibia = [6.0, -84.0, -26.0]", "tibia = [16.0, -84.0, -26.0]")
     text = text.replace("../../parameters/table1.toml", str(kneenlp.io.resources.resource("parameters", "table1.toml")))
-    text = text.replace('"meshes/', f'"{kneenlp.model.knee.default_knee_file().parent}/meshes/')
+    text = text.replace('"meshes/', f'"{kneenlp.model.knee.knee_file("synthetic").parent}/meshes/')
     (tmp_path / "wrong.toml").write_text(text)
     other = kneenlp.Knee.load(tmp_path / "wrong.toml")
     path = tmp_path / "m.csv"
@@ -69,11 +69,13 @@ def test_effect_outside_the_library_is_flagged_without_overclaiming(knee, tmp_pa
 
 @pytest.mark.slow
 def test_cli_diagnose_json(knee, tmp_path, capsys):
-    code = main(["simulate", "--protocol", "set3", "--with-effect", "posterior_capsule:k=8000", "--noise", NOISE,
+    code = main(["simulate", "--knee", "synthetic",
+                 "--protocol", "set3", "--with-effect", "posterior_capsule:k=8000", "--noise", NOISE,
                  "--seed", "7", "--out", str(tmp_path), "--no-plots"])
     assert code == 0
     capsys.readouterr()
-    code = main(["diagnose", str(tmp_path / "measured.csv"), "--json", "--out", str(tmp_path / "diag")])
+    code = main(["diagnose", "--knee", "synthetic",
+                 str(tmp_path / "measured.csv"), "--json", "--out", str(tmp_path / "diag")])
     out = json.loads(capsys.readouterr().out)
     assert code == 0
     assert {"adequate", "p_value", "rms", "expected_rms", "flagged", "ranking"} <= set(out)
@@ -84,17 +86,20 @@ def test_cli_diagnose_json(knee, tmp_path, capsys):
                  "after_posterior_capsule/residual_map.png", "after_posterior_capsule/laxity_fit.png",
                  "parameters_before_after_posterior_capsule.csv"):
         assert (tmp_path / "diag" / name).stat().st_size > 0
-    code = main(["identify", str(tmp_path / "measured.csv"), "--with-effect", "posterior_capsule", "--json"])
+    code = main(["identify", "--knee", "synthetic",
+                 str(tmp_path / "measured.csv"), "--with-effect", "posterior_capsule", "--json"])
     fit = json.loads(capsys.readouterr().out)
     assert code == 0 and "posterior_capsule.k" in fit["params"]
-    assert main(["simulate", "--with-effect", "capsulex:k=1", "--no-plots", "--out", str(tmp_path)]) == 2
+    assert main(["simulate", "--knee", "synthetic",
+                 "--with-effect", "capsulex:k=1", "--no-plots", "--out", str(tmp_path)]) == 2
 
 
 def test_cli_diagnose_clean_data_smoke(tmp_path, capsys):
-    assert main(["simulate", "--protocol", "set1", "--noise", NOISE, "--seed", "2", "--out", str(tmp_path),
+    assert main(["simulate", "--knee", "synthetic",
+                 "--protocol", "set1", "--noise", NOISE, "--seed", "2", "--out", str(tmp_path),
                  "--no-plots"]) == 0
     capsys.readouterr()
-    assert main(["diagnose", str(tmp_path / "measured.csv"), "--json", "--refit", "0"]) == 0
+    assert main(["diagnose", "--knee", "synthetic", str(tmp_path / "measured.csv"), "--json", "--refit", "0"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert {"adequate", "p_value", "rms", "expected_rms", "flagged", "ranking"} <= set(out)
     assert len(out["ranking"]) == 7 and out["recommended"] is None

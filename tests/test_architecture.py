@@ -45,26 +45,29 @@ def test_user_element_on_the_command_line(example, monkeypatch, capsys):
 
     tmp, _ = example
     monkeypatch.chdir(tmp)
-    assert main(["simulate", "--protocol", "set1", "--element", "compression_element:make", "--with-effect",
+    assert main(["simulate", "--knee", "synthetic",
+                 "--protocol", "set1", "--element", "compression_element:make", "--with-effect",
                  "compression:force=200", "--noise", "uniform:0.5", "--out", "sim", "--no-plots", "--json"]) == 0
     capsys.readouterr()
-    assert main(["identify", "sim/measured.csv", "--element", "compression_element:make", "--with-effect",
+    assert main(["identify", "--knee", "synthetic",
+                 "sim/measured.csv", "--element", "compression_element:make", "--with-effect",
                  "compression", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert abs(out["params"]["compression.force"] - 200.0) < 5 * out["stderr"]["compression.force"]
-    assert main(["export", "sim/measured.csv", "--format", "casadi", "--out", "exp", "--element",
+    assert main(["export", "--knee", "synthetic", "sim/measured.csv", "--format", "casadi", "--out", "exp", "--element",
                  "compression_element:make", "--with-effect", "compression", "--json"]) == 0
     capsys.readouterr()
     sidecar = json.loads((tmp / "exp" / "problem.json").read_text())
     assert "compression.force" in [v["name"] for v in sidecar["variables"]]
-    assert main(["study", "--sets", "1", "--samples", "2", "--element", "compression_element:make",
+    assert main(["study", "--knee", "synthetic",
+                 "--sets", "1", "--samples", "2", "--element", "compression_element:make",
                  "--with-effect", "compression", "--start", "truth", "--workers", "1", "--out", "st", "--quiet",
                  "--json"]) == 0
     import pandas as pd
 
     est = pd.read_csv(tmp / "st" / "estimates.csv")
     assert len(est) == 2 and est["success"].all() and "compression.force" in est.columns
-    assert main(["identify", "sim/measured.csv", "--element", "nowhere:make"]) == 2
+    assert main(["identify", "--knee", "synthetic", "sim/measured.csv", "--element", "nowhere:make"]) == 2
 
 
 EFFECTS = ["registration", "flexion_offset", "meniscus", "posterior_capsule", "lin_strain", "contact_modulus"]
@@ -75,7 +78,7 @@ EFFECTS = ["registration", "flexion_offset", "meniscus", "posterior_capsule", "l
 def test_objective_is_the_weighted_residual_sum(effect, method, tmp_path):
     """For every built-in effect and both methods, the reported objective equals the weighted sum of
     squared residuals of the returned fit (the nested objective once left out the registration bias)."""
-    knee = kneenlp.Knee.default()
+    knee = kneenlp.Knee.named("synthetic")
     model = knee.model
     eff = model.effect(effect)
     truth = {n: model.parameter(n).neutral if model.parameter(n).neutral is not None else model.theta()[
@@ -100,7 +103,7 @@ def test_objective_is_the_weighted_residual_sum(effect, method, tmp_path):
 def test_user_element_consistent_across_methods(example):
     from compression_element import Compression
 
-    model = KneeModel(kneenlp.Knee.default(), extra_elements=[Compression()])
+    model = KneeModel(kneenlp.Knee.named("synthetic"), extra_elements=[Compression()])
     data = kneenlp.simulate(model, "set1", parameters={"compression.force": 150.0}).measured("uniform:0.5", seed=2)
     from kneenlp.conventions import coordinate_columns, coords_from_user
     from kneenlp.experiment.measured import MeasuredData

@@ -1,10 +1,12 @@
 import json
 
+import kneenlp
 from kneenlp.cli import main
 
 
 def test_simulate_json_and_outputs(tmp_path, capsys):
-    code = main(["simulate", "--protocol", "set1", "--out", str(tmp_path), "--json", "--noise", "uniform:0.5",
+    code = main(["simulate", "--knee", "synthetic",
+                 "--protocol", "set1", "--out", str(tmp_path), "--json", "--noise", "uniform:0.5",
                  "--seed", "4"])
     out = json.loads(capsys.readouterr().out)
     assert code == 0
@@ -20,7 +22,7 @@ def test_noise_is_seeded_and_bounded(tmp_path):
     from kneenlp import simulate
     from kneenlp.conventions import coordinate_columns
 
-    res = simulate(protocol="set1")
+    res = simulate(kneenlp.Knee.named("synthetic"), "set1")
     a, b, c = (res.measured("uniform:0.5", seed=s) for s in (1, 1, 2))
     assert a.equals(b) and not a.equals(c)
     err = a[coordinate_columns()].to_numpy() - res.table()[coordinate_columns()].to_numpy()

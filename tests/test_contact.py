@@ -65,7 +65,7 @@ def test_contact_is_differentiable(model):
     # jacobian of the contact-laden residual exists and is finite at a penetrated pose
     q = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])
     ws = model.working_set(q, model.theta(), 0.0)[1]
-    jac = np.asarray(model.residual_jacobian(q, model.theta(), np.zeros(6), 0.0, ws))
+    jac = np.asarray(model.jacobians(q, model.theta(), np.zeros(6), 0.0, ws)[0])
     assert np.all(np.isfinite(jac)) and np.linalg.matrix_rank(jac) == 5
 
 
@@ -76,7 +76,7 @@ def test_working_sets_reproduce_the_full_contact():
 
     import kneenlp
 
-    knee = kneenlp.Knee.default()
+    knee = kneenlp.Knee.named("synthetic")
     full = kneenlp.simulate(knee, "set3")
     ws = kneenlp.simulate(dataclasses.replace(knee, working_set=300), "set3")
     assert ws.converged == len(full.solutions)

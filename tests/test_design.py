@@ -17,7 +17,7 @@ from kneenlp.inference.design import candidate_pool, criterion_value, design, pr
 @pytest.fixture(scope="module")
 def small_design():
     pool = candidate_pool(flexions=(0.0, 30.0), levels=(1.0, 0.5))
-    return design(max_cases=10, criterion="A", pool=pool, robust=1)
+    return design(kneenlp.Knee.named("synthetic"), max_cases=10, criterion="A", pool=pool, robust=1)
 
 
 def test_design_is_a_valid_protocol_and_beats_the_papers_set_with_as_many_cases(small_design, model, tmp_path):
@@ -27,7 +27,7 @@ def test_design_is_a_valid_protocol_and_beats_the_papers_set_with_as_many_cases(
     proto = Protocol.load(path)
     assert proto.trials == r.protocol.trials  # loads back unchanged (tomli-w writer)
     assert (proto.name, proto.title, proto.description) == (r.protocol.name, r.protocol.title, r.protocol.description)
-    assert kneenlp.simulate(None, proto).converged == 10  # simulate accepts it
+    assert kneenlp.simulate(kneenlp.Knee.named("synthetic"), proto).converged == 10  # simulate accepts it
     # A-criterion of the design is better than Set 2's (13 cases) at the same noise
     set2 = predicted_rse(model, Protocol.load("set2"), r.free, "uniform:0.5")
     ours = r.predicted_rse
@@ -46,7 +46,7 @@ def test_criteria_are_consistent():
 
 
 def test_cli_design_json(tmp_path, capsys):
-    code = main(["design", "--max-cases", "6", "--flexions", "0,30", "--robust", "1", "--out",
+    code = main(["design", "--knee", "synthetic", "--max-cases", "6", "--flexions", "0,30", "--robust", "1", "--out",
                  str(tmp_path / "p.toml"), "--json"])
     out = json.loads(capsys.readouterr().out)
     assert code == 0 and out["cases"] == 6 and len(out["trials"]) == 6
@@ -60,11 +60,11 @@ def test_designed_protocol_monte_carlo(tmp_path):
     prediction within 25 %."""
     from kneenlp.studies.study import StudySpec, run_study
 
-    r = design(max_cases=22, criterion="A", robust=3)
+    r = design(kneenlp.Knee.named("synthetic"), max_cases=22, criterion="A", robust=3)
     path = write_protocol(r, tmp_path / "designed.toml")
     # fits start at the truth: the spread is the noise's effect on the estimate, not the search's
-    study = run_study(StudySpec(sets=(str(path), "set4"), samples=200, seed=5, start="truth"), tmp_path / "mc",
-                      progress=False)
+    spec = StudySpec(knee="synthetic", sets=(str(path), "set4"), samples=200, seed=5, start="truth")
+    study = run_study(spec, tmp_path / "mc", progress=False)
     table = pd.read_csv(study.out / "table3.csv")
     d = table[table["set"] == str(path)].set_index(["ligament", "parameter"])
     s4 = table[table["set"] == "set4"].set_index(["ligament", "parameter"])

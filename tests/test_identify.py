@@ -105,7 +105,7 @@ def test_cli_identify_json(knee, tmp_path, capsys):
     res = kneenlp.simulate(knee, "set1")
     path = tmp_path / "m.csv"
     res.measured("uniform:0.5", 2).to_csv(path, index=False)
-    code = main(["identify", str(path), "--json", "--noise", "uniform:0.5"])
+    code = main(["identify", "--knee", "synthetic", str(path), "--json", "--noise", "uniform:0.5"])
     out = json.loads(capsys.readouterr().out)
     assert code == 0
     assert {"params", "stderr", "objective", "iterations", "seconds", "max_residual", "status"} <= set(out)
@@ -124,7 +124,7 @@ def test_cli_identify_bad_data(knee, tmp_path, capsys):
     for name, df in cases.items():
         path = tmp_path / f"{name}.csv"
         df.to_csv(path, index=False)
-        code = main(["identify", str(path)])
+        code = main(["identify", "--knee", "synthetic", str(path)])
         err = capsys.readouterr().err.strip()
         assert code == 2 and err.startswith("kneenlp: error:") and "\n" not in err, (name, err)
         assert str(path) in err

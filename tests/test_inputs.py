@@ -9,17 +9,18 @@ from pathlib import Path
 
 import pytest
 
+import kneenlp
 from kneenlp.cli import main
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.model.knee import Knee, default_knee_file
+from kneenlp.model.knee import Knee, knee_file
 from kneenlp.model.parameters import ParameterSet
 
 
 @pytest.fixture()
 def knee_copy(tmp_path):
-    src = default_knee_file().parent
+    src = knee_file("synthetic").parent
     dst = tmp_path / "knee"
     shutil.copytree(src, dst)
     shutil.copy(src.parent.parent / "parameters" / "table1.toml", tmp_path / "table1.toml")
@@ -85,7 +86,7 @@ def test_protocol_errors(tmp_path):
 def _measured_csv(tmp_path) -> Path:
     from kneenlp import simulate
 
-    res = simulate(protocol="set1")
+    res = simulate(kneenlp.Knee.named("synthetic"), "set1")
     path = tmp_path / "m.csv"
     res.measured("uniform:0.5", seed=1).to_csv(path, index=False)
     return path
@@ -147,7 +148,7 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     def move(p):
         return (rot @ np.asarray(p, float).T).T + shift
 
-    src = default_knee_file().parent
+    src = knee_file("synthetic").parent
     text = (src / "knee.toml").read_text()
     import re
 
@@ -166,12 +167,12 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
         mesh.export(tmp_path / "meshes" / f.name)
     (tmp_path / "knee.toml").write_text(text)
     scan = Knee.load(tmp_path / "knee.toml")
-    ref = Knee.default()
+    ref = Knee.named("synthetic")
     m1, m2 = model_for(ref), model_for(scan)
     q = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
     load = np.array([50.0, 0, 0, 2.0, 0.5, 0])
     r1 = np.asarray(m1.evaluate(q, m1.theta(), load, 0.3)).ravel()
     r2 = np.asarray(m2.evaluate(q, m2.theta(), load, 0.3)).ravel()
     assert np.allclose(r1, r2, rtol=1e-5, atol=1e-5), (r1, r2)
-    assert np.allclose(scan.compartments["medial"].sphere_center, ref.compartments["medial"].sphere_center,
+    assert np.allclose(scan.compartments["medial"].centre, ref.compartments["medial"].centre,
                        atol=1e-8)

@@ -52,7 +52,7 @@ def test_residual_jacobian_matches_finite_differences(model):
     load = np.array([50.0, 0, 0, 2.0, 0.5, 0])
     q0 = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
     flex = np.deg2rad(30)
-    jac = np.asarray(model.residual_jacobian(q0, theta, load, flex, model.working_set(q0, theta, flex)[1]))
+    jac = np.asarray(model.jacobians(q0, theta, load, flex, model.working_set(q0, theta, flex)[1])[0])
     fd = np.zeros((5, 5))
     steps = np.array([1e-7, 1e-7, 1e-9, 1e-9, 1e-9])
     for j in range(5):

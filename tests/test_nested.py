@@ -65,7 +65,7 @@ def test_nested_fit_object_and_cli(knee, tmp_path, capsys):
     assert fit.method == "nested" and fit.evaluations >= 60 * len(data)
     assert set(fit.params) == set(fit.free) and fit.max_residual <= 1e-6
     assert "nested" in fit.report()
-    code = main(["compare-methods", data.source, "--json", "--max-evals", "60"])
+    code = main(["compare-methods", "--knee", "synthetic", data.source, "--json", "--max-evals", "60"])
     out = json.loads(capsys.readouterr().out)
     assert [m["method"] for m in out["methods"]] == ["simultaneous", "nested"]
     for m in out["methods"]:

@@ -24,8 +24,8 @@ def test_wheel_contains_package_data(wheel):
     assert {"kneenlp/resources/knees/default/knee.toml", "kneenlp/resources/parameters/table1.toml",
             "kneenlp/resources/protocols/set4.toml", "kneenlp/resources/datasets/hidden_effect_set3.csv"} <= shipped
     assert shipped <= names, sorted(shipped - names)[:5]
-    assert any(n.startswith("kneenlp/resources/knees/default/meshes/") and n.endswith(".stl") for n in names)
-    for sub in ("model", "experiment", "solvers", "inference", "studies", "io"):
+    assert any(n.startswith("kneenlp/resources/knees/synthetic/meshes/") and n.endswith(".stl") for n in names)
+    for sub in ("geometry", "model", "experiment", "solvers", "inference", "studies", "io"):
         assert f"kneenlp/{sub}/__init__.py" in names
 
 

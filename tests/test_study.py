@@ -27,7 +27,7 @@ def rows(study):
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
-    spec = StudySpec(sets=("set1", "set2"), samples=3, seed=7)
+    spec = StudySpec(knee="synthetic", sets=("set1", "set2"), samples=3, seed=7)
     return run_study(spec, tmp_path_factory.mktemp("study") / "local", workers=1, progress=False)
 
 
@@ -60,7 +60,7 @@ def test_protocol_file_draws_do_not_depend_on_its_directory(tmp_path):
         path = tmp_path / where / "mine.toml"
         path.parent.mkdir(parents=True)
         path.write_text(text)
-        rows_.append(run_sample(StudySpec(sets=(str(path),), samples=1, seed=3), str(path), 0))
+        rows_.append(run_sample(StudySpec(knee="synthetic", sets=(str(path),), samples=1, seed=3), str(path), 0))
     assert rows_[0]["seed"] == rows_[1]["seed"] == sample_seed(3, "mine", 0)
     assert rows_[0]["ACL.k"] == rows_[1]["ACL.k"] and rows_[0]["success"]
 
@@ -68,14 +68,15 @@ def test_protocol_file_draws_do_not_depend_on_its_directory(tmp_path):
 def test_truth_start_reaches_the_scatter_start_estimate(tmp_path):
     from kneenlp.studies.study import run_sample
 
-    rows_ = [run_sample(StudySpec(sets=("set2",), samples=1, seed=4, start=start), "set2", 0)
+    rows_ = [run_sample(StudySpec(knee="synthetic", sets=("set2",), samples=1, seed=4, start=start), "set2", 0)
              for start in ("scatter", "truth")]
     assert rows_[0]["seed"] == rows_[1]["seed"] and rows_[0]["success"] and rows_[1]["success"]
     for n in (f"{lig}.{p}" for lig in ("ACL", "PCL", "MCL", "LCL") for p in ("k", "ref_strain")):
         assert rows_[1][n] == pytest.approx(rows_[0][n], rel=1e-6), n
     assert rows_[1]["iterations"] <= rows_[0]["iterations"]
     with pytest.raises(kneenlp.InputError, match="unknown start 'middle'"):
-        run_study(StudySpec(sets=("set1",), samples=1, start="middle"), tmp_path / "s", progress=False)
+        run_study(StudySpec(knee="synthetic", sets=("set1",), samples=1, start="middle"), tmp_path / "s",
+                  progress=False)
 
 
 def test_local_processes_give_identical_rows(small, tmp_path):
@@ -111,13 +112,14 @@ def test_resume_after_kill_loses_and_duplicates_nothing(tmp_path):
 
 
 def test_resume_with_other_arguments_is_refused(small, capsys):
-    code = main(["study", "--sets", "1,2", "--samples", "3", "--seed", "8", "--quiet", "--out", str(small.out)])
+    code = main(["study", "--knee", "synthetic",
+                 "--sets", "1,2", "--samples", "3", "--seed", "8", "--quiet", "--out", str(small.out)])
     err = capsys.readouterr().err
     assert code == 2 and "holds a study with other arguments" in err and "seed" in err
 
 
 def test_cli_study_json(tmp_path, capsys):
-    code = main(["study", "--sets", "1", "--samples", "2", "--workers", "1", "--quiet", "--json",
+    code = main(["study", "--knee", "synthetic", "--sets", "1", "--samples", "2", "--workers", "1", "--quiet", "--json",
                  "--out", str(tmp_path / "s")])
     out = json.loads(capsys.readouterr().out)
     assert code == 0 and out["fits"] == 2 and out["failed"] == 0
@@ -128,7 +130,8 @@ def test_protocol_files_as_sets_stay_inside_the_study(tmp_path):
     proto = tmp_path / "protocols" / "my protocol.toml"
     proto.parent.mkdir()
     proto.write_text((kneenlp_problems() / "protocols" / "set1.toml").read_text().replace('"set1"', '"mine"'))
-    study = run_study(StudySpec(sets=(str(proto),), samples=2, seed=1), tmp_path / "s", workers=1, progress=False)
+    study = run_study(StudySpec(knee="synthetic", sets=(str(proto),), samples=2, seed=1), tmp_path / "s", workers=1,
+                      progress=False)
     files = sorted(p.name for p in (tmp_path / "s" / "samples").glob("*.json"))
     assert len(files) == 2 and all(f.startswith("my_protocol-") for f in files)
     assert list(study.load_rows()["set"]) == [str(proto)] * 2

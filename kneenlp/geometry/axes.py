@@ -60,7 +60,8 @@ def split_plateaus(mesh: trimesh.Trimesh, lateral: np.ndarray) -> tuple[dict[str
             break
         cut = new
     a, b = np.flatnonzero(s < cut), np.flatnonzero(s >= cut)
-    return {"medial": a, "lateral": b}, f"2-means along the lateral axis at {cut * 1e3:.1f} mm ({len(a)} / {len(b)} vertices)"
+    how = f"2-means along the lateral axis at {cut * 1e3:.1f} mm ({len(a)} / {len(b)} vertices)"
+    return {"medial": a, "lateral": b}, how
 
 
 @dataclass(frozen=True)

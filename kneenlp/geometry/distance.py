@@ -5,10 +5,11 @@
 unusually large triangles; the answer is accepted only when no triangle outside the candidates can
 be closer (the ``k``-th centroid distance minus the largest triangle radius is at least the best
 distance found), otherwise ``k`` grows fourfold and finally every triangle is searched.  The
-point-triangle distances are trimesh's (``trimesh.triangles.closest_point``).  We do not use
-``trimesh.proximity.closest_point``: on the Lenhart 2015 femoral meshes it returned a farther
-point than the closest one for about one point in six, by up to 39 um
-(``docs/research/mesh-contact-representation.md``).
+point-triangle distances are trimesh's (``trimesh.triangles.closest_point``), computed in units of
+the mesh's median edge length: that routine compares barycentric quantities with an absolute
+tolerance (1e-13) meant for unit-sized triangles, and on sub-millimetre triangles given in metres
+it returns wrong closest points for more than half of the points (by up to 0.33 mm on the Lenhart
+femur; found while building the implant knee).
 
 Sign: negative behind the mesh's outward normals (inside the body).  At the closest point the
 normal is the face normal, or the barycentric blend of vertex normals when the closest point lies
@@ -30,11 +31,12 @@ def vertex_areas(mesh: trimesh.Trimesh) -> np.ndarray:
     return a
 
 
-def _pseudo_normals(mesh: trimesh.Trimesh, face: np.ndarray, closest: np.ndarray) -> np.ndarray:
-    """Normal deciding the sign at ``closest`` on ``face``: the face normal inside the face, the
-    barycentric blend of the vertex normals on its edges and vertices."""
+def _pseudo_normals(mesh: trimesh.Trimesh, tris: np.ndarray, face: np.ndarray, closest: np.ndarray) -> np.ndarray:
+    """Normal deciding the sign at ``closest`` on ``face`` (of triangles ``tris``, the mesh's in any
+    unit): the face normal inside the face, the barycentric blend of the vertex normals on its
+    edges and vertices."""
     normal = np.array(mesh.face_normals[face], dtype=float)
-    bary = _triangles.points_to_barycentric(mesh.triangles[face], closest)
+    bary = _triangles.points_to_barycentric(tris[face], closest)
     edge = bary.min(axis=1) < 1e-6
     if np.any(edge):
         b = np.clip(bary[edge], 0, None)
@@ -59,13 +61,23 @@ class MeshDistance:
 
     def __init__(self, mesh: trimesh.Trimesh):
         self.mesh = mesh
-        self.tris = np.asarray(mesh.triangles, dtype=float)
+        #: lengths are handled in units of the median edge (see module docstring)
+        self.unit = float(np.median(mesh.edges_unique_length)) or 1.0
+        self.tris = np.asarray(mesh.triangles, dtype=float) / self.unit
         cen = self.tris.mean(axis=1)
         rad = np.linalg.norm(self.tris - cen[:, None, :], axis=2).max(axis=1)
         self.r_small = float(np.percentile(rad, 99.99))
         self.big = np.flatnonzero(rad > self.r_small)
         self.small = np.flatnonzero(rad <= self.r_small)
         self.tree = cKDTree(cen[self.small])
+        self.vertex_tree = cKDTree(np.asarray(mesh.vertices) / self.unit)
+        self.r_max = float(rad.max())
+
+    def lower_bound(self, points: np.ndarray) -> np.ndarray:
+        """A lower bound of the unsigned distance (cheap): nearest vertex minus the largest
+        triangle circumradius (used to skip points that cannot be near the surface)."""
+        pts = np.asarray(points, float).reshape(-1, 3) / self.unit
+        return (self.vertex_tree.query(pts)[0] - self.r_max) * self.unit
 
     def __call__(self, points: np.ndarray, k: int = 24, certify: bool = True,
                  chunk: int = 20000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -73,7 +85,7 @@ class MeshDistance:
         gradient of ``d`` (N, 3; the direction from the closest point, or the face normal when the
         point lies on the mesh).  ``certify=False`` keeps the first ``k``-candidate answer (fast;
         exact unless a far larger triangle is closer)."""
-        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        pts = np.asarray(points, dtype=float).reshape(-1, 3) / self.unit
         n = len(pts)
         closest, face, dist = np.empty((n, 3)), np.empty(n, dtype=np.int64), np.empty(n)
         for s in range(0, n, chunk):
@@ -90,13 +102,13 @@ class MeshDistance:
                     break
                 todo = todo[dk[:, -1] - self.r_small < dd]
                 kk = min(4 * kk, len(self.small))
-        normal = _pseudo_normals(self.mesh, face, closest)
+        normal = _pseudo_normals(self.mesh, self.tris, face, closest)
         sign = np.where(np.einsum("ij,ij->i", pts - closest, normal) < 0, -1.0, 1.0)
         d = sign * dist
         grad = normal.copy()
-        away = dist > 1e-12
+        away = dist > 1e-9
         grad[away] = (pts[away] - closest[away]) / d[away, None]
-        return d, closest, grad
+        return d * self.unit, closest * self.unit, grad
 
 
 def signed_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -179,40 +179,31 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     n_fail_start = int(np.sum(~ok))
     x0 = nlp.pack_x([start[n] for n in problem.free], q0_user)
     t1 = time.perf_counter()
-    # contact working sets at the start poses; after the solve, no sample point left out of them may
-    # penetrate: otherwise re-solve from the solution with the solution's working sets
-    indices, ws = problem.working_sets(q0_user / TO_USER, theta0)
-    iterations, rounds = 0, 0
-    while True:
-        sol = nlp.solver(x0=x0, p=problem.data_vector(ws), lbx=nlp.lbx, ubx=nlp.ubx, lbg=0, ubg=0)
-        st = nlp.solver.stats()
-        iterations += int(st.get("iter_count", 0))
-        rounds += 1
-        values, q_user = nlp.unpack_x(sol["x"])
-        if not problem.model.ws_size or rounds >= 4:
-            break
-        theta_sol = problem.theta(values)
-        if np.all(problem.left_out_penetration(q_user / TO_USER, theta_sol, indices) <= 0):
-            break
-        x0 = np.asarray(sol["x"]).ravel()
-        indices, ws = problem.working_sets(q_user / TO_USER, theta_sol)
+    # contact working sets are taken at every pose IPOPT evaluates; after the solve no sample point left
+    # out of them may penetrate (too few working-set slots, or contact outside the represented surface)
+    sol = nlp.solver(x0=x0, p=problem.data_vector(), lbx=nlp.lbx, ubx=nlp.ubx, lbg=0, ubg=0)
+    st = nlp.solver.stats()
+    iterations = int(st.get("iter_count", 0))
+    values, q_user = nlp.unpack_x(sol["x"])
     seconds = time.perf_counter() - t1
     g = np.asarray(sol["g"]).ravel()
     max_res = float(np.max(np.abs(g))) if g.size else 0.0
-    left_out = float(np.max(problem.left_out_penetration(q_user / TO_USER, problem.theta(values), indices),
-                            initial=-np.inf))
+    left_out = -np.inf
+    if problem.model.ws_size:
+        q_sol, theta_sol = q_user / TO_USER, problem.theta(values)
+        left_out = float(np.max(problem.left_out_penetration(q_sol, theta_sol,
+                                                             problem.working_sets(q_sol, theta_sol)[0])))
     success = bool(st.get("success", False)) and max_res <= 1e-6 and left_out <= 0
     msg = "" if n_fail_start == 0 else f"{n_fail_start} trial(s) could not be solved at the start; started at data"
     if bool(st.get("success", False)) and max_res > 1e-6:
         msg = (msg + "; " if msg else "") + f"equilibrium residual {max_res:.2e} above 1e-6"
     if left_out > 0:
-        note = (f"a contact point outside the working sets penetrates {1e3 * left_out:.3f} mm after 4 rounds: "
-                "enlarge contact.working_set in the knee file")
+        note = (f"a contact point outside the working sets penetrates {1e3 * left_out:.3f} mm: enlarge "
+                "contact.working_set in the knee file (or the contact left the represented femoral surface)")
         msg = (msg + "; " if msg else "") + note
     return Fit.build(problem, "simultaneous", problem.theta(values), q_user / TO_USER,
                      status=str(st.get("return_status", "unknown")), success=success,
                      iterations=iterations, seconds=seconds, max_residual=max_res,
                      start=dict(start), build_seconds=nlp.build_seconds, evaluations=iterations,
                      message=msg, solver=nlp.solver_name,
-                     extra={"start_seconds": t1 - t0, "solver_objective": float(sol["f"]),
-                            "working_set_rounds": rounds})
+                     extra={"start_seconds": t1 - t0, "solver_objective": float(sol["f"])})

@@ -144,12 +144,11 @@ class IdentificationProblem:
 
     def data_vector(self, ws: np.ndarray | None = None) -> np.ndarray:
         """The NLP's parameter vector: ``[theta (fixed values, SI), measured (T x 5), weights (T x 5),
-        loads (T x 6), flexions (T), contact working sets (T x ws_size)]``; refitting other data
-        never rebuilds the NLP.  ``ws``: from :meth:`working_sets` (required when the model uses
-        working sets)."""
+        loads (T x 6), flexions (T)]`` and, for a program with its working sets as data (export),
+        ``ws`` (T x ws_size, from :meth:`working_sets`); refitting other data never rebuilds the NLP."""
         meas = self.measured if self.measured is not None else np.zeros((self.n_trials, 5))
         ws = np.zeros((self.n_trials, 0)) if ws is None else np.asarray(ws, float)
-        if ws.shape != (self.n_trials, self.model.ws_size):
+        if ws.size and ws.shape != (self.n_trials, self.model.ws_size):
             raise ValueError(f"working sets of shape {ws.shape}, expected ({self.n_trials}, {self.model.ws_size})")
         return np.concatenate([self.theta(), meas.ravel(), self.weights.ravel(), self.loads.ravel(), self.flexions,
                                ws.ravel()])

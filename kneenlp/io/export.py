@@ -75,7 +75,7 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     problem = IdentificationProblem.from_data(model, data, free, fixed=fixed, with_effects=with_effects or ())
     free = problem.free
     T = problem.n_trials
-    e = nlp_expressions(problem, parallel="serial")
+    e = nlp_expressions(problem, parallel="serial", working_sets="data")
     values = problem.scatter(np.random.default_rng(seed))
     values.update(problem.check_start(start))
     q0, res = forward_solver(model).solve_batch(data.trials, problem.theta(values), data.q)
@@ -166,8 +166,10 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
         "p": prob.p_value.tolist(),
         "p_layout": "theta (all model parameters, SI, in 'parameters' order), measured coordinates (T x 5, "
                     "mm/deg), weights (T x 5), loads (T x 6, N and N m, femoral frame), flexion (T, rad), "
-                    "contact working sets at the start poses (T x ws_size: x, y, z in m and area in m^2 per "
-                    "point; empty without working sets)",
+                    "contact working sets at the start poses (T x ws_size; empty without working sets): per "
+                    "point x, y, z (m) and area (m^2) for sphere contact; for mesh contact also the femoral "
+                    "distance field's second-order expansion at the point (kneenlp.model.mesh_contact.WS_ROWS), "
+                    "exact at the start poses: kneenlp itself retakes them at every pose it evaluates",
         "source": prob.meta,
         "files": [f.name for f in files],
         **({"nl": extra} if extra else {}),

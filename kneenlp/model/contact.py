@@ -42,6 +42,12 @@ def smooth_gate(d, delta):
     return t2 * t * (1 / delta**2) - t2 * t2 * (1 / (2 * delta**3)) + (ca.fmax(d, delta) - delta)
 
 
+def gate_numpy(d: np.ndarray, delta: float) -> np.ndarray:
+    """:func:`smooth_gate` in NumPy (the same polynomial)."""
+    t = np.clip(d, 0, delta)
+    return t**3 / delta**2 - t**4 / (2 * delta**3) + np.maximum(d, delta) - delta
+
+
 def sphere_wrench(c, modulus, radius, x, areas, delta: float):
     """Force and moment (about the tibial origin) on the tibia of a sphere (centre ``c``, tibial
     frame, radius in m) pressed into sample points ``x`` (3 x N) with ``areas`` (1 x N), tibial
@@ -110,6 +116,22 @@ class SphereContact(StagedElement):
     def clearance(self, R, p, values):
         centre = np.asarray(R).T @ (self.centre - np.asarray(p).ravel())
         return np.linalg.norm(self.points - centre, axis=1) - self.radius
+
+    def pressure(self, R: np.ndarray, p: np.ndarray, modulus: float) -> dict[str, np.ndarray]:
+        """The contact at a pose (numeric, every point), as :meth:`MeshContact.pressure`: per-point
+        penetration (m) and pressure (Pa), force on the tibia (N) and moment about the tibial origin
+        (N m) in the femoral frame, centre of pressure (femoral frame, m; NaN without contact)."""
+        R, p = np.asarray(R, float), np.asarray(p, float).ravel()
+        X = self.points @ R.T + p
+        diff = X - self.centre
+        dist = np.linalg.norm(diff, axis=1)
+        pen = self.radius - dist
+        pres = modulus * gate_numpy(pen, self.gate)
+        f = diff / dist[:, None] * (pres * self.areas)[:, None]
+        w = pres * self.areas
+        cop = (X * w[:, None]).sum(axis=0) / w.sum() if w.sum() > 0 else np.full(3, np.nan)
+        return {"penetration": pen, "pressure": pres, "force": f.sum(axis=0),
+                "moment": np.cross(X - p, f).sum(axis=0), "cop": cop}
 
     def outputs(self) -> list[Output]:
         return [Output("force", f"contact_{self.compartment}_N", "N"),

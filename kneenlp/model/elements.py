@@ -158,10 +158,14 @@ class StagedElement(ForceElement, ABC):
         return np.sort(np.argpartition(gap, self.n_working - 1)[: self.n_working])
 
     def pack(self, indices: np.ndarray, R: np.ndarray, p: np.ndarray, values: dict[str, float]) -> np.ndarray:
-        """The working-set input (``ws_width * n_working`` numbers, column-major) for the sample
-        points ``indices`` at pose ``(R, p)``."""
+        """The working-set input (``ws_width * n_working`` numbers, :meth:`unpack`'s layout) for
+        the sample points ``indices`` at pose ``(R, p)``."""
         pts = np.asarray(self.points, float)[indices]
         return np.column_stack([pts, np.asarray(self.areas, float)[indices]]).ravel()
+
+    def unpack(self, ws: ca.MX, n: int) -> ca.MX:
+        """The ``ws_width`` x n matrix :meth:`surface_wrench` receives, from the packed input."""
+        return ca.reshape(ws, self.ws_width, n)
 
     def surface(self, probe_size: int, with_report: bool = False) -> ca.Function:
         """``(probe, ws) -> (force, moment)`` and, ``with_report``, the values of :meth:`outputs`
@@ -170,7 +174,7 @@ class StagedElement(ForceElement, ABC):
         n = self.n_working
         probe = ca.MX.sym("probe", probe_size)
         ws = ca.MX.sym("ws", self.ws_width * n)
-        data = ca.reshape(ws, self.ws_width, n) if n else ca.DM(self.constant_data())
+        data = self.unpack(ws, n) if n else ca.DM(self.constant_data())
         force, moment = self.surface_wrench(probe, data)
         outs = [force, moment, *(self.report(probe, data, force) if with_report else [])]
         return ca.Function(f"surface_{self.name}", [probe, ws], outs)

@@ -88,7 +88,7 @@ class Knee:
     candidates: list[Ligament] = field(default_factory=list)  # [candidates.*]: bundles with stiffness 0
     femur: FemoralSurface | None = None  # the femoral surface of the mesh compartments
     axis: FlexionAxis | None = None  # fitted flexion axis (femoral frame)
-    margin: float = 1e-3  # m: tibial points closer than this enter a working set
+    margin: float = 1e-4  # m: tibial points closer than this enter a working set
     menisci: float | None = None  # N/m: transverse meniscus springs of the base model ([menisci])
     notes: list[str] = field(default_factory=list)  # how the file became this knee
 
@@ -122,11 +122,11 @@ class Knee:
 
     def working_slots(self, compartment: Compartment) -> int:
         """Working-set slots of a compartment: the file's ``contact.working_set``, or for mesh
-        contact automatically a third of its tibial points (every solve checks that no point
-        left out penetrates)."""
+        contact automatically a fifth of its tibial points (Sets 1-4 on the default knee put at most
+        an eighth of them in contact; every solve checks that no point left out penetrates)."""
         if self.working_set:
             return self.working_set
-        return 0 if compartment.sphere else int(np.ceil(len(compartment.points) / 3))
+        return 0 if compartment.sphere else int(np.ceil(len(compartment.points) / 5))
 
     def elements(self) -> list[ForceElement]:
         """The knee's force elements: its ligaments, one contact element per compartment and the
@@ -239,7 +239,7 @@ class _KneeFile:
                     parameters=params, gate=self.length(contact, "gate", 0.01, "contact.gate"),
                     working_set=working_set, landmarks=landmarks, source=src,
                     description=str(doc.get("description", "")), candidates=candidates, femur=geometry["femur"],
-                    axis=geometry["axis"], margin=self.length(contact, "margin", 1.0, "contact.margin"),
+                    axis=geometry["axis"], margin=self.length(contact, "margin", 0.1, "contact.margin"),
                     menisci=self.menisci(), notes=self.notes)
 
     def menisci(self) -> float | None:
@@ -362,7 +362,8 @@ class _KneeFile:
     def approximate_axes(self, raw_landmarks: dict[str, np.ndarray]) -> np.ndarray:
         """Anterior, proximal and lateral directions of the scan (rows), good enough to choose the
         regions the fits use: from the ISB landmarks when the file has them, else the scan's axes."""
-        if self.coordinates == "scan" and {"hip_center", "medial_epicondyle", "lateral_epicondyle"} <= set(raw_landmarks):
+        isb = {"hip_center", "medial_epicondyle", "lateral_epicondyle"}
+        if self.coordinates == "scan" and isb <= set(raw_landmarks):
             return landmark_axes(raw_landmarks, self.src)
         return np.eye(3)
 

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from kneenlp.geometry.sdf import DistanceField
-from kneenlp.model.contact import MODULUS, smooth_gate
+from kneenlp.model.contact import MODULUS, gate_numpy, smooth_gate
 from kneenlp.model.elements import Output, Pose, StagedElement
 from kneenlp.model.parameters import Parameter
 
@@ -55,7 +55,7 @@ class MeshContact(StagedElement):
     wrench_frame = "femoral"
 
     def __init__(self, compartment: str, field: DistanceField, points: np.ndarray, areas: np.ndarray, gate: float,
-                 working_set_size: int, margin: float = 1e-3, femur_vertices: np.ndarray | None = None,
+                 working_set_size: int, margin: float = 1e-4, femur_vertices: np.ndarray | None = None,
                  offset: float = 0.0):
         self.name, self.compartment = f"contact_{compartment}", compartment
         self.field = field
@@ -71,23 +71,26 @@ class MeshContact(StagedElement):
     def probe(self, pose: Pose, values: dict) -> ca.SX:
         return ca.vertcat(ca.vec(pose.R), pose.p, values[MODULUS.name])
 
+    def unpack(self, ws, n):
+        return ca.reshape(ws, n, WS_ROWS)  # field-major: each field one contiguous column
+
     def surface_wrench(self, probe, data):
         R, p, K = ca.reshape(probe[0:9], 3, 3), probe[9:12], probe[12]
-        n = data.shape[1]
-        x, area, b, d0, g = data[0:3, :], data[3, :], data[4:7, :], data[7, :], data[8:11, :]
-        hxx, hyy, hzz, hxy, hxz, hyz = (data[11 + i, :] for i in range(6))
-        arm = R @ x  # tibial origin -> point, femoral frame
-        e = arm + ca.repmat(p, 1, n) - b
-        ex, ey, ez = e[0, :], e[1, :], e[2, :]
-        gx = g[0, :] + hxx * ex + hxy * ey + hxz * ez
-        gy = g[1, :] + hxy * ex + hyy * ey + hyz * ez
-        gz = g[2, :] + hxz * ex + hyz * ey + hzz * ez
-        d = d0 + 0.5 * (g[0, :] * ex + g[1, :] * ey + g[2, :] * ez + gx * ex + gy * ey + gz * ez)
+        col = [data[:, i] for i in range(WS_ROWS)]
+        x, y, z, area, bx, by, bz, d0, g0x, g0y, g0z, hxx, hyy, hzz, hxy, hxz, hyz = col
+        # arm: tibial origin -> point, femoral frame; e: the point's offset from its expansion point
+        ax = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
+        ay = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z
+        az = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
+        ex, ey, ez = ax + (p[0] - bx), ay + (p[1] - by), az + (p[2] - bz)
+        gx = g0x + hxx * ex + hxy * ey + hxz * ez
+        gy = g0y + hxy * ex + hyy * ey + hyz * ez
+        gz = g0z + hxz * ex + hyz * ey + hzz * ez
+        d = d0 + 0.5 * ((g0x + gx) * ex + (g0y + gy) * ey + (g0z + gz) * ez)
         s = K * area * smooth_gate(-d, self.gate) / ca.sqrt(gx * gx + gy * gy + gz * gz + 1e-24)  # no 0/0 where clipped
         fx, fy, fz = s * gx, s * gy, s * gz
-        force = ca.vertcat(ca.sum2(fx), ca.sum2(fy), ca.sum2(fz))
-        ax, ay, az = arm[0, :], arm[1, :], arm[2, :]
-        moment = ca.vertcat(ca.sum2(ay * fz - az * fy), ca.sum2(az * fx - ax * fz), ca.sum2(ax * fy - ay * fx))
+        force = ca.vertcat(ca.sum1(fx), ca.sum1(fy), ca.sum1(fz))
+        moment = ca.vertcat(ca.sum1(ay * fz - az * fy), ca.sum1(az * fx - ax * fz), ca.sum1(ax * fy - ay * fx))
         return force, moment
 
     # ------------------------------------------------------------------ numeric side
@@ -103,8 +106,9 @@ class MeshContact(StagedElement):
             out = ~np.all((X >= lo) & (X <= hi), axis=1)
             if np.any(out):  # nearest-vertex distance minus the offset, less one facet: never overstated
                 tree, offset = self._outside
-                dist, _ = tree.query(X[out])
-                d[out] = dist - offset - self.field.spacing
+                reach = offset + self.field.spacing + self.field.band
+                dist, _ = tree.query(X[out], distance_upper_bound=reach)  # bounded: fast, inf beyond
+                d[out] = np.minimum(dist - offset - self.field.spacing, self.field.band)
         return d
 
     def in_field(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -131,7 +135,7 @@ class MeshContact(StagedElement):
         data[11:17, :m] = np.stack([h[:, 0, 0], h[:, 1, 1], h[:, 2, 2], h[:, 0, 1], h[:, 0, 2], h[:, 1, 2]])
         data[7, m:] = self.field.band  # empty slots: far away, zero area, unit normal
         data[9, m:] = 1.0
-        return data.T.ravel()
+        return data.ravel()  # field-major (see unpack)
 
     def pressure(self, R: np.ndarray, p: np.ndarray, modulus: float) -> dict[str, np.ndarray]:
         """The contact at a pose from the field itself (no expansion): per-point penetration (m)
@@ -141,9 +145,7 @@ class MeshContact(StagedElement):
         X = self._femoral(R, p)
         d, g, _ = self.field.evaluate(X, order=1)
         pen = -d
-        t = np.clip(pen, 0, self.gate)
-        gate = t**3 / self.gate**2 - t**4 / (2 * self.gate**3) + np.maximum(pen, self.gate) - self.gate
-        pres = modulus * gate
+        pres = modulus * gate_numpy(pen, self.gate)
         norm = np.linalg.norm(g, axis=1)
         n = np.divide(g, norm[:, None], out=np.zeros_like(g), where=norm[:, None] > 0)
         f = n * (pres * self.areas)[:, None]
@@ -158,6 +160,6 @@ class MeshContact(StagedElement):
 
     def report(self, probe, data, force):
         R, p = ca.reshape(probe[0:9], 3, 3), probe[9:12]
-        e = R @ data[0:3, :] + ca.repmat(p, 1, data.shape[1]) - data[4:7, :]
-        d = data[7, :] + ca.sum1(data[8:11, :] * e)  # first order: the penetration report only
+        e = data[:, 0:3] @ R.T + ca.repmat(p.T, data.shape[0], 1) - data[:, 4:7]
+        d = data[:, 7] + ca.sum2(data[:, 8:11] * e)  # first order: the penetration report only
         return [ca.norm_2(force), -ca.mmin(d)]

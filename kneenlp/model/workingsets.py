@@ -48,15 +48,21 @@ class WorkingSets(ca.Callback):
     def get_sparsity_out(self, i: int) -> ca.Sparsity:
         return ca.Sparsity.dense(self.model.ws_size, self.n_trials)
 
-    def eval(self, arg):
-        q, theta, flexion = (np.asarray(a, dtype=float) for a in arg)
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg, res) -> int:
+        """Zero-copy evaluation (the working sets are large: ~1e4 numbers per trial)."""
+        q = np.frombuffer(arg[0], dtype=np.float64).reshape(self.n_trials, 5)  # column-major 5 x T
+        theta = np.frombuffer(arg[1], dtype=np.float64)
+        flexion = np.frombuffer(arg[2], dtype=np.float64)
         key = q.tobytes() + theta.tobytes() + flexion.tobytes()
         if key != self._key:
-            cols = [self.model.working_set(q[:, j], theta.ravel(), float(flexion.ravel()[j]))[1]
-                    for j in range(self.n_trials)]
-            self._value = np.column_stack(cols) if cols else np.zeros((self.model.ws_size, 0))
+            self._value = np.concatenate([self.model.working_set(q[j], theta, float(flexion[j]))[1]
+                                          for j in range(self.n_trials)]) if self.n_trials else np.zeros(0)
             self._key = key
-        return [ca.DM(self._value)]
+        np.frombuffer(res[0], dtype=np.float64)[:] = self._value
+        return 0
 
     def has_jacobian(self) -> bool:
         return True

@@ -10,6 +10,8 @@ deg, the paper's ``Psi^T Psi``.
 The NLP is built once per (model, number of trials, free parameters, solver): all data enter as
 the NLP parameter vector ``p = [theta (all parameters, SI), measured poses, weights, loads,
 flexions]``, so refitting other data or other fixed values never rebuilds or recompiles it.
+Contact working sets are taken at every pose IPOPT evaluates (:mod:`kneenlp.model.workingsets`),
+so the constraints and their Jacobian are the contact model itself.
 
 Speed choices: the residual is an MX graph around the vectorised contact (see
 :mod:`kneenlp.model.contact`), mapped over trials with ``map(T, "thread", 2)`` so both cores evaluate
@@ -53,21 +55,27 @@ class NLPExpressions:
     ubx: np.ndarray
 
 
-def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", threads: int = 1) -> NLPExpressions:
-    """The NLP's expressions (see module docstring); ``parallel``/``threads`` set the trial map."""
+def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", threads: int = 1,
+                    working_sets: str = "pose") -> NLPExpressions:
+    """The NLP's expressions (see module docstring); ``parallel``/``threads`` set the trial map.
+
+    ``working_sets``: ``"pose"`` takes each trial's contact working sets at the pose being
+    evaluated (:class:`~kneenlp.model.workingsets.WorkingSets`: the exact contact, for solving);
+    ``"data"`` makes them part of the data vector (a self-contained program for export, exact where
+    they were taken)."""
     model, free, T = problem.model, problem.free, problem.n_trials
     n_theta, nf = len(model.parameter_names), len(free)
     scales = problem.scales
     xp = ca.MX.sym("p_free", nf)
     xq = ca.MX.sym("q_user", 5, T)
-    nw = model.ws_size
+    nw = model.ws_size if working_sets == "data" else 0
     par = ca.MX.sym("data", n_theta + 5 * T + 5 * T + 6 * T + T + nw * T)
     theta_in = par[:n_theta]
     meas = ca.reshape(par[n_theta : n_theta + 5 * T], 5, T)
     w = ca.reshape(par[n_theta + 5 * T : n_theta + 10 * T], 5, T)
     loads = ca.reshape(par[n_theta + 10 * T : n_theta + 16 * T], 6, T)
     flex = ca.reshape(par[n_theta + 16 * T : n_theta + 17 * T], 1, T)
-    ws = ca.reshape(par[n_theta + 17 * T :], nw, T)
+    ws_data = ca.reshape(par[n_theta + 17 * T :], nw, T)
     # theta element by element, so that fixed parameters (e.g. the contact modulus) depend on no
     # decision variable structurally: the Hessian then never seeds the contact with parameter
     # directions (a dense selection matrix made it ~2x slower).
@@ -79,6 +87,10 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
         mapped = model.residual.map(T, "thread", threads)
     else:
         mapped = model.residual.map(T, "serial" if parallel == "thread" else parallel)
+    if working_sets == "pose" and model.ws_size:
+        ws = model.working_sets_function(T)(q_si, theta, flex)
+    else:
+        ws = ws_data
     g = ca.vec(mapped(q_si, theta, loads, flex, ws))
     diff = model.observation.map(T)(q_si, theta) - meas
     f = ca.sum1(ca.sum2(w * diff * diff))

@@ -1,0 +1,1 @@
+"""Test utilities shipped with kneenlp: independent references to check the model against."""

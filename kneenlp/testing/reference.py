@@ -1,0 +1,85 @@
+"""Brute-force reference of the elastic-foundation contact on the femoral mesh itself.
+
+:func:`reference_contact` evaluates the same pressure law as the model (pressure = modulus x
+penetration through the C2 gate, force along the femoral surface normal, on the same tibial sample
+points and areas) but with *exact* point-to-mesh signed distances to the femoral mesh
+(:class:`kneenlp.geometry.distance.MeshDistance`: trimesh's point-triangle distances with a
+certified candidate search), instead of the distance field the model uses.  It is slow (seconds)
+and has no derivatives: it is the oracle of the field's accuracy (tests/test_real_knee.py) and a
+tool to check a user's own knee::
+
+    from kneenlp.testing.reference import compare_contact
+    compare_contact(knee, q, theta, flexion)   # per compartment: model vs exact force, moment, CoP
+
+Frames and units: tibial points in the tibial frame, pose ``(R, p)`` maps them to the femoral
+frame; force on the tibia (N) and moment about the tibial origin (N m) in the femoral frame, centre
+of pressure in the femoral frame (m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kneenlp.geometry.distance import MeshDistance
+from kneenlp.model.contact import gate_numpy
+
+
+@dataclass(frozen=True)
+class ContactState:
+    """The contact of one compartment at one pose (SI, femoral frame)."""
+
+    force: np.ndarray
+    moment: np.ndarray
+    cop: np.ndarray  # NaN without contact
+    penetration: np.ndarray  # per tibial point, m
+    pressure: np.ndarray  # per tibial point, Pa
+
+    @property
+    def load(self) -> float:
+        return float(np.linalg.norm(self.force))
+
+
+def reference_contact(distance: MeshDistance, offset: float, points: np.ndarray, areas: np.ndarray,
+                      R: np.ndarray, p: np.ndarray, modulus: float, gate: float) -> ContactState:
+    """Contact of tibial ``points`` (tibial frame, m) with ``areas`` (m^2) against the surface
+    ``offset`` (m) outside the mesh of ``distance``, at pose ``(R, p)``, modulus in N/m^3, gate in m."""
+    p = np.asarray(p, float).ravel()
+    X = np.asarray(points, float) @ np.asarray(R, float).T + p
+    near = distance.lower_bound(X) < offset + 1e-4  # the others are certainly clear of the surface
+    d, normal = np.full(len(X), np.inf), np.zeros((len(X), 3))
+    if np.any(near):
+        d[near], _, normal[near] = distance(X[near])
+    pen = offset - d
+    pres = modulus * gate_numpy(pen, gate)
+    w = pres * np.asarray(areas, float)
+    f = normal * w[:, None]
+    cop = (X * w[:, None]).sum(axis=0) / w.sum() if w.sum() > 0 else np.full(3, np.nan)
+    return ContactState(f.sum(axis=0), np.cross(X - p, f).sum(axis=0), cop, pen, pres)
+
+
+def compare_contact(knee, q: np.ndarray, theta: np.ndarray, flexion: float,
+                    distance: MeshDistance | None = None) -> dict[str, dict[str, float]]:
+    """The model's contact (its femoral distance field) against :func:`reference_contact` at one
+    pose ``q`` (SI) of ``knee`` (mesh compartments only), per compartment: both loads (N), the
+    force and moment errors relative to the reference magnitudes, and the centre-of-pressure
+    distance (mm)."""
+    model = knee.model
+    R, p = (np.asarray(v) for v in model.pose(q, flexion, theta))
+    modulus = float(theta[model.index("contact.modulus")])
+    distance = distance or MeshDistance(knee.femur.mesh)
+    out = {}
+    for e in model.staged:
+        if not hasattr(e, "field"):
+            continue
+        ref = reference_contact(distance, knee.femur.offset, e.points, e.areas, R, p, modulus, e.gate)
+        got = e.pressure(R, p, modulus)
+        out[e.compartment] = {
+            "load_N": float(np.linalg.norm(got["force"])), "reference_load_N": ref.load,
+            "force_error": float(np.linalg.norm(got["force"] - ref.force) / max(ref.load, 1e-12)),
+            "moment_error": float(np.linalg.norm(got["moment"] - ref.moment)
+                                  / max(np.linalg.norm(ref.moment), 1e-12)),
+            "cop_error_mm": float(np.linalg.norm(got["cop"] - ref.cop) * 1e3) if ref.load > 0 else 0.0,
+        }
+    return out

@@ -1,0 +1,67 @@
+"""The implant example knee (``Knee.named("implant")``): a synthetic total knee arthroplasty built by
+:mod:`kneenlp.model.implant`, mesh contact in both compartments."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+import kneenlp
+from kneenlp.geometry.distance import signed_distance
+from kneenlp.model import implant
+
+MESHES = ("femur_component.stl", "inlay.stl")
+
+
+@pytest.fixture(scope="module")
+def implant_knee() -> kneenlp.Knee:
+    return kneenlp.Knee.named("implant")
+
+
+def test_implant_knee_loads_with_two_mesh_compartments(implant_knee):
+    assert implant_knee.name == "implant"
+    assert set(implant_knee.compartments) == {"medial", "lateral"}
+    assert not any(c.sphere for c in implant_knee.compartments.values())
+    assert implant_knee.femur is not None and implant_knee.femur.offset == 0.0
+    assert set(implant_knee.ligaments) == {"ACL", "PCL", "MCL", "LCL"}
+    medial, lateral = (implant_knee.compartments[n].points[:, 2].mean() for n in ("medial", "lateral"))
+    assert medial == pytest.approx(-0.021, abs=1e-3) and lateral == pytest.approx(0.021, abs=1e-3)  # m
+
+
+def test_generator_reproduces_shipped_meshes(tmp_path):
+    implant.write_implant_knee(tmp_path)
+    for name in MESHES:
+        shipped = trimesh.load(implant.IMPLANT_DIR / "meshes" / name)
+        fresh = trimesh.load(tmp_path / "meshes" / name)
+        assert shipped.vertices.shape == fresh.vertices.shape, name
+        assert np.allclose(shipped.vertices, fresh.vertices), name
+
+
+def test_reference_pose_just_touches():
+    """At 0 deg flexion, all coordinates zero, the component penetrates the inlay by 0.05-0.3 mm."""
+    femur, inlay = implant.femoral_component(), implant.inlay_surface()
+    depth = -signed_distance(femur, inlay.vertices)[0].min()  # mm
+    assert 0.05 <= depth <= 0.3
+    lowest = femur.vertices[np.argmin(femur.vertices[:, 1])]
+    assert lowest[1] == pytest.approx(-21.0, abs=0.05)
+
+
+@pytest.mark.slow
+def test_set3_converges_and_loads_move_the_tibia_their_way(implant_knee):
+    result = kneenlp.simulate(implant_knee, "set3")
+    assert not result.failed, [(s.trial.id, s.reason) for s in result.failed]
+    assert result.converged == 26
+    assert result.max_residual <= 1e-6
+    table = result.table()
+    at0 = table[table.flexion_deg == 0.0]
+    loads = {"anterior_force_N": "anterior_translation_mm", "varus_moment_Nm": "varus_rotation_deg",
+             "internal_moment_Nm": "internal_rotation_deg"}
+    unloaded = at0[(at0[list(loads)] == 0.0).all(axis=1)]
+    assert len(unloaded) == 1
+    for load, coordinate in loads.items():
+        reference = unloaded[coordinate].iloc[0]
+        positive, negative = at0[at0[load] > 0], at0[at0[load] < 0]
+        assert len(positive) == 2 and len(negative) == 2, load
+        assert (positive[coordinate] > reference).all(), (load, positive[coordinate].tolist(), reference)
+        assert (negative[coordinate] < reference).all(), (load, negative[coordinate].tolist(), reference)
