@@ -92,8 +92,8 @@ def test_dask_local_cluster_gives_identical_rows(small, tmp_path):
 
 def test_resume_after_kill_loses_and_duplicates_nothing(tmp_path):
     out = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "kneenlp.cli", "study", "--sets", "1", "--samples", "8", "--workers", "1",
-           "--seed", "3", "--quiet", "--out", str(out)]
+    cmd = [sys.executable, "-m", "kneenlp.cli", "study", "--knee", "synthetic", "--sets", "1", "--samples", "8",
+           "--workers", "1", "--seed", "3", "--quiet", "--out", str(out)]
     proc = subprocess.Popen(cmd, start_new_session=True)
     deadline = time.time() + 120
     while time.time() < deadline and len(list((out / "samples").glob("*.json"))) < 2:
