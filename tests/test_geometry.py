@@ -49,17 +49,21 @@ def test_distance_field_matches_the_exact_distance_in_its_band(box):
     # within the accurate band (-1.5 to 0.5 mm) of the middle of the top face, away from the edges
     # and corners, which the field rounds within a few grid cells
     pts = rng.uniform([-5e-3, half[1] - 1.5e-3, -4e-3], [5e-3, half[1] + 0.5e-3, 4e-3], (500, 3))
-    d, g, h = fld.evaluate(pts, order=2)
+    d, g, h, t3 = fld.evaluate(pts, order=3)
     assert np.max(np.abs(d - box_sdf(pts, half))) < 1e-6
     assert np.allclose(g, [0.0, 1.0, 0.0], atol=1e-2)  # |grad d| = 1 within the clips' rounding
     # derivatives are those of the same spline (central differences)
     e = 1e-7
     for a in range(3):
         step = e * np.eye(3)[a]
-        dp, gp, _ = fld.evaluate(pts + step, order=1)
-        dm, gm, _ = fld.evaluate(pts - step, order=1)
+        dp, gp, hp = fld.evaluate(pts + step, order=2)
+        dm, gm, hm = fld.evaluate(pts - step, order=2)
         assert np.allclose((dp - dm) / (2 * e), g[:, a], atol=1e-6)
         assert np.allclose((gp - gm) / (2 * e), h[:, a, :], atol=1e-3 * np.abs(h).max() + 1e-6)
+        # the third derivative is constant within a grid cell: compare where both sides share a cell
+        same = np.all(np.floor((pts + step - fld.origin) / fld.spacing) == np.floor((pts - step - fld.origin)
+                                                                                    / fld.spacing), axis=1)
+        assert np.allclose(((hp - hm) / (2 * e))[same], t3[same, a], atol=1e-3 * np.abs(t3).max() + 1e-3)
 
 
 def test_cylinder_fit_recovers_a_known_cylinder():

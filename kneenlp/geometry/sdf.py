@@ -35,13 +35,15 @@ from scipy.spatial import cKDTree
 from kneenlp.geometry.distance import MeshDistance
 
 #: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 
 
 def _weights(t: np.ndarray, order: int) -> np.ndarray:
-    """Cubic B-spline weights of the 4 nodes around fractional position ``t`` (N,) and their first
-    or second derivatives with respect to ``t``: (N, 4)."""
+    """Cubic B-spline weights of the 4 nodes around fractional position ``t`` (N,) and their first,
+    second or third derivatives with respect to ``t``: (N, 4)."""
     s = 1.0 - t
+    if order == 3:
+        return np.broadcast_to(np.array([-1.0, 3.0, -3.0, 1.0]), (len(t), 4))
     if order == 0:
         return np.stack([s**3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3], axis=1) / 6
     if order == 1:
@@ -88,8 +90,10 @@ class DistanceField:
         (``info['error_rms_um']``, ``info['error_max_um']``).
         """
         t0 = time.perf_counter()
-        lo = np.asarray(box[0], float) - 3 * spacing
-        hi = np.asarray(box[1], float) + 3 * spacing
+        # nodes on multiples of the spacing in the mesh's frame: the same anatomy in the same frame gives
+        # the same grid whatever the exact box
+        lo = np.floor(np.asarray(box[0], float) / spacing - 3) * spacing
+        hi = np.ceil(np.asarray(box[1], float) / spacing + 3) * spacing
         shape = tuple(int(np.ceil((hi[i] - lo[i]) / spacing)) + 1 for i in range(3))
         axes = [lo[i] + spacing * np.arange(shape[i]) for i in range(3)]
         nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -132,21 +136,21 @@ class DistanceField:
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, points: np.ndarray, order: int = 0):
         """Signed distance (N,) at ``points`` (N x 3, m); with ``order`` >= 1 also the gradient
-        (N x 3), with ``order`` 2 also the Hessian (N x 3 x 3).  Points outside the grid get
-        ``band`` with zero derivatives."""
+        (N x 3), with ``order`` >= 2 the Hessian (N x 3 x 3), with ``order`` 3 the third
+        derivatives (N x 3 x 3 x 3, piecewise constant in a cubic spline).  Returns a tuple of
+        ``order + 1`` arrays (just the distance for ``order`` 0 is ``evaluate(x)[0]``).  Points
+        outside the grid get ``band`` with zero derivatives."""
         x = np.asarray(points, dtype=float).reshape(-1, 3)
         n = len(x)
         u = (x - self.origin) / self.spacing
         i0 = np.floor(u).astype(np.int64)
         ok = np.all((i0 >= 1) & (i0 <= np.array(self.shape) - 3), axis=1)
-        d = np.full(n, self.band)
-        if order == 0:
-            if np.any(ok):
-                d[ok] = map_coordinates(self.coeffs, u[ok].T, order=3, prefilter=False)
-            return d, None, None
-        grad, hess = np.zeros((n, 3)), (np.zeros((n, 3, 3)) if order >= 2 else None)
+        out = [np.full(n, self.band)] + [np.zeros((n,) + (3,) * k) for k in range(1, order + 1)]
         if not np.any(ok):
-            return d, grad, hess
+            return tuple(out)
+        if order == 0:
+            out[0][ok] = map_coordinates(self.coeffs, u[ok].T, order=3, prefilter=False)
+            return tuple(out)
         t = u[ok] - i0[ok]
         strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1])
         off = np.arange(-1, 3)
@@ -160,18 +164,12 @@ class DistanceField:
                 cyz = np.einsum("nij,nj->ni", cz[kz], w[1][ky])
                 for kx in range(order + 1 - kz - ky):
                     val[kx, ky, kz] = np.einsum("ni,ni->n", cyz, w[0][kx]) / self.spacing ** (kx + ky + kz)
-        d[ok] = val[0, 0, 0]
-        grad[ok] = np.stack([val[1, 0, 0], val[0, 1, 0], val[0, 0, 1]], axis=1)
-        if order >= 2:
-            hh = np.empty((int(ok.sum()), 3, 3))
-            for a in range(3):
-                for b in range(a, 3):
-                    k = [0, 0, 0]
-                    k[a] += 1
-                    k[b] += 1
-                    hh[:, a, b] = hh[:, b, a] = val[tuple(k)]
-            hess[ok] = hh
-        return d, grad, hess
+        for k in range(order + 1):
+            block = np.empty((int(ok.sum()),) + (3,) * k)
+            for idx in np.ndindex(*((3,) * k)):
+                block[(slice(None), *idx)] = val[tuple(idx.count(a) for a in range(3))]
+            out[k][ok] = block
+        return tuple(out)
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> None:

@@ -12,9 +12,8 @@ The ``[contact]`` table of a knee file (lengths in the file's unit) names::
     sphere_center = [0, 0, -21]  # an explicit analytic sphere instead of the femoral mesh
     sphere_radius = 22.0
 
-plus ``gate`` (width of the contact gate), ``margin`` (gap below which a tibial point enters a
-working set), ``working_set`` (slots per compartment and trial, 0: automatic) and
-``grid_spacing`` (of the femoral distance field).  A sphere is only ever used where the file
+plus ``gate`` (width of the contact gate), ``grid_spacing`` (of the femoral distance field) and,
+for explicit spheres, ``working_set`` (points per compartment and trial, 0: every point).  A sphere is only ever used where the file
 asks for one; a femoral mesh is always represented as itself (:mod:`kneenlp.model.mesh_contact`).
 """
 
@@ -36,7 +35,7 @@ from kneenlp.geometry.sdf import DistanceField, cached_field
 log = logging.getLogger("kneenlp")
 
 #: Keys of the ``[contact]`` table that are settings, not compartments.
-CONTACT_SETTINGS = ("gate", "margin", "working_set", "grid_spacing", "femur", "femur_offset", "tibia")
+CONTACT_SETTINGS = ("gate", "working_set", "grid_spacing", "femur", "femur_offset", "tibia")
 #: Keys of a ``[contact.<compartment>]`` table.
 COMPARTMENT_KEYS = ("tibia", "femur", "sphere_center", "sphere_radius")
 

@@ -81,14 +81,13 @@ class Knee:
     tuberosity: np.ndarray  # tibial frame, m
     parameters: ParameterSet
     gate: float = 1e-5  # m
-    working_set: int = 0  # contact slots per compartment and trial (0: automatic / every point)
+    working_set: int = 0  # sphere contact: points per compartment and trial (0: every point)
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
     source: str | None = None
     description: str = ""
     candidates: list[Ligament] = field(default_factory=list)  # [candidates.*]: bundles with stiffness 0
     femur: FemoralSurface | None = None  # the femoral surface of the mesh compartments
     axis: FlexionAxis | None = None  # fitted flexion axis (femoral frame)
-    margin: float = 1e-4  # m: tibial points closer than this enter a working set
     menisci: float | None = None  # N/m: transverse meniscus springs of the base model ([menisci])
     notes: list[str] = field(default_factory=list)  # how the file became this knee
 
@@ -120,14 +119,6 @@ class Knee:
 
         return KneeModel(self)
 
-    def working_slots(self, compartment: Compartment) -> int:
-        """Working-set slots of a compartment: the file's ``contact.working_set``, or for mesh
-        contact automatically a fifth of its tibial points (Sets 1-4 on the default knee put at most
-        an eighth of them in contact; every solve checks that no point left out penetrates)."""
-        if self.working_set:
-            return self.working_set
-        return 0 if compartment.sphere else int(np.ceil(len(compartment.points) / 5))
-
     def elements(self) -> list[ForceElement]:
         """The knee's force elements: its ligaments, one contact element per compartment and the
         candidate bundles of its file (neutral: stiffness 0)."""
@@ -135,11 +126,10 @@ class Knee:
         for c in self.compartments.values():
             if c.sphere:
                 contact.append(SphereContact(c.name, c.centre, c.sphere_radius, c.points, c.areas, self.gate,
-                                             self.working_slots(c)))
+                                             self.working_set))
             else:
                 contact.append(MeshContact(c.name, self.femur.field, c.points, c.areas, self.gate,
-                                           self.working_slots(c), self.margin, self.femur.mesh.vertices,
-                                           self.femur.offset))
+                                           self.femur.mesh.vertices, self.femur.offset))
         menisci = [Meniscus(self.condyle_centres(), self.menisci)] if self.menisci is not None else []
         return [*self.ligaments.values(), *contact, *menisci, *self.candidates]
 
@@ -163,7 +153,7 @@ class Knee:
             what = (f"explicit sphere, radius {c.sphere_radius * 1e3:.1f} mm, centre "
                     f"({', '.join(f'{v * 1e3:.1f}' for v in c.centre)}) mm" if c.sphere else "femoral mesh surface")
             lines.append(f"{c.name}: {len(c.points)} tibial points ({c.areas.sum() * 1e6:.0f} mm^2) against the "
-                         f"{what}; working set {self.working_slots(c) or 'all'} points")
+                         f"{what}")
         if self.femur is not None:
             lines += [self.femur.describe(), field_summary(self.femur.field)]
         return "\n".join(lines)
@@ -232,15 +222,14 @@ class _KneeFile:
         contact = doc.get("contact", {})
         working_set = contact.get("working_set", 0)
         if isinstance(working_set, bool) or not isinstance(working_set, int) or working_set < 0:
-            raise InputError(f"must be an integer >= 0 (0: automatic), got {working_set!r}", source=src,
+            raise InputError(f"must be an integer >= 0 (0: every point), got {working_set!r}", source=src,
                              field="contact.working_set")
         return Knee(name=str(doc.get("name", self.path.stem)), ligaments=ligaments,
                     compartments=geometry["compartments"], tuberosity=landmarks["tibial_tuberosity"],
                     parameters=params, gate=self.length(contact, "gate", 0.01, "contact.gate"),
                     working_set=working_set, landmarks=landmarks, source=src,
                     description=str(doc.get("description", "")), candidates=candidates, femur=geometry["femur"],
-                    axis=geometry["axis"], margin=self.length(contact, "margin", 0.1, "contact.margin"),
-                    menisci=self.menisci(), notes=self.notes)
+                    axis=geometry["axis"], menisci=self.menisci(), notes=self.notes)
 
     def menisci(self) -> float | None:
         """``[menisci] stiffness`` (N/mm per compartment) -> N/m, or None (menisci not modelled)."""
@@ -327,12 +316,22 @@ class _KneeFile:
             else:
                 s = {n: c @ approx[2] for n, c in cents.items()}
                 med, lat = cents[min(s, key=s.get)], cents[max(s, key=s.get)]
-            split = split_condyles(femur_raw, med, lat, approx[1])
-            try:
-                axis = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
-            except (ValueError, np.linalg.LinAlgError, TypeError) as exc:
-                raise InputError(f"cannot fit cylinders to the femoral condyles ({exc})", source=src,
-                                 field="contact.femur") from None
+            # the fitted regions depend on the approximate axes: refit with the axes of the last fit
+            # until the axis settles, so the frame does not depend on how the scan was oriented
+            hip = raw_landmarks.get("hip_center")
+            for _ in range(5):
+                split = split_condyles(femur_raw, med, lat, approx[1])
+                try:
+                    new = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
+                except (ValueError, np.linalg.LinAlgError, TypeError) as exc:
+                    raise InputError(f"cannot fit cylinders to the femoral condyles ({exc})", source=src,
+                                     field="contact.femur") from None
+                settled = axis is not None and angle_deg(new.direction, axis.direction) < 1e-4 \
+                    and np.linalg.norm(new.point - axis.point) < 1e-7
+                axis = new
+                if settled:
+                    break
+                approx = axes_from_flexion(axis.direction, hip - axis.point if hip is not None else approx[1])
             self.notes.append(f"femoral condyles split by a {split.describe()}")
         self.frame = self.build_frame(axis, spheres, raw_landmarks, approx)
         self.notes.append(f"frame: {self.frame.how}")

@@ -4,66 +4,154 @@ The femoral articular surface is a signed-distance field ``d(x)`` (:class:`~knee
 DistanceField`: a tricubic B-spline of the exact distance to the mesh, femoral frame, metres,
 negative inside the femur).  The tibial cartilage is sampled at its mesh vertices ``x_i`` (tibial
 frame) with lumped areas ``A_i``.  At a pose ``(R, p)`` the point ``X_i = R x_i + p`` penetrates
-the femur by ``-d(X_i)``; the pressure is ``K g(-d)`` (the paper's elastic foundation: modulus
-``K`` times penetration depth, with the C2 gate ``g`` of :func:`kneenlp.model.contact.smooth_gate`)
-and the force on the tibia ``K g(-d) A_i n_i`` acts along the femoral surface normal
-``n = grad d / |grad d|`` at ``X_i``; moments about the tibial origin.  Everything is summed in
-the femoral frame.
+the femur by ``s_i = -d(X_i)``; the pressure is ``K g(s_i)`` (the paper's elastic foundation:
+modulus ``K`` times penetration depth, with the C2 gate ``g`` of
+:func:`kneenlp.model.contact.smooth_gate`) and the force on the tibia ``f_i = K g(s_i) A_i n_i``
+acts along the femoral surface normal ``n = grad d / |grad d|`` at ``X_i``; moments are about the
+tibial origin.  Everything is summed in the femoral frame.
 
-Cost.  Evaluating and differentiating a 3-D spline inside CasADi costs ~60 us per point for an
-exact Hessian (measured); instead each working-set point carries the field's second-order
-expansion at its position when the working set was taken, ``b_i``:
-``d(X) = d(b) + g . (X - b) + (X - b)' H (X - b) / 2`` with normal ``g + H (X - b)``.  Its value,
-normal and their first derivatives equal the field's at ``X = b``, so at a solution whose working
-sets were taken at the solution itself the residual, its Jacobian (hence every sensitivity and
-covariance) and the KKT conditions are those of the field.  The solvers retake the working sets
-at each solution and solve again until that holds (:meth:`KneeModel.working_set`); the expansion
-is exact to third order, so two or three rounds suffice.  The per-point arithmetic is a few dense
-vector operations whatever the number of points (like :mod:`kneenlp.model.contact`).
-
-Working set: the points whose gap at the pose is below ``margin`` (nearest first, at most
-``n_working``; unused slots have zero area).  A point outside the set that penetrates at the
-solution, or a contact outside the represented region, makes the solve fail with that reason.
+How it enters the CasADi model.  Evaluating and differentiating a 3-D spline at hundreds of points
+inside CasADi costs ~60 us per point for an exact Hessian (measured), so the sums are done in
+NumPy instead: at the pose being evaluated, :func:`wrench_expansion` returns the compartment's
+wrench ``W`` (force and moment, 6), its first derivatives ``J`` (6 x 6) and second derivatives
+``H`` (6 x 6 x 6) with respect to a rigid displacement ``xi = (u, w)`` of the tibia (translation
+``u``; rotation ``exp([w]x)`` applied in the femoral frame), from the field's derivatives up to
+third order at every penetrating point.  That expansion is the element's working-set input
+(:mod:`kneenlp.model.workingsets` takes it at every pose a solver evaluates), and the residual
+uses ``W + J xi + xi' H xi / 2`` with ``xi`` the displacement from the expansion pose (``u = p -
+p0``, ``w = vee(R R0' - R0 R')/2``, exact to second order).  At the evaluated pose ``xi = 0``, so
+the residual, its Jacobian and its Hessian are those of the contact sums themselves.  The cost in
+CasADi is a few operations per compartment whatever the number of points, and no point can be
+left out: every penetrating point inside the field counts.  A contact outside the represented
+region (a tibial point penetrating the femoral mesh outside the field's grid) is detected and the
+solve reported as failed.
 """
 
 from __future__ import annotations
+
+import threading
 
 import casadi as ca
 import numpy as np
 from scipy.spatial import cKDTree
 
 from kneenlp.geometry.sdf import DistanceField
-from kneenlp.model.contact import MODULUS, gate_numpy, smooth_gate
+from kneenlp.model.contact import MODULUS, gate_numpy
 from kneenlp.model.elements import Output, Pose, StagedElement
 from kneenlp.model.parameters import Parameter
 
-#: Rows of one working-set slot: tibial point (3), area, expansion point (3), d, gradient (3),
-#: Hessian (xx, yy, zz, xy, xz, yz).
-WS_ROWS = 17
+#: Points farther than this from the femoral surface at a cached pose are not looked at again while
+#: the tibia stays within :data:`CANDIDATE_REACH` of that pose (m; see :meth:`MeshContact.select`).
+CANDIDATE_REACH = 2e-3
+#: Poses remembered with their candidate points (a solver works on up to ~100 trials at a time).
+CANDIDATE_POSES = 256
+
+#: Layout of the working-set input: expansion pose R0 (9, column-major) and p0 (3), wrench W (6),
+#: Jacobian J (36, column-major 6 x 6), Hessian H (216: H[c] 6 x 6 for each wrench component c,
+#: column-major), largest penetration (1).  W, J and H are per unit modulus.
+WS_SIZE = 9 + 3 + 6 + 36 + 216 + 1
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """[v]x for every row of ``v`` (n x 3 -> n x 3 x 3)."""
+    z = np.zeros(len(v))
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
+                     np.stack([-v[:, 1], v[:, 0], z], -1)], 1)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product along axis 1 (broadcasting the others)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
+def _gate_derivatives(s: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The gate and its first two derivatives at penetrations ``s`` (m)."""
+    t = np.clip(s, 0, delta)
+    inner = s < delta
+    g1 = np.where(inner, 3 * t**2 / delta**2 - 2 * t**3 / delta**3, 1.0)
+    g2 = np.where(inner, 6 * t / delta**2 - 6 * t**2 / delta**3, 0.0)
+    return gate_numpy(s, delta), g1, g2
+
+
+def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray, X: np.ndarray, r: np.ndarray,
+                     areas: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Wrench (6), Jacobian (6 x 6) and Hessian (6 x 6 x 6) per unit modulus of the contact of the
+    points with field values ``d``, gradients ``g``, Hessians ``h`` and third derivatives ``t3``
+    (n, n x 3, n x 3 x 3, n x 3 x 3 x 3) at femoral-frame positions ``X``, arms ``r = X - p`` from
+    the tibial origin and ``areas`` (m^2), with respect to ``xi = (u, w)`` (see module docstring).
+
+    Per point, ``f = A g(s) n`` with ``s = -d`` and ``n = grad d / |grad d|``; ``m = r x f``.  The
+    derivatives of ``f`` with respect to ``X`` follow from the field's (``dn/dX = P H / rho`` with
+    ``P = I - n n'`` and ``rho = |grad d|``), those of ``X`` and ``r`` with respect to ``xi`` from
+    ``X(xi) = X + u + w x r + w x (w x r) / 2``.
+    """
+    n_pts = len(d)
+    if n_pts == 0:
+        return np.zeros(6), np.zeros((6, 6)), np.zeros((6, 6, 6))
+    gam, gam1, gam2 = _gate_derivatives(-d, gate)
+    rho = np.linalg.norm(g, axis=1)
+    n = g / rho[:, None]
+    P = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
+    N = P @ h / rho[:, None, None]  # dn_j/dX_k
+    Hn = (h @ n[:, :, None])[:, :, 0]
+    NtH = np.swapaxes(N, 1, 2) @ h
+    PT = (P @ t3.reshape(n_pts, 3, 9)).reshape(n_pts, 3, 3, 3)
+    dN = (PT - N[:, :, None, :] * Hn[:, None, :, None] - n[:, :, None, None] * np.swapaxes(NtH, 1, 2)[:, None]
+          - N[:, :, :, None] * Hn[:, None, None, :]) / rho[:, None, None, None]  # dN_jk/dX_l
+    A, G0, G1, G2 = areas[:, None, None], gam[:, None, None], gam1[:, None, None], gam2[:, None, None]
+    f = (areas * gam)[:, None] * n
+    ng = n[:, :, None] * g[:, None, :]  # n_j g_k
+    Df = A * (G0 * N - G1 * ng)  # df_j/dX_k
+    D2f = A[..., None] * (G2[..., None] * ng[:, :, :, None] * g[:, None, None, :]
+                          - G1[..., None] * (n[:, :, None, None] * h[:, None] + g[:, None, :, None] * N[:, :, None, :]
+                                             + g[:, None, None, :] * N[:, :, :, None])
+                          + G0[..., None] * dN)  # d2f_j/dX_k dX_l
+    # X(xi) and r(xi): first derivatives B = [I, -[r]x], second derivatives (rotation block only)
+    rx = _skew(r)
+    B = np.concatenate([np.broadcast_to(np.eye(3), (n_pts, 3, 3)), -rx], axis=2)  # n x 3 x 6
+    Br = np.concatenate([np.zeros((n_pts, 3, 3)), -rx], axis=2)
+    eye = np.eye(3)
+    Xw = 0.5 * (eye[None, :, :, None] * r[:, None, None, :] + eye[None, :, None, :] * r[:, None, :, None]
+                - 2 * r[:, :, None, None] * eye[None, None, :, :])  # d2X_j/dw_a dw_b (the only non-zero block)
+    f1 = Df @ B  # df/dxi, n x 3 x 6
+    f2 = np.swapaxes(np.swapaxes(D2f, 2, 3) @ B[:, None], 2, 3) @ B[:, None]
+    f2[:, :, 3:, 3:] += (Df @ Xw.reshape(n_pts, 3, 9)).reshape(n_pts, 3, 3, 3)
+    m = _cross(r, f)
+    m1 = _cross(Br, f[:, :, None]) + _cross(r[:, :, None], f1)
+    m2 = _cross(Br[:, :, :, None], f1[:, :, None, :]) + _cross(Br[:, :, None, :], f1[:, :, :, None])
+    m2 += _cross(r[:, :, None, None], f2)
+    m2[:, :, 3:, 3:] += _cross(Xw, f[:, :, None, None])
+    W = np.concatenate([f.sum(axis=0), m.sum(axis=0)])
+    J = np.concatenate([f1.sum(axis=0), m1.sum(axis=0)])
+    H = np.concatenate([f2.sum(axis=0), m2.sum(axis=0)])
+    return W, J, H
 
 
 class MeshContact(StagedElement):
     """Contact of one compartment: a femoral distance field against tibial cartilage samples.
 
     ``field`` femoral frame, m; ``points`` (N x 3) tibial frame, m; ``areas`` (N,) m^2; ``gate``
-    and ``margin`` m; ``femur_vertices`` (femoral frame, m) with ``offset`` (m) bound the gap of
-    points outside the field's grid.  Parameter: ``contact.modulus``.  Outputs: contact force
-    (N) and largest penetration (mm).
+    m; ``femur_vertices`` (femoral frame, m) with ``offset`` (m) bound the gap of points outside
+    the field's grid.  Parameter: ``contact.modulus``.  Outputs: contact force (N) and largest
+    penetration (mm).
     """
 
-    ws_width = WS_ROWS
+    ws_width = WS_SIZE
     wrench_frame = "femoral"
+    working_set_size = 1  # one expansion per compartment and trial
 
     def __init__(self, compartment: str, field: DistanceField, points: np.ndarray, areas: np.ndarray, gate: float,
-                 working_set_size: int, margin: float = 1e-4, femur_vertices: np.ndarray | None = None,
-                 offset: float = 0.0):
+                 femur_vertices: np.ndarray | None = None, offset: float = 0.0):
         self.name, self.compartment = f"contact_{compartment}", compartment
         self.field = field
         self.points, self.areas = np.asarray(points, float), np.asarray(areas, float)
-        self.gate, self.margin = float(gate), float(margin)
-        self.working_set_size = int(min(max(1, working_set_size), len(self.points) - 1))
+        self.gate = float(gate)
         self.description = f"{compartment} compartment: femoral surface (distance field) vs tibial cartilage"
         self._outside = (cKDTree(np.asarray(femur_vertices)), float(offset)) if femur_vertices is not None else None
+        self._reach = float(np.max(np.linalg.norm(self.points, axis=1)))  # farthest point from the tibial origin
+        self._candidates: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (R, p, candidate indices)
+        self._lock = threading.Lock()
 
     def parameters(self) -> list[Parameter]:
         return [MODULUS]
@@ -72,38 +160,27 @@ class MeshContact(StagedElement):
         return ca.vertcat(ca.vec(pose.R), pose.p, values[MODULUS.name])
 
     def unpack(self, ws, n):
-        return ca.reshape(ws, n, WS_ROWS)  # field-major: each field one contiguous column
+        return ws
 
     def surface_wrench(self, probe, data):
         R, p, K = ca.reshape(probe[0:9], 3, 3), probe[9:12], probe[12]
-        col = [data[:, i] for i in range(WS_ROWS)]
-        x, y, z, area, bx, by, bz, d0, g0x, g0y, g0z, hxx, hyy, hzz, hxy, hxz, hyz = col
-        # arm: tibial origin -> point, femoral frame; e: the point's offset from its expansion point
-        ax = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
-        ay = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z
-        az = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
-        ex, ey, ez = ax + (p[0] - bx), ay + (p[1] - by), az + (p[2] - bz)
-        gx = g0x + hxx * ex + hxy * ey + hxz * ez
-        gy = g0y + hxy * ex + hyy * ey + hyz * ez
-        gz = g0z + hxz * ex + hyz * ey + hzz * ez
-        d = d0 + 0.5 * ((g0x + gx) * ex + (g0y + gy) * ey + (g0z + gz) * ez)
-        s = K * area * smooth_gate(-d, self.gate) / ca.sqrt(gx * gx + gy * gy + gz * gz + 1e-24)  # no 0/0 where clipped
-        fx, fy, fz = s * gx, s * gy, s * gz
-        force = ca.vertcat(ca.sum1(fx), ca.sum1(fy), ca.sum1(fz))
-        moment = ca.vertcat(ca.sum1(ay * fz - az * fy), ca.sum1(az * fx - ax * fz), ca.sum1(ax * fy - ay * fx))
-        return force, moment
+        R0, p0 = ca.reshape(data[0:9], 3, 3), data[9:12]
+        W0, J0 = data[12:18], ca.reshape(data[18:54], 6, 6)
+        A = R @ R0.T
+        xi = ca.vertcat(p - p0, 0.5 * (A[2, 1] - A[1, 2]), 0.5 * (A[0, 2] - A[2, 0]), 0.5 * (A[1, 0] - A[0, 1]))
+        quad = ca.vertcat(*[ca.bilin(ca.reshape(data[54 + 36 * c: 90 + 36 * c], 6, 6), xi, xi) for c in range(6)])
+        w = K * (W0 + J0 @ xi + 0.5 * quad)
+        return w[0:3], w[3:6]
 
     # ------------------------------------------------------------------ numeric side
-    def _femoral(self, R: np.ndarray, p: np.ndarray, indices=None) -> np.ndarray:
-        pts = self.points if indices is None else self.points[indices]
-        return pts @ np.asarray(R).T + np.asarray(p).ravel()
+    def _femoral(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+        return self.points @ np.asarray(R).T + np.asarray(p).ravel()
 
     def clearance(self, R, p, values):
         X = self._femoral(R, p)
         d = self.field.evaluate(X)[0]
         if self._outside is not None:
-            lo, hi = self.field.bounds
-            out = ~np.all((X >= lo) & (X <= hi), axis=1)
+            out = ~self.in_field(X)
             if np.any(out):  # nearest-vertex distance minus the offset, less one facet: never overstated
                 tree, offset = self._outside
                 reach = offset + self.field.spacing + self.field.band
@@ -111,39 +188,56 @@ class MeshContact(StagedElement):
                 d[out] = np.minimum(dist - offset - self.field.spacing, self.field.band)
         return d
 
-    def in_field(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """Mask of the sample points inside the field's grid at pose ``(R, p)``."""
+    def in_field(self, X: np.ndarray) -> np.ndarray:
+        """Mask of femoral-frame points inside the field's grid."""
         lo, hi = self.field.bounds
-        X = self._femoral(R, p)
         return np.all((X >= lo) & (X <= hi), axis=1)
 
+    def candidates(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Indices of the points that can be within :data:`CANDIDATE_REACH` of the femoral surface
+        at pose ``(R, p)``: those of a remembered pose from which no point has moved more than that
+        (translation plus rotation times the farthest point), else every point (and the pose is
+        remembered with its points closer than the reach).  Solvers evaluate many nearby poses; this
+        spares evaluating the field at every tibial point each time."""
+        R, p = np.asarray(R, float), np.asarray(p, float).ravel()
+        with self._lock:
+            for R_c, p_c, idx in self._candidates:
+                moved = np.linalg.norm(p - p_c) + np.linalg.norm(R - R_c, 2) * self._reach
+                if moved < 0.5 * CANDIDATE_REACH:
+                    return idx
+        X = self._femoral(R, p)
+        d = self.field.evaluate(X)[0]
+        idx = np.flatnonzero((d < CANDIDATE_REACH) | ~self.in_field(X))
+        with self._lock:
+            self._candidates.insert(0, (R, p, idx))
+            del self._candidates[CANDIDATE_POSES:]
+        return idx
+
     def select(self, R, p, values):
-        gap = self.clearance(R, p, values)
-        candidates = np.flatnonzero((gap < self.margin) & self.in_field(R, p))
-        if len(candidates) > self.n_working:
-            candidates = candidates[np.argsort(gap[candidates], kind="stable")[: self.n_working]]
-        return np.sort(candidates)
+        """The penetrating points inside the field (all of them count), but for points deeper than
+        the field represents (its clip, 3 mm: absurd poses a line search may try), which have no
+        surface normal there and are left out (their penetration still fails the pose's checks)."""
+        cand = self.candidates(R, p)
+        X = self.points[cand] @ np.asarray(R).T + np.asarray(p).ravel()
+        d = self.field.evaluate(X)[0]
+        return cand[(d < 0) & (d > -0.99 * self.field.depth) & self.in_field(X)]
 
     def pack(self, indices, R, p, values):
+        R, p = np.asarray(R, float), np.asarray(p, float).ravel()
         idx = np.asarray(indices, dtype=int)
-        X = self._femoral(R, p, idx)
-        d, g, h = self.field.evaluate(X, order=2)
-        data = np.zeros((WS_ROWS, self.n_working))
-        m = len(idx)
-        data[0:3, :m], data[3, :m], data[4:7, :m], data[7, :m], data[8:11, :m] = \
-            self.points[idx].T, self.areas[idx], X.T, d, g.T
-        data[11:17, :m] = np.stack([h[:, 0, 0], h[:, 1, 1], h[:, 2, 2], h[:, 0, 1], h[:, 0, 2], h[:, 1, 2]])
-        data[7, m:] = self.field.band  # empty slots: far away, zero area, unit normal
-        data[9, m:] = 1.0
-        return data.ravel()  # field-major (see unpack)
+        X = self.points[idx] @ R.T + p
+        d, g, h, t3 = self.field.evaluate(X, order=3)
+        W, J, H = wrench_expansion(d, g, h, t3, X, X - p, self.areas[idx], self.gate)
+        depth = float(-d.min()) if len(d) else 0.0
+        return np.concatenate([R.ravel(order="F"), p, W, J.ravel(order="F"),
+                               H.transpose(0, 2, 1).ravel(), [depth]])
 
     def pressure(self, R: np.ndarray, p: np.ndarray, modulus: float) -> dict[str, np.ndarray]:
-        """The contact at a pose from the field itself (no expansion): per-point penetration (m)
-        and pressure (Pa), the force on the tibia (N) and its moment about the tibial origin (N m),
-        both in the femoral frame, and the centre of pressure (femoral frame, m; NaN without
-        contact)."""
+        """The contact at a pose (numeric, every point): per-point penetration (m) and pressure (Pa),
+        the force on the tibia (N) and its moment about the tibial origin (N m), both in the femoral
+        frame, and the centre of pressure (femoral frame, m; NaN without contact)."""
         X = self._femoral(R, p)
-        d, g, _ = self.field.evaluate(X, order=1)
+        d, g = self.field.evaluate(X, order=1)
         pen = -d
         pres = modulus * gate_numpy(pen, self.gate)
         norm = np.linalg.norm(g, axis=1)
@@ -159,7 +253,4 @@ class MeshContact(StagedElement):
                 Output("penetration", f"penetration_{self.compartment}_mm", "mm", 1e3)]
 
     def report(self, probe, data, force):
-        R, p = ca.reshape(probe[0:9], 3, 3), probe[9:12]
-        e = data[:, 0:3] @ R.T + ca.repmat(p.T, data.shape[0], 1) - data[:, 4:7]
-        d = data[:, 7] + ca.sum2(data[:, 8:11] * e)  # first order: the penetration report only
-        return [ca.norm_2(force), -ca.mmin(d)]
+        return [ca.norm_2(force), data[WS_SIZE - 1]]  # the penetration of the expansion pose

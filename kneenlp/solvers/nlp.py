@@ -53,16 +53,21 @@ class NLPExpressions:
     g: ca.MX
     lbx: np.ndarray
     ubx: np.ndarray
+    #: what the working sets are taken from: poses (SI, 5 x T), all parameters, flexions (1 x T)
+    q_si: ca.MX | None = None
+    theta: ca.MX | None = None
+    flexion: ca.MX | None = None
 
 
 def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", threads: int = 1,
-                    working_sets: str = "pose") -> NLPExpressions:
+                    working_sets: str = "data") -> NLPExpressions:
     """The NLP's expressions (see module docstring); ``parallel``/``threads`` set the trial map.
 
-    ``working_sets``: ``"pose"`` takes each trial's contact working sets at the pose being
-    evaluated (:class:`~kneenlp.model.workingsets.WorkingSets`: the exact contact, for solving);
-    ``"data"`` makes them part of the data vector (a self-contained program for export, exact where
-    they were taken)."""
+    ``working_sets``: ``"data"`` makes the contact working sets the last part of the data vector
+    (T x ws_size: a self-contained program, e.g. for export, exact where they were taken);
+    ``"pose"`` takes them at every pose evaluated
+    (:class:`~kneenlp.model.workingsets.WorkingSets`; derivatives then pass through a callback,
+    which is slow: :func:`build_nlp` instead supplies the derivative functions of the data form)."""
     model, free, T = problem.model, problem.free, problem.n_trials
     n_theta, nf = len(model.parameter_names), len(free)
     scales = problem.scales
@@ -96,7 +101,7 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
     f = ca.sum1(ca.sum2(w * diff * diff))
     lbx = np.concatenate([problem.lower / scales, np.tile(-POSE_ENVELOPE_USER, T)])
     ubx = np.concatenate([problem.upper / scales, np.tile(POSE_ENVELOPE_USER, T)])
-    return NLPExpressions(ca.vertcat(xp, ca.vec(xq)), par, f, g, lbx, ubx)
+    return NLPExpressions(ca.vertcat(xp, ca.vec(xq)), par, f, g, lbx, ubx, q_si, theta, flex)
 
 
 @dataclass
@@ -127,9 +132,9 @@ def build_nlp(problem: IdentificationProblem, solver: str = "ipopt", options: di
               threads: int = 2) -> IdentificationNLP:
     """Build the identification NLP solver of ``problem``'s layout (see module docstring)."""
     t0 = time.perf_counter()
-    e = nlp_expressions(problem, "thread", threads)
-    nlp = {"x": e.x, "p": e.p, "f": e.f, "g": e.g}
-    opts = dict(options or {})
+    e = nlp_expressions(problem, "thread", threads, working_sets="data")
+    nlp, derivatives = _with_working_sets_of_the_pose(problem, e)
+    opts = {**derivatives, **dict(options or {})}
     if solver == "ipopt":
         opts = {"ipopt": {**IPOPT_OPTIONS, **opts.pop("ipopt", {})}, "print_time": False, "error_on_fail": False,
                 **opts}
@@ -142,3 +147,32 @@ def build_nlp(problem: IdentificationProblem, solver: str = "ipopt", options: di
                          field="solver") from None
     return IdentificationNLP(list(problem.free), problem.n_trials, solver, fn, problem.scales, e.lbx, e.ubx,
                              time.perf_counter() - t0)
+
+
+def _with_working_sets_of_the_pose(problem: IdentificationProblem, e: NLPExpressions) -> tuple[dict, dict]:
+    """The NLP ``(x, p) -> (f, g)`` whose contact working sets are taken at every pose evaluated,
+    and its derivative functions (``nlpsol`` options ``grad_f``, ``jac_g``, ``hess_lag``): those of
+    the data form ``e`` evaluated with the working sets of the pose.  The working sets' own
+    derivative is zero by construction (:mod:`kneenlp.model.workingsets`), so these are the exact
+    derivatives, and no derivative has to pass through the Python callback."""
+    model, T = problem.model, problem.n_trials
+    if not model.ws_size:
+        return {"x": e.x, "p": e.p, "f": e.f, "g": e.g}, {}
+    n_base = e.p.numel() - T * model.ws_size
+    x, p = ca.MX.sym("x", e.x.numel()), ca.MX.sym("p", n_base)
+    no_ws = ca.DM.zeros(T * model.ws_size)
+    where = ca.Function("poses", [e.x, e.p], [e.q_si, e.theta, e.flexion])(x, ca.vertcat(p, no_ws))
+    p_full = ca.vertcat(p, ca.vec(model.working_sets_function(T)(*where)))
+    lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", e.g.numel())
+    f_of, g_of = ca.Function("f", [e.x, e.p], [e.f]), ca.Function("g", [e.x, e.p], [e.g])
+    grad_f = ca.Function("grad_f", [e.x, e.p], [e.f, ca.gradient(e.f, e.x)])
+    jac_g = ca.Function("jac_g", [e.x, e.p], [e.g, ca.jacobian(e.g, e.x)])
+    lagrangian = lam_f * e.f + ca.dot(lam_g, e.g)
+    hess = ca.Function("hess_lagrangian", [e.x, e.p, lam_f, lam_g], [ca.triu(ca.hessian(lagrangian, e.x)[0])])
+    derivatives = {
+        "grad_f": ca.Function("nlp_grad_f", [x, p], grad_f.call([x, p_full]), ["x", "p"], ["f", "grad_f_x"]),
+        "jac_g": ca.Function("nlp_jac_g", [x, p], jac_g.call([x, p_full]), ["x", "p"], ["g", "jac_g_x"]),
+        "hess_lag": ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], hess.call([x, p_full, lam_f, lam_g]),
+                                ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"]),
+    }
+    return {"x": x, "p": p, "f": f_of(x, p_full), "g": g_of(x, p_full)}, derivatives
