@@ -14,7 +14,8 @@ The ``[contact]`` table of a knee file (lengths in the file's unit) names::
 
 plus ``gate`` (width of the contact gate), ``grid_spacing`` (of the femoral distance field) and,
 for explicit spheres, ``working_set`` (points per compartment and trial, 0: every point).  A
-sphere is only ever used where the file asks for one; a femoral mesh is always represented as itself (:mod:`kneenlp.model.mesh_contact`).
+sphere is only ever used where the file asks for one; a femoral mesh is always represented as
+itself (:mod:`kneenlp.model.mesh_contact`).
 """
 
 from __future__ import annotations
