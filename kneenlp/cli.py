@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 from pathlib import Path
 
@@ -382,9 +383,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _announce_long_steps() -> None:
+    """Show kneenlp's progress messages (e.g. a distance field being built once) on stderr."""
+    log = logging.getLogger("kneenlp")
+    if not any(getattr(h, "kneenlp_cli", False) for h in log.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("kneenlp: %(message)s"))
+        handler.kneenlp_cli = True
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _announce_long_steps()
     try:
         return int(args.func(args))
     except InputError as exc:

@@ -170,5 +170,5 @@ def test_twenty_noisy_set4_fits_converge(real_knee, paper_sets, tmp_path):
         if not fit.success:
             failed.append((seed, fit.status, fit.message))
         else:
-            assert fit.max_residual <= 1e-6 and np.all(np.abs(fit.q * TO_USER) < 60)
+            assert fit.max_residual <= 1e-6 and np.all(np.abs(fit.q_pred * TO_USER) < 60)
     assert not failed, failed
