@@ -148,6 +148,11 @@ class StagedElement(ForceElement, ABC):
         """Gap (m) of every sample point from the femoral surface at pose ``(R, p)``: negative
         where the point penetrates.  Numeric; used to choose and check working sets."""
 
+    def clearance_near(self, R: np.ndarray, p: np.ndarray, values: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """``(indices, gaps)`` of the points that may be near the surface (default: every point);
+        the others are certainly clear of it."""
+        return np.arange(len(self.points)), self.clearance(R, p, values)
+
     def constant_data(self) -> np.ndarray:
         """Per-point data of every point (``ws_width`` x N) for ``n_working = 0``."""
         return np.vstack([np.asarray(self.points, float).T, np.asarray(self.areas, float)[None, :]])

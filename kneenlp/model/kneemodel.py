@@ -163,18 +163,23 @@ class KneeModel:
         return indices, np.concatenate(packed)
 
     def left_out_penetration(self, q: np.ndarray, theta: np.ndarray, flexion: float,
-                             indices: list[np.ndarray]) -> float:
-        """Largest penetration (m) of a sample point left out of the working sets ``indices`` at a
-        pose (negative: every left-out point is clear of the surface, the working sets are valid)."""
+                             indices: list[np.ndarray] | None = None) -> float:
+        """Largest penetration (m) of a sample point left out of the working sets ``indices`` (by
+        default those of the pose itself) at a pose (negative: every left-out point is clear of the
+        surface, the working sets are valid)."""
         if not self.ws_size:
             return -np.inf
         R, p = (np.asarray(v) for v in self.pose(q, flexion, theta))
         values = dict(zip(self.parameter_names, np.asarray(theta, float).ravel(), strict=True))
+        staged = [e for e in self.staged if e.n_working]
+        if indices is None:
+            indices = [e.select(R, p, values) for e in staged]
         worst = -np.inf
-        for e, idx in zip([e for e in self.staged if e.n_working], indices, strict=True):
-            gap = e.clearance(R, p, values)
-            gap[idx] = np.inf
-            worst = max(worst, float(-gap.min()))
+        for e, idx in zip(staged, indices, strict=True):
+            near, gap = e.clearance_near(R, p, values)
+            left_out = ~np.isin(near, idx)
+            if np.any(left_out):
+                worst = max(worst, float(-gap[left_out].min()))
         return worst
 
     def working_sets_function(self, n_trials: int) -> ca.Function:

@@ -150,7 +150,9 @@ class MeshContact(StagedElement):
         self.description = f"{compartment} compartment: femoral surface (distance field) vs tibial cartilage"
         self._outside = (cKDTree(np.asarray(femur_vertices)), float(offset)) if femur_vertices is not None else None
         self._reach = float(np.max(np.linalg.norm(self.points, axis=1)))  # farthest point from the tibial origin
-        self._candidates: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (R, p, candidate indices)
+        # remembered poses (rows: R column-major, p) and their candidate points, newest first
+        self._poses = np.zeros((0, 12))
+        self._candidates: list[np.ndarray] = []
         self._lock = threading.Lock()
 
     def parameters(self) -> list[Parameter]:
@@ -176,8 +178,9 @@ class MeshContact(StagedElement):
     def _femoral(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
         return self.points @ np.asarray(R).T + np.asarray(p).ravel()
 
-    def clearance(self, R, p, values):
-        X = self._femoral(R, p)
+    def clearance(self, R, p, values, indices: np.ndarray | None = None):
+        """Gap (m) of every point (or of ``indices``) at pose ``(R, p)``."""
+        X = self._femoral(R, p) if indices is None else self.points[indices] @ np.asarray(R).T + np.asarray(p).ravel()
         d = self.field.evaluate(X)[0]
         if self._outside is not None:
             out = ~self.in_field(X)
@@ -200,18 +203,28 @@ class MeshContact(StagedElement):
         remembered with its points closer than the reach).  Solvers evaluate many nearby poses; this
         spares evaluating the field at every tibial point each time."""
         R, p = np.asarray(R, float), np.asarray(p, float).ravel()
+        key = np.concatenate([R.ravel(order="F"), p])
         with self._lock:
-            for R_c, p_c, idx in self._candidates:
-                moved = np.linalg.norm(p - p_c) + np.linalg.norm(R - R_c, 2) * self._reach
-                if moved < 0.5 * CANDIDATE_REACH:
-                    return idx
+            if len(self._poses):
+                # largest displacement of any point: translation + rotation (Frobenius >= spectral norm)
+                diff = self._poses - key
+                moved = np.linalg.norm(diff[:, 9:], axis=1) + np.linalg.norm(diff[:, :9], axis=1) * self._reach
+                best = int(np.argmin(moved))
+                if moved[best] < 0.5 * CANDIDATE_REACH:
+                    return self._candidates[best]
         X = self._femoral(R, p)
         d = self.field.evaluate(X)[0]
         idx = np.flatnonzero((d < CANDIDATE_REACH) | ~self.in_field(X))
         with self._lock:
-            self._candidates.insert(0, (R, p, idx))
-            del self._candidates[CANDIDATE_POSES:]
+            self._poses = np.vstack([key, self._poses])[:CANDIDATE_POSES]
+            self._candidates = [idx, *self._candidates][:CANDIDATE_POSES]
         return idx
+
+    def clearance_near(self, R: np.ndarray, p: np.ndarray, values: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Gaps (m) of the :meth:`candidates` only: every other point is farther than half the
+        candidate reach from the surface."""
+        idx = self.candidates(R, p)
+        return idx, self.clearance(R, p, values, idx)
 
     def select(self, R, p, values):
         """The penetrating points inside the field (all of them count), but for points deeper than

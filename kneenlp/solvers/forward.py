@@ -84,10 +84,8 @@ class ForwardSolver:
         contact outside the represented femoral surface)."""
         if not np.all(np.isfinite(q)):
             return np.inf
-        if self.model.ws_size:
-            idx, _ = self.model.working_set(q, theta, trial.flexion)
-            if self.model.left_out_penetration(q, theta, trial.flexion, idx) > 0:
-                return np.inf
+        if self.model.left_out_penetration(q, theta, trial.flexion) > 0:
+            return np.inf
         r = self.model.evaluate(q, theta, scale * trial.load, trial.flexion)
         val = float(np.max(np.abs(r)))
         return val if np.isfinite(val) else np.inf
@@ -99,7 +97,9 @@ class ForwardSolver:
         q = out.q[0]
         if not out.residual[0] <= self.tol:
             return q, float(out.residual[0])
-        return q, self.residual_norm(q, theta, trial, scale)
+        if self.model.left_out_penetration(q, theta, trial.flexion) > 0:  # the pose's working sets left one out
+            return q, np.inf
+        return q, float(out.residual[0])
 
     def solve_trial(self, trial: Trial, theta: np.ndarray, q0: np.ndarray | None = None,
                     q_unloaded: np.ndarray | None = None) -> TrialSolution:
