@@ -7,15 +7,17 @@
 * ``load`` (6): ``[Fx, Fy, Fz, Mx, My, Mz]`` in the femoral frame; the force acts at the tibial
   tuberosity, the moment is pure (N, N m),
 * ``flexion`` (1): prescribed flexion (rad),
-* ``ws``: the contact working sets of the trial (:meth:`KneeModel.working_set`; empty when no
-  contact element uses working sets),
+* ``ws``: the contact working sets of the trial *taken at the pose q* (:meth:`KneeModel.working_set`:
+  the points that can touch and, for mesh contact, the expansion of the contact at q; empty when no
+  contact element uses working sets): every solver evaluates the residual with the working sets of
+  the pose it evaluates (:mod:`kneenlp.model.workingsets`),
 * ``r`` (5): generalised forces of all elements + load for the five free coordinates (N m for the
   rotations, N for the translations); equilibrium is ``r = 0``.  The flexion moment is reacted.
 
 ``KneeModel.observation`` is THE map from a pose to what is measured, ``(q, theta) -> y`` with
 ``y`` the five coordinates in mm and deg plus any measurement bias of the elements.
 
-The forward rootfinder, the simultaneous NLP, the nested objective, sensitivities and export all
+The forward Newton solver, the simultaneous NLP, the nested objective, sensitivities and export all
 call these functions.  They are built once per model with the parameters as symbols, so changing
 a parameter value never rebuilds them.  Structure (for the speed of derivatives): an SX function
 gives every staged element's probe, the staged elements' MX surface functions give their
@@ -140,10 +142,6 @@ class KneeModel:
         self.details = ca.Function("details", [qm, thetam, loadm, flexm, wsm],
                                    [res, ca.vertcat(*columns) if columns else ca.MX(0, 1)], names_in,
                                    ["r", "outputs"])
-        ws_of_pose = self.working_sets_function(1)(qm, thetam, flexm) if self.ws_size else ca.MX(0, 1)
-        self.equilibrium = ca.Function("equilibrium", [qm, thetam, loadm, flexm],
-                                       [self.residual(qm, thetam, loadm, flexm, ws_of_pose)],
-                                       ["q", "theta", "load", "flexion"], ["r"])
 
     # ------------------------------------------------------------------ working sets
     def working_set(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> tuple[list[np.ndarray], np.ndarray]:
