@@ -80,3 +80,29 @@ def test_cylinder_fit_recovers_a_known_cylinder():
     assert abs(fit.radius - radius) < 1e-6 and fit.rms < 2e-6
     assert abs(abs(fit.axis @ axis) - 1) < 1e-8
     assert np.linalg.norm(np.cross(fit.centre - centre, axis)) < 1e-6
+
+
+def test_compiled_kernels_equal_the_numpy_references(box):
+    """kneenlp.geometry.kernels (numba) against DistanceField.evaluate and mesh_contact.wrench_expansion
+    (NumPy), and the field's values against scipy's own B-spline interpolation."""
+    from scipy.ndimage import map_coordinates
+
+    from kneenlp.geometry import kernels
+    from kneenlp.model.mesh_contact import wrench_expansion
+
+    mesh, half = box
+    fld = DistanceField.from_mesh(mesh, np.array([-half - 3e-3, half + 3e-3]), spacing=0.5e-3)
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-6e-3, half[1] - 0.8e-3, -5e-3], [6e-3, half[1] + 0.1e-3, 5e-3], (300, 3))
+    scipy_values = map_coordinates(fld.coeffs, ((pts - fld.origin) / fld.spacing).T, order=3, prefilter=False)
+    assert np.allclose(fld.evaluate(pts)[0], scipy_values, rtol=0, atol=1e-15)
+    n = len(pts)
+    d, g, h, t3 = np.empty(n), np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3, 3))
+    kernels.field_derivatives(fld.coeffs, fld.origin, fld.spacing, pts, d, g, h, t3)
+    for got, ref in zip((d, g, h, t3), fld.evaluate(pts, order=3), strict=True):
+        assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    r = pts - [0.0, -0.02, 0.0]  # arms from a tibial origin below the plateau
+    areas = rng.uniform(0.2e-6, 0.6e-6, n)
+    for got, ref in zip(kernels.wrench_expansion(d, g, h, t3, r, areas, 1e-5),
+                        wrench_expansion(d, g, h, t3, pts, r, areas, 1e-5), strict=True):
+        assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())

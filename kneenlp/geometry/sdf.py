@@ -29,10 +29,11 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from scipy.ndimage import map_coordinates, spline_filter
+from scipy.ndimage import spline_filter
 from scipy.spatial import cKDTree
 
 from kneenlp.geometry.distance import MeshDistance
+from kneenlp.geometry.kernels import field_values
 
 #: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
 FORMAT_VERSION = 3
@@ -148,8 +149,10 @@ class DistanceField:
         out = [np.full(n, self.band)] + [np.zeros((n,) + (3,) * k) for k in range(1, order + 1)]
         if not np.any(ok):
             return tuple(out)
-        if order == 0:
-            out[0][ok] = map_coordinates(self.coeffs, u[ok].T, order=3, prefilter=False)
+        if order == 0:  # compiled (kernels); the same spline as below and as scipy's map_coordinates
+            values = np.empty(int(ok.sum()))
+            field_values(self.coeffs, self.origin, self.spacing, x[ok], values)
+            out[0][ok] = values
             return tuple(out)
         t = u[ok] - i0[ok]
         strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1])

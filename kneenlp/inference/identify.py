@@ -191,8 +191,8 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     left_out = -np.inf
     if problem.model.ws_size:
         q_sol, theta_sol = q_user / TO_USER, problem.theta(values)
-        left_out = float(np.max(problem.left_out_penetration(q_sol, theta_sol,
-                                                             problem.working_sets(q_sol, theta_sol)[0])))
+        left_out = max(problem.model.left_out_penetration(qi, theta_sol, t.flexion)
+                       for t, qi in zip(problem.trials, q_sol, strict=True))
     success = bool(st.get("success", False)) and max_res <= 1e-6 and left_out <= 0
     msg = "" if n_fail_start == 0 else f"{n_fail_start} trial(s) could not be solved at the start; started at data"
     if bool(st.get("success", False)) and max_res > 1e-6:

@@ -159,11 +159,6 @@ class IdentificationProblem:
         out = [self.model.working_set(qi, theta, t.flexion) for t, qi in zip(self.trials, q, strict=True)]
         return [o[0] for o in out], np.array([o[1] for o in out]).reshape(self.n_trials, self.model.ws_size)
 
-    def left_out_penetration(self, q: np.ndarray, theta: np.ndarray, indices: list[list[np.ndarray]]) -> np.ndarray:
-        """Per trial, the largest penetration (m) of a sample point outside its working sets."""
-        return np.array([self.model.left_out_penetration(qi, theta, t.flexion, idx)
-                         for t, qi, idx in zip(self.trials, q, indices, strict=True)])
-
     # ------------------------------------------------------------------ the one comparison
     def observe(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Predicted measurements (T x 5, mm and deg) of poses ``q`` (T x 5, SI)."""
@@ -188,7 +183,7 @@ class IdentificationProblem:
         idx = [model.index(n) for n in (self.free if names is None else names)]
         rows = []
         for t, qi in zip(self.trials, np.asarray(q, dtype=float), strict=True):
-            ws = model.working_set(qi, theta, t.flexion)[1]
+            ws = model.working_data(qi, theta, t.flexion)
             dq, dth = (np.asarray(v) for v in model.jacobians(qi, theta, t.load, t.flexion, ws))
             dy_dq, dy_dth = (np.asarray(v) for v in model.observation_jacobians(qi, theta))
             try:

@@ -168,6 +168,10 @@ class StagedElement(ForceElement, ABC):
         pts = np.asarray(self.points, float)[indices]
         return np.column_stack([pts, np.asarray(self.areas, float)[indices]]).ravel()
 
+    def working_data(self, R: np.ndarray, p: np.ndarray, values: dict[str, float]) -> np.ndarray:
+        """The working-set input at pose ``(R, p)``: :meth:`pack` of :meth:`select`."""
+        return self.pack(self.select(R, p, values), R, p, values)
+
     def unpack(self, ws: ca.MX, n: int) -> ca.MX:
         """The ``ws_width`` x n matrix :meth:`surface_wrench` receives, from the packed input."""
         return ca.reshape(ws, self.ws_width, n)

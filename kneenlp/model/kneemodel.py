@@ -160,6 +160,15 @@ class KneeModel:
                 packed.append(e.pack(idx, R, p, values))
         return indices, np.concatenate(packed)
 
+    def working_data(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> np.ndarray:
+        """The packed ``ws`` input of the model's functions at a pose (:meth:`working_set` without
+        the indices: the fast path every solver evaluation takes)."""
+        if not self.ws_size:
+            return np.zeros(0)
+        R, p = (np.asarray(v) for v in self.pose(q, flexion, theta))
+        values = dict(zip(self.parameter_names, np.asarray(theta, float).ravel(), strict=True))
+        return np.concatenate([e.working_data(R, p, values) for e in self.staged if e.n_working])
+
     def left_out_penetration(self, q: np.ndarray, theta: np.ndarray, flexion: float,
                              indices: list[np.ndarray] | None = None) -> float:
         """Largest penetration (m) of a sample point left out of the working sets ``indices`` (by
@@ -192,7 +201,7 @@ class KneeModel:
 
     def evaluate(self, q: np.ndarray, theta: np.ndarray, load: np.ndarray, flexion: float) -> np.ndarray:
         """The equilibrium residual (5) at a pose with the working sets of that pose (numeric)."""
-        return np.asarray(self.residual(q, theta, load, flexion, self.working_set(q, theta, flexion)[1])).ravel()
+        return np.asarray(self.residual(q, theta, load, flexion, self.working_data(q, theta, flexion))).ravel()
 
     # ------------------------------------------------------------------ helpers
     @property

@@ -11,8 +11,9 @@ acts along the femoral surface normal ``n = grad d / |grad d|`` at ``X_i``; mome
 tibial origin.  Everything is summed in the femoral frame.
 
 How it enters the CasADi model.  Evaluating and differentiating a 3-D spline at hundreds of points
-inside CasADi costs ~60 us per point for an exact Hessian (measured), so the sums are done in
-NumPy instead: at the pose being evaluated, :func:`wrench_expansion` returns the compartment's
+inside CasADi costs ~60 us per point for an exact Hessian (measured), so the sums are done outside
+it (compiled loops, :mod:`kneenlp.geometry.kernels`; :func:`wrench_expansion` here is the NumPy
+reference they are tested against): at the pose being evaluated, :func:`wrench_expansion` returns the compartment's
 wrench ``W`` (force and moment, 6), its first derivatives ``J`` (6 x 6) and second derivatives
 ``H`` (6 x 6 x 6) with respect to a rigid displacement ``xi = (u, w)`` of the tibia (translation
 ``u``; rotation ``exp([w]x)`` applied in the femoral frame), from the field's derivatives up to
@@ -35,6 +36,7 @@ import casadi as ca
 import numpy as np
 from scipy.spatial import cKDTree
 
+from kneenlp.geometry import kernels
 from kneenlp.geometry.sdf import DistanceField
 from kneenlp.model.contact import MODULUS, gate_numpy
 from kneenlp.model.elements import Output, Pose, StagedElement
@@ -236,14 +238,18 @@ class MeshContact(StagedElement):
         return cand[(d < 0) & (d > -0.99 * self.field.depth) & self.in_field(X)]
 
     def pack(self, indices, R, p, values):
+        """The expansion of the contact at pose ``(R, p)`` over the points :meth:`select` chooses
+        there (``indices``, from the same pose, are not needed: one compiled pass selects and sums)."""
         R, p = np.asarray(R, float), np.asarray(p, float).ravel()
-        idx = np.asarray(indices, dtype=int)
-        X = self.points[idx] @ R.T + p
-        d, g, h, t3 = self.field.evaluate(X, order=3)
-        W, J, H = wrench_expansion(d, g, h, t3, X, X - p, self.areas[idx], self.gate)
-        depth = float(-d.min()) if len(d) else 0.0
-        return np.concatenate([R.ravel(order="F"), p, W, J.ravel(order="F"),
-                               H.transpose(0, 2, 1).ravel(), [depth]])
+        fld = self.field
+        lo, hi = fld.bounds
+        W, J, H, depth = kernels.contact_expansion(fld.coeffs, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
+                                                   self.points, self.areas, self.candidates(R, p), R, p, self.gate)
+        return np.concatenate([R.ravel(order="F"), p, W, J.ravel(order="F"), H.transpose(0, 2, 1).ravel(), [depth]])
+
+    def working_data(self, R: np.ndarray, p: np.ndarray, values: dict) -> np.ndarray:
+        """The working-set input at pose ``(R, p)`` (:meth:`pack` without a separate selection)."""
+        return self.pack(None, R, p, values)
 
     def pressure(self, R: np.ndarray, p: np.ndarray, modulus: float) -> dict[str, np.ndarray]:
         """The contact at a pose (numeric, every point): per-point penetration (m) and pressure (Pa),

@@ -136,7 +136,7 @@ class ForwardSolver:
         return q, res
 
     def _solution(self, trial, theta, q, converged, res, strategy) -> TrialSolution:
-        ws = self.model.working_set(q, theta, trial.flexion)[1]
+        ws = self.model.working_data(q, theta, trial.flexion)
         values = np.asarray(self.model.details(q, theta, trial.load, trial.flexion, ws)[1]).ravel()
         columns = [o.column for _, o in self.model.outputs]
         return TrialSolution(trial, q, converged, res, strategy, outputs=dict(zip(columns, values, strict=True)))

@@ -56,7 +56,7 @@ class EquilibriumNewton:
         if n not in self._maps:
             self._maps[n] = self._fn.map(n)
         model = self.model
-        ws = (np.column_stack([model.working_set(q[i], theta, flexions[i])[1] for i in range(n)])
+        ws = (np.column_stack([model.working_data(q[i], theta, flexions[i]) for i in range(n)])
               if model.ws_size else np.zeros((0, n)))
         r, jac = self._maps[n](q.T, theta, loads.T, flexions[None, :], ws)
         r = np.asarray(r).T
