@@ -94,7 +94,8 @@ def cmd_simulate(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     table = result.table()
     table.to_csv(out / "kinematics.csv", index=False, float_format="%.10g")
-    written = [out / "kinematics.csv"]
+    (out / "knee_report.txt").write_text(result.knee.report() + "\n")  # how the files became the model
+    written = [out / "kinematics.csv", out / "knee_report.txt"]
     recruitment = result.recruitment() if any(t.direction == "none" for t in protocol.trials) else None
     if recruitment is not None:
         recruitment.to_csv(out / "ligament_recruitment.csv", index=False, float_format="%.6g")
@@ -117,7 +118,8 @@ def cmd_simulate(args) -> int:
               f"max residual {result.max_residual:.2e} N or N m, {result.seconds:.2f} s")
         cols = ["trial", "varus_rotation_deg", "internal_rotation_deg", "lateral_translation_mm",
                 "anterior_translation_mm", "proximal_translation_mm"]
-        print(table[cols + [f"{n}_force_N" for n in knee.ligaments]].to_string(index=False, float_format="%.2f"))
+        print(table[cols + [f"{n}_force_N" for n in result.knee.ligaments]].to_string(index=False,
+                                                                                        float_format="%.2f"))
         for s in result.failed:
             print(f"NOT CONVERGED: {s.trial.id}: {s.reason}")
         print("wrote: " + ", ".join(str(p) for p in written))
