@@ -37,6 +37,18 @@ def _basis(t: float, out: np.ndarray) -> None:
     out[3, 3] = 1.0
 
 
+@njit(cache=True, inline="always")
+def _cell(origin: np.ndarray, spacing: float, x: np.ndarray, wx: np.ndarray, wy: np.ndarray,
+          wz: np.ndarray) -> tuple[int, int, int]:
+    """Grid cell of point ``x`` (its lower node's indices) and the basis weights along each axis."""
+    ux, uy, uz = (x[0] - origin[0]) / spacing, (x[1] - origin[1]) / spacing, (x[2] - origin[2]) / spacing
+    ix, iy, iz = int(np.floor(ux)), int(np.floor(uy)), int(np.floor(uz))
+    _basis(ux - ix, wx)
+    _basis(uy - iy, wy)
+    _basis(uz - iz, wz)
+    return ix, iy, iz
+
+
 @njit(cache=True, nogil=True)
 def field_values(coeffs: np.ndarray, origin: np.ndarray, spacing: float, X: np.ndarray, d: np.ndarray) -> None:
     """Values of the tricubic B-spline ``coeffs`` at the points ``X`` (all inside the grid), into ``d``."""
@@ -44,13 +56,7 @@ def field_values(coeffs: np.ndarray, origin: np.ndarray, spacing: float, X: np.n
     wy = np.empty((4, 4))
     wz = np.empty((4, 4))
     for n in range(X.shape[0]):
-        ux = (X[n, 0] - origin[0]) / spacing
-        uy = (X[n, 1] - origin[1]) / spacing
-        uz = (X[n, 2] - origin[2]) / spacing
-        ix, iy, iz = int(np.floor(ux)), int(np.floor(uy)), int(np.floor(uz))
-        _basis(ux - ix, wx)
-        _basis(uy - iy, wy)
-        _basis(uz - iz, wz)
+        ix, iy, iz = _cell(origin, spacing, X[n], wx, wy, wz)
         v = 0.0
         for a in range(4):
             for b in range(4):
@@ -71,13 +77,7 @@ def field_derivatives(coeffs: np.ndarray, origin: np.ndarray, spacing: float, X:
     wz = np.empty((4, 4))
     acc = np.empty((4, 4, 4))  # acc[kx, ky, kz]: derivative orders per axis, kx + ky + kz <= 3
     for n in range(X.shape[0]):
-        ux = (X[n, 0] - origin[0]) / spacing
-        uy = (X[n, 1] - origin[1]) / spacing
-        uz = (X[n, 2] - origin[2]) / spacing
-        ix, iy, iz = int(np.floor(ux)), int(np.floor(uy)), int(np.floor(uz))
-        _basis(ux - ix, wx)
-        _basis(uy - iy, wy)
-        _basis(uz - iz, wz)
+        ix, iy, iz = _cell(origin, spacing, X[n], wx, wy, wz)
         acc[:] = 0.0
         for a in range(4):
             for b in range(4):
