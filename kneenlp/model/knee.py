@@ -337,9 +337,10 @@ class _KneeFile:
         self.notes.append(f"frame: {self.frame.how}")
         if axis is not None:
             axis = axis.mapped(self.frame.rotation, self.frame.origin)
-            self.notes.append(f"flexion axis: {axis.describe(offset)}; "
-                              f"{angle_deg(axis.direction, [0, 0, 1]):.2f} deg from the femoral Z axis, "
-                              f"{np.linalg.norm(np.cross(axis.point, axis.direction)) * 1e3:.2f} mm from the origin")
+            where = ("" if self.frame.how.startswith("cylinders") else  # else: the frame came from elsewhere
+                     f"; {angle_deg(axis.direction, [0, 0, 1]):.2f} deg from the femoral Z axis, "
+                     f"{np.linalg.norm(np.cross(axis.point, axis.direction)) * 1e3:.2f} mm from the origin")
+            self.notes.append(f"flexion axis: {axis.describe(offset)}{where}")
         # compartments in the femoral (tibial) frame
         compartments = {}
         for name, raw in tibiae.items():
