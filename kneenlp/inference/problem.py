@@ -32,8 +32,9 @@ from kneenlp.model.parameters import Parameter
 
 
 def default_free(model: KneeModel) -> list[str]:
-    """k and reference strain of every ligament (8 values for the four-ligament knee)."""
-    return [f"{lig}.{k}" for lig in model.ligament_names for k in ("k", "ref_strain")]
+    """Stiffness and reference strain of every ligament (8 values for the four-ligament knee; the
+    stiffness scale and reference-strain offset of each bundle group of a multi-bundle knee)."""
+    return [n for lig in model.ligament_names for n in model.element(lig).main_parameters()]
 
 
 def check_free(model: KneeModel, free: Sequence[str]) -> list[str]:

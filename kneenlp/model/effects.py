@@ -115,6 +115,8 @@ def builtin_elements(centres: list[np.ndarray], meniscus: bool = True) -> list[F
 
 
 def builtin_groups(ligaments: list[str]) -> list[Effect]:
-    return [parameter_group("lin_strain", [f"{lig}.lin_strain" for lig in ligaments],
-                            "the linear strain limits of the ligaments differ from 3 %"),
-            parameter_group("contact_modulus", ["contact.modulus"], "the cartilage pressure modulus differs")]
+    """Effects that free base-model parameters: the linear strain limits of the (single-law)
+    ``ligaments`` and the contact modulus."""
+    groups = [parameter_group("lin_strain", [f"{lig}.lin_strain" for lig in ligaments],
+                              "the linear strain limits of the ligaments differ from 3 %")] if ligaments else []
+    return [*groups, parameter_group("contact_modulus", ["contact.modulus"], "the cartilage pressure modulus differs")]

@@ -411,17 +411,60 @@ class _KneeFile:
             raise InputError("missing table [ligaments.<NAME>]", source=src, field="ligaments")
         ligaments = {}
         for name, lig in ligs_doc.items():
+            fld = f"ligaments.{name}"
             if not isinstance(lig, dict):
-                raise InputError("must be a table with femur and tibia attachments", source=src,
-                                 field=f"ligaments.{name}")
+                raise InputError("must be a table with femur and tibia attachments (or bundles)", source=src,
+                                 field=fld)
+            if "bundles" in lig:
+                ligaments[name] = Ligament(name, self.bundles(lig["bundles"], f"{fld}.bundles"))
+                continue
             for key in ("femur", "tibia"):
                 if key not in lig:
-                    raise InputError("missing attachment", source=src, field=f"ligaments.{name}.{key}")
-            ligaments[name] = Ligament(name, [Bundle(self.point(lig["femur"], f"ligaments.{name}.femur"),
-                                                     self.point(lig["tibia"], f"ligaments.{name}.tibia"))])
+                    raise InputError("missing attachment", source=src, field=f"{fld}.{key}")
+            ligaments[name] = Ligament(name, [Bundle(self.point(lig["femur"], f"{fld}.femur"),
+                                                     self.point(lig["tibia"], f"{fld}.tibia"))])
             if ligaments[name].reference_length < 1e-3:
-                raise InputError("attachments closer than 1 mm", source=src, field=f"ligaments.{name}")
+                raise InputError("attachments closer than 1 mm", source=src, field=fld)
         return ligaments
+
+    def bundles(self, doc: object, fld: str) -> list[Bundle]:
+        """The bundles of a multi-bundle ligament: ``[[ligaments.<NAME>.bundles]]`` tables with
+        ``name``, ``femur``, ``tibia``, ``stiffness`` (N per unit strain), ``slack_length`` (file
+        length unit) or ``ref_strain`` (%), and ``transition_strain`` (OpenSim's, default 0.06) or
+        ``lin_strain`` (%, the paper's limit = transition / 2)."""
+        src = self.src
+        if not isinstance(doc, list) or not doc or not all(isinstance(b, dict) for b in doc):
+            raise InputError("must be a non-empty array of tables [[...bundles]]", source=src, field=fld)
+        out = []
+        for i, b in enumerate(doc):
+            f = f"{fld}[{i}]"
+            for key in ("femur", "tibia", "stiffness"):
+                if key not in b:
+                    raise InputError("missing", source=src, field=f"{f}.{key}")
+            femur, tibia = self.point(b["femur"], f"{f}.femur"), self.point(b["tibia"], f"{f}.tibia")
+            length = float(np.linalg.norm(femur - tibia))
+            if length < 1e-3:
+                raise InputError("attachments closer than 1 mm", source=src, field=f)
+            stiffness = number(b["stiffness"], src, f"{f}.stiffness")
+            if stiffness < 0:
+                raise InputError("must be >= 0 (N per unit strain)", source=src, field=f"{f}.stiffness")
+            if ("slack_length" in b) == ("ref_strain" in b):
+                raise InputError("give slack_length or ref_strain", source=src, field=f)
+            if "slack_length" in b:
+                slack = number(b["slack_length"], src, f"{f}.slack_length") * self.scale
+                if slack <= 0:
+                    raise InputError("must be > 0", source=src, field=f"{f}.slack_length")
+                ref = length / slack - 1
+            else:
+                ref = number(b["ref_strain"], src, f"{f}.ref_strain") / 100
+            if "lin_strain" in b:
+                lin = number(b["lin_strain"], src, f"{f}.lin_strain") / 100
+            else:
+                lin = number(b.get("transition_strain", 0.06), src, f"{f}.transition_strain") / 2
+            if lin <= 0:
+                raise InputError("must be > 0", source=src, field=f"{f}.transition_strain")
+            out.append(Bundle(femur, tibia, str(b.get("name", f"{fld}{i}")), stiffness, ref, lin))
+        return out
 
     def candidates(self) -> list[Ligament]:
         src = self.src
@@ -458,8 +501,8 @@ class _KneeFile:
         if extra:
             raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)}",
                              source=params.source or src, field="ligaments")
-        missing = [f"{n}.{k}" for n in ligaments for k in ("k", "ref_strain", "lin_strain")
-                   if f"{n}.{k}" not in params]
+        missing = [f"{n}.{k}" for n, lig in ligaments.items() if not lig.grouped
+                   for k in ("k", "ref_strain", "lin_strain") if f"{n}.{k}" not in params]
         if missing:
             raise InputError(f"parameter set {params.source or params.name} lacks {', '.join(missing)}",
                              source=src, field="parameters")

@@ -71,7 +71,7 @@ class KneeModel:
         self._index = {n: i for i, n in enumerate(self.parameter_names)}
         self.effects: list[Effect] = [Effect(e.name, e.description, tuple(e.frees()))
                                       for e in self.elements if e.candidate]
-        self.effects += builtin_groups(self.ligament_names)
+        self.effects += builtin_groups([n for n in self.ligament_names if not knee.ligaments[n].grouped])
         #: solvers built for this model (forward rootfinders, identification NLPs), keyed by their
         #: layout; filled by :mod:`kneenlp.solvers`, so each is built once per model
         self.solvers: dict[tuple, object] = {}

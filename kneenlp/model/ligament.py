@@ -11,6 +11,12 @@ format (no conditionals; see :mod:`kneenlp.io.export`).
 
 Strain ``eps = (l - l0) / l0`` with slack length ``l0 = l_r / (1 + eps_r)`` where ``l_r`` is the
 length in the reference pose and ``eps_r`` the reference strain (Eq. 2-3).
+
+Multi-bundle ligaments (OpenSim's Blankevoort1991Ligament bundles, grouped): every bundle has its
+own stiffness ``k_i``, reference strain ``eps_r,i`` and linear strain limit; the group's
+parameters are a stiffness scale ``<group>.k_scale`` (bundle stiffness ``k_scale k_i``, default 1)
+and a reference-strain offset ``<group>.ref_strain_offset`` (bundle reference strain ``eps_r,i +
+offset``, default 0): the fit moves the whole group and keeps its internal pattern.
 """
 
 from __future__ import annotations
@@ -45,10 +51,18 @@ def slack_length(reference_length, ref_strain):
 
 @dataclass(frozen=True)
 class Bundle:
-    """One line element: femoral attachment (femoral frame) and tibial attachment (tibial frame), m."""
+    """One line element: femoral attachment (femoral frame) and tibial attachment (tibial frame), m.
+
+    A bundle of a multi-bundle (grouped) ligament carries its own properties: ``stiffness`` (N per
+    unit strain), ``ref_strain`` (at the reference pose) and ``lin_strain`` (the paper's linear
+    strain limit, half OpenSim's transition strain); ``name`` is its name in the source model."""
 
     femur: np.ndarray
     tibia: np.ndarray
+    name: str = ""
+    stiffness: float | None = None
+    ref_strain: float | None = None
+    lin_strain: float | None = None
 
     @property
     def reference_length(self) -> float:
@@ -80,6 +94,14 @@ class Ligament(ForceElement):
         self.name, self.bundles, self.law = name, list(bundles), law or ToeLinearLaw()
         self.candidate, self.description = candidate, description
         self._defaults = dict(defaults or {})
+        #: a group of bundles with their own properties (parameters: k_scale, ref_strain_offset)
+        self.grouped = all(b.stiffness is not None for b in self.bundles)
+
+    def main_parameters(self) -> list[str]:
+        """What an identification frees by default: stiffness and reference strain (of the group)."""
+        if self.grouped:
+            return [f"{self.name}.k_scale", f"{self.name}.ref_strain_offset"]
+        return [f"{self.name}.k", f"{self.name}.ref_strain"]
 
     @property
     def femur(self) -> np.ndarray:
@@ -96,6 +118,10 @@ class Ligament(ForceElement):
         return self.bundles[0].reference_length
 
     def parameters(self) -> list[Parameter]:
+        if self.grouped:
+            return [Parameter(f"{self.name}.k_scale", "scale", f"{self.name} stiffness scale (every bundle)", 1.0),
+                    Parameter(f"{self.name}.ref_strain_offset", "ref_strain",
+                              f"{self.name} reference-strain offset (every bundle)", 0.0)]
         neutral = {"k": 0.0} if self.candidate else None
         defaults = ({"k": 0.0, "lin_strain": 0.03} | self._defaults) if self.candidate else self._defaults
         return ligament_parameters(self.name, defaults, neutral)
@@ -104,13 +130,20 @@ class Ligament(ForceElement):
         return [f"{self.name}.k"] if self.candidate else super().frees()
 
     def _bundle_terms(self, pose: Pose, values: dict):
-        own = {kind: values[f"{self.name}.{kind}"] for kind in LIGAMENT_KINDS}
+        if self.grouped:
+            scale, offset = values[f"{self.name}.k_scale"], values[f"{self.name}.ref_strain_offset"]
+        else:
+            own = {kind: values[f"{self.name}.{kind}"] for kind in LIGAMENT_KINDS}
         for b in self.bundles:
             arm = pose.R @ ca.DM(b.tibia)
             u = ca.DM(b.femur) - (pose.p + arm)
             length = ca.norm_2(u)
-            strain = length / slack_length(b.reference_length, own["ref_strain"]) - 1
-            tension = self.law.tension(strain, own)
+            if self.grouped:
+                strain = length / slack_length(b.reference_length, b.ref_strain + offset) - 1
+                tension = self.law.tension(strain, {"k": scale * b.stiffness, "lin_strain": b.lin_strain})
+            else:
+                strain = length / slack_length(b.reference_length, own["ref_strain"]) - 1
+                tension = self.law.tension(strain, own)
             yield arm, u / length, strain, tension
 
     def wrench(self, pose: Pose, values: dict) -> tuple[ca.SX, ca.SX]:

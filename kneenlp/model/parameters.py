@@ -49,6 +49,7 @@ KINDS: dict[str, Kind] = {
     "modulus": Kind("GN/m^3", 1e-9, 1e8, 1e12, 1e10, 0.1, True,
                     (("GN/m^3", 1e9), ("N/mm^3", 1e9), ("N/m^3", 1.0)), "elastic-foundation pressure modulus"),
     "spring": Kind("N/mm", 1e-3, 0.0, 1e7, 1e5, 1e4, False, (("N/mm", 1e3), ("N/m", 1.0)), "spring stiffness"),
+    "scale": Kind("1", 1.0, 0.0, 20.0, 1.0, 0.05, False, (("1", 1.0),), "stiffness scale of a bundle group"),
     "angle": Kind("deg", 180 / np.pi, -0.2, 0.2, 1e-2, np.deg2rad(1.0), False, (("deg", np.pi / 180),), "angle"),
     "length": Kind("mm", 1e3, -0.01, 0.01, 1e-3, 0.5e-3, False, (("mm", 1e-3), ("m", 1.0)), "length"),
     "force": Kind("N", 1.0, -1e4, 1e4, 100.0, 50.0, False, (("N", 1.0),), "force"),
@@ -178,9 +179,9 @@ class ParameterSet:
             if kind not in UNIT_FACTORS:
                 raise unknown_name("unit kind", kind, UNIT_FACTORS, source=src)
         values: dict[str, float] = {}
-        ligs = doc.get("ligaments", {})
-        if not isinstance(ligs, dict) or not ligs:
-            raise InputError("missing table [ligaments.<NAME>]", source=src, field="ligaments")
+        ligs = doc.get("ligaments", {})  # may be empty: a multi-bundle knee's bundles carry their own values
+        if not isinstance(ligs, dict):
+            raise InputError("must be a table [ligaments.<NAME>]", source=src, field="ligaments")
         for lig, props in ligs.items():
             if not isinstance(props, dict):
                 raise InputError("must be a table", source=src, field=f"ligaments.{lig}")

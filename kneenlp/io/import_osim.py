@@ -1,0 +1,169 @@
+"""OpenSim knee models in: an .osim file becomes a kneenlp knee (TOML + meshes).
+
+``kneenlp import-osim MODEL.osim --out KNEE_DIR`` (:func:`import_osim`) reads the femur and tibia
+bodies of the knee joint, every femur-tibia Blankevoort1991Ligament bundle (stiffness, slack
+length, transition strain, the path points on the two bodies; wrapping surfaces and path points on
+other bodies are reported and skipped: kneenlp's bundles are straight lines), the tibiofemoral
+contact meshes (Smith2018ContactMesh, found next to the model or in ``--geometry DIR``), and
+writes a knee whose multi-bundle ligaments are the model's bundle groups (``ACLam``, ``ACLpl``,
+... by default; ``groups="coarse"`` merges them into ``ACL``, ``PCL``, ``MCL``, ...).  Each group
+is identified by a stiffness scale and a reference-strain offset shared by its bundles
+(:mod:`kneenlp.model.ligament`).
+
+Coordinates stay the model's (metres, the femur body's frame for femoral points and meshes, the
+tibia body's for tibial ones: they coincide at the model's default pose, the reference pose);
+kneenlp builds its femoral frame from cylinder fits to the condyles and the hip centre when the
+knee is loaded (``coordinates = "scan"``, ``frame = "cylinders"``).  A femoral cartilage mesh the
+model names but the geometry folder lacks can be replaced by another surface (``femur_mesh``, e.g.
+the subchondral bone) with ``femur_offset`` (its distance inside the articular surface, m).
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from kneenlp.errors import InputError
+from kneenlp.io.atomic import write_text_atomic
+from kneenlp.io.osim import OsimError, knee_line_elements, ligament_groups, read_osim
+
+#: Parameter set written with an imported knee: the paper's contact modulus (the bundles carry
+#: their own properties).
+PARAMETERS = '''# Parameters of a knee imported from OpenSim: the bundles carry their own stiffness and slack
+# length (knee.toml); the groups' stiffness scales (1) and reference-strain offsets (0) are the
+# defaults.  The elastic-foundation modulus is the laxity-noise paper's.
+name = "imported"
+[units]
+modulus = "GN/m^3"
+[contact]
+modulus = 10.0
+'''
+
+
+@dataclass
+class ImportReport:
+    """What :func:`import_osim` did: the knee file, the groups and the skipped parts."""
+
+    knee_file: Path
+    groups: dict[str, list[str]]
+    skipped: list[str] = field(default_factory=list)
+
+    @property
+    def n_bundles(self) -> int:
+        return sum(len(v) for v in self.groups.values())
+
+    def text(self) -> str:
+        lines = [f"wrote {self.knee_file}: {self.n_bundles} bundles in {len(self.groups)} groups ("
+                 + ", ".join(f"{g} {len(b)}" for g, b in self.groups.items()) + ")"]
+        lines += [f"skipped: {s}" for s in self.skipped]
+        return "\n".join(lines)
+
+
+def _find_mesh(name: str, folders: list[Path], source: str) -> Path:
+    for folder in folders:
+        for candidate in (folder / name, folder / "Geometry" / name):
+            if candidate.is_file():
+                return candidate
+    raise InputError(f"mesh {name!r} not found in {', '.join(str(f) for f in folders)} (give --geometry DIR, or "
+                     "--femur-mesh for a femoral surface the model's folder lacks)", source=source,
+                     field="Smith2018ContactMesh")
+
+
+def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | None = None, groups: str = "fine",
+                femur_body: str = "femur_distal_r", tibia_body: str = "tibia_proximal_r",
+                femur_mesh: str | Path | None = None, femur_offset: float = 0.0) -> ImportReport:
+    """Write a kneenlp knee from an OpenSim model (see module docstring); lengths in metres."""
+    osim = Path(osim)
+    src = str(osim)
+    try:
+        model = read_osim(osim)
+    except OsimError as exc:
+        raise InputError(str(exc)) from None
+    if groups not in ("fine", "coarse"):
+        raise InputError(f"must be 'fine' or 'coarse', got {groups!r}", field="--groups")
+    for body in (femur_body, tibia_body):
+        if body not in model.bodies:
+            raise InputError(f"no body {body!r}; bodies: {', '.join(model.bodies)}", source=src, field="BodySet")
+    lines = knee_line_elements(model, femur_body, tibia_body)
+    skipped = [s for s in model.skipped if "PathWrap" not in s]
+    wrapped = sorted({n for n, e in lines.items() if e.wraps})
+    if wrapped:
+        skipped.append(f"wrapping surfaces of {len(wrapped)} bundles ({', '.join(_ranges(wrapped))}): straight lines "
+                       "between their attachments are used")
+    keep = {}
+    for name, e in lines.items():
+        if e.ignored_points:
+            skipped.append(f"{name}: path points {', '.join(e.ignored_points)} on other bodies "
+                           "(the bundle is left out)")
+        elif e.linear_stiffness > 0:
+            keep[name] = e
+    grouped = ligament_groups(list(keep))[groups]
+    # meshes: the tibiofemoral contact meshes of the two bodies
+    folders = [Path(geometry)] if geometry else []
+    folders += [osim.parent]
+    out = Path(out)
+    (out / "meshes").mkdir(parents=True, exist_ok=True)
+    meshes = {}
+    for role, body in (("femur", femur_body), ("tibia", tibia_body)):
+        found = [c for c in model.contact_meshes.values() if c.body == body]
+        if role == "femur" and femur_mesh is not None:
+            path = Path(femur_mesh)
+            if not path.is_file():
+                raise InputError(f"mesh file not found: {path}", field="--femur-mesh")
+        elif not found:
+            raise InputError(f"no Smith2018ContactMesh on body {body!r}", source=src, field="ContactGeometrySet")
+        else:
+            if len(found) > 1 or np.any(found[0].X_body_mesh(model) != np.eye(4)):
+                skipped.append(f"{role}: contact mesh {found[0].name!r} used as placed in its body (offsets ignored)")
+            path = _find_mesh(found[0].mesh_file, folders, src)
+        shutil.copyfile(path, out / "meshes" / path.name)
+        meshes[role] = f"meshes/{path.name}"
+    doc: dict = {
+        "name": osim.stem, "side": "right", "units": "m", "coordinates": "scan", "frame": "cylinders",
+        "description": f"imported from {osim.name} by kneenlp import-osim ({groups} bundle groups)",
+        "parameters": "parameters.toml",
+        "landmarks": _landmarks(model, femur_body, tibia_body, src),
+        "contact": {"femur": meshes["femur"], "tibia": meshes["tibia"], "gate": 1e-5, "grid_spacing": 5e-4,
+                    **({"femur_offset": float(femur_offset)} if femur_offset else {})},
+        "ligaments": {},
+    }
+    for group, names in grouped.items():
+        doc["ligaments"][group] = {"bundles": [
+            {"name": n, "femur": [float(v) for v in keep[n].femoral_point],
+             "tibia": [float(v) for v in keep[n].tibial_point], "stiffness": float(keep[n].linear_stiffness),
+             "slack_length": float(keep[n].slack_length), "transition_strain": float(keep[n].transition_strain)}
+            for n in names]}
+    header = (f"# kneenlp knee imported from {osim.name} (kneenlp import-osim; {groups} bundle groups).\n"
+              f"# Coordinates: metres in the model's {femur_body} frame ({tibia_body} for tibial points).\n"
+              "# Bundles: stiffness in N per unit strain (OpenSim linear_stiffness), slack_length in m,\n"
+              "# transition_strain as OpenSim's (the paper's linear strain limit is half of it).\n")
+    knee_file = write_text_atomic(out / "knee.toml", header + tomli_w.dumps(doc))
+    write_text_atomic(out / "parameters.toml", PARAMETERS)
+    return ImportReport(knee_file, grouped, skipped)
+
+
+def _landmarks(model, femur_body: str, tibia_body: str, src: str) -> dict[str, list[float]]:
+    """The hip centre (origin of the femur body the knee's femur is welded to, when it is the child
+    of a hip joint) and the tibial tuberosity (centroid of the patellar-tendon insertions)."""
+    out = {}
+    for body in sorted(model.welded_bodies(femur_body) - {femur_body}):
+        out["hip_center"] = [float(v) for v in model.transform(femur_body, body)[:3, 3]]
+        break
+    tibia = model.welded_bodies(tibia_body)
+    tendon = [lig.points[-1] for name, lig in model.ligaments.items()
+              if name.upper().startswith("PT") and lig.points and lig.points[-1].body in tibia]
+    if not tendon:
+        raise InputError("no patellar-tendon bundle (PT...) to place the tibial tuberosity", source=src,
+                         field="ForceSet")
+    out["tibial_tuberosity"] = [float(v) for v in np.mean([model.point_in_body(p, tibia_body) for p in tendon], axis=0)]
+    return out
+
+
+def _ranges(names: list[str]) -> list[str]:
+    """``["MCLd1", ..., "MCLd5"]`` -> ``["MCLd1-5"]`` (bundle names grouped for a message)."""
+    fine = ligament_groups(names)["fine"]
+    return [f"{g}{b[0][len(g):]}-{b[-1][len(g):]}" if len(b) > 1 else b[0] for g, b in fine.items()]
