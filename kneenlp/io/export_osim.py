@@ -1,0 +1,62 @@
+"""Calibrated ligaments out: a fit of an imported knee written back into the user's OpenSim model.
+
+``kneenlp export-osim FIT.json --knee KNEE --model MODEL.osim --out CALIBRATED.osim``
+(:func:`calibrated_values`, :func:`export_osim`): a copy of the model in which every bundle of a
+fitted group gets its ``linear_stiffness`` and ``slack_length`` from the fit and nothing else
+changes (:func:`kneenlp.io.osim.write_calibrated` edits the numbers inside the XML as text).
+
+For a bundle ``i`` of group ``g`` with stiffness ``k_i`` and reference strain ``eps_i`` in the knee
+(``eps_i = l_i / L0_i - 1``, ``l_i`` its straight length in the reference pose, ``L0_i`` the
+model's slack length), the fit's ``g.k_scale`` and ``g.ref_strain_offset`` give
+``linear_stiffness = k_scale k_i`` and ``slack_length = l_i / (1 + eps_i + offset)``: the model's
+slack length scaled as kneenlp's straight-line one is (wrapped paths keep their wrapping).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from kneenlp.errors import InputError
+from kneenlp.io.osim import OsimError, write_calibrated
+from kneenlp.model.knee import Knee
+from kneenlp.model.ligament import slack_length
+
+
+def calibrated_values(knee: Knee, params: dict[str, float]) -> dict[str, dict[str, float]]:
+    """``{bundle: {"linear_stiffness": N per unit strain, "slack_length": m}}`` for every bundle of
+    the groups whose scale or offset the fit ``params`` (SI, by name) contains."""
+    out = {}
+    for name, lig in knee.ligaments.items():
+        scale_key, offset_key = f"{name}.k_scale", f"{name}.ref_strain_offset"
+        if not lig.grouped or (scale_key not in params and offset_key not in params):
+            continue
+        scale, offset = params.get(scale_key, 1.0), params.get(offset_key, 0.0)
+        for b in lig.bundles:
+            out[b.name] = {"linear_stiffness": scale * b.stiffness,
+                           "slack_length": slack_length(b.reference_length, b.ref_strain + offset)}
+    return out
+
+
+def export_osim(fit_json: str | Path, knee: Knee | str | Path, model: str | Path, out: str | Path) -> list[tuple]:
+    """Write ``out``: ``model`` with the ligament properties of the fit in ``fit_json`` (the JSON of
+    ``kneenlp identify --json`` or ``Fit.to_json()``) for the imported ``knee``; returns the changes
+    ``(bundle, property, old, new)``."""
+    path = Path(fit_json)
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read the fit ({exc})", source=str(path)) from None
+    params = doc.get("params") if isinstance(doc, dict) else None
+    if not isinstance(params, dict) or not params:
+        raise InputError("no 'params' object: expected the JSON of 'kneenlp identify --json'", source=str(path),
+                         field="params")
+    knee = knee if isinstance(knee, Knee) else Knee.load(knee)
+    values = calibrated_values(knee, {k: float(v) for k, v in params.items()})
+    if not values:
+        raise InputError("the fit frees no bundle group of this knee (expected <group>.k_scale or "
+                         "<group>.ref_strain_offset)", source=str(path), field="params")
+    try:
+        return write_calibrated(model, out, values)
+    except OsimError as exc:
+        raise InputError(str(exc)) from None
