@@ -160,3 +160,11 @@ def test_zero_noise_recovery_of_the_grouped_parameters(imported, tmp_path):
             assert fit.params[n] == pytest.approx(true, rel=1e-6), n
         else:  # offsets are strains (true value may be 0): absolute
             assert fit.params[n] == pytest.approx(true, abs=1e-8), n
+
+
+def test_design_pool_reaches_90_degrees_on_a_multi_bundle_knee(imported):
+    from kneenlp.inference.design import FLEXIONS, FLEXIONS_MULTI_BUNDLE, default_flexions
+
+    _, knee = imported
+    assert default_flexions(knee) == FLEXIONS_MULTI_BUNDLE and max(FLEXIONS_MULTI_BUNDLE) == 90.0
+    assert default_flexions(kneenlp.Knee.named("synthetic")) == FLEXIONS

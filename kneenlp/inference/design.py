@@ -42,7 +42,20 @@ PAPER_MAXIMA = {"anterior": 134.0, "posterior": 67.0, "internal": 2.0, "external
                 "valgus": 10.0}
 
 
-def candidate_pool(flexions=(0.0, 15.0, 30.0, 45.0, 60.0), levels=(1.0, 0.6, 0.2)) -> Protocol:
+#: Candidate flexions (deg): up to 60 deg for single-bundle knees (unstable beyond, as in the paper's
+#: discussion), up to 90 deg for knees with multi-bundle ligaments.
+FLEXIONS = (0.0, 15.0, 30.0, 45.0, 60.0)
+FLEXIONS_MULTI_BUNDLE = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
+
+
+def default_flexions(knee) -> tuple[float, ...]:
+    """:data:`FLEXIONS_MULTI_BUNDLE` if any ligament of ``knee`` (a Knee or KneeModel) is a bundle
+    group, else :data:`FLEXIONS`."""
+    ligaments = getattr(knee, "ligaments", None) or knee.knee.ligaments
+    return FLEXIONS_MULTI_BUNDLE if any(lig.grouped for lig in ligaments.values()) else FLEXIONS
+
+
+def candidate_pool(flexions=FLEXIONS, levels=(1.0, 0.6, 0.2)) -> Protocol:
     """Every direction at ``levels`` x the paper's maxima and every flexion, plus no-load trials."""
     trials = [Trial(trial_id("none", 0.0, f), f, {}, "none", 0.0) for f in flexions]
     comps = {"anterior": ("anterior_force", 1), "posterior": ("anterior_force", -1), "varus": ("varus_moment", 1),
@@ -57,6 +70,13 @@ def candidate_pool(flexions=(0.0, 15.0, 30.0, 45.0, 60.0), levels=(1.0, 0.6, 0.2
     return Protocol("pool", tuple(trials), "candidate pool", "all directions, levels and flexions")
 
 
+def reference_units(problem: IdentificationProblem, theta: np.ndarray) -> np.ndarray:
+    """What "relative" means for each free parameter: its value, or for a parameter whose value is
+    0 (a bundle group's reference-strain offset) its kind's scale (1 % strain)."""
+    values = np.array([theta[problem.model.index(n)] for n in problem.free])
+    return np.where(values != 0, values, problem.scales)
+
+
 def relative_information(problem: IdentificationProblem, theta: np.ndarray) -> np.ndarray:
     """Per-trial Fisher information of ``problem``'s trials in relative parameter units, shape
     (n_trials, n, n), at parameters ``theta`` with the problem's noise level.
@@ -66,8 +86,8 @@ def relative_information(problem: IdentificationProblem, theta: np.ndarray) -> n
     sols = forward_solver(problem.model).solve(list(problem.trials), theta)
     ok = np.array([s.converged for s in sols])
     q = np.array([s.q for s in sols])
-    values = np.array([theta[problem.model.index(n)] for n in problem.free])
-    info = fisher_information(problem.sensitivities(q, theta) * values, problem.noise.std)  # per unit relative change
+    info = fisher_information(problem.sensitivities(q, theta) * reference_units(problem, theta),
+                              problem.noise.std)  # per unit relative change
     info[~ok] = 0.0
     return info
 
@@ -129,7 +149,7 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
         raise InputError(f"must be >= 1, got {max_cases}", field="--max-cases")
     knee = knee or Knee.default()
     model = model_for(knee)
-    pool = pool or candidate_pool()
+    pool = pool or candidate_pool(default_flexions(model))
     problem = IdentificationProblem(model, pool.trials, list(free or default_free(model)),
                                     noise=NoiseModel.parse(noise))
     free = problem.free
