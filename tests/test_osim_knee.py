@@ -78,9 +78,8 @@ def test_export_osim_changes_only_the_calibrated_values(imported, tmp_path):
     (tmp_path / "fit.json").write_text(json.dumps(fit))
     out = tmp_path / "calibrated.osim"
     changes = export_osim(tmp_path / "fit.json", knee, LENHART, out)
-    groups = ("ACL", "MCL")
-    n_bundles = sum(len(knee.ligaments[g].bundles) for g in groups)
-    assert len(changes) == 2 * n_bundles
+    n_acl, n_mcl = len(knee.ligaments["ACL"].bundles), len(knee.ligaments["MCL"].bundles)
+    assert len(changes) == 2 * n_acl + n_mcl  # ACL: stiffness and slack length; MCL: slack length
     old, new = LENHART.read_text().splitlines(), out.read_text().splitlines()
     assert len(old) == len(new)
     changed = [(a, b) for a, b in zip(old, new, strict=True) if a != b]
@@ -116,7 +115,7 @@ def test_calibrated_model_loads_in_opensim(imported, tmp_path):
     """The written model (without OpenSim JAM's contact classes) loads in OpenSim 4.6 and reads
     back the calibrated properties (OpenSim runs in its own process: it cannot share one with casadi)."""
     _, knee = imported
-    params = {"PCL.k_scale": 0.8, "PCL.ref_strain_offset": 0.02}
+    params = {"PCL.k_scale": 0.8, "PCL.ref_strain_offset": 0.02}  # both properties of every PCL bundle
     (tmp_path / "fit.json").write_text(json.dumps({"params": params}))
     export_osim(tmp_path / "fit.json", knee, LENHART, tmp_path / "cal.osim")
     O.write_opensim_loadable_copy(tmp_path / "cal.osim", tmp_path / "cal_plain.osim")
@@ -168,3 +167,22 @@ def test_design_pool_reaches_90_degrees_on_a_multi_bundle_knee(imported):
     _, knee = imported
     assert default_flexions(knee) == FLEXIONS_MULTI_BUNDLE and max(FLEXIONS_MULTI_BUNDLE) == 90.0
     assert default_flexions(kneenlp.Knee.named("synthetic")) == FLEXIONS
+
+
+def test_command_line_round_trip(tmp_path, capsys):
+    """import-osim -> identifiability -> export-osim from the command line."""
+    from kneenlp.cli import main
+
+    out = tmp_path / "knee"
+    assert main(["import-osim", str(LENHART), "--out", str(out), "--groups", "coarse", "--femur-mesh", str(BONE),
+                 "--femur-offset", "2"]) == 0
+    assert "55 bundles in 6 groups" in capsys.readouterr().out
+    assert main(["identifiability", "--knee", str(out / "knee.toml"), "--protocol", "set1", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert len(report["free"]) == 12 and report["rank"] <= 12
+    (tmp_path / "fit.json").write_text(json.dumps({"params": {"LCL.k_scale": 1.1}}))
+    assert main(["export-osim", str(tmp_path / "fit.json"), "--knee", str(out / "knee.toml"), "--model", str(LENHART),
+                 "--out", str(tmp_path / "cal.osim")]) == 0
+    assert "4 values of 4 bundles" in capsys.readouterr().out  # the LCL's 4 stiffnesses (slack lengths unchanged)
+    assert main(["export-osim", str(tmp_path / "fit.json"), "--knee", str(out / "knee.toml"), "--model",
+                 str(tmp_path / "missing.osim"), "--out", str(tmp_path / "x.osim")]) == 2

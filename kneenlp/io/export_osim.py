@@ -25,16 +25,21 @@ from kneenlp.model.ligament import slack_length
 
 def calibrated_values(knee: Knee, params: dict[str, float]) -> dict[str, dict[str, float]]:
     """``{bundle: {"linear_stiffness": N per unit strain, "slack_length": m}}`` for every bundle of
-    the groups whose scale or offset the fit ``params`` (SI, by name) contains."""
-    out = {}
+    the groups the fit ``params`` (SI, by name) calibrates: the stiffness where it has the group's
+    ``k_scale``, the slack length where it has the group's ``ref_strain_offset``."""
+    out: dict[str, dict[str, float]] = {}
     for name, lig in knee.ligaments.items():
-        scale_key, offset_key = f"{name}.k_scale", f"{name}.ref_strain_offset"
-        if not lig.grouped or (scale_key not in params and offset_key not in params):
+        if not lig.grouped:
             continue
-        scale, offset = params.get(scale_key, 1.0), params.get(offset_key, 0.0)
+        scale, offset = params.get(f"{name}.k_scale"), params.get(f"{name}.ref_strain_offset")
         for b in lig.bundles:
-            out[b.name] = {"linear_stiffness": scale * b.stiffness,
-                           "slack_length": slack_length(b.reference_length, b.ref_strain + offset)}
+            values = {}
+            if scale is not None:
+                values["linear_stiffness"] = scale * b.stiffness
+            if offset is not None:
+                values["slack_length"] = slack_length(b.reference_length, b.ref_strain + offset)
+            if values:
+                out[b.name] = values
     return out
 
 
@@ -51,6 +56,8 @@ def export_osim(fit_json: str | Path, knee: Knee | str | Path, model: str | Path
     if not isinstance(params, dict) or not params:
         raise InputError("no 'params' object: expected the JSON of 'kneenlp identify --json'", source=str(path),
                          field="params")
+    if not Path(model).is_file():
+        raise InputError("file not found", source=str(model), field="--model")
     knee = knee if isinstance(knee, Knee) else Knee.load(knee)
     values = calibrated_values(knee, {k: float(v) for k, v in params.items()})
     if not values:
