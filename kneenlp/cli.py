@@ -220,10 +220,11 @@ def cmd_export(args) -> int:
 
 
 def cmd_design(args) -> int:
-    from kneenlp.inference.design import candidate_pool, design, write_protocol
+    from kneenlp.inference.design import candidate_pool, default_flexions, design, write_protocol
 
     knee = _knee(args)
-    flexions = tuple(float(f) for f in args.flexions.split(","))
+    flexions = (tuple(float(f) for f in args.flexions.split(",")) if args.flexions is not None
+                else default_flexions(knee))
     free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
     result = design(knee, args.max_cases, args.criterion, pool=candidate_pool(flexions), free=free,
                     noise=args.noise, robust=args.robust, seed=args.seed, reference=args.reference)
@@ -269,6 +270,37 @@ def _knee_args(p: argparse.ArgumentParser, parameters: bool = True) -> None:
         p.add_argument("--parameters", help="parameter set TOML (reference values and fixed parameters)")
     p.add_argument("--element", action="append", default=[], metavar="MODULE:FACTORY",
                    help="add user force elements made by this importable factory (repeatable)")
+
+
+def cmd_import_osim(args) -> int:
+    from kneenlp.io.import_osim import import_osim
+
+    report = import_osim(args.model, args.out, geometry=args.geometry, groups=args.groups,
+                         femur_mesh=args.femur_mesh, femur_offset=args.femur_offset * 1e-3)
+    print(report.text())
+    return 0
+
+
+def cmd_export_osim(args) -> int:
+    from kneenlp.io.export_osim import export_osim
+
+    changes = export_osim(args.fit, args.knee, args.model, args.out)
+    print(f"wrote {args.out}: {len(changes)} values of {len({c[0] for c in changes})} bundles changed")
+    return 0
+
+
+def cmd_identifiability(args) -> int:
+    from kneenlp.inference.identifiability import identifiability
+
+    free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
+    result = identifiability(_knee(args), args.protocol, free=free, noise=args.noise)
+    if args.json:
+        print(json.dumps({"rank": result.rank, "identifiable": result.identifiable, "free": result.free,
+                          "stderr": result.stderr, "unidentified_directions": result.directions(),
+                          "singular_values": result.singular_values.tolist()}, indent=2))
+    else:
+        print(result.report())
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -358,13 +390,40 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_export)
 
+    p = sub.add_parser("import-osim", help="turn an OpenSim knee model into a kneenlp knee (multi-bundle)")
+    p.add_argument("model", help="the .osim file")
+    p.add_argument("--out", required=True, help="directory for knee.toml, parameters.toml and meshes/")
+    p.add_argument("--geometry", help="folder of the model's meshes (default: beside the model)")
+    p.add_argument("--groups", default="fine", choices=["fine", "coarse"],
+                   help="bundle groups: fine (ACLam, ACLpl, ...) or coarse (ACL, PCL, MCL, ...)")
+    p.add_argument("--femur-mesh", help="femoral surface to use instead of the model's femoral contact mesh")
+    p.add_argument("--femur-offset", type=float, default=0.0,
+                   help="mm the articular surface lies outside --femur-mesh (cartilage thickness on bone)")
+    p.set_defaults(func=cmd_import_osim)
+
+    p = sub.add_parser("export-osim", help="write a fit of an imported knee into a copy of its OpenSim model")
+    p.add_argument("fit", help="the fit's JSON (kneenlp identify --json)")
+    p.add_argument("--knee", required=True, help="the imported knee's knee.toml")
+    p.add_argument("--model", required=True, help="the OpenSim model the knee was imported from")
+    p.add_argument("--out", required=True, help="the calibrated .osim to write")
+    p.set_defaults(func=cmd_export_osim)
+
+    p = sub.add_parser("identifiability", help="which parameters a protocol can identify, before fitting")
+    p.add_argument("--protocol", default="set4", help="protocol name or TOML file")
+    p.add_argument("--free", help="comma-separated parameters (default: stiffness and reference strain of each)")
+    p.add_argument("--noise", default="uniform:0.5", help="noise model (mm, deg)")
+    _knee_args(p)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_identifiability)
+
     p = sub.add_parser("design", help="design a laxity protocol with few load cases and tight estimates")
     p.add_argument("--max-cases", type=int, default=22, help="largest number of load cases (default 22)")
     p.add_argument("--criterion", default="A", choices=["A", "D", "W", "R"],
                    help="A: sum of relative variances, D: log det, W: worst relative standard error, "
                         "R: worst standard-error ratio to a reference protocol (--reference)")
     p.add_argument("--reference", default="set4", help="reference protocol of criterion R (default set4)")
-    p.add_argument("--flexions", default="0,15,30,45,60", help="candidate flexion angles, deg")
+    p.add_argument("--flexions", default=None,
+                   help="candidate flexion angles, deg (default 0,15,...,60; to 90 for a multi-bundle knee)")
     p.add_argument("--noise", default="uniform:0.5", help="noise model (mm, deg)")
     p.add_argument("--robust", type=int, default=3, help="parameter sets averaged over (knee's + scatter draws)")
     p.add_argument("--free", help="comma-separated parameters to identify")
