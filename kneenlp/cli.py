@@ -1,19 +1,225 @@
 """Command-line interface: ``kneenlp <command> ...``.
 
 Bad input gives a one-line ``kneenlp: error: ...`` on stderr and exit status 2 (never a
-traceback); a run in which some trial or fit did not converge still writes its outputs and exits
-with status 1.
+traceback); with ``--json`` the error is also printed on stdout as ``{"error": ..., "file": ...,
+"field": ...}``.  A run in which some trial or fit did not converge still writes its outputs and
+exits with status 1.  Every option and input file is checked before any work starts (option
+values by their argparse types, files by :func:`_check_inputs`); outputs are written through a
+staging directory (:func:`kneenlp.io.atomic.staged_directory`), so a failed or interrupted
+command leaves no half-written file.  Ctrl-C (SIGINT) and SIGTERM end a command with one line and
+status 130 / 143, keeping finished work (a study's finished samples).  An unexpected exception
+(a bug) is one line and status 3 (``KNEENLP_DEBUG=1`` shows the traceback).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import math
+import os
+import re
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from kneenlp.errors import ConvergenceError, InputError
+from kneenlp.io.atomic import staged_directory, write_error
+
+#: Exit statuses: 0 done, 1 some trial or fit did not converge, 2 bad input, 3 internal error (a
+#: bug), 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
+EXIT_INPUT, EXIT_BUG, EXIT_INTERRUPTED, EXIT_TERMINATED = 2, 3, 130, 143
+
+#: Upper limits of counts (documented in docs/architecture.md, "Bad input"): beyond them a run
+#: would take days or exhaust memory, which is never what a user meant.
+MAX_SAMPLES = 1_000_000
+MAX_WORKERS = 512
+MAX_STARTS = 1000
+MAX_EVALS = 10_000_000
+MAX_ROBUST = 100
+MAX_CASES = 1000
+MAX_SEED = 2**63 - 1
+
+
+# ------------------------------------------------------------------ option values (argparse types)
+def _integer(lo: int, hi: int):
+    """An argparse type: an integer in [lo, hi]."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be between {lo} and {hi}, got {value}" if hi < MAX_SEED
+                                             else f"must be >= {lo}, got {value}")
+        return value
+    return parse
+
+
+def _positive(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+def _names(text: str) -> list[str]:
+    """An argparse type: a comma-separated list of names (at least one, no repeats)."""
+    names = [n.strip() for n in text.split(",")]
+    if not any(names) or not all(names):
+        raise argparse.ArgumentTypeError(f"expected comma-separated names, got {text!r}")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise argparse.ArgumentTypeError(f"{', '.join(dup)} given twice")
+    return names
+
+
+def _flexions(text: str) -> tuple[float, ...]:
+    """An argparse type: comma-separated flexion angles in [-10, 120] deg (as protocol files)."""
+    values = []
+    for item in _names(text):
+        try:
+            f = float(item)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected angles in deg, got {item!r}") from None
+        if not -10.0 <= f <= 120.0:
+            raise argparse.ArgumentTypeError(f"flexion {item} deg outside [-10, 120]")
+        values.append(f)
+    return tuple(values)
+
+
+def _noise(text: str) -> str:
+    """An argparse type: a noise model ``uniform:B``, ``gaussian:SIGMA`` or ``none``."""
+    from kneenlp.experiment.noise import NoiseModel
+
+    try:
+        NoiseModel.parse(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(exc.message) from None
+    return text
+
+
+def _solver(text: str) -> str:
+    """An argparse type: a CasADi nlpsol plugin that is installed."""
+    import casadi
+
+    if not text or not casadi.has_nlpsol(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not an installed CasADi nlpsol plugin (e.g. ipopt, "
+                                         "sqpmethod)")
+    return text
+
+
+SEED = _integer(0, MAX_SEED)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: a bad option is an :class:`InputError` naming the option."""
+
+    def error(self, message: str):
+        m = re.match(r"argument ([^:]+): (.*)", message)
+        field, text = (m.group(1).split("/")[-1], m.group(2)) if m else (None, message)
+        raise InputError(f"{text} (see '{self.prog} --help')", field=field)
+
+
+# ------------------------------------------------------------------ input files and --out (before the work)
+@contextlib.contextmanager
+def _naming(field: str):
+    """Name ``field`` (the option) in an input error that names no field."""
+    try:
+        yield
+    except InputError as exc:
+        raise exc.with_context(field=field) from None
+
+
+def _check_out(value: str, kind: str) -> None:
+    """``--out`` must be creatable and writable: a directory (``kind="dir"``) or a file
+    (``"file"``); checked by creating and removing a temporary directory in the nearest existing
+    ancestor, which also catches read-only file systems."""
+    import tempfile
+
+    from kneenlp.io.atomic import TMP_PREFIX
+
+    if not value.strip():
+        raise InputError("empty path", field="--out")
+    path = Path(value)
+    if kind == "dir" and path.exists() and not path.is_dir():
+        raise InputError("exists and is not a directory", source=value, field="--out")
+    if kind == "file" and path.is_dir():
+        raise InputError("is a directory; give the file to write, e.g. DIR/protocol.toml", source=value,
+                         field="--out")
+    start = path if kind == "dir" else path.parent
+    base = next((p for p in (start, *start.parents) if p.exists()), Path("."))
+    if not base.is_dir():
+        raise InputError(f"{base} is not a directory", source=value, field="--out")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=TMP_PREFIX, dir=base))
+    except OSError as exc:
+        raise InputError(f"cannot write in {base} ({exc.strerror or exc})", source=value, field="--out") from None
+
+
+def _check_inputs(args) -> None:
+    """Every file and option of a command that sets ``validate``, checked before any work starts:
+    ``--out`` (kind ``out_kind``), ``--knee``, ``--parameters``, ``--protocol``, ``--sets`` and
+    the measured data (read once into ``args.measured``)."""
+    if not getattr(args, "validate", False):
+        return
+    if getattr(args, "out_kind", None) and getattr(args, "out", None) is not None:
+        _check_out(args.out, args.out_kind)
+    knee = getattr(args, "knee", None)
+    if knee is not None:
+        from kneenlp.model.knee import available_knees
+
+        if not Path(knee).exists() and knee not in available_knees():
+            raise InputError(f"file not found, and not a shipped knee ({', '.join(available_knees())})",
+                             source=knee, field="--knee")
+    if getattr(args, "parameters", None):
+        from kneenlp.model.parameters import ParameterSet
+
+        with _naming("--parameters"):
+            ParameterSet.load(args.parameters)
+    from kneenlp.experiment.protocol import Protocol
+
+    if isinstance(getattr(args, "protocol", None), str):
+        with _naming("--protocol"):
+            Protocol.load(args.protocol)
+    for name in getattr(args, "sets", None) or []:
+        with _naming("--sets"):
+            Protocol.load(name)
+    if isinstance(getattr(args, "reference", None), str):
+        with _naming("--reference"):
+            Protocol.load(args.reference)
+    if getattr(args, "data", None) is not None:
+        from kneenlp.experiment.measured import read_measured
+
+        args.measured = read_measured(args.data, protocol=getattr(args, "protocol", None))
+
+
+def _check_names(knee, args) -> None:
+    """``--free`` and ``--with-effect`` must name parameters and effects of the model (checked
+    after the knee is read, before the work)."""
+    from kneenlp.inference.problem import check_free
+    from kneenlp.simulation import model_for
+
+    model = model_for(knee)
+    for spec in getattr(args, "with_effect", None) or []:
+        with _naming("--with-effect"):
+            model.effect(spec.partition(":")[0])
+    if getattr(args, "free", None):
+        try:
+            check_free(model, args.free)
+        except InputError as exc:
+            raise InputError(exc.message, source=exc.source, field="--free") from None
+
+
+def _set_names(text: str) -> list[str]:
+    """``--sets``: ``1,2`` -> ``set1, set2``; names and protocol files as they are."""
+    return [f"set{s}" if s.isdigit() else s for s in _names(text)]
 
 
 def _knee(args):
@@ -74,10 +280,11 @@ def cmd_diagnose(args) -> int:
     from kneenlp.inference.identify import identify
 
     knee = _knee(args)
-    fit = identify(knee, args.data, seed=args.seed)
+    fit = identify(knee, args.measured, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit)
     if args.out:
-        d.write(args.out)
+        with staged_directory(args.out) as stage:
+            d.write(stage.path)
     print(d.to_json() if args.json else d.report())
     return 0
 
@@ -87,29 +294,30 @@ def cmd_simulate(args) -> int:
     from kneenlp.io import plots
     from kneenlp.simulation import simulate
 
-    knee = _knee(args)
     protocol = Protocol.load(args.protocol)
+    knee = _knee(args)
     result = simulate(knee, protocol, parameters=_effect_values(knee, args.with_effect))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     table = result.table()
-    table.to_csv(out / "kinematics.csv", index=False, float_format="%.10g")
-    (out / "knee_report.txt").write_text(result.knee.report() + "\n")  # how the files became the model
-    written = [out / "kinematics.csv", out / "knee_report.txt"]
     recruitment = result.recruitment() if any(t.direction == "none" for t in protocol.trials) else None
-    if recruitment is not None:
-        recruitment.to_csv(out / "ligament_recruitment.csv", index=False, float_format="%.6g")
-        written.append(out / "ligament_recruitment.csv")
-    if args.noise not in (None, "none") and not result.failed:
-        measured = result.measured(args.noise, args.seed)
-        measured.to_csv(out / "measured.csv", index=False, float_format="%.10g")
-        written.append(out / "measured.csv")
-    if not args.no_plots:
-        axes = "/".join(sorted({t.axes for t in protocol.trials}))
-        title = f"{result.knee.name} knee, {protocol.title or protocol.name}, loads along {axes} axes"
-        written.append(plots.laxity_curves(table, out / "laxity.png", title))
-        written.append(plots.ligament_forces(table, list(result.knee.ligaments), out / "ligament_forces.png", title,
-                                             recruitment))
+    with staged_directory(args.out) as stage:
+        out = stage.path
+        table.to_csv(out / "kinematics.csv", index=False, float_format="%.10g")
+        (out / "knee_report.txt").write_text(result.knee.report() + "\n")  # how the files became the model
+        written = [out / "kinematics.csv", out / "knee_report.txt"]
+        if recruitment is not None:
+            recruitment.to_csv(out / "ligament_recruitment.csv", index=False, float_format="%.6g")
+            written.append(out / "ligament_recruitment.csv")
+        if args.noise not in (None, "none") and not result.failed:
+            measured = result.measured(args.noise, args.seed)
+            measured.to_csv(out / "measured.csv", index=False, float_format="%.10g")
+            written.append(out / "measured.csv")
+        if not args.no_plots:
+            axes = "/".join(sorted({t.axes for t in protocol.trials}))
+            title = f"{result.knee.name} knee, {protocol.title or protocol.name}, loads along {axes} axes"
+            written.append(plots.laxity_curves(table, out / "laxity.png", title))
+            written.append(plots.ligament_forces(table, list(result.knee.ligaments), out / "ligament_forces.png",
+                                                 title, recruitment))
+    written = [stage.final(p) for p in written]
     summary = result.summary() | {"outputs": [str(p) for p in written]}
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -130,15 +338,14 @@ def cmd_identify(args) -> int:
     from kneenlp.inference.identify import identify
 
     knee = _knee(args)
-    free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
-    fit = identify(knee, args.data, args.method, free=free, seed=args.seed, noise=args.noise,
+    _check_names(knee, args)
+    fit = identify(knee, args.measured, args.method, free=args.free, seed=args.seed, noise=args.noise,
                    weighted=args.weighted, multistart=args.multistart, solver=args.solver, protocol=args.protocol,
                    with_effects=args.with_effect)
     if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        fit.table().to_csv(out / "fit_trials.csv", index=False, float_format="%.10g")
-        (out / "fit.json").write_text(fit.to_json())
+        with staged_directory(args.out) as stage:
+            fit.table().to_csv(stage.path / "fit_trials.csv", index=False, float_format="%.10g")
+            (stage.path / "fit.json").write_text(fit.to_json())
     print(fit.to_json() if args.json else fit.report())
     return 0 if fit.success else 1
 
@@ -147,8 +354,8 @@ def cmd_compare_methods(args) -> int:
     from kneenlp.inference.identify import identify
 
     knee = _knee(args)
-    fits = [identify(knee, args.data, seed=args.seed),
-            identify(knee, args.data, method="nested", seed=args.seed,
+    fits = [identify(knee, args.measured, seed=args.seed),
+            identify(knee, args.measured, method="nested", seed=args.seed,
                      nested_options={"max_evals": args.max_evals, "max_seconds": args.max_seconds})]
     rows = []
     for f in fits:
@@ -178,18 +385,13 @@ def cmd_compare_methods(args) -> int:
 def cmd_study(args) -> int:
     from kneenlp.studies.study import StudySpec, run_study
 
-    sets = tuple(f"set{s}" if s.strip().isdigit() else s.strip() for s in args.sets.split(","))
-    spec = StudySpec(sets=sets, samples=args.samples, noise=args.noise, seed=args.seed, method=args.method,
-                     knee=_knee_reference(args.knee),
-                     free=tuple(f.strip() for f in args.free.split(",")) if args.free else None,
+    spec = StudySpec(sets=tuple(args.sets), samples=args.samples, noise=args.noise, seed=args.seed,
+                     method=args.method, knee=_knee_reference(args.knee),
+                     free=tuple(args.free) if args.free else None,
                      start=args.start, elements=tuple(args.element), with_effects=tuple(args.with_effect))
-    from kneenlp.experiment.noise import NoiseModel
+    from kneenlp.studies.truth import study_model
 
-    NoiseModel.parse(spec.noise)
-    if spec.samples < 1:
-        raise InputError(f"must be >= 1, got {spec.samples}", field="--samples")
-    if args.workers is not None and args.workers < 1:
-        raise InputError(f"must be >= 1, got {args.workers}", field="--workers")
+    _check_names(study_model(spec.knee, spec.elements), args)  # built once here; forked workers share it
     study = run_study(spec, args.out, workers=args.workers, scheduler=args.scheduler, dask_local=args.dask,
                       progress=False if args.quiet else None)
     df = study.load_rows()
@@ -207,9 +409,11 @@ def cmd_export(args) -> int:
     from kneenlp.io.export import export_problem, write_export
 
     knee = _knee(args)
-    free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
-    prob = export_problem(knee, args.data, free=free, seed=args.seed, with_effects=args.with_effect)
-    files = write_export(prob, args.format, args.out, nl_common=args.nl_common)
+    _check_names(knee, args)
+    prob = export_problem(knee, args.measured, free=args.free, seed=args.seed, with_effects=args.with_effect)
+    with staged_directory(args.out) as stage:
+        files = write_export(prob, args.format, stage.path, nl_common=args.nl_common)
+    files = [stage.final(f) for f in files]
     if args.json:
         print(json.dumps({"format": args.format, "files": [str(f) for f in files],
                           "variables": len(prob.var_names), "constraints": len(prob.con_names)}, indent=2))
@@ -223,12 +427,15 @@ def cmd_design(args) -> int:
     from kneenlp.inference.design import candidate_pool, default_flexions, design, write_protocol
 
     knee = _knee(args)
-    flexions = (tuple(float(f) for f in args.flexions.split(",")) if args.flexions is not None
-                else default_flexions(knee))
-    free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
-    result = design(knee, args.max_cases, args.criterion, pool=candidate_pool(flexions), free=free,
+    _check_names(knee, args)
+    flexions = args.flexions if args.flexions is not None else default_flexions(knee)
+    result = design(knee, args.max_cases, args.criterion, pool=candidate_pool(flexions), free=args.free,
                     noise=args.noise, robust=args.robust, seed=args.seed, reference=args.reference)
-    path = write_protocol(result, args.out)
+    try:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        path = write_protocol(result, args.out)
+    except OSError as exc:
+        raise write_error(exc, args.out) from None
     summary = {"protocol": str(path), "cases": len(result.protocol), "criterion": args.criterion,
                "value": result.value, "predicted_relative_stderr": result.predicted_rse,
                "trials": [t.id for t in result.protocol.trials]}
@@ -252,10 +459,12 @@ def cmd_view(args) -> int:
     known = [t.id for t in protocol.trials]
     for tid in args.trial or []:
         if tid not in known:
-            raise unknown_name("trial", tid, known)
+            raise unknown_name("trial", tid, known).with_context(field="--trial")
     chosen = list(dict.fromkeys(args.trial)) if args.trial else views.default_view_trials(protocol)
     result = simulate(_knee(args), protocol)
-    written = views.write_views(result, chosen, args.out)
+    with staged_directory(args.out) as stage:
+        written = views.write_views(result, chosen, stage.path)
+    written = [stage.final(p) for p in written]
     failed = [s for s in result.failed if s.trial.id in chosen]
     for s in failed:
         print(f"NOT CONVERGED: {s.trial.id}: {s.reason}")
@@ -304,91 +513,96 @@ def cmd_identifiability(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="kneenlp", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="kneenlp", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate a laxity protocol (forward problem)")
     p.add_argument("--protocol", default="set3", help="protocol name (set1..set4) or TOML file")
     _knee_args(p)
     p.add_argument("--out", default="kneenlp-out", help="output directory")
-    p.add_argument("--noise", default=None, help="also write measured.csv with noise: uniform:B | gaussian:S")
-    p.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
+    p.add_argument("--noise", default=None, type=_noise,
+                   help="also write measured.csv with noise: uniform:B | gaussian:S")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the noise (default 0)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME:PARAM=VALUE,...",
                    help="switch a candidate effect on (display units), e.g. posterior_capsule:k=8000")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
-    p.set_defaults(func=cmd_simulate)
+    p.set_defaults(func=cmd_simulate, validate=True, out_kind="dir")
 
     p = sub.add_parser("diagnose", help="model adequacy: where the fit fails and which effect is missing")
     p.add_argument("data", help="measured-data CSV")
     _knee_args(p)
-    p.add_argument("--noise", default="uniform:0.5", help="noise model of the data (default uniform:0.5)")
-    p.add_argument("--refit", type=int, default=4, help="refit the best N candidates (default 4)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the start scatter")
+    p.add_argument("--noise", default="uniform:0.5", type=_noise,
+                   help="noise model of the data (default uniform:0.5)")
+    p.add_argument("--refit", type=_integer(0, MAX_CASES), default=4, help="refit the best N candidates (default 4)")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the start scatter")
     p.add_argument("--out", help="write residual_map.png/.csv, laxity_fit.png and diagnosis.json here")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.set_defaults(func=cmd_diagnose)
+    p.set_defaults(func=cmd_diagnose, validate=True, out_kind="dir")
 
     p = sub.add_parser("identify", help="identify ligament parameters from measured data (simultaneous NLP)")
     p.add_argument("data", help="measured-data CSV (as written by 'kneenlp simulate --noise')")
     _knee_args(p)
-    p.add_argument("--free", help="comma-separated parameters to identify (default: k and ref_strain of all)")
-    p.add_argument("--noise", help="noise model of the data for the covariance, e.g. uniform:0.5")
+    p.add_argument("--free", type=_names,
+                   help="comma-separated parameters to identify (default: k and ref_strain of all)")
+    p.add_argument("--noise", type=_noise, help="noise model of the data for the covariance, e.g. uniform:0.5")
     p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
-    p.add_argument("--seed", type=int, default=0, help="seed of the paper's start scatter")
-    p.add_argument("--multistart", type=int, default=1, help="number of starts (best is kept)")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the paper's start scatter")
+    p.add_argument("--multistart", type=_integer(1, MAX_STARTS), default=1, help="number of starts (best is kept)")
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"],
                    help="simultaneous NLP (default) or the paper's nested Complex method")
-    p.add_argument("--solver", default="ipopt", help="CasADi nlpsol plugin (default ipopt)")
+    p.add_argument("--solver", default="ipopt", type=_solver, help="CasADi nlpsol plugin (default ipopt)")
     p.add_argument("--protocol", help="protocol the data must match (default: the one named in the data)")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
                    help="also identify this candidate effect's parameters (repeatable; see 'kneenlp diagnose')")
     p.add_argument("--out", help="also write fit.json and fit_trials.csv here")
     p.add_argument("--json", action="store_true", help="print JSON instead of the report")
-    p.set_defaults(func=cmd_identify)
+    p.set_defaults(func=cmd_identify, validate=True, out_kind="dir")
 
     p = sub.add_parser("compare-methods", help="simultaneous NLP vs the paper's nested Complex method")
     p.add_argument("data", help="measured-data CSV")
     _knee_args(p)
-    p.add_argument("--seed", type=int, default=0, help="seed of the start scatter / Complex")
-    p.add_argument("--max-evals", type=int, default=5000, help="Complex evaluation budget")
-    p.add_argument("--max-seconds", type=float, default=None, help="Complex wall-time budget")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the start scatter / Complex")
+    p.add_argument("--max-evals", type=_integer(1, MAX_EVALS), default=5000, help="Complex evaluation budget")
+    p.add_argument("--max-seconds", type=_positive, default=None, help="Complex wall-time budget")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.set_defaults(func=cmd_compare_methods)
+    p.set_defaults(func=cmd_compare_methods, validate=True)
 
     p = sub.add_parser("study", help="noise study: the paper's Monte Carlo (Table 3, Fig. 3) at any scale")
-    p.add_argument("--sets", default="1,2,3,4", help="protocols: 1,2,3,4 or names/files (default 1,2,3,4)")
-    p.add_argument("--samples", type=int, default=20, help="noise samples per set (default 20)")
-    p.add_argument("--noise", default="uniform:0.5", help="uniform:B or gaussian:SIGMA (mm, deg)")
-    p.add_argument("--seed", type=int, default=0, help="study seed; each sample's seed derives from it")
+    p.add_argument("--sets", default="1,2,3,4", type=_set_names,
+                   help="protocols: 1,2,3,4 or names/files (default 1,2,3,4)")
+    p.add_argument("--samples", type=_integer(1, MAX_SAMPLES), default=20, help="noise samples per set (default 20)")
+    p.add_argument("--noise", default="uniform:0.5", type=_noise, help="uniform:B or gaussian:SIGMA (mm, deg)")
+    p.add_argument("--seed", type=SEED, default=0, help="study seed; each sample's seed derives from it")
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"])
     _knee_args(p, parameters=False)
-    p.add_argument("--free", help="comma-separated parameters to identify")
+    p.add_argument("--free", type=_names, help="comma-separated parameters to identify")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
                    help="also identify this candidate effect's parameters (repeatable)")
     p.add_argument("--start", default="scatter", choices=["scatter", "truth"],
                    help="fit starts: scattered like the paper (default) or at the true values")
     p.add_argument("--out", default="kneenlp-study", help="study directory (resumable)")
-    p.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")
+    p.add_argument("--workers", type=_integer(1, MAX_WORKERS), default=None,
+                   help="local processes (default: all cores)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
     p.add_argument("--dask", action="store_true", help="run on a local Dask cluster")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
-    p.set_defaults(func=cmd_study)
+    p.set_defaults(func=cmd_study, validate=True, out_kind="dir")
 
     p = sub.add_parser("export", help="write the identification NLP for other solvers (.nl, CasADi, C)")
     p.add_argument("data", help="measured-data CSV")
     p.add_argument("--format", required=True, choices=["nl", "casadi", "c"], help="export format")
     p.add_argument("--out", default="kneenlp-export", help="output directory")
     _knee_args(p)
-    p.add_argument("--free", help="comma-separated parameters to identify")
-    p.add_argument("--seed", type=int, default=0, help="seed of the start scatter")
+    p.add_argument("--free", type=_names, help="comma-separated parameters to identify")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the start scatter")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
                    help="also free this candidate effect's parameters (repeatable)")
     p.add_argument("--nl-common", default="defined", choices=["defined", "lifted"],
                    help="shared subexpressions as .nl defined variables (default) or lifted auxiliary variables")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.set_defaults(func=cmd_export)
+    p.set_defaults(func=cmd_export, validate=True, out_kind="dir")
 
     p = sub.add_parser("import-osim", help="turn an OpenSim knee model into a kneenlp knee (multi-bundle)")
     p.add_argument("model", help="the .osim file")
@@ -417,21 +631,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_identifiability)
 
     p = sub.add_parser("design", help="design a laxity protocol with few load cases and tight estimates")
-    p.add_argument("--max-cases", type=int, default=22, help="largest number of load cases (default 22)")
+    p.add_argument("--max-cases", type=_integer(1, MAX_CASES), default=22,
+                   help="largest number of load cases (default 22)")
     p.add_argument("--criterion", default="A", choices=["A", "D", "W", "R"],
                    help="A: sum of relative variances, D: log det, W: worst relative standard error, "
                         "R: worst standard-error ratio to a reference protocol (--reference)")
     p.add_argument("--reference", default="set4", help="reference protocol of criterion R (default set4)")
-    p.add_argument("--flexions", default=None,
+    p.add_argument("--flexions", default=None, type=_flexions,
                    help="candidate flexion angles, deg (default 0,15,...,60; to 90 for a multi-bundle knee)")
-    p.add_argument("--noise", default="uniform:0.5", help="noise model (mm, deg)")
-    p.add_argument("--robust", type=int, default=3, help="parameter sets averaged over (knee's + scatter draws)")
-    p.add_argument("--free", help="comma-separated parameters to identify")
+    p.add_argument("--noise", default="uniform:0.5", type=_noise, help="noise model (mm, deg)")
+    p.add_argument("--robust", type=_integer(1, MAX_ROBUST), default=3,
+                   help="parameter sets averaged over (knee's + scatter draws)")
+    p.add_argument("--free", type=_names, help="comma-separated parameters to identify")
     _knee_args(p)
-    p.add_argument("--seed", type=int, default=0, help="seed of the robustness draws")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the robustness draws")
     p.add_argument("--out", default="designed_protocol.toml", help="protocol TOML to write")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.set_defaults(func=cmd_design)
+    p.set_defaults(func=cmd_design, validate=True, out_kind="file")
 
     p = sub.add_parser("view", help="pictures of simulated trials: pressure maps and 3-D views (PNG, HTML)")
     p.add_argument("--protocol", default="set3", help="protocol name (set1..set4) or TOML file")
@@ -440,36 +656,92 @@ def build_parser() -> argparse.ArgumentParser:
                         "first flexion)")
     _knee_args(p)
     p.add_argument("--out", default="kneenlp-view", help="output directory")
-    p.set_defaults(func=cmd_view)
+    p.set_defaults(func=cmd_view, validate=True, out_kind="dir")
     return parser
+
+
+class _StderrHandler(logging.StreamHandler):
+    """A log handler writing to the current ``sys.stderr`` (which tests and notebooks replace)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
 
 
 def _announce_long_steps() -> None:
     """Show kneenlp's progress messages (e.g. a distance field being built once) on stderr."""
     log = logging.getLogger("kneenlp")
     if not any(getattr(h, "kneenlp_cli", False) for h in log.handlers):
-        handler = logging.StreamHandler(sys.stderr)
+        handler = _StderrHandler()
         handler.setFormatter(logging.Formatter("kneenlp: %(message)s"))
         handler.kneenlp_cli = True
         log.addHandler(handler)
         log.setLevel(logging.INFO)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    _announce_long_steps()
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that a terminated command ends like an interrupted one
+    (a BaseException, like KeyboardInterrupt: ``except Exception`` in the work does not swallow it)."""
+
+
+@contextlib.contextmanager
+def _sigterm_raises():
+    """While a command runs, SIGTERM raises :class:`Terminated` (main thread only; restored after)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated()
+
+    old = signal.signal(signal.SIGTERM, handler)
     try:
-        return int(args.func(args))
-    except InputError as exc:
-        print(f"kneenlp: error: {exc}", file=sys.stderr)
-        return 2
-    except ConvergenceError as exc:
-        print(f"kneenlp: not converged: {exc}", file=sys.stderr)
-        return 1
-    except BrokenPipeError:  # output piped into e.g. `head`, which closed early
-        sys.stderr.close()
-        return 0
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _input_error(exc: InputError, as_json: bool) -> int:
+    print(f"kneenlp: error: {exc}", file=sys.stderr)
+    if as_json:
+        print(json.dumps(exc.to_dict()))
+    return EXIT_INPUT
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    as_json = "--json" in argv  # until the options are parsed
+    with _sigterm_raises():
+        try:
+            args = build_parser().parse_args(argv)
+            as_json = bool(getattr(args, "json", False))
+            _announce_long_steps()
+            _check_inputs(args)
+            return int(args.func(args))
+        except InputError as exc:
+            return _input_error(exc, as_json)
+        except ConvergenceError as exc:
+            print(f"kneenlp: not converged: {exc}", file=sys.stderr)
+            return 1
+        except BrokenPipeError:  # output piped into e.g. `head`, which closed early
+            sys.stderr.close()
+            return 0
+        except KeyboardInterrupt:
+            print("kneenlp: interrupted (Ctrl-C); finished work is kept", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except Terminated:
+            print("kneenlp: terminated (SIGTERM); finished work is kept", file=sys.stderr)
+            return EXIT_TERMINATED
+        except Exception as exc:  # a bug, not bad input: one line, unless debugging
+            if os.environ.get("KNEENLP_DEBUG"):
+                raise
+            text = " ".join(f"{type(exc).__name__}: {exc}".split())
+            print(f"kneenlp: internal error: {text} (a bug; KNEENLP_DEBUG=1 shows the traceback)", file=sys.stderr)
+            return EXIT_BUG
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -113,7 +113,7 @@ def test_cli_view_unknown_trial(tmp_path, capsys):
     code = main(["view", "--knee", "synthetic", "--protocol", "set1", "--trial", "x", "--out", str(tmp_path)])
     err = capsys.readouterr().err.strip()
     assert code == 2
-    assert err.startswith("kneenlp: error: unknown trial 'x'; known: anterior_134N_flex30") and "\n" not in err
+    assert err.startswith("kneenlp: error: --trial: unknown trial 'x'; known: anterior_134N_flex30") and "\n" not in err
     assert not any(tmp_path.iterdir())
 
 

@@ -21,10 +21,34 @@ column                         meaning
 
 Other columns (e.g. ligament forces written by ``simulate``) are ignored; a column that names a
 coordinate or load with a different unit (``anterior_translation_m``) is an error.
+
+Checks at reading (every problem is a one-line :class:`~kneenlp.errors.InputError` naming the file,
+the column and the row):
+
+* every value a finite number; trial ids present and unique; ``load_axes`` known;
+* flexion in [-10, 120] deg and loads within 1000 N / 100 N m (as protocol files,
+  :mod:`kneenlp.experiment.protocol`);
+* plausible units (the thresholds are far from any laxity test, so they only catch unit slips):
+  translations beyond :data:`MAX_TRANSLATION_MM` (100 mm: micrometres?), or all within
+  :data:`MIN_TRANSLATION_MM` (0.1 mm) although the file has loaded trials (metres?); rotations
+  beyond 90 deg, or all within :data:`MIN_ROTATION_DEG` (0.2 deg) although the file has a moment
+  of at least 1 N m (radians?);
+* at most :data:`MAX_TRIALS` rows (1000): the identification NLP has 5 pose variables and 5
+  equilibrium constraints per trial, and 1000 trials take about a minute on the synthetic knee and
+  many minutes on a mesh knee (the paper's protocols have 7 to 60); split larger data sets;
+* the ``protocol`` column: a shipped protocol's name (``set1`` ...; identification then checks the
+  trials against it), the name of a protocol file ``NAME.toml`` beside the data (checked here), or
+  with ``protocol=`` given (``identify --protocol FILE``) any name.  An unknown name that looks
+  like a shipped one (``set9``, ``Set 3``) is an error; any other name (e.g. a designed protocol's,
+  as ``simulate --protocol FILE`` writes it) is accepted and noted on the ``kneenlp`` logger: the
+  trials are taken from the file's load columns.
 """
 
 from __future__ import annotations
 
+import difflib
+import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,9 +64,20 @@ from kneenlp.conventions import (
     load_columns,
 )
 from kneenlp.errors import InputError
-from kneenlp.experiment.protocol import Protocol, Trial
+from kneenlp.experiment.protocol import FLEXION_RANGE, Protocol, Trial, available_protocols, check_load
 
 REQUIRED = ["trial", "flexion_deg", *load_columns(), *coordinate_columns()]
+#: Most rows a measured-data file may have (see module docstring).
+MAX_TRIALS = 1000
+#: Plausibility bounds of the measured coordinates (see module docstring).
+MAX_TRANSLATION_MM = 100.0
+MIN_TRANSLATION_MM = 0.1
+MAX_ROTATION_DEG = 90.0
+MIN_ROTATION_DEG = 0.2
+#: A trial with a force of at least this (N) or a moment of at least 1 N m moves the knee.
+LOADED_FORCE_N = 20.0
+
+log = logging.getLogger("kneenlp")
 
 
 @dataclass
@@ -97,16 +132,24 @@ def measured_frame(trials: list[Trial], q_user: np.ndarray, protocol: str | None
     return pd.DataFrame(rows)
 
 
-def read_measured(path: str | Path) -> MeasuredData:
-    """Read and validate a measured-data CSV; every problem is a one-line :class:`InputError`."""
+def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
+    """Read and validate a measured-data CSV; every problem is a one-line :class:`InputError`.
+
+    ``protocol``: the protocol the data will be checked against, if the caller has one (then the
+    file's ``protocol`` column may name any protocol); see the module docstring."""
     path = Path(path)
     src = str(path)
+    if path.is_dir():
+        raise InputError("is a directory, not a measured-data CSV file", source=src)
     if not path.is_file():
         raise InputError("file not found", source=src)
     try:
         df = pd.read_csv(path, dtype={"trial": str, "protocol": str, "load_axes": str})
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as exc:
-        raise InputError(f"malformed CSV ({str(exc).splitlines()[0]})", source=src) from None
+    except OSError as exc:
+        raise InputError(f"cannot read ({exc.strerror or exc})", source=src) from None
+    except Exception as exc:  # pandas raises many kinds for garbage (ParserError, UnicodeDecodeError, ...)
+        first = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise InputError(f"malformed CSV ({first})", source=src) from None
     df.columns = [str(c).strip() for c in df.columns]
     expected_units = dict(zip([*COORDINATES, *LOAD_COMPONENTS, "flexion"],
                               [*[c.rsplit("_", 1)[1] for c in coordinate_columns()],
@@ -116,11 +159,20 @@ def read_measured(path: str | Path) -> MeasuredData:
             if col.startswith(name + "_") and col != f"{name}_{unit}" and col[len(name) + 1:].count("_") == 0:
                 raise InputError(f"column {col!r} has the wrong unit; expected {name}_{unit}", source=src,
                                  field=col)
+    dup_cols = sorted({c for c in df.columns if list(df.columns).count(c) > 1} & set(REQUIRED))
+    if dup_cols:
+        raise InputError("column given twice", source=src, field=dup_cols[0])
     missing = [c for c in REQUIRED if c not in df.columns]
     if missing:
         raise InputError(f"missing column(s) {', '.join(missing)}", source=src)
     if df.empty:
         raise InputError("no data rows", source=src)
+    if len(df) > MAX_TRIALS:
+        raise InputError(f"{len(df)} rows: more than the {MAX_TRIALS} trials one identification takes (its size "
+                         "grows with the trials; the paper's protocols have 7 to 60); split the data", source=src)
+    df = df.reset_index(drop=True)
+    if df["trial"].isna().any():
+        raise InputError(f"row {int(np.argmax(df['trial'].isna())) + 2}: empty trial id", source=src, field="trial")
     numeric = [c for c in REQUIRED if c != "trial"]
     for col in numeric:
         vals = pd.to_numeric(df[col], errors="coerce")
@@ -129,9 +181,7 @@ def read_measured(path: str | Path) -> MeasuredData:
             i = int(np.argmax(bad))
             raise InputError(f"row {i + 2} (trial {df['trial'].iloc[i]!r}): value {df[col].iloc[i]!r} is "
                              "not a finite number", source=src, field=col)
-        df[col] = vals
-    if df["trial"].isna().any():
-        raise InputError(f"row {int(np.argmax(df['trial'].isna())) + 2}: empty trial id", source=src, field="trial")
+        df[col] = vals.astype(float)
     dup = df["trial"][df["trial"].duplicated()].tolist()
     if dup:
         raise InputError(f"duplicate trial(s) {', '.join(map(str, dup))}", source=src, field="trial")
@@ -140,22 +190,82 @@ def read_measured(path: str | Path) -> MeasuredData:
         if a not in LOAD_AXES:
             raise InputError(f"unknown load axes {a!r}; known: {', '.join(LOAD_AXES)}", source=src,
                              field="load_axes")
+    _check_plausible(df, src)
     trials = []
-    for i, row in df.reset_index(drop=True).iterrows():
+    for i, row in df.iterrows():
         loads = {c: float(row[col]) for c, col in zip(LOAD_COMPONENTS, load_columns(), strict=True)
                  if float(row[col]) != 0.0}
         direction, magnitude = _direction(loads)
         trials.append(Trial(str(row["trial"]), float(row["flexion_deg"]), loads, direction, magnitude,
                             str(axes.iloc[i])))
     q = coords_from_user(df[coordinate_columns()].to_numpy(dtype=float))
-    protocol = None
+    name = None
     if "protocol" in df.columns:
-        names = {str(p) for p in df["protocol"].dropna().unique() if str(p)}
+        names = {str(p) for p in df["protocol"].dropna().unique() if str(p).strip()}
         if len(names) > 1:
             raise InputError(f"several protocols in one file: {', '.join(sorted(names))}", source=src,
                              field="protocol")
-        protocol = names.pop() if names else None
-    return MeasuredData(trials, q, protocol, src)
+        name = names.pop() if names else None
+    data = MeasuredData(trials, q, name, src)
+    if name is not None and protocol is None:
+        _check_protocol_name(data, path)
+    return data
+
+
+def _check_plausible(df: pd.DataFrame, src: str) -> None:
+    """Ranges and unit plausibility of a measured-data table (see module docstring)."""
+    lo, hi = FLEXION_RANGE
+    flex = df["flexion_deg"].to_numpy()
+    bad = (flex < lo) | (flex > hi)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"row {i + 2}: flexion {flex[i]:g} deg outside [{lo:g}, {hi:g}]", source=src,
+                         field="flexion_deg")
+    for comp, col in zip(LOAD_COMPONENTS, load_columns(), strict=True):
+        for i, v in enumerate(df[col].to_numpy()):
+            try:
+                check_load(comp, float(v), src, col)
+            except InputError as exc:
+                raise InputError(f"row {i + 2}: {exc.message}", source=src, field=col) from None
+    trans = [c for c in coordinate_columns() if c.endswith("_mm")]
+    rots = [c for c in coordinate_columns() if c.endswith("_deg")]
+    t, r = np.abs(df[trans].to_numpy()), np.abs(df[rots].to_numpy())
+    force = np.abs(df["anterior_force_N"].to_numpy())
+    moment = np.abs(df[["varus_moment_Nm", "internal_moment_Nm"]].to_numpy()).max(axis=1)
+    if t.max() > MAX_TRANSLATION_MM:
+        i, j = np.unravel_index(np.argmax(t), t.shape)
+        raise InputError(f"row {i + 2}: translation {df[trans[j]].iloc[i]:g} mm beyond {MAX_TRANSLATION_MM:g} mm; "
+                         "micrometres or another unit in a _mm column?", source=src, field=trans[j])
+    if ((force >= LOADED_FORCE_N) | (moment >= 1.0)).any() and t.max() < MIN_TRANSLATION_MM:
+        raise InputError(f"every translation is below {MIN_TRANSLATION_MM:g} mm (largest {t.max():.3g}) although "
+                         "the knee is loaded: metres in the _mm columns? Give translations in mm", source=src,
+                         field=trans[int(np.argmax(t.max(axis=0)))])
+    if r.max() > MAX_ROTATION_DEG:
+        i, j = np.unravel_index(np.argmax(r), r.shape)
+        raise InputError(f"row {i + 2}: rotation {df[rots[j]].iloc[i]:g} deg beyond {MAX_ROTATION_DEG:g} deg",
+                         source=src, field=rots[j])
+    if (moment >= 1.0).any() and r.max() < MIN_ROTATION_DEG:
+        raise InputError(f"every rotation is below {MIN_ROTATION_DEG:g} deg (largest {r.max():.3g}) although "
+                         "moments of 1 N m or more act: radians in the _deg columns? Give rotations in deg",
+                         source=src, field=rots[int(np.argmax(r.max(axis=0)))])
+
+
+def _check_protocol_name(data: MeasuredData, path: Path) -> None:
+    """The ``protocol`` column of a file read without a protocol to check it against."""
+    name, src = data.protocol, data.source
+    known = available_protocols()
+    if name in known:
+        return
+    beside = path.parent / f"{name}.toml"
+    if re.fullmatch(r"[A-Za-z0-9_.-]+", name) and beside.is_file():
+        data.check_protocol(Protocol.load(beside))
+        return
+    folded = re.sub(r"[\s_-]", "", name.lower())
+    if folded in known or re.fullmatch(r"set\d+", folded) or difflib.get_close_matches(folded, known, cutoff=0.75):
+        raise InputError(f"unknown protocol {name!r}; known: {', '.join(known)}, or a protocol file {name}.toml "
+                         "beside the data (or give the protocol with --protocol)", source=src, field="protocol")
+    log.info(f"{src}: protocol {name!r} is not a shipped protocol and no {name}.toml is beside the data: the "
+             "trials are taken from the load columns unchecked (--protocol FILE checks them)")
 
 
 def _direction(loads: dict[str, float]) -> tuple[str, float]:

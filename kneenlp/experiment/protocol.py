@@ -135,62 +135,158 @@ class Protocol:
 
     @classmethod
     def from_dict(cls, doc: dict, *, source: str = "<protocol>", default_name: str = "protocol") -> Protocol:
+        """Build and validate a protocol from a protocol-file document (see module docstring); every
+        field is type- and range-checked, and an error names ``source`` and the field."""
+        if not isinstance(doc, dict):
+            raise InputError("expected a table", source=source)
+        unknown = sorted(set(doc) - TOP_KEYS)
+        if unknown:
+            raise InputError(f"unknown key {unknown[0]!r}; known: {', '.join(sorted(TOP_KEYS))}", source=source,
+                             field=unknown[0])
+        for key in ("name", "title", "description"):
+            if key in doc and not isinstance(doc[key], str):
+                raise InputError(f"expected a string, got {doc[key]!r}", source=source, field=key)
         cases = doc.get("cases")
         if not isinstance(cases, list) or not cases:
             raise InputError("no [[cases]] given", source=source, field="cases")
         axes = doc.get("load_axes", "femoral")
         if axes not in LOAD_AXES:
-            raise unknown_name("load_axes", str(axes), LOAD_AXES, source=source)
+            raise unknown_name("load_axes", str(axes), LOAD_AXES, source=source).with_context(field="load_axes")
         trials: list[Trial] = []
         for i, case in enumerate(cases):
-            fld = f"cases[{i}]"
-            flex = case.get("flexion")
-            if flex is None:
-                raise InputError("missing flexion angles (deg)", source=source, field=f"{fld}.flexion")
-            flexions = [number(f, source, f"{fld}.flexion") for f in (flex if isinstance(flex, list) else [flex])]
-            for f in flexions:
-                if not -10.0 <= f <= 120.0:
-                    raise InputError(f"flexion {f:g} deg outside [-10, 120]", source=source, field=f"{fld}.flexion")
-            if "loads" in case:
-                loads = case["loads"]
-                if not isinstance(loads, dict):
-                    raise InputError("must be a table of load components", source=source, field=f"{fld}.loads")
-                for k in loads:
-                    if k not in LOAD_COMPONENTS:
-                        raise unknown_name("load component", k, LOAD_COMPONENTS, source=source)
-                values = {k: number(v, source, f"{fld}.loads.{k}") for k, v in loads.items()}
-                label = str(case.get("name", f"combined{i}"))
-                for f in flexions:
-                    trials.append(Trial(f"{label}_flex{f:g}", f, values, "combined", 0.0, axes))
-                continue
-            direction = case.get("direction")
-            if direction not in DIRECTIONS:
-                raise unknown_name("load direction", str(direction), DIRECTIONS, source=source)
-            component, sign = DIRECTIONS[direction]
-            if direction == "none":
-                magnitudes = [0.0]
-            else:
-                mags = case.get("magnitude")
-                if mags is None:
-                    raise InputError("missing magnitude", source=source, field=f"{fld}.magnitude")
-                mags = mags if isinstance(mags, list) else [mags]
-                magnitudes = [number(m, source, f"{fld}.magnitude") for m in mags]
-                if any(m <= 0 for m in magnitudes):
-                    raise InputError("magnitudes must be > 0 (the direction gives the sign)",
-                                     source=source, field=f"{fld}.magnitude")
-            excluded = {(float(e.get("magnitude", 0.0)), float(e["flexion"])) for e in case.get("exclude", [])}
-            for f in flexions:
-                for m in magnitudes:
-                    if (m, f) in excluded:
-                        continue
-                    loads = {component: sign * m} if component else {}
-                    trials.append(Trial(trial_id(direction, m, f), f, loads, direction, m, axes))
+            trials += _case_trials(case, f"cases[{i}]", i, axes, source)
         ids = [t.id for t in trials]
         dup = sorted({t for t in ids if ids.count(t) > 1})
         if dup:
             raise InputError(f"duplicate trials: {', '.join(dup)}", source=source, field="cases")
         return cls(str(doc.get("name", default_name)), tuple(trials), str(doc.get("title", "")),
                    str(doc.get("description", "")), source)
+
+
+#: Keys of a protocol file and of one of its ``[[cases]]``.
+TOP_KEYS = {"name", "title", "description", "load_axes", "cases"}
+CASE_KEYS = {"direction", "magnitude", "flexion", "exclude", "loads", "name"}
+#: Largest load a protocol or a measured-data file may give: 1000 N and 100 N m, about ten times
+#: the largest loads of laxity tests (the paper's Table 2: 134 N, 10 N m).  Larger values are
+#: unit slips (N m as N mm, kN as N) or typing errors, and would be fitted as garbage.
+MAX_FORCE = 1000.0
+MAX_MOMENT = 100.0
+#: Flexion angles a protocol or a measured-data file may give (deg).
+FLEXION_RANGE = (-10.0, 120.0)
+
+
+def check_load(component: str, value: float, source: str | None, field: str) -> float:
+    """``value`` (N or N m) of a load ``component``, or an error if beyond :data:`MAX_FORCE` /
+    :data:`MAX_MOMENT`."""
+    limit, unit = (MAX_FORCE, "N") if component == "anterior_force" else (MAX_MOMENT, "N m")
+    if abs(value) > limit:
+        raise InputError(f"{value:g} {unit} is beyond the largest laxity load ({limit:g} {unit}); a unit slip?",
+                         source=source, field=field)
+    return value
+
+
+def _numbers(value: object, source: str, field: str, what: str) -> list[float]:
+    """A number or a non-empty list of numbers."""
+    items = value if isinstance(value, list) else [value]
+    if not items:
+        raise InputError(f"no {what} given", source=source, field=field)
+    return [number(v, source, field) for v in items]
+
+
+def _flexions(value: object, source: str, field: str) -> list[float]:
+    flexions = _numbers(value, source, field, "flexion angles")
+    lo, hi = FLEXION_RANGE
+    for f in flexions:
+        if not lo <= f <= hi:
+            raise InputError(f"flexion {f:g} deg outside [{lo:g}, {hi:g}]", source=source, field=field)
+    return flexions
+
+
+def _case_trials(case: object, fld: str, i: int, axes: str, source: str) -> list[Trial]:
+    """The trials of one ``[[cases]]`` entry."""
+    if not isinstance(case, dict):
+        raise InputError(f"expected a [[cases]] table, got {case!r}", source=source, field=fld)
+    unknown = sorted(set(case) - CASE_KEYS)
+    if unknown:
+        raise InputError(f"unknown key {unknown[0]!r}; known: {', '.join(sorted(CASE_KEYS))}", source=source,
+                         field=f"{fld}.{unknown[0]}")
+    if "flexion" not in case:
+        raise InputError("missing flexion angles (deg)", source=source, field=f"{fld}.flexion")
+    flexions = _flexions(case["flexion"], source, f"{fld}.flexion")
+    if "loads" in case:
+        for key in ("direction", "magnitude", "exclude"):
+            if key in case:
+                raise InputError("give either loads or direction/magnitude/exclude", source=source,
+                                 field=f"{fld}.{key}")
+        loads = case["loads"]
+        if not isinstance(loads, dict) or not loads:
+            raise InputError("must be a table of load components", source=source, field=f"{fld}.loads")
+        for k in loads:
+            if k not in LOAD_COMPONENTS:
+                raise unknown_name("load component", k, LOAD_COMPONENTS, source=source).with_context(
+                    field=f"{fld}.loads")
+        values = {k: check_load(k, number(v, source, f"{fld}.loads.{k}"), source, f"{fld}.loads.{k}")
+                  for k, v in loads.items()}
+        label = case.get("name", f"combined{i}")
+        if not isinstance(label, str) or not label.strip():
+            raise InputError(f"expected a non-empty string, got {label!r}", source=source, field=f"{fld}.name")
+        return [Trial(f"{label}_flex{f:g}", f, values, "combined", 0.0, axes) for f in flexions]
+    direction = case.get("direction")
+    if not isinstance(direction, str) or direction not in DIRECTIONS:
+        raise unknown_name("load direction", str(direction), DIRECTIONS, source=source).with_context(
+            field=f"{fld}.direction")
+    component, sign = DIRECTIONS[direction]
+    if direction == "none":
+        if "magnitude" in case:
+            raise InputError("no magnitude for direction 'none'", source=source, field=f"{fld}.magnitude")
+        magnitudes = [0.0]
+    else:
+        if "magnitude" not in case:
+            raise InputError("missing magnitude", source=source, field=f"{fld}.magnitude")
+        magnitudes = _numbers(case["magnitude"], source, f"{fld}.magnitude", "magnitudes")
+        if any(m <= 0 for m in magnitudes):
+            raise InputError("magnitudes must be > 0 (the direction gives the sign)",
+                             source=source, field=f"{fld}.magnitude")
+        for m in magnitudes:
+            check_load(component, m, source, f"{fld}.magnitude")
+    excluded = _excluded(case.get("exclude", []), direction, magnitudes, flexions, f"{fld}.exclude", source)
+    trials = []
+    for f in flexions:
+        for m in magnitudes:
+            if (m, f) in excluded:
+                continue
+            loads = {component: sign * m} if component else {}
+            trials.append(Trial(trial_id(direction, m, f), f, loads, direction, m, axes))
+    return trials
+
+
+def _excluded(value: object, direction: str, magnitudes: list[float], flexions: list[float], fld: str,
+              source: str) -> set[tuple[float, float]]:
+    """``exclude = [{magnitude = M, flexion = F}, ...]``: each entry must name one of the case's
+    trials (an entry that excludes nothing is a typo that would silently keep the trial)."""
+    if not isinstance(value, list):
+        raise InputError(f"expected a list of {{magnitude, flexion}} tables, got {value!r}", source=source,
+                         field=fld)
+    out = set()
+    for j, entry in enumerate(value):
+        efld = f"{fld}[{j}]"
+        if not isinstance(entry, dict):
+            raise InputError(f"expected a {{magnitude, flexion}} table, got {entry!r}", source=source, field=efld)
+        unknown = sorted(set(entry) - {"magnitude", "flexion"})
+        if unknown:
+            raise InputError(f"unknown key {unknown[0]!r}; known: flexion, magnitude", source=source,
+                             field=f"{efld}.{unknown[0]}")
+        if "flexion" not in entry:
+            raise InputError("missing flexion (deg)", source=source, field=f"{efld}.flexion")
+        if "magnitude" not in entry and direction != "none":
+            raise InputError("missing magnitude", source=source, field=f"{efld}.magnitude")
+        m = number(entry.get("magnitude", 0.0), source, f"{efld}.magnitude")
+        f = number(entry["flexion"], source, f"{efld}.flexion")
+        if m not in magnitudes or f not in flexions:
+            raise InputError(f"excludes no trial of this case (magnitude {m:g}, flexion {f:g})", source=source,
+                             field=efld)
+        out.add((m, f))
+    return out
 
 
 def available_protocols() -> list[str]:

@@ -1,21 +1,120 @@
 """Atomic file output: write a temporary file beside the target, then rename it over the target.
 
 A reader (or a resumed study) never sees a half-written file: either the old content or the new.
+
+* :func:`write_text_atomic`, :func:`write_bytes_atomic`: one file.
+* :func:`staged_directory`: the outputs of one command.  Everything is written into a hidden
+  staging directory inside the output directory; only when all of it is written is each file
+  renamed into place (``os.replace``, atomic per file).  A failure (an exception, a full disk, an
+  interrupt) removes the staging directory and leaves the output directory as it was (and removes
+  it if this command created it).  Write errors become one-line :class:`InputError` naming the
+  path and the ``--out`` option.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
+from collections.abc import Iterator
 from pathlib import Path
+
+from kneenlp.errors import InputError
+
+#: Prefix of temporary files and staging directories; stale ones (of a killed process) are ignored.
+TMP_PREFIX = ".kneenlp-tmp-"
+
+
+def _tmp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Write ``text`` to ``path`` atomically (temporary file in the same directory + rename)."""
+    return write_bytes_atomic(path, text.encode())
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file in the same directory + rename)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = _tmp_name(path)
     try:
-        tmp.write_text(text)
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+def save_figure_atomic(fig, path: str | Path, **kwargs) -> Path:
+    """``fig.savefig(path)`` through a temporary file (format from the suffix of ``path``)."""
+    path = Path(path)
+    tmp = _tmp_name(path)
+    try:
+        fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", **kwargs)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def write_error(exc: OSError, path: str | Path, option: str | None = "--out") -> InputError:
+    """An output that cannot be written, as a one-line input error naming the path and option."""
+    why = exc.strerror or type(exc).__name__
+    where = exc.filename if exc.filename else path
+    return InputError(f"cannot write {where} ({why})", source=str(path), field=option)
+
+
+class Staging:
+    """The staging directory of :func:`staged_directory`: ``path`` to write into, ``final(p)`` the
+    place a staged file ends up."""
+
+    def __init__(self, out: Path, path: Path):
+        self.out, self.path = out, path
+
+    def final(self, p: str | Path) -> Path:
+        p = Path(p)
+        try:
+            return self.out / p.relative_to(self.path)
+        except ValueError:
+            return p
+
+
+@contextlib.contextmanager
+def staged_directory(out: str | Path, option: str | None = "--out") -> Iterator[Staging]:
+    """Write a command's outputs into ``out`` all at once (see module docstring)."""
+    out = Path(out)
+    created = [d for d in (out, *out.parents) if not d.exists()]  # removed again on failure
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise write_error(exc, out, option) from None
+    if not out.is_dir():
+        raise InputError("exists and is not a directory", source=str(out), field=option)
+    stage = out / f"{TMP_PREFIX}{os.getpid()}"
+    done = False
+    try:
+        shutil.rmtree(stage, ignore_errors=True)
+        stage.mkdir()
+        yield Staging(out, stage)
+        files = sorted(p.relative_to(stage) for p in stage.rglob("*") if not p.is_dir())
+        for rel in files:  # check every target before moving any: all files or none
+            blocking = [out / a for a in rel.parents if a != Path(".") and (out / a).exists()
+                        and not (out / a).is_dir()]
+            if (out / rel).is_dir() or blocking:
+                raise InputError(f"cannot write {out / rel}: {(blocking or [out / rel])[0]} is in the way",
+                                 source=str(out), field=option)
+        for rel in files:
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / rel, out / rel)
+        done = True
+    except OSError as exc:
+        raise write_error(exc, out, option) from None
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        for d in created if not done else []:
+            with contextlib.suppress(OSError):
+                d.rmdir()  # only if empty

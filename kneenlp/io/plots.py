@@ -154,7 +154,8 @@ def _subplots(*args, **kwargs):
 
 
 def _save(fig, path: str | Path) -> Path:
+    """Save through a temporary file: a figure file is either whole or absent (kneenlp.io.atomic)."""
+    from kneenlp.io.atomic import save_figure_atomic
+
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    return path
+    return save_figure_atomic(fig, path, dpi=110)

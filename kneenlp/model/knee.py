@@ -52,6 +52,13 @@ from kneenlp.model.parameters import ParameterSet, number, read_toml
 
 #: The knee ``Knee.default()`` loads.
 DEFAULT_KNEE = "default"
+#: Plausible size of a knee (m): the largest extent of the tibial cartilage (human plateaus: 60-90
+#: mm) must lie in this range, far enough from any real knee (a rabbit's to a horse's) that only a
+#: unit slip (a knee 1000x too big or too small: ``units`` not matching the numbers) is caught.
+KNEE_SIZE_RANGE = (5e-3, 0.5)
+#: Longest plausible ligament (m, attachment distance in the reference pose; the superficial MCL
+#: is about 0.1 m): attachments further apart are a typo or mixed units.
+MAX_LIGAMENT_LENGTH = 0.3
 
 
 def available_knees() -> list[str]:
@@ -212,6 +219,7 @@ class _KneeFile:
             raise InputError("must be a table of [x, y, z] points", source=src, field="landmarks")
         raw_landmarks = {k: self.raw_point(v, f"landmarks.{k}") for k, v in landmarks_raw.items()}
         geometry = self.contact(raw_landmarks)
+        self.check_size(geometry["compartments"])
         landmarks = {k: self.frame(v) for k, v in raw_landmarks.items()}
         if "tibial_tuberosity" not in landmarks:
             raise InputError("missing (anterior/posterior loads act there)", source=src,
@@ -230,6 +238,32 @@ class _KneeFile:
                     working_set=working_set, landmarks=landmarks, source=src,
                     description=str(doc.get("description", "")), candidates=candidates, femur=geometry["femur"],
                     axis=geometry["axis"], menisci=self.menisci(), notes=self.notes)
+
+    def check_size(self, compartments: dict[str, Compartment]) -> None:
+        """The knee's size against :data:`KNEE_SIZE_RANGE`: a unit slip names the likely cause."""
+        points = np.vstack([c.points for c in compartments.values()])
+        size = float((points.max(axis=0) - points.min(axis=0)).max())
+        lo, hi = KNEE_SIZE_RANGE
+        other = "m" if self.units == "mm" else "mm"
+        if size > hi:
+            raise InputError(f"the tibial cartilage spans {size:.3g} m, 1000x a knee: units = {self.units!r} but "
+                             f"the meshes and points look like {other}? (set units = {other!r})", source=self.src,
+                             field="units")
+        if size < lo:
+            raise InputError(f"the tibial cartilage spans {size * 1e3:.3g} mm, 1/1000 of a knee: units = "
+                             f"{self.units!r} but the meshes and points look like {other}? (set units = "
+                             f"{other!r})", source=self.src, field="units")
+
+    def check_length(self, femur: np.ndarray, tibia: np.ndarray, fld: str) -> float:
+        """Attachment distance (m) of a bundle: at least 1 mm, at most :data:`MAX_LIGAMENT_LENGTH`."""
+        length = float(np.linalg.norm(femur - tibia))
+        if length < 1e-3:
+            raise InputError("attachments closer than 1 mm", source=self.src, field=fld)
+        if length > MAX_LIGAMENT_LENGTH:
+            raise InputError(f"attachments {length * 1e3:.4g} mm apart, more than any knee ligament "
+                             f"({MAX_LIGAMENT_LENGTH * 1e3:g} mm): a typo, or a point in another unit than "
+                             f"units = {self.units!r}?", source=self.src, field=fld)
+        return length
 
     def menisci(self) -> float | None:
         """``[menisci] stiffness`` (N/mm per compartment) -> N/m, or None (menisci not modelled)."""
@@ -421,10 +455,9 @@ class _KneeFile:
             for key in ("femur", "tibia"):
                 if key not in lig:
                     raise InputError("missing attachment", source=src, field=f"{fld}.{key}")
-            ligaments[name] = Ligament(name, [Bundle(self.point(lig["femur"], f"{fld}.femur"),
-                                                     self.point(lig["tibia"], f"{fld}.tibia"))])
-            if ligaments[name].reference_length < 1e-3:
-                raise InputError("attachments closer than 1 mm", source=src, field=fld)
+            femur, tibia = self.point(lig["femur"], f"{fld}.femur"), self.point(lig["tibia"], f"{fld}.tibia")
+            self.check_length(femur, tibia, fld)
+            ligaments[name] = Ligament(name, [Bundle(femur, tibia)])
         return ligaments
 
     def bundles(self, doc: object, fld: str) -> list[Bundle]:
@@ -442,9 +475,7 @@ class _KneeFile:
                 if key not in b:
                     raise InputError("missing", source=src, field=f"{f}.{key}")
             femur, tibia = self.point(b["femur"], f"{f}.femur"), self.point(b["tibia"], f"{f}.tibia")
-            length = float(np.linalg.norm(femur - tibia))
-            if length < 1e-3:
-                raise InputError("attachments closer than 1 mm", source=src, field=f)
+            length = self.check_length(femur, tibia, f)
             stiffness = number(b["stiffness"], src, f"{f}.stiffness")
             if stiffness < 0:
                 raise InputError("must be >= 0 (N per unit strain)", source=src, field=f"{f}.stiffness")
@@ -481,6 +512,8 @@ class _KneeFile:
                 raise InputError("femur and tibia must be equally long lists of [x, y, z]", source=src, field=fld)
             fem = [self.point(v, f"{fld}.femur") for v in fem]
             tib = [self.point(v, f"{fld}.tibia") for v in tib]
+            for f, t in zip(fem, tib, strict=True):
+                self.check_length(f, t, fld)
             ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / 100.0
             out.append(Ligament(cname, [Bundle(f, t) for f, t in zip(fem, tib, strict=True)], candidate=True,
                                 defaults={"ref_strain": ref}, description=str(cdoc.get("description", ""))))
@@ -493,14 +526,20 @@ class _KneeFile:
         elif parameters is not None:
             params = ParameterSet.load(parameters)
         elif "parameters" in self.doc:
-            params = ParameterSet.load(self.path.parent / str(self.doc["parameters"]))
+            name = self.doc["parameters"]
+            if not isinstance(name, str) or not name.strip():
+                raise InputError(f"expected a parameter file name, got {name!r}", source=src, field="parameters")
+            path = self.path.parent / name
+            if not path.is_file():
+                raise InputError(f"parameter file {name!r} not found ({path})", source=src, field="parameters")
+            params = ParameterSet.load(path)
         else:
             raise InputError("no parameter set: give 'parameters = FILE' or pass one", source=src,
                              field="parameters")
         extra = sorted({n.split(".")[0] for n in params.names()} - set(ligaments) - {"contact"})
         if extra:
-            raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)}",
-                             source=params.source or src, field="ligaments")
+            raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)} (the ligaments of "
+                             f"{src})", source=params.source or src, field=f"ligaments.{extra[0]}")
         missing = [f"{n}.{k}" for n, lig in ligaments.items() if not lig.grouped
                    for k in ("k", "ref_strain", "lin_strain") if f"{n}.{k}" not in params]
         if missing:
@@ -514,14 +553,17 @@ def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_
     if not path.is_file():
         raise InputError(f"mesh file not found: {path}", source=knee_file, field=field)
     try:
-        mesh = trimesh.load(path, force="mesh", process=True)
+        mesh = trimesh.load(path, force="mesh", process=False)  # unprocessed: processing drops NaN vertices
     except Exception as exc:  # trimesh raises many exception types for broken files
-        raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {exc})",
+        raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {' '.join(str(exc).split())})",
                          source=knee_file, field=field) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(f"mesh {path.name} has no triangles", source=knee_file, field=field)
-    if not np.all(np.isfinite(mesh.vertices)):
-        raise InputError(f"mesh {path.name} has non-finite vertices", source=knee_file, field=field)
+    bad = ~np.isfinite(np.asarray(mesh.vertices, float)).all(axis=1)
+    if bad.any():
+        raise InputError(f"mesh {path.name} has {int(bad.sum())} non-finite vertices (NaN or inf; the first: "
+                         f"vertex {int(np.argmax(bad))})", source=knee_file, field=field)
+    mesh.process(validate=False)  # as trimesh.load(process=True): merge duplicate vertices
     mesh = mesh.copy()
     mesh.vertices = np.asarray(mesh.vertices, float) * scale * mirror
     if mirror[2] < 0:

@@ -196,14 +196,46 @@ class ParameterSet:
                 raise InputError("stiffness must be >= 0", source=src, field=f"ligaments.{lig}.k")
             if values[f"{lig}.lin_strain"] <= 0:
                 raise InputError("linear strain limit must be > 0", source=src, field=f"ligaments.{lig}.lin_strain")
+            for kind in LIGAMENT_KINDS:
+                plausible(values[f"{lig}.{kind}"], kind, src, f"ligaments.{lig}.{kind}")
         contact = doc.get("contact", {})
+        if not isinstance(contact, dict):
+            raise InputError("must be a table with modulus", source=src, field="contact")
+        for key in contact:
+            if key != "modulus":
+                raise InputError(f"unknown key {key!r}; known: modulus", source=src, field=f"contact.{key}")
         if "modulus" not in contact:
             raise InputError("missing value", source=src, field="contact.modulus")
         values["contact.modulus"] = number(contact["modulus"], src, "contact.modulus") * factors["modulus"]
         if values["contact.modulus"] <= 0:
             raise InputError("must be > 0", source=src, field="contact.modulus")
+        plausible(values["contact.modulus"], "modulus", src, "contact.modulus")
+        for key in ("name", "description"):
+            if key in doc and not isinstance(doc[key], str):
+                raise InputError(f"expected a string, got {doc[key]!r}", source=src, field=key)
         return cls(values, name=str(doc.get("name", path.stem)), source=src,
                    description=str(doc.get("description", "")))
+
+
+#: Smallest plausible nonzero ligament stiffness (N per unit strain): ligaments have 10^3-10^5 N;
+#: a smaller nonzero value is a stiffness in kN given without ``units.k = "kN"``.  (0 is allowed:
+#: a ligament removed, e.g. an ACL-deficient knee.)
+MIN_NONZERO_K = 100.0
+
+
+def plausible(value: float, kind: str, source: str | None, field: str) -> float:
+    """``value`` (SI) of a parameter of ``kind`` in a parameter-set file, or an error if outside the
+    kind's bounds (the identification bounds of :data:`KINDS`, in display units in the message) or,
+    for a stiffness, below :data:`MIN_NONZERO_K` but not 0."""
+    meta = KINDS[kind]
+    if not meta.lower <= value <= meta.upper:
+        raise InputError(f"{value * meta.to_user:g} {meta.unit} outside [{meta.lower * meta.to_user:g}, "
+                         f"{meta.upper * meta.to_user:g}] {meta.unit}; a unit slip? (units are declared in "
+                         f"[units], e.g. {kind} = \"{meta.file_units[-1][0]}\")", source=source, field=field)
+    if kind == "k" and 0 < value < MIN_NONZERO_K:
+        raise InputError(f"{value:g} N per unit strain is implausibly small for a ligament; kN? (declare "
+                         "[units] k = \"kN\")", source=source, field=field)
+    return value
 
 
 def read_toml(path: Path) -> dict:

@@ -7,13 +7,20 @@ Every finished sample is written atomically to ``DIR/samples/<set>_<index>.json`
 file + ``os.replace``): a study killed mid-run and started again with the same arguments skips
 what is done, and the estimates table has exactly one row per (set, sample).  ``DIR/study.json``
 records the arguments; resuming with different ones is refused.
+
+A sample file that is not a complete result of its own (set, sample) (truncated or edited by
+hand, or left by a copy interrupted half-way) is reported on the ``kneenlp`` logger, removed and
+computed again; stale temporary files of a killed run are removed.  A study interrupted by
+Ctrl-C or SIGTERM stops its worker processes and keeps every finished sample.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
+import signal
 import sys
 import time
 import zlib
@@ -30,6 +37,10 @@ from kneenlp.errors import InputError, unknown_name
 from kneenlp.io.atomic import write_text_atomic
 
 STARTS = ("scatter", "truth")
+#: Keys every sample file holds (written by :meth:`Study.record`).
+SAMPLE_KEYS = ("set", "sample", "seed", "status", "success")
+
+log = logging.getLogger("kneenlp")
 
 
 @dataclass(frozen=True)
@@ -118,6 +129,13 @@ def _run_sample_args(args: tuple) -> dict:
     return _worker_sample(*args)
 
 
+def _worker_init() -> None:
+    """Worker processes leave Ctrl-C and SIGTERM to the parent: SIGINT ignored (the parent stops
+    them), SIGTERM back to its default (a handler inherited by fork would keep them alive)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 @dataclass
 class Study:
     """A study directory: spec, finished samples, and the analysis outputs."""
@@ -138,11 +156,24 @@ class Study:
         return self.sample_dir / f"{key}_{index:06d}.json"
 
     def prepare(self) -> None:
-        self.out.mkdir(parents=True, exist_ok=True)
-        self.sample_dir.mkdir(exist_ok=True)
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            self.sample_dir.mkdir(exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"cannot create the study directory ({exc.strerror or exc})", source=str(self.out),
+                             field="--out") from None
+        for stale in [*self.out.glob(".*.tmp"), *self.sample_dir.glob(".*.tmp")]:  # of a killed run
+            stale.unlink(missing_ok=True)
         spec_file = self.out / "study.json"
         if spec_file.exists():
-            old = json.loads(json.dumps(asdict(StudySpec()))) | json.loads(spec_file.read_text())  # newer fields
+            try:
+                recorded = json.loads(spec_file.read_text())
+                if not isinstance(recorded, dict):
+                    raise ValueError("not a JSON object")
+            except (ValueError, OSError) as exc:
+                raise InputError(f"not a study record ({exc}); use another --out or remove the file",
+                                 source=str(spec_file)) from None
+            old = json.loads(json.dumps(asdict(StudySpec()))) | recorded  # newer fields
             mine = json.loads(json.dumps(self.spec.identity()))
             if {k: old.get(k) for k in mine} != mine:
                 diff = ", ".join(f"{k}: {old.get(k)!r} -> {v!r}" for k, v in mine.items() if old.get(k) != v)
@@ -150,20 +181,41 @@ class Study:
                                  source=str(spec_file))
         write_text_atomic(spec_file, json.dumps(asdict(self.spec), indent=2))
 
+    def read_sample(self, set_name: str, index: int) -> dict | None:
+        """The finished row of one sample, or None if its file is absent or not a complete row of
+        this (set, sample) (e.g. truncated)."""
+        path = self.sample_path(set_name, index)
+        try:
+            row = json.loads(path.read_text())
+        except FileNotFoundError:
+            return None
+        except (ValueError, OSError):
+            return None
+        if not isinstance(row, dict) or any(k not in row for k in SAMPLE_KEYS) or \
+                (row["set"], row["sample"]) != (set_name, index):
+            return None
+        return row
+
     def pending(self) -> list[tuple[str, int]]:
-        return [(s, i) for s, i in self.spec.tasks() if not self.sample_path(s, i).exists()]
+        """Samples still to compute; a sample file that is there but broken is reported, removed
+        and pending again."""
+        todo = []
+        for s, i in self.spec.tasks():
+            path = self.sample_path(s, i)
+            if not path.exists():
+                todo.append((s, i))
+            elif self.read_sample(s, i) is None:
+                log.warning(f"{path}: truncated or corrupt sample file; computing sample {i} of {s} again")
+                path.unlink(missing_ok=True)
+                todo.append((s, i))
+        return todo
 
     def record(self, row: dict) -> None:
         clean = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in row.items()}
         write_text_atomic(self.sample_path(row["set"], row["sample"]), json.dumps(clean))
 
     def load_rows(self) -> pd.DataFrame:
-        rows = []
-        wanted = set(self.spec.tasks())
-        for p in sorted(self.sample_dir.glob("*.json")):
-            r = json.loads(p.read_text())
-            if (r["set"], r["sample"]) in wanted:
-                rows.append(r)
+        rows = [r for s, i in self.spec.tasks() if (r := self.read_sample(s, i)) is not None]
         df = pd.DataFrame(rows)
         if not df.empty:
             df = df.sort_values(["set", "sample"], key=lambda c: c.map(self._order) if c.name == "set" else c)
@@ -213,7 +265,11 @@ def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, schedul
             raise InputError("Dask is not installed: pip install 'kneenlp[dask]'", field="scheduler") from None
         cluster = None
         if scheduler:
-            client = Client(scheduler)
+            try:
+                client = Client(scheduler, timeout="20s")
+            except (OSError, TimeoutError, ValueError, TypeError) as exc:
+                raise InputError(f"cannot connect to the Dask scheduler {scheduler!r} ({type(exc).__name__}: {exc})",
+                                 field="--scheduler") from None
         else:
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
             client = Client(cluster)
@@ -233,10 +289,18 @@ def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, schedul
     # fork: works from scripts and notebooks without a __main__ guard; the parent holds no CasADi
     # threads at this point (thread maps join their threads after every evaluation)
     ctx = get_context("fork") if sys.platform.startswith("linux") else get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+    try:
         futures = [pool.submit(_run_sample_args, (spec, s, i)) for s, i in todo]
         for fut in as_completed(futures):
             yield fut.result()
+    except BaseException:  # Ctrl-C, SIGTERM, or the consumer gone: stop the workers now, not after the queue
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in processes:
+            proc.terminate()
+        raise
+    pool.shutdown()
 
 
 class _NoBar:
