@@ -147,7 +147,7 @@ class Knee:
     def with_parameters(self, parameters: ParameterSet | str | Path) -> Knee:
         """The same geometry with another parameter set."""
         params = parameters if isinstance(parameters, ParameterSet) else ParameterSet.load(parameters)
-        return dataclasses.replace(self, parameters=params)
+        return dataclasses.replace(self, parameters=check_parameter_set(params, self.ligaments, self.source))
 
     def report(self) -> str:
         """How the knee file became this model: frames, splits, fits and surface representations
@@ -536,16 +536,23 @@ class _KneeFile:
         else:
             raise InputError("no parameter set: give 'parameters = FILE' or pass one", source=src,
                              field="parameters")
-        extra = sorted({n.split(".")[0] for n in params.names()} - set(ligaments) - {"contact"})
-        if extra:
-            raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)} (the ligaments of "
-                             f"{src})", source=params.source or src, field=f"ligaments.{extra[0]}")
-        missing = [f"{n}.{k}" for n, lig in ligaments.items() if not lig.grouped
-                   for k in ("k", "ref_strain", "lin_strain") if f"{n}.{k}" not in params]
-        if missing:
-            raise InputError(f"parameter set {params.source or params.name} lacks {', '.join(missing)}",
-                             source=src, field="parameters")
-        return params
+        return check_parameter_set(params, ligaments, src)
+
+
+def check_parameter_set(params: ParameterSet, ligaments: dict[str, Ligament], knee_source: str | None) -> ParameterSet:
+    """``params`` if it gives exactly the properties of ``ligaments`` (of the knee file
+    ``knee_source``), else an error naming both files."""
+    src = knee_source or "the knee"
+    extra = sorted({n.split(".")[0] for n in params.names()} - set(ligaments) - {"contact"})
+    if extra:
+        raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)} (the ligaments of "
+                         f"{src})", source=params.source or src, field=f"ligaments.{extra[0]}")
+    missing = [f"{n}.{k}" for n, lig in ligaments.items() if not lig.grouped
+               for k in ("k", "ref_strain", "lin_strain") if f"{n}.{k}" not in params]
+    if missing:
+        raise InputError(f"parameter set {params.source or params.name} lacks {', '.join(missing)}",
+                         source=knee_source, field="parameters")
+    return params
 
 
 def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_file: str) -> trimesh.Trimesh:

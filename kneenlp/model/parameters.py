@@ -171,7 +171,7 @@ class ParameterSet:
         factors = {}
         for kind, accepted in UNIT_FACTORS.items():
             unit = units.get(kind, DISPLAY_UNITS[kind])
-            if unit not in accepted:
+            if not isinstance(unit, str) or unit not in accepted:
                 raise InputError(f"unit {unit!r} not accepted; use one of {', '.join(accepted)}",
                                  source=src, field=f"units.{kind}")
             factors[kind] = accepted[unit]
