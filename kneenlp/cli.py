@@ -22,7 +22,6 @@ import os
 import re
 import signal
 import sys
-import threading
 from pathlib import Path
 
 from kneenlp.errors import ConvergenceError, InputError
@@ -683,28 +682,6 @@ def _announce_long_steps() -> None:
         log.setLevel(logging.INFO)
 
 
-class Terminated(BaseException):
-    """SIGTERM, raised in the main thread so that a terminated command ends like an interrupted one
-    (a BaseException, like KeyboardInterrupt: ``except Exception`` in the work does not swallow it)."""
-
-
-@contextlib.contextmanager
-def _sigterm_raises():
-    """While a command runs, SIGTERM raises :class:`Terminated` (main thread only; restored after)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        raise Terminated()
-
-    old = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
-
-
 def _input_error(exc: InputError, as_json: bool) -> int:
     print(f"kneenlp: error: {exc}", file=sys.stderr)
     if as_json:
@@ -715,7 +692,9 @@ def _input_error(exc: InputError, as_json: bool) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     as_json = "--json" in argv  # until the options are parsed
-    with _sigterm_raises():
+    from kneenlp.interrupts import Interrupted, catching_signals
+
+    with catching_signals():
         try:
             args = build_parser().parse_args(argv)
             as_json = bool(getattr(args, "json", False))
@@ -730,12 +709,12 @@ def main(argv: list[str] | None = None) -> int:
         except BrokenPipeError:  # output piped into e.g. `head`, which closed early
             sys.stderr.close()
             return 0
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
+            if isinstance(exc, Interrupted) and exc.signum == signal.SIGTERM:
+                print("kneenlp: terminated (SIGTERM); finished work is kept", file=sys.stderr)
+                return EXIT_TERMINATED
             print("kneenlp: interrupted (Ctrl-C); finished work is kept", file=sys.stderr)
             return EXIT_INTERRUPTED
-        except Terminated:
-            print("kneenlp: terminated (SIGTERM); finished work is kept", file=sys.stderr)
-            return EXIT_TERMINATED
         except Exception as exc:  # a bug, not bad input: one line, unless debugging
             if os.environ.get("KNEENLP_DEBUG"):
                 raise

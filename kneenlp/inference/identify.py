@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from kneenlp import interrupts
 from kneenlp.conventions import TO_USER
 from kneenlp.errors import unknown_name
 from kneenlp.experiment.measured import MeasuredData, read_measured
@@ -181,7 +182,8 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     t1 = time.perf_counter()
     # contact working sets are taken at every pose IPOPT evaluates; after the solve no sample point left
     # out of them may penetrate (too few working-set slots, or contact outside the represented surface)
-    sol = nlp.solver(x0=x0, p=problem.data_vector(), lbx=nlp.lbx, ubx=nlp.ubx, lbg=0, ubg=0)
+    with interrupts.deferred():  # Ctrl-C/SIGTERM: raised when the solve ends (CasADi would drop it)
+        sol = nlp.solver(x0=x0, p=problem.data_vector(), lbx=nlp.lbx, ubx=nlp.ubx, lbg=0, ubg=0)
     st = nlp.solver.stats()
     iterations = int(st.get("iter_count", 0))
     values, q_user = nlp.unpack_x(sol["x"])

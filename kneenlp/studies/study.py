@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from kneenlp import interrupts
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.io.atomic import write_text_atomic
 
@@ -245,6 +246,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
     bar = _progress(len(spec.tasks()), len(spec.tasks()) - len(todo), progress)
     if todo:
         for row in _execute(spec, todo, workers, scheduler, dask_local):
+            interrupts.check()  # a sample whose solve was interrupted is not recorded
             study.record(row)
             bar.update(1)
     bar.close()

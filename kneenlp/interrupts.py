@@ -1,0 +1,87 @@
+"""Ctrl-C and SIGTERM that a running solver cannot swallow.
+
+CasADi checks for Ctrl-C while IPOPT runs; when the Python signal handler raises there, CasADi
+prints a ``KeyboardInterruptException`` warning, drops the exception and lets the solve go on to
+its end, so an interrupted study would store the sample and carry on.  The handler of
+:func:`catching_signals` (installed by the command-line interface) therefore remembers the signal;
+inside :func:`deferred` (around a solver call) it raises nothing, and :func:`check` raises it when
+the solve has returned; elsewhere it raises at once.  So Ctrl-C during an IPOPT solve takes effect
+when that solve ends (seconds on the synthetic knee, up to minutes on a mesh knee), and the
+interrupted result is never used.  Without that handler (a script, a notebook) :func:`deferred`
+and :func:`check` do nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
+
+#: The signals handled: Ctrl-C and SIGTERM (a batch system's "stop").
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (``signum`` SIGINT) or SIGTERM; a KeyboardInterrupt, so ``except Exception`` in the
+    work does not swallow it."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+class _Handler:
+    """Remembers the first signal received and raises :class:`Interrupted`."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self.deferring = 0  # depth of deferred() blocks
+
+    def __call__(self, signum: int, frame) -> None:
+        if self.received is None:
+            self.received = signum
+        if not self.deferring:
+            raise Interrupted(self.received)
+
+
+@contextlib.contextmanager
+def catching_signals() -> Iterator[None]:
+    """While the block runs, SIGINT and SIGTERM raise :class:`Interrupted` (and :func:`check`
+    raises it again); the previous handlers are restored after.  Main thread only (elsewhere a
+    no-op)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    handler = _Handler()
+    old = {s: signal.signal(s, handler) for s in SIGNALS}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def check() -> None:
+    """Raise :class:`Interrupted` if a signal arrived under :func:`catching_signals` (even if a
+    solver swallowed the exception)."""
+    for s in SIGNALS:
+        handler = signal.getsignal(s)
+        if isinstance(handler, _Handler) and handler.received is not None:
+            raise Interrupted(handler.received)
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """Around a solver call that swallows exceptions: a signal is only remembered, and raised by
+    :func:`check` when the block ends."""
+    handler = signal.getsignal(signal.SIGINT)
+    if not isinstance(handler, _Handler):
+        yield
+        return
+    handler.deferring += 1
+    try:
+        yield
+    finally:
+        handler.deferring -= 1
+    check()
