@@ -31,7 +31,7 @@ from kneenlp.io.atomic import staged_directory, write_error
 #: bug), 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
 EXIT_INPUT, EXIT_BUG, EXIT_INTERRUPTED, EXIT_TERMINATED = 2, 3, 130, 143
 
-#: Upper limits of counts (documented in docs/architecture.md, "Bad input"): beyond them a run
+#: Upper limits of counts (documented in docs/inputs.md): beyond them a run
 #: would take days or exhaust memory, which is never what a user meant.
 MAX_SAMPLES = 1_000_000
 MAX_WORKERS = 512

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import builtins
 import hashlib
+import io
 import json
 import os
 import re
@@ -340,6 +341,8 @@ CASES = [
     Case("knee-side", SIM, setup=edit("knee/knee.toml", 'side = "right"', 'side = "up"'), names=("knee.toml", "side")),
     Case("knee-units", SIM, setup=edit("knee/knee.toml", 'units = "mm"', 'units = "inch"'),
          names=("knee.toml", "units")),
+    Case("knee-unreadable", SIM, names=("knee.toml", "cannot read"), deny=("knee/knee.toml",)),
+    Case("knee-mesh-unreadable", SIM, names=("knee.toml", "tibia_medial.stl"), deny=("knee/meshes/tibia_medial.stl",)),
     Case("knee-gate-negative", SIM, setup=edit("knee/knee.toml", "gate = 0.01", "gate = -1"),
          names=("knee.toml", "contact.gate")),
     # --- parameter-set TOML (--parameters)
@@ -383,6 +386,8 @@ CASES = [
          setup=protocol(case='[[cases]]\ndirection = "none"\nflexion = 200.0\n'), names=("p.toml", "cases[0].flexion")),
     Case("protocol-unknown-key", f"{SIM} --protocol {{d}}/p.toml", setup=protocol("magnitudes = [1.0]\n"),
          names=("p.toml", "cases[0].magnitudes")),
+    Case("protocol-unreadable", f"{SIM} --protocol {{d}}/p.toml", setup=protocol(), names=("p.toml", "cannot read"),
+         deny=("p.toml",)),
     Case("protocol-no-cases", f"{SIM} --protocol {{d}}/p.toml", setup=write("p.toml", 'name = "p"\n'),
          names=("p.toml", "cases")),
     Case("protocol-load-component-unknown", f"{SIM} --protocol {{d}}/p.toml",
@@ -438,6 +443,7 @@ def _deny(d: Path, rels: tuple[str, ...], monkeypatch) -> None:
         return real_mkdtemp(*args, **kwargs)
 
     monkeypatch.setattr(builtins, "open", fake_open)
+    monkeypatch.setattr(io, "open", fake_open)  # Path.open
     monkeypatch.setattr(tempfile, "mkdtemp", fake_mkdtemp)
 
 
@@ -494,7 +500,7 @@ def test_case_count():
     """The table covers every case of issue 16; the counts go into docs/inputs.md."""
     ok = sum(c.ok for c in CASES)
     assert len({c.id for c in CASES}) == len(CASES)
-    assert len(CASES) >= 90 and ok >= 9, (len(CASES), len(CASES) - ok, ok)
+    assert len(CASES) >= 106 and ok >= 9, (len(CASES), len(CASES) - ok, ok)
 
 
 # ------------------------------------------------------------------ Hypothesis: loaders never crash

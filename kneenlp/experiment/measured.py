@@ -34,8 +34,10 @@ the column and the row):
   beyond 90 deg, or all within :data:`MIN_ROTATION_DEG` (0.2 deg) although the file has a moment
   of at least 1 N m (radians?);
 * at most :data:`MAX_TRIALS` rows (1000): the identification NLP has 5 pose variables and 5
-  equilibrium constraints per trial, and 1000 trials take about a minute on the synthetic knee and
-  many minutes on a mesh knee (the paper's protocols have 7 to 60); split larger data sets;
+  equilibrium constraints per trial, and 1000 trials took 90 s and 0.9 GB on the synthetic knee
+  (a loaded 2-core machine) and take many minutes on a mesh knee (the paper's protocols have 7 to
+  60); split larger data sets.  Above :data:`LARGE_TRIALS` rows a note on the ``kneenlp`` logger
+  says the fit will take a while;
 * the ``protocol`` column: a shipped protocol's name (``set1`` ...; identification then checks the
   trials against it), the name of a protocol file ``NAME.toml`` beside the data (checked here), or
   with ``protocol=`` given (``identify --protocol FILE``) any name.  An unknown name that looks
@@ -67,8 +69,10 @@ from kneenlp.errors import InputError
 from kneenlp.experiment.protocol import FLEXION_RANGE, Protocol, Trial, available_protocols, check_load
 
 REQUIRED = ["trial", "flexion_deg", *load_columns(), *coordinate_columns()]
-#: Most rows a measured-data file may have (see module docstring).
+#: Most rows a measured-data file may have, and the size above which reading it notes the fit's
+#: duration (see module docstring).
 MAX_TRIALS = 1000
+LARGE_TRIALS = 200
 #: Plausibility bounds of the measured coordinates (see module docstring).
 MAX_TRANSLATION_MM = 100.0
 MIN_TRANSLATION_MM = 0.1
@@ -170,6 +174,9 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     if len(df) > MAX_TRIALS:
         raise InputError(f"{len(df)} rows: more than the {MAX_TRIALS} trials one identification takes (its size "
                          "grows with the trials; the paper's protocols have 7 to 60); split the data", source=src)
+    if len(df) > LARGE_TRIALS:
+        log.info(f"{src}: {len(df)} trials: a large identification (1000 trials took 90 s on the synthetic knee, "
+                 "longer on a mesh knee)")
     df = df.reset_index(drop=True)
     if df["trial"].isna().any():
         raise InputError(f"row {int(np.argmax(df['trial'].isna())) + 2}: empty trial id", source=src, field="trial")
