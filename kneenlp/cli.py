@@ -68,6 +68,17 @@ def _positive(text: str) -> float:
     return value
 
 
+def _finite(text: str) -> float:
+    """An argparse type: a finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
 def _names(text: str) -> list[str]:
     """An argparse type: a comma-separated list of names (at least one, no repeats)."""
     names = [n.strip() for n in text.split(",")]
@@ -500,8 +511,9 @@ def cmd_export_osim(args) -> int:
 def cmd_identifiability(args) -> int:
     from kneenlp.inference.identifiability import identifiability
 
-    free = [f.strip() for f in args.free.split(",") if f.strip()] if args.free else None
-    result = identifiability(_knee(args), args.protocol, free=free, noise=args.noise)
+    knee = _knee(args)
+    _check_names(knee, args)
+    result = identifiability(knee, args.protocol, free=args.free, noise=args.noise)
     if args.json:
         print(json.dumps({"rank": result.rank, "identifiable": result.identifiable, "free": result.free,
                           "stderr": result.stderr, "unidentified_directions": result.directions(),
@@ -610,24 +622,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--groups", default="fine", choices=["fine", "coarse"],
                    help="bundle groups: fine (ACLam, ACLpl, ...) or coarse (ACL, PCL, MCL, ...)")
     p.add_argument("--femur-mesh", help="femoral surface to use instead of the model's femoral contact mesh")
-    p.add_argument("--femur-offset", type=float, default=0.0,
+    p.add_argument("--femur-offset", type=_finite, default=0.0,
                    help="mm the articular surface lies outside --femur-mesh (cartilage thickness on bone)")
-    p.set_defaults(func=cmd_import_osim)
+    p.set_defaults(func=cmd_import_osim, validate=True, out_kind="dir")
 
     p = sub.add_parser("export-osim", help="write a fit of an imported knee into a copy of its OpenSim model")
     p.add_argument("fit", help="the fit's JSON (kneenlp identify --json)")
     p.add_argument("--knee", required=True, help="the imported knee's knee.toml")
     p.add_argument("--model", required=True, help="the OpenSim model the knee was imported from")
     p.add_argument("--out", required=True, help="the calibrated .osim to write")
-    p.set_defaults(func=cmd_export_osim)
+    p.set_defaults(func=cmd_export_osim, validate=True, out_kind="file")
 
     p = sub.add_parser("identifiability", help="which parameters a protocol can identify, before fitting")
     p.add_argument("--protocol", default="set4", help="protocol name or TOML file")
-    p.add_argument("--free", help="comma-separated parameters (default: stiffness and reference strain of each)")
-    p.add_argument("--noise", default="uniform:0.5", help="noise model (mm, deg)")
+    p.add_argument("--free", type=_names,
+                   help="comma-separated parameters (default: stiffness and reference strain of each)")
+    p.add_argument("--noise", default="uniform:0.5", type=_noise, help="noise model (mm, deg)")
     _knee_args(p)
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.set_defaults(func=cmd_identifiability)
+    p.set_defaults(func=cmd_identifiability, validate=True)
 
     p = sub.add_parser("design", help="design a laxity protocol with few load cases and tight estimates")
     p.add_argument("--max-cases", type=_integer(1, MAX_CASES), default=22,

@@ -45,7 +45,7 @@ from kneenlp.model.knee import Knee, knee_file
 from kneenlp.model.parameters import ParameterSet
 
 #: Commands that take --json.
-JSON_COMMANDS = {"simulate", "diagnose", "identify", "compare-methods", "study", "export", "design"}
+JSON_COMMANDS = {"simulate", "diagnose", "identify", "compare-methods", "study", "export", "design", "identifiability"}
 #: The work of each command: with ``before_work`` a case must fail before any of these is called.
 WORK = [("kneenlp.simulation", "simulate"), ("kneenlp.inference.identify", "identify"),
         ("kneenlp.inference.design", "design"), ("kneenlp.studies.study", "run_study"),
@@ -267,6 +267,10 @@ CASES = [
     Case("command-unknown", "bogus", names=("bogus",)),
     Case("knee-missing", "simulate --knee {d}/none.toml --out {d}/o", names=("none.toml", "--knee")),
     Case("with-effect-unknown", f"{ID} --with-effect nothing", names=("--with-effect", "nothing")),
+    Case("identifiability-free-empty", f"identifiability {K} --free ,", names=("--free",)),
+    Case("identifiability-protocol-unknown", f"identifiability {K} --protocol set9", names=("--protocol", "set9")),
+    Case("import-osim-femur-offset-nan", "import-osim {d}/none.osim --out {d}/i --femur-offset nan",
+         names=("--femur-offset",)),
     # --- --out, checked before the work (issue: tracebacks, identify after the whole fit)
     Case("out-file-simulate", f"simulate {K} --protocol set1 --out {{d}}/afile", names=("afile", "--out")),
     Case("out-file-identify", f"{ID} --out {{d}}/afile", names=("afile", "--out")),
@@ -275,6 +279,9 @@ CASES = [
     Case("out-file-export", "export {d}/m.csv --format nl " + K + " --out {d}/afile", names=("afile", "--out")),
     Case("out-file-view", f"view {K} --protocol set1 --out {{d}}/afile", names=("afile", "--out")),
     Case("out-dir-design", f"design {K} --out {{d}}/adir", names=("adir", "--out")),
+    Case("out-file-import-osim", "import-osim {d}/none.osim --out {d}/afile", names=("afile", "--out")),
+    Case("out-dir-export-osim", "export-osim {d}/fit.json --knee {d}/knee/knee.toml --model {d}/none.osim "
+         "--out {d}/adir", names=("adir", "--out")),
     Case("out-below-file", f"simulate {K} --protocol set1 --out {{d}}/afile/sub", names=("afile", "--out")),
     Case("out-read-only-dir", f"simulate {K} --protocol set1 --out {{d}}/adir/o", names=("adir", "--out"),
          deny=("adir",)),
@@ -500,7 +507,7 @@ def test_case_count():
     """The table covers every case of issue 16; the counts go into docs/inputs.md."""
     ok = sum(c.ok for c in CASES)
     assert len({c.id for c in CASES}) == len(CASES)
-    assert len(CASES) >= 106 and ok >= 9, (len(CASES), len(CASES) - ok, ok)
+    assert len(CASES) >= 111 and ok >= 9, (len(CASES), len(CASES) - ok, ok)
 
 
 # ------------------------------------------------------------------ Hypothesis: loaders never crash
