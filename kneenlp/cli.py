@@ -263,7 +263,8 @@ def _effect_values(knee, specs: list[str]) -> dict[str, float]:
     values: dict[str, float] = {}
     for spec in specs or []:
         name, _, rest = spec.partition(":")
-        effect = model.effect(name)
+        with _naming("--with-effect"):
+            effect = model.effect(name)
         for item in filter(None, rest.split(",")):
             key, eq, val = item.partition("=")
             key = key.strip()
@@ -275,9 +276,12 @@ def _effect_values(knee, specs: list[str]) -> dict[str, float]:
             if not eq:
                 raise InputError(f"expected PARAM=VALUE in {spec!r}", field="--with-effect")
             try:
-                values[full] = float(val) / model.parameter(full).to_user
+                value = float(val)
             except ValueError:
                 raise InputError(f"value of {full} is not a number: {val!r}", field="--with-effect") from None
+            if not math.isfinite(value):
+                raise InputError(f"value of {full} must be finite, got {val!r}", field="--with-effect")
+            values[full] = value / model.parameter(full).to_user
         if not rest and effect.parameters:
             first = effect.parameters[0]
             raise InputError(f"give the strength, e.g. {name}:{first.removeprefix(name + '.')}=VALUE "

@@ -267,6 +267,8 @@ CASES = [
     Case("command-unknown", "bogus", names=("bogus",)),
     Case("knee-missing", "simulate --knee {d}/none.toml --out {d}/o", names=("none.toml", "--knee")),
     Case("with-effect-unknown", f"{ID} --with-effect nothing", names=("--with-effect", "nothing")),
+    Case("with-effect-simulate-unknown", f"{SIM} --with-effect bogus:k=1", names=("--with-effect", "bogus")),
+    Case("with-effect-simulate-nan", f"{SIM} --with-effect posterior_capsule:k=nan", names=("--with-effect",)),
     Case("identifiability-free-empty", f"identifiability {K} --free ,", names=("--free",)),
     Case("identifiability-protocol-unknown", f"identifiability {K} --protocol set9", names=("--protocol", "set9")),
     Case("import-osim-femur-offset-nan", "import-osim {d}/none.osim --out {d}/i --femur-offset nan",
@@ -507,7 +509,7 @@ def test_case_count():
     """The table covers every case of issue 16; the counts go into docs/inputs.md."""
     ok = sum(c.ok for c in CASES)
     assert len({c.id for c in CASES}) == len(CASES)
-    assert len(CASES) >= 111 and ok >= 9, (len(CASES), len(CASES) - ok, ok)
+    assert len(CASES) >= 113 and ok >= 9, (len(CASES), len(CASES) - ok, ok)
 
 
 # ------------------------------------------------------------------ Hypothesis: loaders never crash
