@@ -561,9 +561,14 @@ def toml_value(v: object) -> str:
 
 scalars = st.one_of(st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True),
                     st.text(max_size=8), st.sampled_from(["anterior", "none", "ACL", "mm", "m", "N", "%", "", "set1"]))
-values = st.recursive(scalars, lambda inner: st.one_of(st.lists(inner, max_size=4),
-                                                      st.dictionaries(st.text(max_size=6), inner, max_size=3)),
-                      max_leaves=6)
+
+
+def containers(inner: st.SearchStrategy) -> st.SearchStrategy:
+    """Arrays and tables of ``inner``."""
+    return st.one_of(st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=6), inner, max_size=3))
+
+
+values = st.recursive(scalars, containers, max_leaves=6)
 
 
 def toml_lines(doc: dict, prefix: str = "") -> list[str]:
