@@ -419,6 +419,8 @@ CASES = [
          check=check_fit, notes=True),
     Case("ok-out-new-nested-dir", f"simulate {K} --protocol set1 --no-plots --out {{d}}/a/b/c",
          check=lambda d, out: check_files("a/b/c/kinematics.csv")(d, out)),
+    Case("ok-stale-staging-removed", f"{SIM}",
+         setup=write("o/.kneenlp-tmp-4194305/kinematics.csv", "half,writ"), check=check_simulate),
     Case("ok-export", "export {d}/m.csv --format casadi " + K + " --out {d}/e", check=lambda d, out: (
         check_files(*(str(Path(f).relative_to(d)) for f in out["files"]))(d, out))),
 ]
@@ -509,7 +511,7 @@ def test_case_count():
     """The table covers every case of issue 16; the counts go into docs/inputs.md."""
     ok = sum(c.ok for c in CASES)
     assert len({c.id for c in CASES}) == len(CASES)
-    assert len(CASES) >= 113 and ok >= 9, (len(CASES), len(CASES) - ok, ok)
+    assert len(CASES) >= 114 and ok >= 10, (len(CASES), len(CASES) - ok, ok)
 
 
 # ------------------------------------------------------------------ Hypothesis: loaders never crash

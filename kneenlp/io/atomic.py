@@ -21,7 +21,8 @@ from pathlib import Path
 
 from kneenlp.errors import InputError
 
-#: Prefix of temporary files and staging directories; stale ones (of a killed process) are ignored.
+#: Prefix of temporary files and staging directories; stale staging directories (of a killed
+#: process) are removed by the next command writing into the same directory.
 TMP_PREFIX = ".kneenlp-tmp-"
 
 
@@ -68,6 +69,26 @@ def write_error(exc: OSError, path: str | Path, option: str | None = "--out") ->
     return InputError(f"cannot write {where} ({why})", source=str(path), field=option)
 
 
+def remove_stale(directory: Path) -> None:
+    """Remove the staging directories in ``directory`` of processes that are gone (killed before
+    they could clean up)."""
+    for stale in directory.glob(f"{TMP_PREFIX}*"):
+        suffix = stale.name.removeprefix(TMP_PREFIX)
+        if stale.is_dir() and suffix.isdigit() and not _alive(int(suffix)):
+            shutil.rmtree(stale, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (on this machine)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
 class Staging:
     """The staging directory of :func:`staged_directory`: ``path`` to write into, ``final(p)`` the
     place a staged file ends up."""
@@ -97,6 +118,7 @@ def staged_directory(out: str | Path, option: str | None = "--out") -> Iterator[
     stage = out / f"{TMP_PREFIX}{os.getpid()}"
     done = False
     try:
+        remove_stale(out)
         shutil.rmtree(stage, ignore_errors=True)
         stage.mkdir()
         yield Staging(out, stage)
