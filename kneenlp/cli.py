@@ -699,11 +699,13 @@ def _announce_long_steps() -> None:
         log.setLevel(logging.INFO)
 
 
-def _input_error(exc: InputError, as_json: bool) -> int:
-    print(f"kneenlp: error: {exc}", file=sys.stderr)
+def _fail(line: str, status: int, as_json: bool, error: dict | None = None) -> int:
+    """End a failed command: ``line`` on stderr and, with ``--json``, the error object on stdout
+    (``{"error", "file", "field"}``, ``file``/``field`` null when there is none)."""
+    print(f"kneenlp: {line}", file=sys.stderr)
     if as_json:
-        print(json.dumps(exc.to_dict()))
-    return EXIT_INPUT
+        print(json.dumps(error or {"error": line, "file": None, "field": None}))
+    return status
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -719,7 +721,7 @@ def main(argv: list[str] | None = None) -> int:
             _check_inputs(args)
             return int(args.func(args))
         except InputError as exc:
-            return _input_error(exc, as_json)
+            return _fail(f"error: {exc}", EXIT_INPUT, as_json, exc.to_dict())
         except ConvergenceError as exc:
             print(f"kneenlp: not converged: {exc}", file=sys.stderr)
             return 1
@@ -728,16 +730,13 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         except KeyboardInterrupt as exc:
             if isinstance(exc, Interrupted) and exc.signum == signal.SIGTERM:
-                print("kneenlp: terminated (SIGTERM); finished work is kept", file=sys.stderr)
-                return EXIT_TERMINATED
-            print("kneenlp: interrupted (Ctrl-C); finished work is kept", file=sys.stderr)
-            return EXIT_INTERRUPTED
+                return _fail("terminated (SIGTERM); finished work is kept", EXIT_TERMINATED, as_json)
+            return _fail("interrupted (Ctrl-C); finished work is kept", EXIT_INTERRUPTED, as_json)
         except Exception as exc:  # a bug, not bad input: one line, unless debugging
             if os.environ.get("KNEENLP_DEBUG"):
                 raise
             text = " ".join(f"{type(exc).__name__}: {exc}".split())
-            print(f"kneenlp: internal error: {text} (a bug; KNEENLP_DEBUG=1 shows the traceback)", file=sys.stderr)
-            return EXIT_BUG
+            return _fail(f"internal error: {text} (a bug; KNEENLP_DEBUG=1 shows the traceback)", EXIT_BUG, as_json)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -741,3 +741,21 @@ def test_study_killed_at_random_points_and_restarted(tmp_path):
         if name != victim.name:
             assert (out / "samples" / name).read_text() == text, name  # finished samples not recomputed
     assert not [p for p in out.rglob("*") if TMP_NAME.search(p.name)]
+
+
+@pytest.mark.parametrize(("raised", "status", "words"), [(KeyboardInterrupt(), 130, "interrupted"),
+                                                         (RuntimeError("boom\nsecond line"), 3, "internal error")])
+def test_interrupt_and_bug_are_one_line_with_json(raised, status, words, tmp_path, capsys, monkeypatch):
+    """Ctrl-C (130) and an unexpected exception (3, a bug): one line on stderr, the JSON error
+    object on stdout with --json, nothing written."""
+    import kneenlp.simulation
+
+    def work(*args, **kwargs):
+        raise raised
+    monkeypatch.setattr(kneenlp.simulation, "simulate", work)
+    code = main(["simulate", "--knee", "synthetic", "--protocol", "set1", "--out", str(tmp_path / "o"), "--json"])
+    captured = capsys.readouterr()
+    assert code == status and len(captured.err.strip().splitlines()) == 1 and words in captured.err
+    obj = json.loads(captured.out)
+    assert words in obj["error"] and obj["file"] is None and obj["field"] is None
+    assert not (tmp_path / "o").exists()
