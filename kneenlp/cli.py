@@ -19,11 +19,11 @@ import json
 import logging
 import math
 import os
-import re
 import signal
 import sys
 from pathlib import Path
 
+from kneenlp import options as opt
 from kneenlp.errors import ConvergenceError, InputError
 from kneenlp.io.atomic import staged_directory, write_error
 
@@ -31,110 +31,6 @@ from kneenlp.io.atomic import staged_directory, write_error
 #: bug), 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
 EXIT_INPUT, EXIT_BUG, EXIT_INTERRUPTED, EXIT_TERMINATED = 2, 3, 130, 143
 
-#: Upper limits of counts (documented in docs/inputs.md): beyond them a run
-#: would take days or exhaust memory, which is never what a user meant.
-MAX_SAMPLES = 1_000_000
-MAX_WORKERS = 512
-MAX_STARTS = 1000
-MAX_EVALS = 10_000_000
-MAX_ROBUST = 100
-MAX_CASES = 1000
-MAX_SEED = 2**63 - 1
-
-
-# ------------------------------------------------------------------ option values (argparse types)
-def _integer(lo: int, hi: int):
-    """An argparse type: an integer in [lo, hi]."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if not lo <= value <= hi:
-            raise argparse.ArgumentTypeError(f"must be between {lo} and {hi}, got {value}" if hi < MAX_SEED
-                                             else f"must be >= {lo}, got {value}")
-        return value
-    return parse
-
-
-def _positive(text: str) -> float:
-    """An argparse type: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
-
-
-def _finite(text: str) -> float:
-    """An argparse type: a finite number."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
-    return value
-
-
-def _names(text: str) -> list[str]:
-    """An argparse type: a comma-separated list of names (at least one, no repeats)."""
-    names = [n.strip() for n in text.split(",")]
-    if not any(names) or not all(names):
-        raise argparse.ArgumentTypeError(f"expected comma-separated names, got {text!r}")
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise argparse.ArgumentTypeError(f"{', '.join(dup)} given twice")
-    return names
-
-
-def _flexions(text: str) -> tuple[float, ...]:
-    """An argparse type: comma-separated flexion angles in [-10, 120] deg (as protocol files)."""
-    values = []
-    for item in _names(text):
-        try:
-            f = float(item)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected angles in deg, got {item!r}") from None
-        if not -10.0 <= f <= 120.0:
-            raise argparse.ArgumentTypeError(f"flexion {item} deg outside [-10, 120]")
-        values.append(f)
-    return tuple(values)
-
-
-def _noise(text: str) -> str:
-    """An argparse type: a noise model ``uniform:B``, ``gaussian:SIGMA`` or ``none``."""
-    from kneenlp.experiment.noise import NoiseModel
-
-    try:
-        NoiseModel.parse(text)
-    except InputError as exc:
-        raise argparse.ArgumentTypeError(exc.message) from None
-    return text
-
-
-def _solver(text: str) -> str:
-    """An argparse type: a CasADi nlpsol plugin that is installed."""
-    import casadi
-
-    if not text or not casadi.has_nlpsol(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is not an installed CasADi nlpsol plugin (e.g. ipopt, "
-                                         "sqpmethod)")
-    return text
-
-
-SEED = _integer(0, MAX_SEED)
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors: a bad option is an :class:`InputError` naming the option."""
-
-    def error(self, message: str):
-        m = re.match(r"argument ([^:]+): (.*)", message)
-        field, text = (m.group(1).split("/")[-1], m.group(2)) if m else (None, message)
-        raise InputError(f"{text} (see '{self.prog} --help')", field=field)
 
 
 # ------------------------------------------------------------------ input files and --out (before the work)
@@ -229,7 +125,7 @@ def _check_names(knee, args) -> None:
 
 def _set_names(text: str) -> list[str]:
     """``--sets``: ``1,2`` -> ``set1, set2``; names and protocol files as they are."""
-    return [f"set{s}" if s.isdigit() else s for s in _names(text)]
+    return [f"set{s}" if s.isdigit() else s for s in opt.names(text)]
 
 
 def _knee(args):
@@ -528,16 +424,16 @@ def cmd_identifiability(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="kneenlp", description=__doc__.splitlines()[0])
+    parser = opt.OneLineParser(prog="kneenlp", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate a laxity protocol (forward problem)")
     p.add_argument("--protocol", default="set3", help="protocol name (set1..set4) or TOML file")
     _knee_args(p)
     p.add_argument("--out", default="kneenlp-out", help="output directory")
-    p.add_argument("--noise", default=None, type=_noise,
+    p.add_argument("--noise", default=None, type=opt.noise,
                    help="also write measured.csv with noise: uniform:B | gaussian:S")
-    p.add_argument("--seed", type=SEED, default=0, help="seed of the noise (default 0)")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the noise (default 0)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME:PARAM=VALUE,...",
                    help="switch a candidate effect on (display units), e.g. posterior_capsule:k=8000")
@@ -547,10 +443,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("diagnose", help="model adequacy: where the fit fails and which effect is missing")
     p.add_argument("data", help="measured-data CSV")
     _knee_args(p)
-    p.add_argument("--noise", default="uniform:0.5", type=_noise,
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise,
                    help="noise model of the data (default uniform:0.5)")
-    p.add_argument("--refit", type=_integer(0, MAX_CASES), default=4, help="refit the best N candidates (default 4)")
-    p.add_argument("--seed", type=SEED, default=0, help="seed of the start scatter")
+    p.add_argument("--refit", type=opt.integer(0, opt.MAX_CASES), default=4,
+                   help="refit the best N candidates (default 4)")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the start scatter")
     p.add_argument("--out", help="write residual_map.png/.csv, laxity_fit.png and diagnosis.json here")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_diagnose, validate=True, out_kind="dir")
@@ -558,15 +455,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("identify", help="identify ligament parameters from measured data (simultaneous NLP)")
     p.add_argument("data", help="measured-data CSV (as written by 'kneenlp simulate --noise')")
     _knee_args(p)
-    p.add_argument("--free", type=_names,
+    p.add_argument("--free", type=opt.names,
                    help="comma-separated parameters to identify (default: k and ref_strain of all)")
-    p.add_argument("--noise", type=_noise, help="noise model of the data for the covariance, e.g. uniform:0.5")
+    p.add_argument("--noise", type=opt.noise, help="noise model of the data for the covariance, e.g. uniform:0.5")
     p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
-    p.add_argument("--seed", type=SEED, default=0, help="seed of the paper's start scatter")
-    p.add_argument("--multistart", type=_integer(1, MAX_STARTS), default=1, help="number of starts (best is kept)")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the paper's start scatter")
+    p.add_argument("--multistart", type=opt.integer(1, opt.MAX_STARTS), default=1,
+                   help="number of starts (best is kept)")
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"],
                    help="simultaneous NLP (default) or the paper's nested Complex method")
-    p.add_argument("--solver", default="ipopt", type=_solver, help="CasADi nlpsol plugin (default ipopt)")
+    p.add_argument("--solver", default="ipopt", type=opt.solver, help="CasADi nlpsol plugin (default ipopt)")
     p.add_argument("--protocol", help="protocol the data must match (default: the one named in the data)")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
                    help="also identify this candidate effect's parameters (repeatable; see 'kneenlp diagnose')")
@@ -577,27 +475,29 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("compare-methods", help="simultaneous NLP vs the paper's nested Complex method")
     p.add_argument("data", help="measured-data CSV")
     _knee_args(p)
-    p.add_argument("--seed", type=SEED, default=0, help="seed of the start scatter / Complex")
-    p.add_argument("--max-evals", type=_integer(1, MAX_EVALS), default=5000, help="Complex evaluation budget")
-    p.add_argument("--max-seconds", type=_positive, default=None, help="Complex wall-time budget")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the start scatter / Complex")
+    p.add_argument("--max-evals", type=opt.integer(1, opt.MAX_EVALS), default=5000,
+                   help="Complex evaluation budget")
+    p.add_argument("--max-seconds", type=opt.positive, default=None, help="Complex wall-time budget")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_compare_methods, validate=True)
 
     p = sub.add_parser("study", help="noise study: the paper's Monte Carlo (Table 3, Fig. 3) at any scale")
     p.add_argument("--sets", default="1,2,3,4", type=_set_names,
                    help="protocols: 1,2,3,4 or names/files (default 1,2,3,4)")
-    p.add_argument("--samples", type=_integer(1, MAX_SAMPLES), default=20, help="noise samples per set (default 20)")
-    p.add_argument("--noise", default="uniform:0.5", type=_noise, help="uniform:B or gaussian:SIGMA (mm, deg)")
-    p.add_argument("--seed", type=SEED, default=0, help="study seed; each sample's seed derives from it")
+    p.add_argument("--samples", type=opt.integer(1, opt.MAX_SAMPLES), default=20,
+                   help="noise samples per set (default 20)")
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise, help="uniform:B or gaussian:SIGMA (mm, deg)")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="study seed; each sample's seed derives from it")
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"])
     _knee_args(p, parameters=False)
-    p.add_argument("--free", type=_names, help="comma-separated parameters to identify")
+    p.add_argument("--free", type=opt.names, help="comma-separated parameters to identify")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
                    help="also identify this candidate effect's parameters (repeatable)")
     p.add_argument("--start", default="scatter", choices=["scatter", "truth"],
                    help="fit starts: scattered like the paper (default) or at the true values")
     p.add_argument("--out", default="kneenlp-study", help="study directory (resumable)")
-    p.add_argument("--workers", type=_integer(1, MAX_WORKERS), default=None,
+    p.add_argument("--workers", type=opt.integer(1, opt.MAX_WORKERS), default=None,
                    help="local processes (default: all cores)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
     p.add_argument("--dask", action="store_true", help="run on a local Dask cluster")
@@ -610,8 +510,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", required=True, choices=["nl", "casadi", "c"], help="export format")
     p.add_argument("--out", default="kneenlp-export", help="output directory")
     _knee_args(p)
-    p.add_argument("--free", type=_names, help="comma-separated parameters to identify")
-    p.add_argument("--seed", type=SEED, default=0, help="seed of the start scatter")
+    p.add_argument("--free", type=opt.names, help="comma-separated parameters to identify")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the start scatter")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
                    help="also free this candidate effect's parameters (repeatable)")
     p.add_argument("--nl-common", default="defined", choices=["defined", "lifted"],
@@ -626,7 +526,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--groups", default="fine", choices=["fine", "coarse"],
                    help="bundle groups: fine (ACLam, ACLpl, ...) or coarse (ACL, PCL, MCL, ...)")
     p.add_argument("--femur-mesh", help="femoral surface to use instead of the model's femoral contact mesh")
-    p.add_argument("--femur-offset", type=_finite, default=0.0,
+    p.add_argument("--femur-offset", type=opt.finite, default=0.0,
                    help="mm the articular surface lies outside --femur-mesh (cartilage thickness on bone)")
     p.set_defaults(func=cmd_import_osim, validate=True, out_kind="dir")
 
@@ -639,28 +539,28 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("identifiability", help="which parameters a protocol can identify, before fitting")
     p.add_argument("--protocol", default="set4", help="protocol name or TOML file")
-    p.add_argument("--free", type=_names,
+    p.add_argument("--free", type=opt.names,
                    help="comma-separated parameters (default: stiffness and reference strain of each)")
-    p.add_argument("--noise", default="uniform:0.5", type=_noise, help="noise model (mm, deg)")
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise, help="noise model (mm, deg)")
     _knee_args(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_identifiability, validate=True)
 
     p = sub.add_parser("design", help="design a laxity protocol with few load cases and tight estimates")
-    p.add_argument("--max-cases", type=_integer(1, MAX_CASES), default=22,
+    p.add_argument("--max-cases", type=opt.integer(1, opt.MAX_CASES), default=22,
                    help="largest number of load cases (default 22)")
     p.add_argument("--criterion", default="A", choices=["A", "D", "W", "R"],
                    help="A: sum of relative variances, D: log det, W: worst relative standard error, "
                         "R: worst standard-error ratio to a reference protocol (--reference)")
     p.add_argument("--reference", default="set4", help="reference protocol of criterion R (default set4)")
-    p.add_argument("--flexions", default=None, type=_flexions,
+    p.add_argument("--flexions", default=None, type=opt.flexions,
                    help="candidate flexion angles, deg (default 0,15,...,60; to 90 for a multi-bundle knee)")
-    p.add_argument("--noise", default="uniform:0.5", type=_noise, help="noise model (mm, deg)")
-    p.add_argument("--robust", type=_integer(1, MAX_ROBUST), default=3,
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise, help="noise model (mm, deg)")
+    p.add_argument("--robust", type=opt.integer(1, opt.MAX_ROBUST), default=3,
                    help="parameter sets averaged over (knee's + scatter draws)")
-    p.add_argument("--free", type=_names, help="comma-separated parameters to identify")
+    p.add_argument("--free", type=opt.names, help="comma-separated parameters to identify")
     _knee_args(p)
-    p.add_argument("--seed", type=SEED, default=0, help="seed of the robustness draws")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the robustness draws")
     p.add_argument("--out", default="designed_protocol.toml", help="protocol TOML to write")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_design, validate=True, out_kind="file")
