@@ -102,7 +102,7 @@ def test_cli_diagnose_clean_data_smoke(tmp_path, capsys):
     assert main(["diagnose", "--knee", "synthetic", str(tmp_path / "measured.csv"), "--json", "--refit", "0"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert {"adequate", "p_value", "rms", "expected_rms", "flagged", "ranking"} <= set(out)
-    assert len(out["ranking"]) == 7 and out["recommended"] is None
+    assert len(out["ranking"]) == 15 and out["recommended"] is None  # 7 effects, 8 attachments
 
 
 def test_neutral_effects_leave_the_model_unchanged(model):
@@ -127,3 +127,70 @@ def test_negative_control_false_alarm_rate(knee, tmp_path):
         alarms += (not d.adequate)
     print(f"false alarms: {alarms} / 30")
     assert alarms / 30 < 0.05
+
+
+#: A clearly non-neutral strength (display units) per parameter kind, for the simulate checks.
+STRENGTH = {"k": 8000, "spring": 50, "angle": 2, "length": 3, "lin_strain": 6, "modulus": 5}
+
+
+def test_every_effect_changes_simulated_data():
+    """``simulate --with-effect NAME:PARAM=VALUE`` moves the data for every effect of the library."""
+    from kneenlp.cli import _effect_values
+
+    knee = kneenlp.Knee.named("synthetic")
+    def measured(values=None):
+        return kneenlp.simulate(knee, "set1", parameters=values).measured("none").iloc[:, -5:].to_numpy()
+
+    clean = measured()
+    model = knee.model
+    for effect in model.effects:
+        name = effect.parameters[0]
+        spec = f"{effect.name}:{name}={STRENGTH[model.parameter(name).kind]}"
+        values = _effect_values(knee, [spec])
+        assert list(values) == [name], spec
+        assert np.abs(measured(values) - clean).max() > 1e-3, spec
+
+
+@pytest.mark.parametrize("spec,message", [
+    ("lin_strain", "give the strength, e.g. lin_strain:ACL.lin_strain=VALUE (%)"),
+    ("lin_strain:ACL.lin_strain=3", "is the knee's own value"),
+    ("contact_modulus:stiffness=5", "unknown parameter 'stiffness' of effect contact_modulus"),
+    ("registration:translation=1", "unknown parameter"),
+    ("ACL_femoral_attachment:anterior=nan", "must be finite"),
+])
+def test_with_effect_that_would_change_nothing_is_rejected(tmp_path, capsys, spec, message):
+    assert main(["simulate", "--knee", "synthetic", "--protocol", "set1", "--no-plots", "--out", str(tmp_path),
+                 "--with-effect", spec]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err, err
+
+
+def test_with_effect_accepts_short_names(tmp_path):
+    from kneenlp.cli import _effect_values
+
+    knee = kneenlp.Knee.named("synthetic")
+    assert _effect_values(knee, ["contact_modulus:modulus=5"]) == {"contact.modulus": 5e9}
+    assert _effect_values(knee, ["lin_strain:ACL=5,PCL.lin_strain=4"]) == pytest.approx(
+        {"ACL.lin_strain": 0.05, "PCL.lin_strain": 0.04})
+    assert _effect_values(knee, ["MCL_tibial_attachment:anterior=4"]) == pytest.approx({"MCL.tibia_anterior": 4e-3})
+
+
+def test_attachment_shift_equals_a_moved_attachment_in_the_knee_file(tmp_path):
+    """The geometry candidate is exact: a shift of the MCL tibial attachment by 4 mm anterior
+    gives the kinematics of a knee file whose MCL tibial attachment is 4 mm more anterior."""
+    knee = kneenlp.Knee.named("synthetic")
+    moved = kneenlp.simulate(moved_knee(tmp_path, "tibia = [6.0, -84.0, -26.0]", "tibia = [10.0, -84.0, -26.0]"),
+                             "set1").q
+    shifted = kneenlp.simulate(knee, "set1", parameters={"MCL.tibia_anterior": 4e-3}).q
+    assert np.abs(moved - shifted).max() < 1e-9
+
+
+def moved_knee(tmp_path, old: str, new: str):
+    """The synthetic knee with one line of its knee file replaced (e.g. an attachment moved)."""
+    text = kneenlp.model.knee.knee_file("synthetic").read_text()
+    assert old in text
+    text = text.replace(old, new)
+    text = text.replace("../../parameters/table1.toml", str(kneenlp.io.resources.resource("parameters", "table1.toml")))
+    text = text.replace('"meshes/', f'"{kneenlp.model.knee.knee_file("synthetic").parent}/meshes/')
+    (tmp_path / "moved.toml").write_text(text)
+    return kneenlp.Knee.load(tmp_path / "moved.toml")
