@@ -78,10 +78,10 @@ def _effect_values(knee, specs: list[str]) -> dict[str, float]:
 
 def cmd_diagnose(args) -> int:
     from kneenlp.inference.adequacy import diagnose
-    from kneenlp.inference.identify import identify
+    from kneenlp.inference.basefit import base_fit
 
     knee = _knee(args)
-    fit = identify(knee, args.data, seed=args.seed)
+    fit = base_fit(knee, args.data, args.noise, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit)
     if args.out:
         d.write(args.out)
