@@ -285,7 +285,8 @@ def verdict_words(d: Diagnosis) -> str:
         return (f"NOT ADEQUATE, NOT EXPLAINED: the misfit ({glob}) is uneven (p = {v.homogeneity_p:.2g}) and no "
                 f"candidate effect is significant{pattern}. Look for an effect outside the library.")
     others = [n for n in v.significant if n != best.effect]
-    also = (f" Also significant: {', '.join(others[:3])}{' and more' if len(others) > 3 else ''} (they partly mimic it with this protocol; the refit prefers "
+    listed = ", ".join(others[:3]) + (" and more" if len(others) > 3 else "")
+    also = (f" Also significant: {listed} (they partly mimic it with this protocol; the refit prefers "
             f"{best.effect}).") if others else ""
     if not best.refit:
         return (f"MISSING EFFECT?: {best.effect} is significant (Holm-adjusted p = {v.adjusted[best.effect]:.2g}, "
