@@ -46,6 +46,8 @@ from kneenlp.model.ligament import SHIFT_AXES
 __all__ = ["Diagnosis", "EffectScore", "diagnose", "rank_effects", "refit_with"]
 
 
+#: Score-test p-value (unadjusted) below which a candidate is refitted when the global test passes.
+REFIT_P = 0.05
 #: Words for the signs of the attachment-shift axes (positive, negative).
 AXIS_WORDS = {"anterior": ("anterior", "posterior"), "proximal": ("proximal", "distal"),
               "lateral": ("lateral", "medial")}
@@ -202,8 +204,8 @@ def _words(trial, coord: str, unit: str, r: float) -> str:
 def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list[str] | None = None,
              refit: int = 4, alpha: float = ALPHA, limits: bool = True) -> Diagnosis:
     """Judge ``fit`` against ``noise`` (see module docstring): score every candidate effect, refit
-    the best ``refit`` of them, give each its detection limit (``limits``) and decide at family
-    level ``alpha``."""
+    the best ``refit`` of them (only those with score p < :data:`REFIT_P` when the global test
+    passes), give each its detection limit (``limits``) and decide at family level ``alpha``."""
     t0 = time.perf_counter()
     noise = NoiseModel.parse(noise)
     sigma = noise.std
@@ -223,8 +225,11 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
     diag = Diagnosis(fit, noise, rms, expected, chi2, dof, p_value, flagged, rmap, worst,
                      patterns=failure_patterns(fit.data.trials, r, sigma))
     diag.ranking = score_effects(fit, sigma, effects)
+    # refits cost a solve each: only for candidates with some evidence, unless the global test fails
+    # (then the score test may under-score a nonlinear effect such as a slack bundle switched on)
     for s in diag.ranking[:refit]:
-        s.refit, diag.refits[s.effect] = refit_with(fit, s, sigma)
+        if s.score_p < REFIT_P or p_value < alpha:
+            s.refit, diag.refits[s.effect] = refit_with(fit, s, sigma)
     # the score test is linear in the effect, the refit is not: refitted candidates first, by AIC
     done = sorted([s for s in diag.ranking if s.refit], key=lambda s: s.refit["delta_aic"])
     diag.ranking = done + [s for s in diag.ranking if not s.refit]
