@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import kneenlp
+import kneenlp.errors
 from kneenlp.experiment.measured import read_measured
 from kneenlp.inference.adequacy import diagnose
 from kneenlp.inference.basefit import base_fit
@@ -110,7 +111,12 @@ def cases(args, knee, out: Path):
             for effect, par, sign in HIDDEN:
                 for factor in args.factors:
                     for i in range(args.hidden):
-                        value = theta[knee.model.index(par)] + sign * factor * limits[par]
+                        base = theta[knee.model.index(par)]
+                        value = base + sign * factor * limits[par]
+                        lo, hi = knee.model.parameter(par).bounds
+                        if not lo <= value <= hi or (par == "contact.modulus" and value < 0.2 * base):
+                            print(f"skipped: {effect} at {factor:g} detection limits on {pname} is beyond its range")
+                            break
                         yield (f"hidden|{pname}|{effect}|{factor:g}|{i}", protocol, {par: value}, NOISE, 3000 + i,
                                effect)
         if pname in ("set3", "set4"):
@@ -187,7 +193,11 @@ def main() -> None:
         for key, protocol, values, noise, seed, truth in cases(args, knee, out):
             if key in done:
                 continue
-            row = run_case(knee, protocol, values, noise, seed, args.refit, out)
+            try:
+                row = run_case(knee, protocol, values, noise, seed, args.refit, out)
+            except kneenlp.errors.ConvergenceError as exc:
+                print(f"{key}: skipped, the simulation did not converge ({str(exc)[:80]})")
+                continue
             kind, pname, *rest = key.split("|")
             row |= {"key": key, "kind": kind, "protocol": pname, "truth": truth, "values": values}
             if kind == "hidden":
