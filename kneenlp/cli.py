@@ -17,7 +17,6 @@ import argparse
 import contextlib
 import json
 import logging
-import math
 import os
 import signal
 import sys
@@ -153,6 +152,8 @@ def _knee_reference(value: str | None) -> str | None:
 def _effect_values(knee, specs: list[str]) -> dict[str, float]:
     """``NAME[:param=value,...]`` (display units, e.g. ``posterior_capsule:k=8000``,
     ``registration:anterior_translation=1.5``) -> parameter values in SI."""
+    import numpy as np
+
     from kneenlp.simulation import model_for
 
     model = model_for(knee)
@@ -164,33 +165,35 @@ def _effect_values(knee, specs: list[str]) -> dict[str, float]:
         for item in filter(None, rest.split(",")):
             key, eq, val = item.partition("=")
             key = key.strip()
-            full = key if key in effect.parameters else f"{name}.{key}"
-            if full not in effect.parameters:
+            full = effect.parameter_named(key)
+            if full is None:
                 raise InputError(f"unknown parameter {key!r} of effect {name}; known: "
-                                 + ", ".join(n.removeprefix(f"{name}.") for n in effect.parameters),
-                                 field="--with-effect")
+                                 + ", ".join(effect.parameters), field="--with-effect")
             if not eq:
                 raise InputError(f"expected PARAM=VALUE in {spec!r}", field="--with-effect")
+            par = model.parameter(full)
             try:
-                value = float(val)
+                values[full] = float(val) / par.to_user
             except ValueError:
                 raise InputError(f"value of {full} is not a number: {val!r}", field="--with-effect") from None
-            if not math.isfinite(value):
-                raise InputError(f"value of {full} must be finite, got {val!r}", field="--with-effect")
-            values[full] = value / model.parameter(full).to_user
+            if not np.isfinite(values[full]):
+                raise InputError(f"value of {full} must be finite: {val!r}", field="--with-effect")
+            if values[full] == model.theta()[model.index(full)]:
+                raise InputError(f"{full} = {val} {par.unit} is the knee's own value: the data would not change",
+                                 field="--with-effect")
         if not rest and effect.parameters:
             first = effect.parameters[0]
-            raise InputError(f"give the strength, e.g. {name}:{first.removeprefix(name + '.')}=VALUE "
-                             f"({model.parameter(first).unit})", field="--with-effect")
+            raise InputError(f"give the strength, e.g. {name}:{first}=VALUE ({model.parameter(first).unit})",
+                             field="--with-effect")
     return values
 
 
 def cmd_diagnose(args) -> int:
     from kneenlp.inference.adequacy import diagnose
-    from kneenlp.inference.identify import identify
+    from kneenlp.inference.basefit import base_fit
 
     knee = _knee(args)
-    fit = identify(knee, args.measured, seed=args.seed)
+    fit = base_fit(knee, args.measured, args.noise, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit)
     if args.out:
         with staged_directory(args.out) as stage:
@@ -200,6 +203,8 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_simulate(args) -> int:
+    import numpy as np
+
     from kneenlp.experiment.protocol import Protocol
     from kneenlp.io import plots
     from kneenlp.simulation import simulate
@@ -217,7 +222,8 @@ def cmd_simulate(args) -> int:
         if recruitment is not None:
             recruitment.to_csv(out / "ligament_recruitment.csv", index=False, float_format="%.6g")
             written.append(out / "ligament_recruitment.csv")
-        if args.noise not in (None, "none") and not result.failed:
+        biased = bool(np.any(result.model.bias_user(result.model.theta(result.parameters)) != 0))
+        if (args.noise not in (None, "none") or biased) and not result.failed:  # a registration bias shows only there
             measured = result.measured(args.noise, args.seed)
             measured.to_csv(out / "measured.csv", index=False, float_format="%.10g")
             written.append(out / "measured.csv")

@@ -1,103 +1,110 @@
 """Model adequacy: where the model fails, which physical effect is missing, and what adding it does.
 
-``diagnose(fit, noise)`` compares a fit with the noise model:
+``diagnose(fit, noise)`` judges a base fit (:func:`kneenlp.inference.basefit.base_fit` makes one
+with the noise model) against the declared noise (mm, deg):
 
-* goodness of fit: RMS residual vs the noise RMS, ``chi2 = sum r^2 / sigma^2`` on ``N - p`` degrees
-  of freedom with its p-value (for uniform noise the statistic is less dispersed than chi-square,
-  so the test is conservative), and every residual larger than the noise bound flagged;
-* a residual map (trials x coordinates, in units of sigma) with the worst entries in words;
-* a ranking of the candidate effects (:mod:`kneenlp.model.effects`) by the score (Lagrange-multiplier)
-  test from the base fit's Gauss-Newton sensitivities, no refit needed:
-  ``LM = (S' M r)' (S' M S)^-1 (S' M r) / sigma^2`` with ``S = d q / d phi`` of the effect's
-  parameters (implicit-function theorem through every trial's equilibrium), ``M`` projecting out
-  what the base parameters can absorb, ``r`` the residuals; chi-square with ``dim phi`` degrees of
-  freedom.  The one-step estimate ``-(S' M S)^-1 S' M r`` gives the expected RMS after adding it;
-* for the best candidates a refit with the effect's parameters free: objective drop, AIC, BIC and
-  the likelihood-ratio p-value.  The score test is a linearisation at the neutral value; effects
-  that are strongly nonlinear there (a slack bundle switched on) can be under-scored, so the final
-  ranking puts the refitted candidates first, ordered by their AIC change.
+* **global test**: ``chi2 = sum r^2 / sigma^2`` on ``N - p`` degrees of freedom (for uniform noise
+  the statistic is less dispersed than chi-square, so the test is conservative), RMS residual vs
+  the noise RMS, every residual beyond the noise bound;
+* **where**: a residual map (trials x coordinates, in noise standard deviations), failure patterns
+  in words (:mod:`kneenlp.inference.patterns`) and the three worst cells;
+* **targeted tests** of every candidate effect (:mod:`kneenlp.model.effects`: force elements,
+  parameter groups and the position of every ligament attachment): the score test from the base
+  fit, a refit of the best ``refit`` of them (:mod:`kneenlp.inference.candidates`); each with its
+  detection limit for this protocol (:mod:`kneenlp.inference.detection`);
+* **verdict** (:mod:`kneenlp.inference.verdict`): the global and targeted tests as one family,
+  Holm-corrected at level ``alpha``; outcome ``adequate``, ``missing_effect`` (with the
+  recommended effect and its estimate), ``noise_larger`` (with the noise level the data imply) or
+  ``unexplained``.
 
-A stiffness-type effect parameter whose one-step estimate is negative cannot help (its neutral
-value is its lower bound) and scores zero.
+One quantity says how much of the misfit an effect explains: **excess misfit explained**, the
+refit's chi-square drop over the base fit's excess chi-square (``chi2 - dof``), given only when
+that excess is significant; otherwise the drop itself (chi-square units) and its p-value.  The
+score test's drop is the one-step prediction of the same drop, labelled "score".
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.experiment.noise import NoiseModel
+from kneenlp.inference.candidates import EffectScore, refit_with, score_effects
+from kneenlp.inference.detection import detection_limits
 from kneenlp.inference.fit import Fit
+from kneenlp.inference.patterns import Pattern, failure_patterns
 from kneenlp.inference.statistics import chi_square_test
+from kneenlp.inference.verdict import ALPHA, Verdict, decide
 from kneenlp.io.atomic import write_text_atomic
+from kneenlp.model.ligament import SHIFT_AXES
 
-ADEQUATE_P = 0.01
+__all__ = ["Diagnosis", "EffectScore", "diagnose", "rank_effects", "refit_with"]
 
 
-@dataclass
-class EffectScore:
-    effect: str
-    description: str
-    parameters: list[str]
-    statistic: float
-    df: int
-    p_value: float
-    expected_rms: float
-    explained: float  # fraction of the excess misfit it explains (one step)
-    one_step: dict[str, float]
-    refit: dict | None = None
-
-    def to_dict(self) -> dict:
-        d = {"effect": self.effect, "statistic": self.statistic, "df": self.df, "p_value": self.p_value,
-             "expected_rms": self.expected_rms, "explained_fraction": self.explained, "one_step": self.one_step,
-             "description": self.description}
-        if self.refit:
-            d["refit"] = self.refit
-        return d
+#: Score-test p-value (unadjusted) below which a candidate is refitted when the global test passes.
+REFIT_P = 0.05
+#: Words for the signs of the attachment-shift axes (positive, negative).
+AXIS_WORDS = {"anterior": ("anterior", "posterior"), "proximal": ("proximal", "distal"),
+              "lateral": ("lateral", "medial")}
 
 
 @dataclass
 class Diagnosis:
+    """Everything :func:`diagnose` found (residuals mm and deg; see module docstring)."""
+
     fit: Fit
     noise: NoiseModel
     rms: float
     expected_rms: float
     chi2: float
     dof: int
-    p_value: float
+    p_value: float  # the global chi-square test
     flagged: list[dict]
     residual_map: pd.DataFrame
     worst: list[str]
+    patterns: list[Pattern] = field(default_factory=list)
     ranking: list[EffectScore] = field(default_factory=list)
+    decision: Verdict | None = None
     verdict: str = ""
     refits: dict[str, Fit] = field(default_factory=dict)  # effect name -> refitted Fit
+    seconds: float = 0.0
+
+    @property
+    def outcome(self) -> str:
+        return self.decision.outcome if self.decision else ("adequate" if self.p_value >= ALPHA else "unexplained")
 
     @property
     def adequate(self) -> bool:
-        return self.p_value >= ADEQUATE_P
+        return self.outcome == "adequate"
 
     @property
     def recommended(self) -> EffectScore | None:
-        """The best candidate if the fit is inadequate and that candidate's refit is adequate."""
-        if self.adequate or not self.ranking:
-            return None
-        best = self.ranking[0]
-        if best.refit and best.refit["p_value_after"] >= ADEQUATE_P:
-            return best
-        return None
+        """The effect to add: significant after the multiplicity correction, and its refit brings the
+        misfit down to the noise."""
+        name = self.decision.recommended if self.decision else None
+        return next((s for s in self.ranking if s.effect == name), None) if name else None
+
+    @property
+    def named(self) -> EffectScore | None:
+        """The significant candidate with the best refit (recommended or not), if any."""
+        name = self.decision.best if self.decision else None
+        return next((s for s in self.ranking if s.effect == name), None) if name else None
 
     def summary(self) -> dict:
         rec = self.recommended
-        return {"adequate": self.adequate, "p_value": self.p_value, "chi2": self.chi2, "dof": self.dof,
-                "rms": self.rms, "expected_rms": self.expected_rms, "noise": str(self.noise),
-                "flagged": self.flagged, "worst": self.worst,
-                "ranking": [s.to_dict() for s in self.ranking],
-                "recommended": rec.effect if rec else None, "verdict": self.verdict}
+        return {"adequate": self.adequate, "outcome": self.outcome, "p_value": self.p_value, "chi2": self.chi2,
+                "dof": self.dof, "rms": self.rms, "expected_rms": self.expected_rms, "noise": str(self.noise),
+                "flagged": self.flagged, "worst": self.worst, "patterns": [p.words() for p in self.patterns],
+                "ranking": [s.to_dict() for s in self.ranking], "tests": self.decision.to_dict() if self.decision
+                else None, "recommended": rec.effect if rec else None,
+                "estimate": estimate_words(self.fit, rec, self.refits.get(rec.effect)) if rec else None,
+                "verdict": self.verdict, "base_starts": self.fit.extra.get("base_starts", 1),
+                "seconds": self.seconds}
 
     def to_json(self) -> str:
         from kneenlp.io.serialize import dumps
@@ -105,21 +112,26 @@ class Diagnosis:
         return dumps(self.summary())
 
     def report(self) -> str:
+        adj = self.decision.adjusted if self.decision else {}
         lines = [f"[[Adequacy]] {self.fit.data.source or 'data'} against noise {self.noise}",
                  f"    RMS residual {self.rms:.3f} (mm, deg); expected from the noise {self.expected_rms:.3f}",
-                 f"    chi-square {self.chi2:.1f} on {self.dof} degrees of freedom, p = {self.p_value:.3g} -> "
-                 + ("ADEQUATE" if self.adequate else "NOT ADEQUATE"),
+                 f"    global test: chi-square {self.chi2:.1f} on {self.dof} degrees of freedom, p = "
+                 f"{self.p_value:.3g} (Holm-adjusted {adj.get('global', self.p_value):.3g})",
                  f"    residuals beyond the noise bound: {len(self.flagged)}"]
-        lines += ["[[Where it fails]]"] + [f"    {w}" for w in self.worst]
+        lines.append("[[Where it fails]]")
+        lines += [f"    {p.words()}" for p in self.patterns] or ["    no pattern beyond the noise"]
+        lines += ["    worst cells:"] + [f"      {w}" for w in self.worst]
         if self.ranking:
-            lines.append("[[Candidate effects]] score test (no refit); refit for the best")
+            lines.append(f"[[Candidate effects]] chi-square drop in units of the declared noise variance (score: one "
+                         f"step; refit: exact), p Holm-adjusted over {len(adj) or len(self.ranking) + 1} tests; "
+                         "detection limit: smallest effect flagged in half of repeated experiments")
             for s in self.ranking:
-                ref = ""
-                if s.refit:
-                    ref = (f"; refit: RMS {s.refit['rms']:.3f}, LR p = {s.refit['lr_p_value']:.2g}, "
-                           f"dAIC {s.refit['delta_aic']:+.1f}")
-                lines.append(f"    {s.effect:18s} LM {s.statistic:9.1f} (df {s.df}) p = {s.p_value:.2g}, explains "
-                             f"{100 * s.explained:5.1f} %, expected RMS {s.expected_rms:.3f}{ref}")
+                ref = (f" refit {s.refit['chi2_drop']:7.1f} dAIC {s.refit['delta_aic']:+6.1f}" if s.refit
+                       else " " * 28)
+                limit = _limit_words(s)
+                p = adj.get(s.effect, s.p_value)
+                lines.append(f"    {s.effect:26s} df {s.df} score {s.score_chi2:7.1f}{ref}  p {p:8.2g}"
+                             + (f"  limit {limit}" if limit else ""))
         lines.append(f"[[Verdict]] {self.verdict}")
         return "\n".join(lines)
 
@@ -134,7 +146,7 @@ class Diagnosis:
         rec = self.recommended
         if rec is not None:
             after = self.refits[rec.effect]
-            files += diagnose(after, self.noise, refit=0).figures(out / f"after_{rec.effect}")
+            files += diagnose(after, self.noise, refit=0, limits=False).figures(out / f"after_{rec.effect}")
             rows = []
             for n in after.free:
                 par = after.model.parameter(n)
@@ -163,6 +175,26 @@ class Diagnosis:
                                     measured=meas, band=band)]
 
 
+def _short_names(names: list[str]) -> list[str]:
+    """Short labels of an effect's parameters: what differs between them."""
+    tails = [n.rsplit(".", 1)[-1] for n in names]
+    if len(set(tails)) < len(tails):
+        return [n.split(".", 1)[0] for n in names]
+    return [t.split("_", 1)[1] if t.startswith(("femur_", "tibia_")) else t for t in tails]
+
+
+def _limit_words(s: EffectScore) -> str:
+    if not s.detection_limit:
+        return ""
+    vals = [f"{v:.2g}" if np.isfinite(v) else "unseen" for v in s.detection_limit.values()]
+    units = s.units or [s.unit] * len(vals)
+    if len(vals) == 1:
+        return f"{vals[0]} {units[0]}"
+    if len(set(units)) == 1:
+        return ", ".join(f"{k} {v}" for k, v in zip(_short_names(s.parameters), vals, strict=True)) + f" {units[0]}"
+    return ", ".join(f"{k} {v} {u}" for k, v, u in zip(_short_names(s.parameters), vals, units, strict=True))
+
+
 def _words(trial, coord: str, unit: str, r: float) -> str:
     where = "above" if r > 0 else "below"
     what = trial.describe().replace("no load", "unloaded")
@@ -170,9 +202,11 @@ def _words(trial, coord: str, unit: str, r: float) -> str:
 
 
 def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list[str] | None = None,
-             refit: int = 4) -> Diagnosis:
-    """Judge ``fit`` against ``noise``; rank candidate effects by the score test, refit the best
-    ``refit`` of them and rank those by the refit (AIC)."""
+             refit: int = 4, alpha: float = ALPHA, limits: bool = True) -> Diagnosis:
+    """Judge ``fit`` against ``noise`` (see module docstring): score every candidate effect, refit
+    the best ``refit`` of them (only those with score p < :data:`REFIT_P` when the global test
+    passes), give each its detection limit (``limits``) and decide at family level ``alpha``."""
+    t0 = time.perf_counter()
     noise = NoiseModel.parse(noise)
     sigma = noise.std
     r = fit.residuals
@@ -188,104 +222,90 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
     rmap = pd.DataFrame(r / sigma, index=[t.id for t in fit.data.trials], columns=list(COORDINATES))
     order = np.argsort(-np.abs(r / sigma), axis=None)[:3]
     worst = [_words(fit.data.trials[k // 5], COORDINATES[k % 5], COORDINATE_UNITS[k % 5], r.flat[k]) for k in order]
-    diag = Diagnosis(fit, noise, rms, expected, chi2, dof, p_value, flagged, rmap, worst)
-    diag.ranking = rank_effects(fit, sigma, effects)
-    if refit:
-        for s in diag.ranking[:refit]:
+    diag = Diagnosis(fit, noise, rms, expected, chi2, dof, p_value, flagged, rmap, worst,
+                     patterns=failure_patterns(fit.data.trials, r, sigma))
+    diag.ranking = score_effects(fit, sigma, effects)
+    # refits cost a solve each: only for candidates with some evidence, unless the global test fails
+    # (then the score test may under-score a nonlinear effect such as a slack bundle switched on)
+    for s in diag.ranking[:refit]:
+        if s.score_p < REFIT_P or p_value < alpha:
             s.refit, diag.refits[s.effect] = refit_with(fit, s, sigma)
-        # the score test is linear in the effect; the refit is not: refitted candidates are ranked
-        # by their AIC change, ahead of those only scored
-        done = sorted([s for s in diag.ranking if s.refit], key=lambda s: s.refit["delta_aic"])
-        diag.ranking = done + [s for s in diag.ranking if not s.refit]
-    diag.verdict = _verdict(diag)
+    # the score test is linear in the effect, the refit is not: refitted candidates first, by AIC
+    done = sorted([s for s in diag.ranking if s.refit], key=lambda s: s.refit["delta_aic"])
+    diag.ranking = done + [s for s in diag.ranking if not s.refit]
+    if limits:
+        level = alpha / (len(diag.ranking) + 1)  # the first (strictest) level of Holm's procedure
+        for s in diag.ranking:
+            s.detection_limit = detection_limits(fit, sigma, s.parameters, s.df, level)
+    diag.decision = decide(p_value, diag.ranking, trials=fit.data.trials, residuals=r, declared=noise, dof=dof,
+                           alpha=alpha)
+    diag.verdict = verdict_words(diag)
+    diag.seconds = time.perf_counter() - t0
     return diag
 
 
 def rank_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> list[EffectScore]:
-    """Score test of every candidate effect (see module docstring), best first."""
-    model = fit.model
-    r = fit.residuals.ravel()
-    w = np.sqrt(fit.weights.ravel())
-    s_base = fit.sensitivity * fit.scales * w[:, None]
-    proj = np.eye(len(r)) - s_base @ np.linalg.pinv(s_base)
-    rw = w * r
-    rss = float(rw @ rw)
-    excess = max(rss - sigma**2 * (len(r) - len(fit.free)), 1e-12)
-    scores = []
-    for e in model.effects:
-        if effects is not None and e.name not in effects:
-            continue
-        names = [n for n in e.free_names() if n not in fit.free]
-        if not names:
-            continue
-        scales = np.array([model.parameter(n).scale for n in names])
-        s_e = fit.problem.sensitivities(fit.q_pred, fit.theta, names) * scales * w[:, None]
-        a = s_e.T @ proj @ s_e
-        g = s_e.T @ proj @ rw
-        step = -np.linalg.pinv(a) @ g
-        reduction = float(g @ np.linalg.pinv(a) @ g)
-        one_sided = model.parameter(names[0]).one_sided
-        if len(names) == 1 and one_sided and step[0] < 0:
-            reduction, step = 0.0, np.zeros(1)
-        stat = reduction / sigma**2
-        scores.append(EffectScore(
-            e.name, e.description, names, stat, len(names), float(stats.chi2.sf(stat, len(names))),
-            float(np.sqrt(max(rss - reduction, 0.0) / len(r))), min(max(reduction / excess, 0.0), 1.0),
-            {n: float(v * sc) for n, v, sc in zip(names, step, scales, strict=True)}))
-    scores.sort(key=lambda s: (s.p_value, -s.statistic))
-    return scores
+    """Score test of every candidate effect, best first (:func:`~kneenlp.inference.candidates.score_effects`)."""
+    return score_effects(fit, sigma, effects)
 
 
-def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
-    """Refit with the effect's parameters free, starting from the base estimate and the one-step
-    estimate of the effect (clipped to its bounds)."""
-    from kneenlp.inference.identify import identify
-
-    model = fit.model
-    start = dict(fit.params)
-    for n, v in score.one_step.items():
-        par = model.parameter(n)
-        base = par.neutral if par.neutral is not None else fit.theta[model.index(n)]
-        start[n] = float(np.clip(base + v, *par.bounds))
-    free = [*fit.free, *score.parameters]
-    fixed = fit.problem.fixed
-    new = identify(model, fit.data, free=free, start=start, fixed=fixed)
-    if not new.success or new.objective > fit.objective:  # retry from the base fit, effect neutral
-        again = identify(model, fit.data, free=free, start=dict(fit.params), fixed=fixed)
-        if again.success and (not new.success or again.objective < new.objective):
-            new = again
-    n_obs = fit.residuals.size
-    k0, k1 = len(fit.free), len(new.free)
-    rss0, rss1 = float(np.sum(fit.residuals**2)), float(np.sum(new.residuals**2))
-    if not new.success or rss1 > rss0:  # no improvement found: report the base fit's numbers
-        rss1 = rss0
-    lr = max(rss0 - rss1, 0.0) / sigma**2
-    dof1 = max(n_obs - k1, 1)
-    excess = max(rss0 - sigma**2 * (n_obs - k0), 1e-12)
-    return {"success": new.success, "objective": new.objective, "objective_drop": (rss0 - rss1),
-            "explained_fraction": min(max((rss0 - rss1) / excess, 0.0), 1.0),
-            "rms": float(np.sqrt(rss1 / n_obs)), "lr_statistic": lr, "lr_p_value": float(stats.chi2.sf(lr, k1 - k0)),
-            "delta_aic": n_obs * np.log(rss1 / rss0) + 2 * (k1 - k0),
-            "delta_bic": n_obs * np.log(rss1 / rss0) + (k1 - k0) * np.log(n_obs),
-            "p_value_after": float(stats.chi2.sf(rss1 / sigma**2, dof1)),
-            "params": {n: new.params[n] for n in new.free}, "stderr": new.stderr}, new
+def estimate_words(base: Fit, score: EffectScore, after: Fit | None) -> str:
+    """The refitted effect in words, e.g. "the MCL tibial attachment is about 4.1 mm anterior,
+    0.6 mm distal and 0.2 mm medial (+- 0.5, 0.9, 0.4 mm) of where the knee file puts it"."""
+    if after is None:
+        return ""
+    model = base.model
+    vals = {n: after.params[n] * model.parameter(n).to_user for n in score.parameters}
+    errs = {n: after.stderr[n] * model.parameter(n).to_user for n in score.parameters}
+    if score.effect.endswith("_attachment"):
+        lig, side = score.effect.removesuffix("_attachment").rsplit("_", 1)
+        parts, unc = [], []
+        for n in sorted(score.parameters, key=lambda n: -abs(vals[n])):
+            axis = next(a for a in SHIFT_AXES if n.endswith(a))
+            word = AXIS_WORDS[axis][0 if vals[n] >= 0 else 1]
+            parts.append(f"{abs(vals[n]):.1f} mm {word}")
+            unc.append(f"{errs[n]:.1f}")
+        return (f"the {lig} {side} attachment is about {', '.join(parts[:-1])} and {parts[-1]} "
+                f"(+- {', '.join(unc)} mm) of where the knee file puts it")
+    return "; ".join(f"{n} = {vals[n]:.4g} +- {errs[n]:.2g} {model.parameter(n).unit}" for n in score.parameters)
 
 
-def _verdict(d: Diagnosis) -> str:
-    if d.adequate:
-        return (f"The model is adequate: residual RMS {d.rms:.3f} vs {d.expected_rms:.3f} expected from the "
-                f"noise (p = {d.p_value:.2g}); no effect is recommended.")
-    if not d.ranking:
-        return f"The model is NOT adequate (p = {d.p_value:.2g}) and no candidate effect was tested."
-    best = d.ranking[0]
-    rec = d.recommended
-    if rec is not None:
-        ref = rec.refit
-        return (f"The model is NOT adequate (p = {d.p_value:.2g}). {rec.effect.replace('_', ' ')} explains "
-                f"{100 * ref['explained_fraction']:.0f} % of the misfit; expected RMS after adding it "
-                f"{ref['rms']:.2f} (noise alone: {d.expected_rms:.2f}; p = {ref['p_value_after']:.2g}). "
-                f"Add {rec.effect}.")
-    after = best.refit["rms"] if best.refit else best.expected_rms
-    return (f"The model is NOT adequate (p = {d.p_value:.2g}) and no candidate explains it well: the best, "
-            f"{best.effect}, leaves RMS {after:.2f} against {d.expected_rms:.2f} expected from the noise. "
-            "Look for an effect outside the library (e.g. wrong attachments or geometry).")
+def verdict_words(d: Diagnosis) -> str:
+    """The verdict in words a researcher acts on."""
+    v = d.decision
+    glob = f"chi-square {d.chi2:.1f} on {d.dof} degrees of freedom, p = {d.p_value:.2g}"
+    pattern = ("; where: " + "; ".join(p.words() for p in d.patterns[:3])) if d.patterns else ""
+    if v.outcome == "adequate":
+        best = min(d.ranking, key=lambda s: v.adjusted[s.effect]) if d.ranking else None
+        cand = f"; smallest candidate p {v.adjusted[best.effect]:.2g} ({best.effect})" if best else ""
+        return (f"ADEQUATE: no test rejects at family level {v.alpha:g} (global {glob}{cand}). Effects smaller than "
+                "their detection limits are not ruled out.")
+    if v.outcome == "noise_larger":
+        return (f"NOISE LARGER THAN DECLARED: the misfit ({glob}) is spread evenly over coordinates and load "
+                f"directions (p = {v.homogeneity_p:.2g}) and no candidate effect is significant: the data imply "
+                f"noise {v.implied_noise} (sd {v.implied_noise.std:.3g} mm or deg) instead of the declared "
+                f"{d.noise}. Check the measurement error; the parameter uncertainties scale with it.")
+    best = d.named
+    if best is None:
+        return (f"NOT ADEQUATE, NOT EXPLAINED: the misfit ({glob}) is uneven (p = {v.homogeneity_p:.2g}) and no "
+                f"candidate effect is significant{pattern}. Look for an effect outside the library.")
+    others = [n for n in v.significant if n != best.effect]
+    listed = ", ".join(others[:3]) + (" and more" if len(others) > 3 else "")
+    also = (f" Also significant: {listed} (they partly mimic it with this protocol; the refit prefers "
+            f"{best.effect}).") if others else ""
+    if not best.refit:
+        return (f"MISSING EFFECT?: {best.effect} is significant (Holm-adjusted p = {v.adjusted[best.effect]:.2g}, "
+                f"score chi-square drop {best.score_chi2:.1f}); refit to confirm (--refit).{also}")
+    ref = best.refit
+    explained = (f"explains {100 * ref['excess_explained']:.0f} % of the excess misfit (chi-square drop "
+                 f"{ref['chi2_drop']:.1f})" if ref["excess_explained"] is not None and d.p_value < v.alpha
+                 else f"lowers the chi-square by {ref['chi2_drop']:.1f} (LR p = {ref['lr_p_value']:.2g})")
+    after = (f"RMS after it {ref['rms']:.3f} against {d.expected_rms:.3f} from the noise alone "
+             f"(p = {ref['p_value_after']:.2g})")
+    est = estimate_words(d.fit, best, d.refits.get(best.effect))
+    if v.recommended:
+        return (f"MISSING EFFECT: {best.effect} (Holm-adjusted p = {v.adjusted[best.effect]:.2g}) {explained}; "
+                f"{after}. Estimate: {est}. Add {best.effect}.{also}")
+    return (f"NOT ADEQUATE, PARTLY EXPLAINED: {best.effect} (Holm-adjusted p = {v.adjusted[best.effect]:.2g}) "
+            f"{explained} but leaves {after}{pattern}. Add it and look for a further effect (outside the library "
+            f"or several together).{also}")

@@ -94,23 +94,34 @@ def ligament_forces(table: pd.DataFrame, ligaments: list[str], path: str | Path,
     return _save(fig, path)
 
 
-def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str | Path, title: str = "") -> Path:
+def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str | Path, factors: dict[str, float],
+                   title: str = "") -> Path:
     """The paper's Fig. 3: estimates per set as boxplots, true values marked, linearised +-2 sigma.
 
-    Top row: stiffness k (kN per unit strain); bottom row: reference strain (%).
+    One column per ligament, one row per parameter of the Table 3 analogue (e.g. stiffness k in kN
+    per unit strain and reference strain in %, or a group's stiffness scale and reference-strain
+    offset), in the units of ``table`` (its ``unit`` column); ``factors`` converts each estimates
+    column from SI to those units.
     """
     ligs = list(dict.fromkeys(table["ligament"])) if len(table) else []
-    fig, axes = _subplots(2, max(len(ligs), 1), figsize=(3.2 * max(len(ligs), 1), 6.5), squeeze=False)
+    kinds = list(dict.fromkeys(table["parameter"])) if len(table) else []
+    rows_n = max(len(kinds), 1)
+    fig, axes = _subplots(rows_n, max(len(ligs), 1), figsize=(3.2 * max(len(ligs), 1), 3.25 * rows_n),
+                          squeeze=False)
     for j, lig in enumerate(ligs):
-        for i, (kind, unit, f) in enumerate((("k", "kN", 1e-3), ("ref_strain", "%", 100.0))):
+        for i, kind in enumerate(kinds):
             ax = axes[i, j]
+            rows = table[(table["ligament"] == lig) & (table["parameter"] == kind)]
+            if rows.empty:
+                ax.set_visible(False)
+                continue
+            unit = rows["unit"].iloc[0]
+            true = rows["true"].iloc[0]
             col = f"{lig}.{kind}"
-            data = [estimates.loc[estimates["set"] == s, col].to_numpy(dtype=float) * f
+            data = [estimates.loc[estimates["set"] == s, col].to_numpy(dtype=float) * factors[col]
                     if col in estimates else np.array([]) for s in sets]
             pos = np.arange(1, len(sets) + 1)
             ax.boxplot(data, positions=pos, widths=0.5, flierprops={"marker": "x"})
-            rows = table[(table["ligament"] == lig) & (table["parameter"] == kind)]
-            true = rows["true"].iloc[0] if len(rows) else np.nan
             ax.axhline(true, color="0.5", ls="--", lw=1, label="true")
             pred = [rows.loc[rows["set"] == s, "predicted_std"].iloc[0] if (rows["set"] == s).any() else np.nan
                     for s in sets]
@@ -118,8 +129,8 @@ def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str
                         capsize=3, label="linearised +-2 sd")
             ax.set_xticks(pos)
             ax.set_xticklabels([Path(s).stem if str(s).endswith(".toml") else str(s) for s in sets], rotation=30)
-            ax.set_title(f"{lig} {'stiffness' if kind == 'k' else 'reference strain'}", fontsize=9)
-            ax.set_ylabel(f"{'k' if kind == 'k' else 'reference strain'} [{unit}]")
+            ax.set_title(f"{lig} {kind.replace('_', ' ')}", fontsize=9)
+            ax.set_ylabel(f"{kind.replace('_', ' ')} [{unit}]")
             ax.grid(alpha=0.3)
     if ligs:
         axes[0, 0].legend(fontsize=7)

@@ -8,7 +8,10 @@ An *effect* is something the model adequacy check can add (:mod:`kneenlp.inferen
   file's ``[candidates.<name>]`` (e.g. ``posterior_capsule``, ``ALL``: :class:`Ligament` elements
   with stiffness 0), :class:`Meniscus`, :class:`FlexionOffset` and :class:`Registration`;
 * a parameter group of the base model (:func:`parameter_group`): ``lin_strain`` (the linear
-  strain limits) and ``contact_modulus``.
+  strain limits) and ``contact_modulus``;
+* a geometry candidate (:func:`attachment_effects`): the position of one ligament's (or bundle
+  group's) femoral or tibial attachments, ``<LIG>_femoral_attachment`` and
+  ``<LIG>_tibial_attachment``, three shifts in mm each (anterior, proximal, lateral).
 
 Extension point: subclass :class:`~kneenlp.model.elements.ForceElement` (set ``candidate = True``,
 give :meth:`parameters` with a ``neutral`` value and :meth:`wrench`), and pass it as
@@ -37,6 +40,17 @@ class Effect:
 
     def free_names(self) -> list[str]:
         return list(self.parameters)
+
+    def parameter_named(self, key: str) -> str | None:
+        """The parameter ``key`` names: its full name, or a unique ending after a dot or an
+        underscore (``k`` of ``posterior_capsule.k``, ``modulus`` of ``contact.modulus``,
+        ``anterior`` of ``ACL.femur_anterior``) or beginning before a dot (``ACL`` of ``ACL.lin_strain``);
+        ``None`` if none or several match."""
+        if key in self.parameters:
+            return key
+        hits = [n for n in self.parameters if n.endswith(f".{key}") or n.endswith(f"_{key}")]
+        hits = hits or [n for n in self.parameters if n.startswith(f"{key}.")]
+        return hits[0] if len(hits) == 1 else None
 
 
 class Meniscus(ForceElement):
@@ -120,3 +134,16 @@ def builtin_groups(ligaments: list[str]) -> list[Effect]:
     groups = [parameter_group("lin_strain", [f"{lig}.lin_strain" for lig in ligaments],
                               "the linear strain limits of the ligaments differ from 3 %")] if ligaments else []
     return [*groups, parameter_group("contact_modulus", ["contact.modulus"], "the cartilage pressure modulus differs")]
+
+
+def attachment_effects(ligaments: list[str]) -> list[Effect]:
+    """One geometry candidate per ligament (or bundle group) and side: its attachments moved by
+    a vector (``<lig>.femur_anterior`` ..., mm; :mod:`kneenlp.model.ligament`)."""
+    from kneenlp.model.ligament import SHIFT_AXES
+
+    out = []
+    for lig in ligaments:
+        for side, word in (("femur", "femoral"), ("tibia", "tibial")):
+            out.append(Effect(f"{lig}_{word}_attachment", f"the {lig} {word} attachment is elsewhere",
+                              tuple(f"{lig}.{side}_{axis}" for axis in SHIFT_AXES)))
+    return out

@@ -17,6 +17,14 @@ own stiffness ``k_i``, reference strain ``eps_r,i`` and linear strain limit; the
 parameters are a stiffness scale ``<group>.k_scale`` (bundle stiffness ``k_scale k_i``, default 1)
 and a reference-strain offset ``<group>.ref_strain_offset`` (bundle reference strain ``eps_r,i +
 offset``, default 0): the fit moves the whole group and keeps its internal pattern.
+
+Attachment shifts: every (non-candidate) ligament also has six parameters, neutral 0, that move
+all its femoral attachments (femoral frame) and all its tibial attachments (tibial frame) by a
+vector (m inside, mm at the user boundary): ``<lig>.femur_anterior``, ``.femur_proximal``,
+``.femur_lateral``, ``.tibia_anterior``, ... (axes X anterior, Y proximal, Z lateral of
+:mod:`kneenlp.conventions`).  The reference length follows the moved attachments, so the model
+with a shift equals a knee file whose attachments are moved by it (a segmentation error); model
+adequacy frees them as geometry candidates (:func:`kneenlp.model.effects.attachment_effects`).
 """
 
 from __future__ import annotations
@@ -42,6 +50,20 @@ def force_strain_numpy(eps: np.ndarray, k: float, eps_l: float) -> np.ndarray:
     return np.where(
         eps <= 0, 0.0, np.where(eps <= 2 * eps_l, k * eps**2 / (4 * eps_l), k * (eps - eps_l))
     )
+
+
+#: Attachment-shift axes, in the order of the frames' X, Y, Z (:mod:`kneenlp.conventions`).
+SHIFT_AXES: tuple[str, ...] = ("anterior", "proximal", "lateral")
+#: Largest attachment shift a fit may give (m).
+SHIFT_BOUND = 0.02
+
+
+def attachment_parameters(ligament: str) -> list[Parameter]:
+    """The six attachment-shift parameters of ``ligament`` (m, neutral 0; see module docstring)."""
+    return [Parameter(f"{ligament}.{side}_{axis}", "length",
+                      f"{ligament} {'femoral' if side == 'femur' else 'tibial'} attachment shift, {axis}",
+                      0.0, 0.0, -SHIFT_BOUND, SHIFT_BOUND)
+            for side in ("femur", "tibia") for axis in SHIFT_AXES]
 
 
 def slack_length(reference_length, ref_strain):
@@ -118,31 +140,44 @@ class Ligament(ForceElement):
         return self.bundles[0].reference_length
 
     def parameters(self) -> list[Parameter]:
+        shifts = [] if self.candidate else attachment_parameters(self.name)
         if self.grouped:
             return [Parameter(f"{self.name}.k_scale", "scale", f"{self.name} stiffness scale (every bundle)", 1.0),
                     Parameter(f"{self.name}.ref_strain_offset", "ref_strain",
-                              f"{self.name} reference-strain offset (every bundle)", 0.0)]
+                              f"{self.name} reference-strain offset (every bundle)", 0.0), *shifts]
         neutral = {"k": 0.0} if self.candidate else None
         defaults = ({"k": 0.0, "lin_strain": 0.03} | self._defaults) if self.candidate else self._defaults
-        return ligament_parameters(self.name, defaults, neutral)
+        return [*ligament_parameters(self.name, defaults, neutral), *shifts]
+
+    def attachment_names(self, side: str) -> list[str]:
+        """The three shift parameters of the ``side`` ("femur" or "tibia") attachments."""
+        return [f"{self.name}.{side}_{axis}" for axis in SHIFT_AXES]
 
     def frees(self) -> list[str]:
         return [f"{self.name}.k"] if self.candidate else super().frees()
 
+    def _shift(self, side: str, values: dict) -> ca.SX | float:
+        if self.candidate:
+            return 0.0
+        return ca.vertcat(*[values[n] for n in self.attachment_names(side)])
+
     def _bundle_terms(self, pose: Pose, values: dict):
+        shift_f, shift_t = self._shift("femur", values), self._shift("tibia", values)
         if self.grouped:
             scale, offset = values[f"{self.name}.k_scale"], values[f"{self.name}.ref_strain_offset"]
         else:
             own = {kind: values[f"{self.name}.{kind}"] for kind in LIGAMENT_KINDS}
         for b in self.bundles:
-            arm = pose.R @ ca.DM(b.tibia)
-            u = ca.DM(b.femur) - (pose.p + arm)
+            femur, tibia = ca.DM(b.femur) + shift_f, ca.DM(b.tibia) + shift_t
+            reference = ca.norm_2(femur - tibia) if not self.candidate else b.reference_length
+            arm = pose.R @ tibia
+            u = femur - (pose.p + arm)
             length = ca.norm_2(u)
             if self.grouped:
-                strain = length / slack_length(b.reference_length, b.ref_strain + offset) - 1
+                strain = length / slack_length(reference, b.ref_strain + offset) - 1
                 tension = self.law.tension(strain, {"k": scale * b.stiffness, "lin_strain": b.lin_strain})
             else:
-                strain = length / slack_length(b.reference_length, own["ref_strain"]) - 1
+                strain = length / slack_length(reference, own["ref_strain"]) - 1
                 tension = self.law.tension(strain, own)
             yield arm, u / length, strain, tension
 

@@ -1,0 +1,116 @@
+"""The adequacy verdict: the global test and the targeted tests of every candidate, together.
+
+Tests (one family): the global chi-square test of the base fit against the declared noise, and
+one test per candidate effect (its refit's F test if refitted, else its score test's; see
+:mod:`kneenlp.inference.candidates`).  Holm's step-down procedure over the family keeps the
+chance of any false rejection on clean data at most ``alpha`` (default 0.01) whatever the
+dependence between the tests; the false-alarm rate actually reached is measured by
+``benchmarks/bench_adequacy.py`` (docs/adequacy.md).
+
+Outcomes (:data:`OUTCOMES`):
+
+* ``adequate``: no test rejects; the detection limits say what that rules out;
+* ``missing_effect``: a candidate is significant and its refit brings the misfit to the noise
+  (chi-square p after it >= alpha): it is recommended;
+* ``noise_larger``: only the global test rejects, no candidate is significant and the excess is
+  spread evenly over coordinates and load directions (Brown-Forsythe tests of equal spread, p >=
+  alpha): the signature of noise larger than declared, reported with the level the data imply;
+* ``unexplained``: the misfit is real but no candidate removes it (patterns in words say where).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.protocol import Trial
+
+#: Family-wise level of the verdict's tests.
+ALPHA = 0.01
+OUTCOMES = ("adequate", "missing_effect", "noise_larger", "unexplained")
+
+
+def holm(p_values: Sequence[float]) -> np.ndarray:
+    """Holm's step-down adjusted p-values (same order as ``p_values``)."""
+    p = np.asarray(p_values, float)
+    m = len(p)
+    order = np.argsort(p)
+    adjusted = np.empty(m)
+    running = 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        adjusted[i] = running
+    return adjusted
+
+
+def spread_homogeneity(trials: Sequence[Trial], residuals: np.ndarray) -> float:
+    """p-value that the residuals (T x 5, mm and deg) spread equally over the five coordinates and
+    over the load directions (Brown-Forsythe, Bonferroni over the two groupings)."""
+    r = np.asarray(residuals, float)
+    p_coord = stats.levene(*r.T, center="median").pvalue
+    directions = sorted({t.direction for t in trials})
+    groups = [r[[i for i, t in enumerate(trials) if t.direction == d]].ravel() for d in directions]
+    groups = [g for g in groups if g.size >= 5]
+    p_dir = stats.levene(*groups, center="median").pvalue if len(groups) >= 2 else 1.0
+    return float(min(1.0, 2 * min(p_coord, p_dir)))
+
+
+def implied_noise(declared: NoiseModel, rss: float, dof: int) -> NoiseModel:
+    """The noise model of the declared kind whose variance is the residuals' ``rss / dof``."""
+    sd = float(np.sqrt(rss / max(dof, 1)))
+    if declared.kind == "uniform":
+        return NoiseModel("uniform", sd * np.sqrt(3.0))
+    return NoiseModel("gaussian", sd)
+
+
+@dataclass
+class Verdict:
+    """The outcome of the family of tests, with the numbers behind it."""
+
+    outcome: str
+    alpha: float
+    adjusted: dict[str, float]  # Holm-adjusted p of every test ("global" and each candidate)
+    significant: list[str]  # candidates significant after Holm, best first
+    best: str | None = None  # the candidate named (significant, best refit)
+    recommended: str | None = None
+    implied_noise: NoiseModel | None = None
+    homogeneity_p: float | None = None
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"outcome": self.outcome, "alpha": self.alpha, "adjusted_p_values": self.adjusted,
+                "significant": self.significant, "named": self.best, "recommended": self.recommended,
+                "implied_noise": str(self.implied_noise) if self.implied_noise else None,
+                "implied_noise_std": self.implied_noise.std if self.implied_noise else None,
+                "homogeneity_p": self.homogeneity_p}
+
+
+def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residuals: np.ndarray,
+           declared: NoiseModel, dof: int, alpha: float = ALPHA) -> Verdict:
+    """The outcome of the global test (``global_p``) and the candidates' tests (``candidates``:
+    :class:`~kneenlp.inference.candidates.EffectScore`, ranked best first) at family level
+    ``alpha``; ``residuals`` (T x 5, mm and deg) and ``dof`` are the base fit's."""
+    names = ["global", *[c.effect for c in candidates]]
+    adj = holm([global_p, *[c.p_value for c in candidates]])
+    adjusted = dict(zip(names, (float(a) for a in adj), strict=True))
+    sig = [c for c, a in zip(candidates, adj[1:], strict=True) if a < alpha]
+    global_sig = adj[0] < alpha
+    if not sig and not global_sig:
+        return Verdict("adequate", alpha, adjusted, [])
+    if sig:
+        refitted = [c for c in sig if c.refit and c.refit["success"]]
+        best = max(refitted, key=lambda c: c.refit["drop"]) if refitted else sig[0]
+        v = Verdict("missing_effect", alpha, adjusted, [c.effect for c in sig], best.effect)
+        if best.refit and best.refit["success"] and best.refit["p_value_after"] >= alpha:
+            v.recommended = best.effect
+        elif best.refit and best.refit["success"]:
+            v.outcome = "unexplained"
+        return v
+    rss = float(np.sum(np.asarray(residuals, float) ** 2))
+    homog = spread_homogeneity(trials, residuals)
+    outcome = "noise_larger" if homog >= alpha else "unexplained"
+    return Verdict(outcome, alpha, adjusted, [], implied_noise=implied_noise(declared, rss, dof), homogeneity_p=homog)
