@@ -94,7 +94,7 @@ def base_projection(fit: Fit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def effect_sensitivity(fit: Fit, names: list[str]) -> np.ndarray:
     """Weighted sensitivities (5T x n, mm or deg per SI unit) of ``names`` at the base fit."""
     w = np.sqrt(fit.weights.ravel())
-    return fit.problem.sensitivities(fit.q_pred, fit.theta, names) * w[:, None]
+    return fit.sensitivities_of(names) * w[:, None]
 
 
 def score_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> list[EffectScore]:

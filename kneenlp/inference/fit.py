@@ -121,6 +121,17 @@ class Fit:
         return float(n * np.log(max(self.objective, 1e-300) / n) + len(self.free) * np.log(n))
 
     @cached_property
+    def _all_sensitivities(self) -> np.ndarray:
+        """``d y / d p`` (5T x every model parameter) at the estimate, computed once: the
+        candidate effects' tests and detection limits all take their columns from it."""
+        return self.problem.sensitivities(self.q_pred, self.theta, self.model.parameter_names)
+
+    def sensitivities_of(self, names: list[str]) -> np.ndarray:
+        """``d y / d p`` (5T x len(names); mm or deg per SI unit) of any model parameters at the
+        estimate, free or not."""
+        return self._all_sensitivities[:, [self.model.index(n) for n in names]]
+
+    @cached_property
     def _svd(self):
         """SVD of the weighted, scaled sensitivity matrix (computed once)."""
         w = np.sqrt(self.weights.ravel())[:, None]
