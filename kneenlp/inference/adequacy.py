@@ -39,7 +39,7 @@ from kneenlp.inference.detection import detection_limits
 from kneenlp.inference.fit import Fit
 from kneenlp.inference.patterns import Pattern, failure_patterns
 from kneenlp.inference.statistics import chi_square_test
-from kneenlp.inference.verdict import ALPHA, Verdict, decide
+from kneenlp.inference.verdict import ALPHA, AMBIGUOUS_AIC, Verdict, decide
 from kneenlp.io.atomic import write_text_atomic
 from kneenlp.model.ligament import SHIFT_AXES
 
@@ -249,6 +249,22 @@ def rank_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> li
     return score_effects(fit, sigma, effects)
 
 
+def along_the_ligament(fit: Fit, ligament: str, names: list[str]) -> tuple[float, float, float]:
+    """An attachment shift's component along the ligament (mm, towards the femur), its standard
+    error (mm) and the largest standard error across the ligament (mm), from the fit's shift
+    parameters ``names`` (anterior, proximal, lateral order) and covariance."""
+    u = fit.model.knee.ligaments[ligament].direction()
+    names = [n for axis in SHIFT_AXES for n in names if n.endswith(f"_{axis}")]
+    idx = [fit.free.index(n) for n in names]
+    cov = fit.covariance[np.ix_(idx, idx)] * 1e6  # m^2 -> mm^2
+    shift = 1e3 * np.array([fit.params[n] for n in names])
+    across = np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]  # two unit vectors across the line
+    if not np.all(np.isfinite(cov)):
+        return float(u @ shift), np.inf, np.inf
+    sd_across = float(np.sqrt(max(np.linalg.eigvalsh(across.T @ cov @ across).max(), 0.0)))
+    return float(u @ shift), float(np.sqrt(max(u @ cov @ u, 0.0))), sd_across
+
+
 def estimate_words(base: Fit, score: EffectScore, after: Fit | None) -> str:
     """The refitted effect in words, e.g. "the MCL tibial attachment is about 4.1 mm anterior,
     0.6 mm distal and 0.2 mm medial (+- 0.5, 0.9, 0.4 mm) of where the knee file puts it"."""
@@ -265,8 +281,13 @@ def estimate_words(base: Fit, score: EffectScore, after: Fit | None) -> str:
             word = AXIS_WORDS[axis][0 if vals[n] >= 0 else 1]
             parts.append(f"{abs(vals[n]):.1f} mm {word}")
             unc.append(f"{errs[n]:.1f}")
-        return (f"the {lig} {side} attachment is about {', '.join(parts[:-1])} and {parts[-1]} "
-                f"(+- {', '.join(unc)} mm) of where the knee file puts it")
+        words = (f"the {lig} {side} attachment is about {', '.join(parts[:-1])} and {parts[-1]} "
+                 f"(+- {', '.join(unc)} mm) of where the knee file puts it")
+        along, sd_along, sd_across = along_the_ligament(after, lig, score.parameters)
+        if sd_along > 2 * sd_across:
+            words += (f"; along the ligament it is {along:+.1f} +- {sd_along:.1f} mm: laxity tests fix the "
+                      "ligament's line, not the point on it (the reference strain absorbs the length change)")
+        return words
     return "; ".join(f"{n} = {vals[n]:.4g} +- {errs[n]:.2g} {model.parameter(n).unit}" for n in score.parameters)
 
 
@@ -306,6 +327,11 @@ def verdict_words(d: Diagnosis) -> str:
     if v.recommended:
         return (f"MISSING EFFECT: {best.effect} (Holm-adjusted p = {v.adjusted[best.effect]:.2g}) {explained}; "
                 f"{after}. Estimate: {est}. Add {best.effect}.{also}")
+    if v.rivals:
+        return (f"MISSING EFFECT, AMBIGUOUS: {best.effect} (Holm-adjusted p = {v.adjusted[best.effect]:.2g}) "
+                f"{explained}; {after}. Estimate: {est}. But {', '.join(v.rivals)} explain the data as well "
+                f"(AIC within {AMBIGUOUS_AIC:g}): this protocol cannot tell them apart, so none is recommended. "
+                "Add trials that separate them (kneenlp design) or knowledge of which is plausible.")
     return (f"NOT ADEQUATE, PARTLY EXPLAINED: {best.effect} (Holm-adjusted p = {v.adjusted[best.effect]:.2g}) "
             f"{explained} but leaves {after}{pattern}. Add it and look for a further effect (outside the library "
             f"or several together).{also}")

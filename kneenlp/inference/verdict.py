@@ -11,7 +11,9 @@ Outcomes (:data:`OUTCOMES`):
 
 * ``adequate``: no test rejects; the detection limits say what that rules out;
 * ``missing_effect``: a candidate is significant and its refit brings the misfit to the noise
-  (chi-square p after it >= alpha): it is recommended;
+  (chi-square p after it >= alpha): it is recommended, unless another significant candidate's
+  refit is as good (AIC within :data:`AMBIGUOUS_AIC`): then both are named and neither is
+  recommended (the protocol cannot tell them apart);
 * ``noise_larger``: only the global test rejects, no candidate is significant and the excess is
   spread evenly over coordinates and load directions (Brown-Forsythe tests of equal spread, p >=
   alpha): the signature of noise larger than declared, reported with the level the data imply;
@@ -31,6 +33,9 @@ from kneenlp.experiment.protocol import Trial
 
 #: Family-wise level of the verdict's tests.
 ALPHA = 0.01
+#: Two significant candidates whose refits differ by less than this in AIC explain the data
+#: equally well (Burnham & Anderson's "substantial support"): neither is recommended.
+AMBIGUOUS_AIC = 2.0
 OUTCOMES = ("adequate", "missing_effect", "noise_larger", "unexplained")
 
 
@@ -79,11 +84,13 @@ class Verdict:
     recommended: str | None = None
     implied_noise: NoiseModel | None = None
     homogeneity_p: float | None = None
+    rivals: list[str] = field(default_factory=list)  # candidates as good as ``best`` (AIC within 2)
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"outcome": self.outcome, "alpha": self.alpha, "adjusted_p_values": self.adjusted,
                 "significant": self.significant, "named": self.best, "recommended": self.recommended,
+                "rivals": self.rivals,
                 "implied_noise": str(self.implied_noise) if self.implied_noise else None,
                 "implied_noise_std": self.implied_noise.std if self.implied_noise else None,
                 "homogeneity_p": self.homogeneity_p}
@@ -103,10 +110,16 @@ def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residu
         return Verdict("adequate", alpha, adjusted, [])
     if sig:
         refitted = [c for c in sig if c.refit and c.refit["success"]]
-        best = max(refitted, key=lambda c: c.refit["drop"]) if refitted else sig[0]
+        # AIC, not the raw drop: a candidate with more parameters always drops the misfit more
+        best = min(refitted, key=lambda c: c.refit["delta_aic"]) if refitted else sig[0]
         v = Verdict("missing_effect", alpha, adjusted, [c.effect for c in sig], best.effect)
+        rivals = [c.effect for c in refitted
+                  if c is not best and c.refit["delta_aic"] - best.refit["delta_aic"] < AMBIGUOUS_AIC]
         if best.refit and best.refit["success"] and best.refit["p_value_after"] >= alpha:
-            v.recommended = best.effect
+            if rivals:  # the data cannot tell them apart: naming one would be a guess
+                v.rivals = rivals
+            else:
+                v.recommended = best.effect
         elif best.refit and best.refit["success"]:
             v.outcome = "unexplained"
         return v

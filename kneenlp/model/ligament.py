@@ -149,6 +149,14 @@ class Ligament(ForceElement):
         defaults = ({"k": 0.0, "lin_strain": 0.03} | self._defaults) if self.candidate else self._defaults
         return [*ligament_parameters(self.name, defaults, neutral), *shifts]
 
+    def direction(self) -> np.ndarray:
+        """Unit vector from the tibial to the femoral attachment in the reference pose (the mean
+        over the bundles; femoral and tibial frames coincide there).  An attachment shift along it
+        moves the point along the line of action, which laxity data barely see: the reference
+        strain absorbs the length change."""
+        u = np.mean([(np.asarray(b.femur) - np.asarray(b.tibia)) / b.reference_length for b in self.bundles], axis=0)
+        return u / np.linalg.norm(u)
+
     def attachment_names(self, side: str) -> list[str]:
         """The three shift parameters of the ``side`` ("femur" or "tibia") attachments."""
         return [f"{self.name}.{side}_{axis}" for axis in SHIFT_AXES]
