@@ -186,3 +186,32 @@ def test_command_line_round_trip(tmp_path, capsys):
     assert "4 values of 4 bundles" in capsys.readouterr().out  # the LCL's 4 stiffnesses (slack lengths unchanged)
     assert main(["export-osim", str(tmp_path / "fit.json"), "--knee", str(out / "knee.toml"), "--model",
                  str(tmp_path / "missing.osim"), "--out", str(tmp_path / "x.osim")]) == 2
+
+
+def test_bundle_groups_are_adequacy_candidates(imported):
+    """Each bundle group is a candidate effect (its scale and offset), for fits that keep it fixed."""
+    _, knee = imported
+    effects = {e.name: e.parameters for e in knee.model.effects}
+    for g in knee.ligaments:
+        assert effects[f"{g}_bundles"] == (f"{g}.k_scale", f"{g}.ref_strain_offset")
+        assert f"{g}_femoral_attachment" in effects and f"{g}_tibial_attachment" in effects
+    assert not any(n.endswith("_bundles") for n in (e.name for e in kneenlp.Knee.named("synthetic").model.effects))
+
+
+@pytest.mark.slow
+def test_a_fixed_bundle_group_that_differs_is_found(imported, tmp_path):
+    """Data from the knee with the PFL 1.6 times stiffer, fitted with the PFL group fixed at the
+    model's values: diagnose recommends PFL_bundles and estimates the scale within 3 sd."""
+    from kneenlp.experiment.measured import read_measured
+    from kneenlp.inference.adequacy import diagnose
+    from kneenlp.inference.basefit import base_fit
+
+    _, knee = imported
+    path = tmp_path / "pfl.csv"
+    kneenlp.simulate(knee, "set4", parameters={"PFL.k_scale": 1.6}).measured("uniform:0.5", 3).to_csv(path, index=False)
+    free = [f"{g}.{p}" for g in ("MCL", "ACL", "PCL", "LCL") for p in ("k_scale", "ref_strain_offset")]
+    d = diagnose(base_fit(knee, read_measured(path), "uniform:0.5", seed=1, free=free), "uniform:0.5")
+    assert d.outcome == "missing_effect" and d.recommended.effect == "PFL_bundles", d.verdict
+    refit = d.refits["PFL_bundles"]
+    assert abs(refit.params["PFL.k_scale"] - 1.6) < 3 * refit.stderr["PFL.k_scale"]
+    assert "Add PFL_bundles" in d.verdict

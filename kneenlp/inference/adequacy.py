@@ -288,7 +288,8 @@ def estimate_words(base: Fit, score: EffectScore, after: Fit | None) -> str:
             words += (f"; along the ligament it is {along:+.1f} +- {sd_along:.1f} mm: laxity tests fix the "
                       "ligament's line, not the point on it (the reference strain absorbs the length change)")
         return words
-    return "; ".join(f"{n} = {vals[n]:.4g} +- {errs[n]:.2g} {model.parameter(n).unit}" for n in score.parameters)
+    units = {n: "" if model.parameter(n).unit == "1" else f" {model.parameter(n).unit}" for n in score.parameters}
+    return "; ".join(f"{n} = {vals[n]:.4g} +- {errs[n]:.2g}{units[n]}" for n in score.parameters)
 
 
 def verdict_words(d: Diagnosis) -> str:

@@ -11,7 +11,9 @@ An *effect* is something the model adequacy check can add (:mod:`kneenlp.inferen
   strain limits) and ``contact_modulus``;
 * a geometry candidate (:func:`attachment_effects`): the position of one ligament's (or bundle
   group's) femoral or tibial attachments, ``<LIG>_femoral_attachment`` and
-  ``<LIG>_tibial_attachment``, three shifts in mm each (anterior, proximal, lateral).
+  ``<LIG>_tibial_attachment``, three shifts in mm each (anterior, proximal, lateral);
+* a bundle group of a multi-bundle knee whose parameters a fit keeps fixed
+  (:func:`bundle_group_effects`, ``<GROUP>_bundles``: stiffness scale and strain offset).
 
 Extension point: subclass :class:`~kneenlp.model.elements.ForceElement` (set ``candidate = True``,
 give :meth:`parameters` with a ``neutral`` value and :meth:`wrench`), and pass it as
@@ -134,6 +136,14 @@ def builtin_groups(ligaments: list[str]) -> list[Effect]:
     groups = [parameter_group("lin_strain", [f"{lig}.lin_strain" for lig in ligaments],
                               "the linear strain limits of the ligaments differ from 3 %")] if ligaments else []
     return [*groups, parameter_group("contact_modulus", ["contact.modulus"], "the cartilage pressure modulus differs")]
+
+
+def bundle_group_effects(groups: list[str]) -> list[Effect]:
+    """One candidate per bundle group of a multi-bundle knee: the group's stiffness scale and
+    reference-strain offset (``<group>.k_scale``, ``<group>.ref_strain_offset``).  A candidate
+    only where a fit keeps them at the model's values (e.g. a group left out of ``--free``)."""
+    return [parameter_group(f"{g}_bundles", [f"{g}.k_scale", f"{g}.ref_strain_offset"],
+                            f"the {g} bundles are stiffer or slacker than the model's") for g in groups]
 
 
 def attachment_effects(ligaments: list[str]) -> list[Effect]:

@@ -34,7 +34,13 @@ import numpy as np
 
 from kneenlp.conventions import TO_USER
 from kneenlp.errors import InputError, unknown_name
-from kneenlp.model.effects import Effect, attachment_effects, builtin_elements, builtin_groups
+from kneenlp.model.effects import (
+    Effect,
+    attachment_effects,
+    builtin_elements,
+    builtin_groups,
+    bundle_group_effects,
+)
 from kneenlp.model.elements import ForceElement, Output, Pose, StagedElement
 from kneenlp.model.kinematics import generalized_forces, tibial_pose
 from kneenlp.model.knee import Knee
@@ -72,6 +78,7 @@ class KneeModel:
         self.effects: list[Effect] = [Effect(e.name, e.description, tuple(e.frees()))
                                       for e in self.elements if e.candidate]
         self.effects += builtin_groups([n for n in self.ligament_names if not knee.ligaments[n].grouped])
+        self.effects += bundle_group_effects([n for n in self.ligament_names if knee.ligaments[n].grouped])
         self.effects += attachment_effects(self.ligament_names)
         #: solvers built for this model (forward rootfinders, identification NLPs), keyed by their
         #: layout; filled by :mod:`kneenlp.solvers`, so each is built once per model
