@@ -39,7 +39,7 @@ from kneenlp.inference.detection import detection_limits
 from kneenlp.inference.fit import Fit
 from kneenlp.inference.patterns import Pattern, failure_patterns
 from kneenlp.inference.statistics import chi_square_test
-from kneenlp.inference.verdict import ALPHA, AMBIGUOUS_AIC, Verdict, decide
+from kneenlp.inference.verdict import ALPHA, AMBIGUOUS_BIC, Verdict, decide
 from kneenlp.io.atomic import write_text_atomic
 from kneenlp.model.ligament import SHIFT_AXES
 
@@ -126,7 +126,7 @@ class Diagnosis:
                          f"step; refit: exact), p Holm-adjusted over {len(adj) or len(self.ranking) + 1} tests; "
                          "detection limit: smallest effect flagged in half of repeated experiments")
             for s in self.ranking:
-                ref = (f" refit {s.refit['chi2_drop']:7.1f} dAIC {s.refit['delta_aic']:+6.1f}" if s.refit
+                ref = (f" refit {s.refit['chi2_drop']:7.1f} dBIC {s.refit['delta_bic']:+6.1f}" if s.refit
                        else " " * 28)
                 limit = _limit_words(s)
                 p = adj.get(s.effect, s.p_value)
@@ -230,8 +230,8 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
     for s in diag.ranking[:refit]:
         if s.score_p < REFIT_P or p_value < alpha:
             s.refit, diag.refits[s.effect] = refit_with(fit, s, sigma)
-    # the score test is linear in the effect, the refit is not: refitted candidates first, by AIC
-    done = sorted([s for s in diag.ranking if s.refit], key=lambda s: s.refit["delta_aic"])
+    # the score test is linear in the effect, the refit is not: refitted candidates first, by BIC
+    done = sorted([s for s in diag.ranking if s.refit], key=lambda s: s.refit["delta_bic"])
     diag.ranking = done + [s for s in diag.ranking if not s.refit]
     if limits:
         level = alpha / (len(diag.ranking) + 1)  # the first (strictest) level of Holm's procedure
@@ -331,7 +331,7 @@ def verdict_words(d: Diagnosis) -> str:
     if v.rivals:
         return (f"MISSING EFFECT, AMBIGUOUS: {best.effect} (Holm-adjusted p = {v.adjusted[best.effect]:.2g}) "
                 f"{explained}; {after}. Estimate: {est}. But {', '.join(v.rivals)} explain the data as well "
-                f"(AIC within {AMBIGUOUS_AIC:g}): this protocol cannot tell them apart, so none is recommended. "
+                f"(BIC within {AMBIGUOUS_BIC:g}): this protocol cannot tell them apart, so none is recommended. "
                 "Add trials that separate them (kneenlp design) or knowledge of which is plausible.")
     return (f"NOT ADEQUATE, PARTLY EXPLAINED: {best.effect} (Holm-adjusted p = {v.adjusted[best.effect]:.2g}) "
             f"{explained} but leaves {after}{pattern}. Add it and look for a further effect (outside the library "

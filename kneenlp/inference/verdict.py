@@ -12,7 +12,7 @@ Outcomes (:data:`OUTCOMES`):
 * ``adequate``: no test rejects; the detection limits say what that rules out;
 * ``missing_effect``: a candidate is significant and its refit brings the misfit to the noise
   (chi-square p after it >= alpha): it is recommended, unless another significant candidate's
-  refit is as good (AIC within :data:`AMBIGUOUS_AIC`): then both are named and neither is
+  refit is as good (BIC within :data:`AMBIGUOUS_BIC`): then both are named and neither is
   recommended (the protocol cannot tell them apart);
 * ``noise_larger``: only the global test rejects, no candidate is significant and the excess is
   spread evenly over coordinates and load directions (Brown-Forsythe tests of equal spread, p >=
@@ -33,9 +33,9 @@ from kneenlp.experiment.protocol import Trial
 
 #: Family-wise level of the verdict's tests.
 ALPHA = 0.01
-#: Two significant candidates whose refits differ by less than this in AIC explain the data
-#: equally well (Burnham & Anderson's "substantial support"): neither is recommended.
-AMBIGUOUS_AIC = 2.0
+#: Two significant candidates whose refits differ by less than this in BIC explain the data
+#: equally well (Kass & Raftery: "not worth more than a bare mention"): neither is recommended.
+AMBIGUOUS_BIC = 2.0
 OUTCOMES = ("adequate", "missing_effect", "noise_larger", "unexplained")
 
 
@@ -84,7 +84,7 @@ class Verdict:
     recommended: str | None = None
     implied_noise: NoiseModel | None = None
     homogeneity_p: float | None = None
-    rivals: list[str] = field(default_factory=list)  # candidates as good as ``best`` (AIC within 2)
+    rivals: list[str] = field(default_factory=list)  # candidates as good as ``best`` (BIC within 2)
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -110,11 +110,12 @@ def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residu
         return Verdict("adequate", alpha, adjusted, [])
     if sig:
         refitted = [c for c in sig if c.refit and c.refit["success"]]
-        # AIC, not the raw drop: a candidate with more parameters always drops the misfit more
-        best = min(refitted, key=lambda c: c.refit["delta_aic"]) if refitted else sig[0]
+        # BIC, not the raw drop: a candidate with more parameters always drops the misfit more, and
+        # AIC's penalty (2 per parameter) let 3-parameter attachment shifts mimic 1-parameter effects
+        best = min(refitted, key=lambda c: c.refit["delta_bic"]) if refitted else sig[0]
         v = Verdict("missing_effect", alpha, adjusted, [c.effect for c in sig], best.effect)
         rivals = [c.effect for c in refitted
-                  if c is not best and c.refit["delta_aic"] - best.refit["delta_aic"] < AMBIGUOUS_AIC]
+                  if c is not best and c.refit["delta_bic"] - best.refit["delta_bic"] < AMBIGUOUS_BIC]
         if best.refit and best.refit["success"] and best.refit["p_value_after"] >= alpha:
             if rivals:  # the data cannot tell them apart: naming one would be a guess
                 v.rivals = rivals
