@@ -202,6 +202,32 @@ def test_holm_adjusted_p_values():
     assert holm([0.5]) == pytest.approx([0.5])
 
 
+def test_verdict_picks_by_bic_and_refuses_to_guess_between_equals():
+    """Significant refitted candidates: the lowest BIC is recommended, unless another is within
+    2 BIC units (then both are named and neither is recommended)."""
+    from types import SimpleNamespace
+
+    from kneenlp.experiment.noise import NoiseModel
+    from kneenlp.inference.verdict import decide
+
+    def cand(name, p, bic, aic):
+        refit = {"success": True, "delta_bic": bic, "delta_aic": aic, "p_value_after": 0.5, "drop": -aic}
+        return SimpleNamespace(effect=name, p_value=p, refit=refit)
+
+    trials = kneenlp.experiment.protocol.Protocol.load("set3").trials
+    r = np.zeros((len(trials), 5))
+    args = {"trials": trials, "residuals": r, "declared": NoiseModel.parse("uniform:0.5"), "dof": 100}
+    # the 3-parameter shift drops the misfit more and wins on AIC, the 1-parameter effect on BIC
+    clear = [cand("MCL_tibial_attachment", 1e-4, -9.7, -18.3), cand("posterior_capsule", 1e-4, -14.2, -15.1)]
+    v = decide(0.2, clear, **args)
+    assert v.outcome == "missing_effect" and v.recommended == "posterior_capsule" and not v.rivals
+    close = [cand("posterior_capsule", 1e-4, -12.2, -15.1), cand("meniscus", 1e-4, -10.7, -13.6)]
+    v = decide(0.2, close, **args)
+    assert v.outcome == "missing_effect" and v.best == "posterior_capsule"
+    assert v.recommended is None and v.rivals == ["meniscus"]
+    assert decide(0.2, [cand("meniscus", 0.2, -1.0, -1.0)], **args).outcome == "adequate"
+
+
 def test_detection_noncentrality():
     """At 50 % power a one-degree test needs its critical value squared: (1.96)^2 at 5 %."""
     assert noncentrality_needed(1, 0.05) == pytest.approx(1.959964**2, rel=1e-3)
