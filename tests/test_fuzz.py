@@ -702,9 +702,12 @@ def test_study_killed_at_random_points_and_restarted(tmp_path):
 
     rng = random.Random(int(os.environ.get("KNEENLP_FUZZ_SEED", "16")))
     out = tmp_path / "study"
-    cmd = [sys.executable, "-m", "kneenlp.cli", "study", "--knee", "synthetic", "--sets", "1,2", "--samples", "4",
+    # 8 samples per set: on an idle machine a sample takes well under a second, and the three
+    # kills must still leave work for the restart
+    n = 8
+    cmd = [sys.executable, "-m", "kneenlp.cli", "study", "--knee", "synthetic", "--sets", "1,2", "--samples", str(n),
            "--workers", "1", "--seed", "5", "--quiet", "--out", str(out)]
-    tasks = {(s, i) for s in ("set1", "set2") for i in range(4)}
+    tasks = {(s, i) for s in ("set1", "set2") for i in range(n)}
 
     def done() -> list[Path]:
         return sorted((out / "samples").glob("*.json"))
@@ -727,7 +730,7 @@ def test_study_killed_at_random_points_and_restarted(tmp_path):
     assert len(kept) < len(tasks), "every sample finished before the last kill: nothing left to resume"
     victim = done()[0]
     victim.write_text(kept[victim.name][: len(kept[victim.name]) // 2])
-    (out / "samples" / f".set2_000003.json.{os.getpid()}.tmp").write_text('{"set": "se')  # of a killed write
+    (out / "samples" / f".set2_{n - 1:06d}.json.{os.getpid()}.tmp").write_text('{"set": "se')  # of a killed write
     final = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert final.returncode == 0, final.stderr
     assert str(victim) in final.stderr and "truncated" in final.stderr, final.stderr

@@ -188,9 +188,7 @@ class Study:
         path = self.sample_path(set_name, index)
         try:
             row = json.loads(path.read_text())
-        except FileNotFoundError:
-            return None
-        except (ValueError, OSError):
+        except (ValueError, OSError):  # absent, unreadable or not JSON
             return None
         if not isinstance(row, dict) or any(k not in row for k in SAMPLE_KEYS) or \
                 (row["set"], row["sample"]) != (set_name, index):
