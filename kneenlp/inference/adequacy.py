@@ -237,8 +237,9 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
         level = alpha / (len(diag.ranking) + 1)  # the first (strictest) level of Holm's procedure
         for s in diag.ranking:
             s.detection_limit = detection_limits(fit, sigma, s.parameters, s.df, level)
+    weighted = {name: (f.residuals * np.sqrt(f.weights)).ravel() for name, f in diag.refits.items()}
     diag.decision = decide(p_value, diag.ranking, trials=fit.data.trials, residuals=r, declared=noise, dof=dof,
-                           alpha=alpha)
+                           alpha=alpha, refit_residuals=weighted)
     diag.verdict = verdict_words(diag)
     diag.seconds = time.perf_counter() - t0
     return diag
@@ -331,7 +332,8 @@ def verdict_words(d: Diagnosis) -> str:
     if v.rivals:
         return (f"MISSING EFFECT, AMBIGUOUS: {best.effect} (Holm-adjusted p = {v.adjusted[best.effect]:.2g}) "
                 f"{explained}; {after}. Estimate: {est}. But {', '.join(v.rivals)} explain the data as well "
-                f"(BIC within {AMBIGUOUS_BIC:g}): this protocol cannot tell them apart, so none is recommended. "
+                f"(BIC within {AMBIGUOUS_BIC:g}, or not worse in Vuong's non-nested test at one-sided 0.05): this "
+                "protocol cannot tell them apart, so none is recommended. "
                 "Add trials that separate them (kneenlp design) or knowledge of which is plausible.")
     return (f"NOT ADEQUATE, PARTLY EXPLAINED: {best.effect} (Holm-adjusted p = {v.adjusted[best.effect]:.2g}) "
             f"{explained} but leaves {after}{pattern}. Add it and look for a further effect (outside the library "

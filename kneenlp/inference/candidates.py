@@ -22,12 +22,16 @@ its lower bound): its score drop is zero.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import stats
 
 from kneenlp.inference.fit import Fit
+
+#: IPOPT iterations allowed to polish a refit from its reduced-space solution (it converges in
+#: 5-35 from there, or wanders: then the reduced-space solution is kept).
+POLISH_ITERATIONS = 40
 
 
 @dataclass
@@ -128,11 +132,13 @@ def score_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> l
 
 
 def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
-    """Refit with the effect's parameters free, from the base estimate and the effect's one-step
-    estimate (clipped to its bounds); if that fails or does worse, again with the effect neutral.
+    """Refit with the effect's parameters free: reduced-space Gauss-Newton from the base estimate
+    (effect neutral), polished by the simultaneous NLP from its result (kept if it converges within
+    :data:`POLISH_ITERATIONS` and does no worse); if that fails or does worse than the base fit,
+    the NLP from the effect's one-step estimate (clipped to its bounds).
     Returns the refit's numbers (drops in mm^2 + deg^2 and chi-square units, F and LR p-values,
     AIC and BIC changes, parameters SI with standard errors) and the refitted :class:`Fit`."""
-    from kneenlp.inference.identify import identify
+    from kneenlp.inference.identify import identify, reduced_fit, solve_simultaneous
 
     model = fit.model
     start = dict(fit.params)
@@ -142,9 +148,16 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
         start[n] = float(np.clip(base + v, *par.bounds))
     free = [*fit.free, *score.parameters]
     fixed, noise = fit.problem.fixed, fit.problem.noise
-    new = identify(model, fit.data, free=free, start=start, fixed=fixed, noise=noise, restarts=0)
+    # reduced-space Gauss-Newton from the base fit (effect neutral, every iterate at equilibrium)
+    # finds the refit's basin robustly; IPOPT then solves the simultaneous NLP from there.  (IPOPT
+    # alone from the one-step estimate wandered for 150 iterations on cartilage 4x softer.)
+    problem = replace(fit.problem, free=free)
+    new = reduced_fit(problem, problem.values(fit.theta), q0=fit.q_pred)
+    polished = solve_simultaneous(problem, dict(new.params), solver_options={"ipopt": {"max_iter": POLISH_ITERATIONS}})
+    if polished.success and polished.objective <= new.objective * (1 + 1e-9):
+        new = polished
     if not new.success or new.objective > fit.objective:
-        again = identify(model, fit.data, free=free, start=dict(fit.params), fixed=fixed, noise=noise, restarts=0)
+        again = identify(model, fit.data, free=free, start=start, fixed=fixed, noise=noise, restarts=0)
         if again.success and (not new.success or again.objective < new.objective):
             new = again
     n_obs = fit.residuals.size

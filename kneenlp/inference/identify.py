@@ -26,7 +26,7 @@ import numpy as np
 from scipy import stats
 
 from kneenlp import interrupts
-from kneenlp.conventions import TO_USER
+from kneenlp.conventions import POSE_ENVELOPE_USER, TO_USER
 from kneenlp.errors import unknown_name
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
@@ -38,6 +38,7 @@ from kneenlp.model.kneemodel import KneeModel
 from kneenlp.simulation import model_for
 from kneenlp.solvers.forward import forward_solver
 from kneenlp.solvers.nlp import IdentificationNLP, build_nlp
+from kneenlp.solvers.reduced import reduced_least_squares
 
 METHODS = ("simultaneous", "nested")
 
@@ -110,6 +111,8 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         if k == 0 and start:
             s.update(start)
         fit = solve_simultaneous(problem, s, solver, solver_options, threads)
+        if not fit.success and solver == "ipopt":
+            fit = _rescued(problem, s, fit, solver_options, threads)
         if best is None or (good(fit) and not good(best)) or \
                 (fit.success and good(fit) == good(best) and fit.objective < best.objective) or \
                 (fit.success and not best.success):
@@ -123,6 +126,35 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         note = f"{k - max(1, multistart)} restart(s) after failed solves"
         best.message = f"{best.message}; {note}" if best.message else note
     return best
+
+
+def reduced_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None) -> Fit:
+    """The fit of ``problem`` by reduced-space Gauss-Newton from ``start`` (SI; poses warm-started
+    from ``q0``, SI): :func:`~kneenlp.solvers.reduced.reduced_least_squares` as a :class:`Fit`."""
+    r = reduced_least_squares(problem, start, q0=q0)
+    theta = problem.theta(r.values)
+    solver = forward_solver(problem.model)
+    max_res = max(solver.residual_norm(qi, theta, t) for t, qi in zip(problem.trials, r.q, strict=True))
+    return Fit.build(problem, "reduced", theta, r.q, status=r.message, success=r.success and max_res <= 1e-6,
+                     iterations=r.evaluations, seconds=r.seconds, max_residual=max_res, start=dict(start),
+                     evaluations=r.evaluations, message="reduced-space Gauss-Newton", solver="reduced")
+
+
+def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fit, solver_options: dict | None,
+             threads: int, q0: np.ndarray | None = None) -> Fit:
+    """A second try after IPOPT failed from ``start``: reduced-space Gauss-Newton from the same
+    start (every iterate at equilibrium, :mod:`kneenlp.solvers.reduced`), then IPOPT from where it
+    stopped; the better of the two tries is returned, its message saying so."""
+    reduced = reduced_least_squares(problem, start, q0=q0)
+    fit = solve_simultaneous(problem, reduced.values, "ipopt", solver_options, threads)
+    if not fit.success or (failed.success and failed.objective <= fit.objective):
+        return failed
+    note = (f"rescued: IPOPT failed from the start ({failed.status}); a reduced-space Gauss-Newton start "
+            f"({reduced.evaluations} evaluations) led it to the solution")
+    fit.message = f"{fit.message}; {note}" if fit.message else note
+    fit.seconds += failed.seconds + reduced.seconds
+    fit.iterations += failed.iterations
+    return fit
 
 
 def _implausible_misfit(fit: Fit) -> bool:
@@ -173,9 +205,20 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     theta0 = problem.theta(start)
     data = problem.data
     # equilibrium-consistent start: Newton on all trials at once from the measured poses,
-    # per-trial ramping for the few that fail; a trial that still fails starts at its data
-    q0, res0 = forward_solver(problem.model).solve_batch(data.trials, theta0, data.q)
+    # per-trial ramping for the few that fail, then the forward solver's own start (unloaded pose
+    # first; measured poses far from the start's equilibrium, e.g. cartilage much softer than the
+    # model's, defeat Newton from them); a trial that still fails starts at its data
+    solver = forward_solver(problem.model)
+    q0, res0 = solver.solve_batch(data.trials, theta0, data.q)
     ok = res0 <= 1e-6
+    if not ok.all():
+        failed = np.flatnonzero(~ok)
+        for i, sol in zip(failed, solver.solve([data.trials[i] for i in failed], theta0), strict=True):
+            if sol.converged:
+                q0[i], ok[i] = sol.q, True
+    # a start pose outside the NLP's pose envelope would be moved onto its bound by IPOPT, far
+    # from equilibrium (a slack scattered start reached 36 deg varus): such a trial starts at its data
+    ok &= np.all(np.abs(q0 * TO_USER) < 0.99 * POSE_ENVELOPE_USER, axis=1)
     q0_user = np.where(ok[:, None], q0 * TO_USER, problem.measured)
     n_fail_start = int(np.sum(~ok))
     x0 = nlp.pack_x([start[n] for n in problem.free], q0_user)
@@ -196,7 +239,8 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
         left_out = max(problem.model.left_out_penetration(qi, theta_sol, t.flexion)
                        for t, qi in zip(problem.trials, q_sol, strict=True))
     success = bool(st.get("success", False)) and max_res <= 1e-6 and left_out <= 0
-    msg = "" if n_fail_start == 0 else f"{n_fail_start} trial(s) could not be solved at the start; started at data"
+    msg = "" if n_fail_start == 0 else (f"{n_fail_start} trial(s) had no equilibrium inside the pose envelope at "
+                                        "the start; started at data")
     if bool(st.get("success", False)) and max_res > 1e-6:
         msg = (msg + "; " if msg else "") + f"equilibrium residual {max_res:.2e} above 1e-6"
     if left_out > 0:

@@ -12,8 +12,9 @@ Outcomes (:data:`OUTCOMES`):
 * ``adequate``: no test rejects; the detection limits say what that rules out;
 * ``missing_effect``: a candidate is significant and its refit brings the misfit to the noise
   (chi-square p after it >= alpha): it is recommended, unless another significant candidate's
-  refit is as good (BIC within :data:`AMBIGUOUS_BIC`): then both are named and neither is
-  recommended (the protocol cannot tell them apart);
+  refit is as good (BIC within :data:`AMBIGUOUS_BIC`, or not worse in Vuong's non-nested test,
+  :func:`closeness_z` below :data:`RIVAL_Z`): then both are named and neither is recommended (the
+  protocol cannot tell them apart);
 * ``noise_larger``: only the global test rejects, no candidate is significant and the excess is
   spread evenly over coordinates and load directions (Brown-Forsythe tests of equal spread, p >=
   alpha): the signature of noise larger than declared, reported with the level the data imply;
@@ -36,6 +37,10 @@ ALPHA = 0.01
 #: Two significant candidates whose refits differ by less than this in BIC explain the data
 #: equally well (Kass & Raftery: "not worth more than a bare mention"): neither is recommended.
 AMBIGUOUS_BIC = 2.0
+#: The best refit must also beat every other significant refit in Vuong's non-nested test (BIC
+#: corrected) at one-sided level 0.05, z > 1.645: with many similar candidates (eight 3-parameter
+#: attachment shifts) a BIC lead of a few units is often the noise's choice (issue 15 benchmark).
+RIVAL_Z = 1.645
 OUTCOMES = ("adequate", "missing_effect", "noise_larger", "unexplained")
 
 
@@ -50,6 +55,22 @@ def holm(p_values: Sequence[float]) -> np.ndarray:
         running = max(running, min(1.0, (m - rank) * p[i]))
         adjusted[i] = running
     return adjusted
+
+
+def closeness_z(best: np.ndarray, other: np.ndarray, k_best: int, k_other: int) -> float:
+    """Vuong's z statistic (Schwarz-corrected) that the model with weighted residuals ``best``
+    (``k_best`` parameters) fits better than the non-nested ``other``: the log-likelihood ratio
+    ``n/2 ln(RSS_other / RSS_best) - (k_best - k_other) ln(n) / 2`` (half the BIC difference) over
+    ``sqrt(n)`` times the spread of the per-observation contributions ``(o_i^2 - b_i^2) / (2 s^2)``
+    (``s^2 = RSS_best / n``).  The uncentred spread is used, so that refits with near-identical
+    residuals give z near 0 (indistinguishable), never a spurious large z."""
+    b, o = np.ravel(best), np.ravel(other)
+    n = b.size
+    s2 = max(float(b @ b) / n, 1e-300)
+    li = (o**2 - b**2) / (2 * s2)
+    lr = 0.5 * n * np.log(max(float(o @ o), 1e-300) / max(float(b @ b), 1e-300)) - 0.5 * (k_best - k_other) * np.log(n)
+    omega = float(np.sqrt(np.mean(li**2)))
+    return float(lr / (np.sqrt(n) * omega)) if omega > 0 else 0.0
 
 
 def spread_homogeneity(trials: Sequence[Trial], residuals: np.ndarray) -> float:
@@ -84,7 +105,7 @@ class Verdict:
     recommended: str | None = None
     implied_noise: NoiseModel | None = None
     homogeneity_p: float | None = None
-    rivals: list[str] = field(default_factory=list)  # candidates as good as ``best`` (BIC within 2)
+    rivals: list[str] = field(default_factory=list)  # candidates as good as ``best`` (:func:`_rival`)
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -97,10 +118,13 @@ class Verdict:
 
 
 def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residuals: np.ndarray,
-           declared: NoiseModel, dof: int, alpha: float = ALPHA) -> Verdict:
+           declared: NoiseModel, dof: int, alpha: float = ALPHA,
+           refit_residuals: dict[str, np.ndarray] | None = None) -> Verdict:
     """The outcome of the global test (``global_p``) and the candidates' tests (``candidates``:
     :class:`~kneenlp.inference.candidates.EffectScore`, ranked best first) at family level
-    ``alpha``; ``residuals`` (T x 5, mm and deg) and ``dof`` are the base fit's."""
+    ``alpha``; ``residuals`` (T x 5, mm and deg) and ``dof`` are the base fit's;
+    ``refit_residuals`` the weighted residuals of each refitted candidate (for the non-nested
+    comparison of the best with its rivals, :func:`closeness_z`)."""
     names = ["global", *[c.effect for c in candidates]]
     adj = holm([global_p, *[c.p_value for c in candidates]])
     adjusted = dict(zip(names, (float(a) for a in adj), strict=True))
@@ -114,8 +138,7 @@ def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residu
         # AIC's penalty (2 per parameter) let 3-parameter attachment shifts mimic 1-parameter effects
         best = min(refitted, key=lambda c: c.refit["delta_bic"]) if refitted else sig[0]
         v = Verdict("missing_effect", alpha, adjusted, [c.effect for c in sig], best.effect)
-        rivals = [c.effect for c in refitted
-                  if c is not best and c.refit["delta_bic"] - best.refit["delta_bic"] < AMBIGUOUS_BIC]
+        rivals = [c.effect for c in refitted if c is not best and _rival(best, c, refit_residuals or {})]
         if best.refit and best.refit["success"] and best.refit["p_value_after"] >= alpha:
             if rivals:  # the data cannot tell them apart: naming one would be a guess
                 v.rivals = rivals
@@ -128,3 +151,14 @@ def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residu
     homog = spread_homogeneity(trials, residuals)
     outcome = "noise_larger" if homog >= alpha else "unexplained"
     return Verdict(outcome, alpha, adjusted, [], implied_noise=implied_noise(declared, rss, dof), homogeneity_p=homog)
+
+
+def _rival(best, other, refit_residuals: dict[str, np.ndarray]) -> bool:
+    """Whether ``other``'s refit explains the data as well as ``best``'s: BIC within
+    :data:`AMBIGUOUS_BIC`, or Vuong's z below :data:`RIVAL_Z`."""
+    if other.refit["delta_bic"] - best.refit["delta_bic"] < AMBIGUOUS_BIC:
+        return True
+    rb, ro = refit_residuals.get(best.effect), refit_residuals.get(other.effect)
+    if rb is None or ro is None:
+        return False
+    return closeness_z(rb, ro, best.df, other.df) < RIVAL_Z

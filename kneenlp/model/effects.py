@@ -6,7 +6,8 @@ An *effect* is something the model adequacy check can add (:mod:`kneenlp.inferen
   ``candidate = True``): at its neutral parameter values it contributes exactly nothing, so the
   base fit is the extended fit with those parameters fixed.  Built in: bundles named in the knee
   file's ``[candidates.<name>]`` (e.g. ``posterior_capsule``, ``ALL``: :class:`Ligament` elements
-  with stiffness 0), :class:`Meniscus`, :class:`FlexionOffset` and :class:`Registration`;
+  with stiffness 0), :class:`Meniscus`, :class:`FlexionOffset` and :class:`Registration` (all five
+  coordinates; :func:`registration_effects` adds one candidate per coordinate);
 * a parameter group of the base model (:func:`parameter_group`): ``lin_strain`` (the linear
   strain limits) and ``contact_modulus``;
 * a geometry candidate (:func:`attachment_effects`): the position of one ligament's (or bundle
@@ -117,6 +118,16 @@ class Registration(ForceElement):
 
     def measurement_bias(self, values: dict) -> ca.SX:
         return ca.vertcat(*[values[f"registration.{c}"] for c in COORDINATES])
+
+
+def registration_effects() -> list[Effect]:
+    """One candidate per measured coordinate: a registration bias of that coordinate alone
+    (``registration_<coordinate>``, 1 degree of freedom).  With only the 5-coordinate
+    ``registration`` a bias of one coordinate was penalised for 4 parameters it does not need, and
+    3-parameter attachment shifts mimicked it (issue 15 benchmark)."""
+    return [parameter_group(f"registration_{c}", [f"registration.{c}"],
+                            f"a constant registration offset of the measured {c.replace('_', ' ')} alone")
+            for c in COORDINATES]
 
 
 def parameter_group(name: str, names: list[str], description: str) -> Effect:

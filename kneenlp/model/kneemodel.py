@@ -40,6 +40,7 @@ from kneenlp.model.effects import (
     builtin_elements,
     builtin_groups,
     bundle_group_effects,
+    registration_effects,
 )
 from kneenlp.model.elements import ForceElement, Output, Pose, StagedElement
 from kneenlp.model.kinematics import generalized_forces, tibial_pose
@@ -77,6 +78,8 @@ class KneeModel:
         self._index = {n: i for i, n in enumerate(self.parameter_names)}
         self.effects: list[Effect] = [Effect(e.name, e.description, tuple(e.frees()))
                                       for e in self.elements if e.candidate]
+        if any(e.name == "registration" for e in self.effects):
+            self.effects += registration_effects()
         self.effects += builtin_groups([n for n in self.ligament_names if not knee.ligaments[n].grouped])
         self.effects += bundle_group_effects([n for n in self.ligament_names if knee.ligaments[n].grouped])
         self.effects += attachment_effects(self.ligament_names)

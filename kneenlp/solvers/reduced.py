@@ -1,0 +1,89 @@
+"""Reduced-space Gauss-Newton: least squares over the parameters alone, every pose at equilibrium.
+
+The simultaneous NLP (:mod:`kneenlp.solvers.nlp`) lets IPOPT move poses and parameters together
+and satisfy equilibrium only at the end.  From a start whose measured poses are far from the
+model's equilibrium (cartilage four times softer than the model's: the measured poses penetrate
+the stiff model's cartilage by millimetres) IPOPT can wander for its whole iteration budget.
+Here the poses are eliminated instead: for parameters ``p`` every trial is solved
+(:meth:`~kneenlp.solvers.forward.ForwardSolver.solve_batch`, warm-started from the last poses),
+the residuals are the problem's own (:meth:`~kneenlp.inference.problem.IdentificationProblem.residuals`)
+and their Jacobian the implicit-function sensitivities
+(:meth:`~kneenlp.inference.problem.IdentificationProblem.sensitivities`); scipy's trust-region
+reflective least squares takes the steps within the parameter bounds.  Every iterate is an
+equilibrium, so it cannot wander off; it is used to start (or rescue) a simultaneous solve.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy import optimize
+
+from kneenlp.solvers.forward import forward_solver
+
+if TYPE_CHECKING:
+    from kneenlp.inference.problem import IdentificationProblem
+
+
+@dataclass
+class ReducedResult:
+    """Free parameter values (SI), equilibrium poses (T x 5, SI), objective, success, counts."""
+
+    values: dict[str, float]
+    q: np.ndarray
+    objective: float
+    success: bool
+    evaluations: int
+    seconds: float
+    message: str
+
+
+def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float], *, q0: np.ndarray | None = None,
+                          max_evaluations: int = 60, tol: float = 1e-8) -> ReducedResult:
+    """Minimise the problem's weighted residual sum over its free parameters from ``start`` (SI),
+    with every trial at equilibrium (module docstring); ``q0`` warm-starts the first poses (SI,
+    default the measured ones).  Parameters scaled by their scales; stops at relative cost change
+    ``tol`` or after ``max_evaluations`` residual evaluations."""
+    t0 = time.perf_counter()
+    solver = forward_solver(problem.model)
+    scales = problem.scales
+    w = np.sqrt(problem.weights).ravel()
+    trials = problem.trials
+    state = {"q": np.asarray(problem.data.q if q0 is None else q0, float).copy(), "x": None, "ok": True}
+
+    def solve(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        theta = problem.theta(x * scales)
+        q, res = solver.solve_batch(trials, theta, state["q"])
+        if not np.all(res <= 1e-6):  # a trial without equilibrium: try from the forward solver's own start
+            bad = np.flatnonzero(~(res <= 1e-6))
+            for i, sol in zip(bad, solver.solve([trials[i] for i in bad], theta), strict=True):
+                if sol.converged:
+                    q[i], res[i] = sol.q, sol.max_residual
+        ok = bool(np.all(res <= 1e-6))
+        if ok:
+            state["q"] = q
+        state["ok"] = ok
+        return q, theta
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        q, theta = solve(x)
+        r = problem.residuals(q, theta).ravel() * w
+        state["x"], state["theta"], state["qx"] = x.copy(), theta, q
+        return r if state["ok"] else r + 1e3  # no equilibrium: a large residual turns the step back
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        if state["x"] is None or not np.array_equal(x, state["x"]):
+            fun(x)
+        return problem.sensitivities(state["qx"], state["theta"]) * scales * w[:, None]
+
+    x0 = np.clip(np.array([start[n] for n in problem.free]) / scales, problem.lower / scales, problem.upper / scales)
+    out = optimize.least_squares(fun, x0, jac=jac, bounds=(problem.lower / scales, problem.upper / scales),
+                                 method="trf", x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations)
+    q, theta = solve(out.x)
+    values = dict(zip(problem.free, out.x * scales, strict=True))
+    success = bool(out.status > 0 and state["ok"])
+    return ReducedResult(values, q, problem.objective(q, theta), success, int(out.nfev),
+                         time.perf_counter() - t0, str(out.message))
