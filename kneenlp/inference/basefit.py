@@ -22,6 +22,10 @@ from kneenlp.model.kneemodel import KneeModel
 
 #: Relative objective difference below which two starts count as the same minimum.
 AGREE = 1e-3
+#: IPOPT iterations per start: clean data take 9-40; a start that needs more is usually wandering
+#: (a model far from the data), and identify's rescue (reduced-space Gauss-Newton, then IPOPT
+#: again) reaches the minimum sooner than 150 iterations would.
+MAX_ITER = 60
 
 
 def base_fit(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, noise: str | NoiseModel, *,
@@ -31,7 +35,8 @@ def base_fit(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, noi
     converged fit is returned, ``fit.extra["base_starts"]`` says how many starts it took."""
     fits: list[Fit] = []
     for i in range(max_starts):
-        fit = identify(knee, data, seed=seed + 7919 * i, noise=noise, restarts=0, free=free)
+        fit = identify(knee, data, seed=seed + 7919 * i, noise=noise, restarts=0, free=free,
+                       solver_options={"ipopt": {"max_iter": MAX_ITER}})
         fits.append(fit)
         if fit.success and not _implausible_misfit(fit):
             break

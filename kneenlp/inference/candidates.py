@@ -29,8 +29,7 @@ from scipy import stats
 
 from kneenlp.inference.fit import Fit
 
-#: IPOPT iterations allowed to polish a refit from its reduced-space solution (it converges in
-#: 5-35 from there, or wanders: then the reduced-space solution is kept).
+#: IPOPT iterations allowed to finish a refit whose reduced-space solve failed.
 POLISH_ITERATIONS = 40
 
 
@@ -133,9 +132,9 @@ def score_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> l
 
 def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
     """Refit with the effect's parameters free: reduced-space Gauss-Newton from the base estimate
-    (effect neutral), polished by the simultaneous NLP from its result (kept if it converges within
-    :data:`POLISH_ITERATIONS` and does no worse); if that fails or does worse than the base fit,
-    the NLP from the effect's one-step estimate (clipped to its bounds).
+    (effect neutral; :func:`~kneenlp.inference.identify.reduced_fit`), finished by the
+    simultaneous NLP if it fails; if that fails too or does worse than the base fit, the NLP from
+    the effect's one-step estimate (clipped to its bounds).
     Returns the refit's numbers (drops in mm^2 + deg^2 and chi-square units, F and LR p-values,
     AIC and BIC changes, parameters SI with standard errors) and the refitted :class:`Fit`."""
     from kneenlp.inference.identify import identify, reduced_fit, solve_simultaneous
@@ -148,14 +147,16 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
         start[n] = float(np.clip(base + v, *par.bounds))
     free = [*fit.free, *score.parameters]
     fixed, noise = fit.problem.fixed, fit.problem.noise
-    # reduced-space Gauss-Newton from the base fit (effect neutral, every iterate at equilibrium)
-    # finds the refit's basin robustly; IPOPT then solves the simultaneous NLP from there.  (IPOPT
-    # alone from the one-step estimate wandered for 150 iterations on cartilage 4x softer.)
+    # reduced-space Gauss-Newton from the base fit (effect neutral, every iterate at equilibrium):
+    # robust and about as fast as IPOPT from a good start (IPOPT from the one-step estimate wandered
+    # for 150 iterations on cartilage 4x softer); the simultaneous NLP takes over where it fails
     problem = replace(fit.problem, free=free)
     new = reduced_fit(problem, problem.values(fit.theta), q0=fit.q_pred)
-    polished = solve_simultaneous(problem, dict(new.params), solver_options={"ipopt": {"max_iter": POLISH_ITERATIONS}})
-    if polished.success and polished.objective <= new.objective * (1 + 1e-9):
-        new = polished
+    if not new.success:
+        polished = solve_simultaneous(problem, dict(new.params),
+                                      solver_options={"ipopt": {"max_iter": POLISH_ITERATIONS}})
+        if polished.success:
+            new = polished
     if not new.success or new.objective > fit.objective:
         again = identify(model, fit.data, free=free, start=start, fixed=fixed, noise=noise, restarts=0)
         if again.success and (not new.success or again.objective < new.objective):
