@@ -267,3 +267,107 @@ def test_base_fit_restarts_out_of_a_wrong_basin(tmp_path):
     kneenlp.simulate(knee, "set4", parameters=values).measured("none").to_csv(path, index=False)
     rms = [base_fit(knee, path, NOISE, seed=s).rms for s in (1, 2)]
     assert max(rms) < 1.05 * min(rms) + 1e-3, rms
+
+
+def test_closeness_z_is_half_the_bic_difference_over_its_spread():
+    """Vuong's statistic (Schwarz-corrected): 0 for identical refits, positive when the first fits
+    better (negative the other way round), and its numerator is half the BIC difference."""
+    from kneenlp.inference.verdict import closeness_z
+
+    rng = np.random.default_rng(0)
+    b = rng.normal(0, 0.3, 300)
+    o = b + rng.normal(0, 0.1, 300) + 0.08 * np.sign(b)
+    assert closeness_z(b, b, 1, 1) == 0.0
+    z = closeness_z(b, o, 1, 1)
+    assert z > 0 and closeness_z(o, b, 1, 1) < 0
+    n = b.size
+    bic = lambda r, k: n * np.log(r @ r) + k * np.log(n)  # noqa: E731
+    li = (o**2 - b**2) / (2 * (b @ b) / n)
+    expected = 0.5 * (bic(o, 3) - bic(b, 1)) / (np.sqrt(n) * np.sqrt(np.mean(li**2)))
+    assert closeness_z(b, o, 1, 3) == pytest.approx(expected)
+    assert closeness_z(b, o, 1, 3) > z  # the extra parameters of the other count against it
+
+
+def test_verdict_refuses_a_best_refit_the_non_nested_test_cannot_separate():
+    """Two 3-parameter refits 3 BIC units apart but with residuals that differ only by noise:
+    Vuong's test cannot separate them, so neither is recommended; clearly different residuals can."""
+    from types import SimpleNamespace
+
+    from kneenlp.experiment.noise import NoiseModel
+    from kneenlp.inference.verdict import decide
+
+    trials = kneenlp.experiment.protocol.Protocol.load("set3").trials
+    rng = np.random.default_rng(1)
+    rb = rng.uniform(-0.5, 0.5, 5 * len(trials))
+
+    def cand(name, bic):
+        refit = {"success": True, "delta_bic": bic, "delta_aic": bic, "p_value_after": 0.5}
+        return SimpleNamespace(effect=name, p_value=1e-4, refit=refit, df=3)
+
+    args = {"trials": trials, "residuals": rb.reshape(-1, 5), "declared": NoiseModel.parse(NOISE), "dof": 140}
+    near = rb + rng.normal(0, 0.02, rb.size)
+    cands = [cand("LCL_femoral_attachment", -10.0), cand("MCL_tibial_attachment", -7.0)]
+    v = decide(0.2, cands, **args, refit_residuals={"LCL_femoral_attachment": rb, "MCL_tibial_attachment": near})
+    assert v.best == "LCL_femoral_attachment" and v.recommended is None and v.rivals == ["MCL_tibial_attachment"]
+    far = rb.copy()
+    far[:60] += 0.6  # the rival misses a whole group of trials
+    v = decide(0.2, [cand("LCL_femoral_attachment", -10.0), cand("MCL_tibial_attachment", -7.0 + 60.0)], **args,
+               refit_residuals={"LCL_femoral_attachment": rb, "MCL_tibial_attachment": far})
+    assert v.recommended == "LCL_femoral_attachment" and not v.rivals
+
+
+def test_registration_of_one_coordinate_is_a_candidate(model):
+    names = {e.name: e.parameters for e in model.effects}
+    for c in kneenlp.conventions.COORDINATES:
+        assert names[f"registration_{c}"] == (f"registration.{c}",)
+    assert len(names["registration"]) == 5
+
+
+def test_simulated_detection_limit_agrees_with_the_linear_one_for_a_linear_effect(tmp_path):
+    """A registration bias enters the observation linearly, so the exact noncentrality of
+    simulated noise-free data equals the linearised one; a linear strain limit does not (the toe
+    region moves): the base model absorbs most of it, and the simulated limit exceeds the linear."""
+    from kneenlp.inference.detection import detection_limits, exact_noncentrality, simulated_limits
+
+    knee = kneenlp.Knee.named("synthetic")
+    path = tmp_path / "truth.csv"
+    kneenlp.simulate(knee, "set3").measured("none").to_csv(path, index=False)
+    fit = base_fit(knee, path, NOISE)
+    reg = "registration.anterior_translation"
+    lin = detection_limits(fit, SIGMA, [reg], 1, 0.01)[reg]  # mm
+    lam = exact_noncentrality(fit, reg, lin * 1e-3, SIGMA)
+    assert lam == pytest.approx(noncentrality_needed(1, 0.01), rel=0.03)
+    acl = "ACL.lin_strain"
+    names = [f"{lig}.lin_strain" for lig in fit.model.ligament_names]
+    linear = detection_limits(fit, SIGMA, names, 4, 0.01)[acl]
+    assert simulated_limits(fit, SIGMA, [acl], 4, 0.01)[acl] > 1.5 * linear
+
+
+def test_reduced_space_fit_agrees_with_the_simultaneous_nlp(tmp_path):
+    """Two solvers of one least-squares problem: reduced-space Gauss-Newton (poses eliminated)
+    and IPOPT on the simultaneous NLP reach the same minimum from the same start."""
+    from kneenlp.inference.identify import reduced_fit
+
+    knee = kneenlp.Knee.named("synthetic")
+    path = tmp_path / "m.csv"
+    kneenlp.simulate(knee, "set3").measured(NOISE, 5).to_csv(path, index=False)
+    nlp = identify(knee, path, noise=NOISE, seed=2)
+    red = reduced_fit(nlp.problem, nlp.start)
+    assert nlp.success and red.success and red.method == "reduced"
+    assert red.objective == pytest.approx(nlp.objective, rel=1e-6)
+    for n in nlp.free:
+        assert red.params[n] == pytest.approx(nlp.params[n], rel=1e-4, abs=1e-7 * nlp.model.parameter(n).scale)
+    assert red.max_residual <= 1e-6
+
+
+@pytest.mark.slow
+def test_much_softer_cartilage_is_named_with_its_modulus(tmp_path):
+    """Set 4 data from cartilage four times softer (2.5 GN/m^3): IPOPT alone wandered for 150
+    iterations on the base fit and the refit (issue 15 benchmark); the start inside the pose
+    envelope, the rescue and the reduced-space refit name the contact modulus and recover it."""
+    knee = kneenlp.Knee.named("synthetic")
+    data = hidden(knee, "set4", {"contact.modulus": 2.5e9}, 3000, tmp_path)
+    d = diagnose(base_fit(knee, data, NOISE, seed=3000), NOISE)
+    assert d.recommended is not None and d.recommended.effect == "contact_modulus", d.report()
+    after = d.refits["contact_modulus"]
+    assert abs(after.params["contact.modulus"] - 2.5e9) <= 3 * after.stderr["contact.modulus"], d.verdict

@@ -35,7 +35,7 @@ import pandas as pd
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.inference.candidates import EffectScore, refit_with, score_effects
-from kneenlp.inference.detection import detection_limits
+from kneenlp.inference.detection import detection_limits, simulated_limits_either_way
 from kneenlp.inference.fit import Fit
 from kneenlp.inference.patterns import Pattern, failure_patterns
 from kneenlp.inference.statistics import chi_square_test
@@ -73,6 +73,7 @@ class Diagnosis:
     verdict: str = ""
     refits: dict[str, Fit] = field(default_factory=dict)  # effect name -> refitted Fit
     seconds: float = 0.0
+    limits: str = "linear"  # how the detection limits were computed: "linear", "simulated" or "none"
 
     @property
     def outcome(self) -> str:
@@ -104,6 +105,7 @@ class Diagnosis:
                 else None, "recommended": rec.effect if rec else None,
                 "estimate": estimate_words(self.fit, rec, self.refits.get(rec.effect)) if rec else None,
                 "verdict": self.verdict, "base_starts": self.fit.extra.get("base_starts", 1),
+                "detection_limits": self.limits,
                 "seconds": self.seconds}
 
     def to_json(self) -> str:
@@ -124,13 +126,15 @@ class Diagnosis:
         if self.ranking:
             lines.append(f"[[Candidate effects]] chi-square drop in units of the declared noise variance (score: one "
                          f"step; refit: exact), p Holm-adjusted over {len(adj) or len(self.ranking) + 1} tests; "
-                         "detection limit: smallest effect flagged in half of repeated experiments")
+                         f"detection limit ({self.limits}): smallest effect flagged in half of repeated "
+                         "experiments")
+            width = max(len(s.effect) for s in self.ranking)
             for s in self.ranking:
                 ref = (f" refit {s.refit['chi2_drop']:7.1f} dBIC {s.refit['delta_bic']:+6.1f}" if s.refit
                        else " " * 28)
                 limit = _limit_words(s)
                 p = adj.get(s.effect, s.p_value)
-                lines.append(f"    {s.effect:26s} df {s.df} score {s.score_chi2:7.1f}{ref}  p {p:8.2g}"
+                lines.append(f"    {s.effect:{width}s} df {s.df} score {s.score_chi2:7.1f}{ref}  p {p:8.2g}"
                              + (f"  limit {limit}" if limit else ""))
         lines.append(f"[[Verdict]] {self.verdict}")
         return "\n".join(lines)
@@ -202,10 +206,19 @@ def _words(trial, coord: str, unit: str, r: float) -> str:
 
 
 def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list[str] | None = None,
-             refit: int = 4, alpha: float = ALPHA, limits: bool = True) -> Diagnosis:
+             refit: int = 4, alpha: float = ALPHA, limits: bool | str = True) -> Diagnosis:
     """Judge ``fit`` against ``noise`` (see module docstring): score every candidate effect, refit
     the best ``refit`` of them (only those with score p < :data:`REFIT_P` when the global test
-    passes), give each its detection limit (``limits``) and decide at family level ``alpha``."""
+    passes), give each its detection limit and decide at family level ``alpha``.
+
+    ``limits``: ``True`` or ``"linear"`` for the linearised detection limits (instant),
+    ``"simulated"`` for limits from simulated noise-free data (:func:`~kneenlp.inference.detection.simulated_limits`,
+    a few seconds per parameter; exact where the linearisation is optimistic, e.g. the linear strain
+    limits), ``False`` for none."""
+    if limits not in (True, False, "linear", "simulated"):
+        from kneenlp.errors import unknown_name
+
+        raise unknown_name("detection-limit kind", str(limits), ["linear", "simulated"])
     t0 = time.perf_counter()
     noise = NoiseModel.parse(noise)
     sigma = noise.std
@@ -233,10 +246,14 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
     # the score test is linear in the effect, the refit is not: refitted candidates first, by BIC
     done = sorted([s for s in diag.ranking if s.refit], key=lambda s: s.refit["delta_bic"])
     diag.ranking = done + [s for s in diag.ranking if not s.refit]
+    diag.limits = "none" if not limits else ("simulated" if limits == "simulated" else "linear")
     if limits:
         level = alpha / (len(diag.ranking) + 1)  # the first (strictest) level of Holm's procedure
         for s in diag.ranking:
-            s.detection_limit = detection_limits(fit, sigma, s.parameters, s.df, level)
+            if limits == "simulated":
+                s.detection_limit = simulated_limits_either_way(fit, sigma, s.parameters, s.df, level)
+            else:
+                s.detection_limit = detection_limits(fit, sigma, s.parameters, s.df, level)
     weighted = {name: (f.residuals * np.sqrt(f.weights)).ravel() for name, f in diag.refits.items()}
     diag.decision = decide(p_value, diag.ranking, trials=fit.data.trials, residuals=r, declared=noise, dof=dof,
                            alpha=alpha, refit_residuals=weighted)

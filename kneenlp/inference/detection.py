@@ -118,3 +118,14 @@ def simulated_limits(fit: Fit, sigma: float, names: list[str], df: int, level: f
             d *= np.sqrt(lam / max(got, 1e-3 * lam)) if got > 0 else 10.0
         out[n] = float(d * par.to_user)
     return out
+
+
+def simulated_limits_either_way(fit: Fit, sigma: float, names: list[str], df: int, level: float,
+                                power: float = POWER) -> dict[str, float]:
+    """:func:`simulated_limits` for an increase of each parameter, and for a decrease where an
+    increase is not seen (``inf``): the smallest change either way the protocol flags."""
+    up = simulated_limits(fit, sigma, names, df, level, power, sign=1.0)
+    unseen = [n for n in names if np.isinf(up[n]) and not fit.model.parameter(n).one_sided]
+    if unseen:
+        up |= simulated_limits(fit, sigma, unseen, df, level, power, sign=-1.0)
+    return up
