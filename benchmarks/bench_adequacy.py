@@ -103,8 +103,9 @@ def run_case(knee, protocol, values: dict, noise: str, seed: int, refit: int, tm
     row |= {"named_ok": frees_truth(row["named"]), "top1_ok": frees_truth(row["top1"]),
             "recommended_ok": frees_truth(row["recommended"]),
             "among_rivals": any(frees_truth(n) for n in d.decision.rivals)}
-    if rec is not None:
-        row["estimate"] = {n: d.refits[rec.effect].params[n] for n in rec.parameters}
+    named = d.named  # the refitted position of the named candidate, recommended or ambiguous
+    if named is not None and named.effect in d.refits:
+        row["estimate"] = {n: d.refits[named.effect].params[n] for n in named.parameters}
     return row
 
 
@@ -217,7 +218,7 @@ def main() -> None:
             row |= {"key": key, "kind": kind, "protocol": pname, "truth": truth, "values": values}
             if kind == "hidden":
                 row |= {"effect": rest[0], "factor": rest[1]}
-            if kind == "attachment" and row.get("estimate") and row["recommended_ok"]:
+            if kind == "attachment" and row.get("estimate") and row["named_ok"]:
                 err = 1e3 * (np.array([row["estimate"].get(n, 0.0) for n in values]) - np.array(list(values.values())))
                 u = knee.ligaments[next(iter(values)).split(".")[0]].direction()
                 row["error_mm"] = float(np.linalg.norm(err))

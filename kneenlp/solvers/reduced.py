@@ -10,7 +10,9 @@ the residuals are the problem's own (:meth:`~kneenlp.inference.problem.Identific
 and their Jacobian the implicit-function sensitivities
 (:meth:`~kneenlp.inference.problem.IdentificationProblem.sensitivities`); scipy's trust-region
 reflective least squares takes the steps within the parameter bounds.  Every iterate is an
-equilibrium, so it cannot wander off; it is used to start (or rescue) a simultaneous solve.
+equilibrium, so it cannot wander off.  Used to rescue a failed simultaneous solve
+(:func:`kneenlp.inference.identify.identify`) and to solve the refits of model adequacy
+(:func:`kneenlp.inference.candidates.refit_with`), which start at the base fit.
 """
 
 from __future__ import annotations
