@@ -65,7 +65,9 @@ def test_moved_attachment_is_found_and_located(knee, tmp_path):
     assert d.outcome == "missing_effect" and d.recommended.effect == "MCL_tibial_attachment", d.report()
     shift = np.array([d.refits["MCL_tibial_attachment"].params[f"MCL.tibia_{a}"] for a in SHIFT_AXES])
     assert np.linalg.norm(shift - [4e-3, 0, 0]) < 1.5e-3, shift
-    assert "MCL tibial attachment is about" in d.verdict and "mm anterior" in d.verdict
+    # the line's displacement in words (the point along it is barely determined on Set 3)
+    assert "MCL line at its tibial attachment is about" in d.verdict and "mm anterior" in d.verdict
+    assert "along the ligament the attachment is" in d.verdict
 
 
 @pytest.mark.slow

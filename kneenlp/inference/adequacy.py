@@ -245,6 +245,15 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
             s.refit, diag.refits[s.effect] = refit_with(fit, s, sigma)
     # the score test is linear in the effect, the refit is not: refitted candidates first, by BIC
     done = sorted([s for s in diag.ranking if s.refit], key=lambda s: s.refit["delta_bic"])
+    partner = _other_side(done[0].effect) if done and refit else None
+    if partner and partner not in diag.refits:
+        # the other attachment of the same ligament is the best one's closest mimic (moving the femoral
+        # end by d looks like moving the tibial end by -d near the reference pose): it is always refitted
+        # too, so that the verdict compares them (a moved ACL femoral attachment was once recommended as
+        # the tibial one, its partner left unrefitted at rank 5 of the score test)
+        s = next(x for x in diag.ranking if x.effect == partner)
+        s.refit, diag.refits[partner] = refit_with(fit, s, sigma)
+        done = sorted([s for s in diag.ranking if s.refit], key=lambda s: s.refit["delta_bic"])
     diag.ranking = done + [s for s in diag.ranking if not s.refit]
     diag.limits = "none" if not limits else ("simulated" if limits == "simulated" else "linear")
     if limits:
@@ -260,6 +269,14 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
     diag.verdict = verdict_words(diag)
     diag.seconds = time.perf_counter() - t0
     return diag
+
+
+def _other_side(effect: str) -> str | None:
+    """``X_tibial_attachment`` for ``X_femoral_attachment`` and back; ``None`` for other effects."""
+    for a, b in (("_femoral_attachment", "_tibial_attachment"), ("_tibial_attachment", "_femoral_attachment")):
+        if effect.endswith(a):
+            return effect.removesuffix(a) + b
+    return None
 
 
 def rank_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> list[EffectScore]:
@@ -283,6 +300,14 @@ def along_the_ligament(fit: Fit, ligament: str, names: list[str]) -> tuple[float
     return float(u @ shift), float(np.sqrt(max(u @ cov @ u, 0.0))), sd_across
 
 
+def _axis_words(shift: np.ndarray) -> str:
+    """A shift (mm; anterior, proximal, lateral) in words, largest part first: "4.1 mm anterior,
+    0.6 mm distal and 0.2 mm medial"."""
+    parts = [f"{abs(v):.1f} mm {AXIS_WORDS[a][0 if v >= 0 else 1]}"
+             for v, a in sorted(zip(shift, SHIFT_AXES, strict=True), key=lambda p: -abs(p[0]))]
+    return f"{', '.join(parts[:-1])} and {parts[-1]}"
+
+
 def estimate_words(base: Fit, score: EffectScore, after: Fit | None) -> str:
     """The refitted effect in words, e.g. "the MCL tibial attachment is about 4.1 mm anterior,
     0.6 mm distal and 0.2 mm medial (+- 0.5, 0.9, 0.4 mm) of where the knee file puts it"."""
@@ -293,19 +318,19 @@ def estimate_words(base: Fit, score: EffectScore, after: Fit | None) -> str:
     errs = {n: after.stderr[n] * model.parameter(n).to_user for n in score.parameters}
     if score.effect.endswith("_attachment"):
         lig, side = score.effect.removesuffix("_attachment").rsplit("_", 1)
-        parts, unc = [], []
-        for n in sorted(score.parameters, key=lambda n: -abs(vals[n])):
-            axis = next(a for a in SHIFT_AXES if n.endswith(a))
-            word = AXIS_WORDS[axis][0 if vals[n] >= 0 else 1]
-            parts.append(f"{abs(vals[n]):.1f} mm {word}")
-            unc.append(f"{errs[n]:.1f}")
-        words = (f"the {lig} {side} attachment is about {', '.join(parts[:-1])} and {parts[-1]} "
-                 f"(+- {', '.join(unc)} mm) of where the knee file puts it")
         along, sd_along, sd_across = along_the_ligament(after, lig, score.parameters)
+        by_axis = {a: next(n for n in score.parameters if n.endswith(f"_{a}")) for a in SHIFT_AXES}
+        shift = np.array([vals[by_axis[a]] for a in SHIFT_AXES])
         if sd_along > 2 * sd_across:
-            words += (f"; along the ligament it is {along:+.1f} +- {sd_along:.1f} mm: laxity tests fix the "
-                      "ligament's line, not the point on it (the reference strain absorbs the length change)")
-        return words
+            # the point along the line is barely determined: state the line's displacement (the shift
+            # across the ligament), then the along-line part with its large uncertainty
+            u = model.knee.ligaments[lig].direction()
+            return (f"the {lig} line at its {side} attachment is about {_axis_words(shift - along * u)} of where "
+                    f"the knee file puts it (+- {sd_across:.1f} mm across the ligament); along the ligament the "
+                    f"attachment is {along:+.1f} +- {sd_along:.1f} mm from it: laxity tests fix the ligament's "
+                    "line, not the point on it (the reference strain absorbs the length change)")
+        unc = ", ".join(f"{errs[by_axis[a]]:.1f}" for a in sorted(SHIFT_AXES, key=lambda a: -abs(vals[by_axis[a]])))
+        return f"the {lig} {side} attachment is about {_axis_words(shift)} (+- {unc} mm) of where the knee file puts it"
     units = {n: "" if model.parameter(n).unit == "1" else f" {model.parameter(n).unit}" for n in score.parameters}
     return "; ".join(f"{n} = {vals[n]:.4g} +- {errs[n]:.2g}{units[n]}" for n in score.parameters)
 
