@@ -284,20 +284,22 @@ def rank_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> li
     return score_effects(fit, sigma, effects)
 
 
-def along_the_ligament(fit: Fit, ligament: str, names: list[str]) -> tuple[float, float, float]:
-    """An attachment shift's component along the ligament (mm, towards the femur), its standard
-    error (mm) and the largest standard error across the ligament (mm), from the fit's shift
-    parameters ``names`` (anterior, proximal, lateral order) and covariance."""
+def along_the_ligament(fit: Fit, ligament: str, names: list[str]) -> tuple[float, float, float, np.ndarray]:
+    """How well a refitted attachment shift (parameters ``names``) is determined: its component
+    (mm) along the direction the data see least (the covariance's largest axis, oriented towards
+    the femur; close to the ligament's line, which the reference strain makes nearly invisible),
+    that component's standard error (mm), the largest standard error across it (mm) and the
+    direction (unit vector, anterior/proximal/lateral)."""
     u = fit.model.knee.ligaments[ligament].direction()
     names = [n for axis in SHIFT_AXES for n in names if n.endswith(f"_{axis}")]
     idx = [fit.free.index(n) for n in names]
     cov = fit.covariance[np.ix_(idx, idx)] * 1e6  # m^2 -> mm^2
     shift = 1e3 * np.array([fit.params[n] for n in names])
-    across = np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]  # two unit vectors across the line
     if not np.all(np.isfinite(cov)):
-        return float(u @ shift), np.inf, np.inf
-    sd_across = float(np.sqrt(max(np.linalg.eigvalsh(across.T @ cov @ across).max(), 0.0)))
-    return float(u @ shift), float(np.sqrt(max(u @ cov @ u, 0.0))), sd_across
+        return float(u @ shift), np.inf, np.inf, u
+    var, axes = np.linalg.eigh(cov)
+    weak = axes[:, -1] * (1.0 if axes[:, -1] @ u >= 0 else -1.0)
+    return float(weak @ shift), float(np.sqrt(max(var[-1], 0.0))), float(np.sqrt(max(var[-2], 0.0))), weak
 
 
 def _axis_words(shift: np.ndarray) -> str:
@@ -318,16 +320,17 @@ def estimate_words(base: Fit, score: EffectScore, after: Fit | None) -> str:
     errs = {n: after.stderr[n] * model.parameter(n).to_user for n in score.parameters}
     if score.effect.endswith("_attachment"):
         lig, side = score.effect.removesuffix("_attachment").rsplit("_", 1)
-        along, sd_along, sd_across = along_the_ligament(after, lig, score.parameters)
+        along, sd_along, sd_across, weak = along_the_ligament(after, lig, score.parameters)
         by_axis = {a: next(n for n in score.parameters if n.endswith(f"_{a}")) for a in SHIFT_AXES}
         shift = np.array([vals[by_axis[a]] for a in SHIFT_AXES])
         if sd_along > 2 * sd_across:
             # the point along the line is barely determined: state the line's displacement (the shift
             # across the ligament), then the along-line part with its large uncertainty
-            u = model.knee.ligaments[lig].direction()
-            return (f"the {lig} line at its {side} attachment is about {_axis_words(shift - along * u)} of where "
-                    f"the knee file puts it (+- {sd_across:.1f} mm across the ligament); along the ligament the "
-                    f"attachment is {along:+.1f} +- {sd_along:.1f} mm from it: laxity tests fix the ligament's "
+            angle = np.degrees(np.arccos(min(1.0, abs(weak @ model.knee.ligaments[lig].direction()))))
+            return (f"the {lig} line at its {side} attachment is about {_axis_words(shift - along * weak)} of "
+                    f"where the knee file puts it (+- {sd_across:.1f} mm across the ligament); along the ligament "
+                    f"(the direction the data see least, {angle:.0f} deg from the line between its attachments) "
+                    f"the attachment is {along:+.1f} +- {sd_along:.1f} mm from it: laxity tests fix the ligament's "
                     "line, not the point on it (the reference strain absorbs the length change)")
         unc = ", ".join(f"{errs[by_axis[a]]:.1f}" for a in sorted(SHIFT_AXES, key=lambda a: -abs(vals[by_axis[a]])))
         return f"the {lig} {side} attachment is about {_axis_words(shift)} (+- {unc} mm) of where the knee file puts it"
