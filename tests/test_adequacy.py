@@ -373,3 +373,23 @@ def test_much_softer_cartilage_is_named_with_its_modulus(tmp_path):
     assert d.recommended is not None and d.recommended.effect == "contact_modulus", d.report()
     after = d.refits["contact_modulus"]
     assert abs(after.params["contact.modulus"] - 2.5e9) <= 3 * after.stderr["contact.modulus"], d.verdict
+
+
+def test_reduced_space_refit_stays_on_its_equilibrium_branch(tmp_path):
+    """A moved ACL femoral attachment on Set 3 (benchmark case): warm-starting the trials from a
+    rejected trial point once switched equilibrium branch, and the refit reported objective 3221
+    at the base parameters (base 25.2) and recommended the wrong attachment.  Solved from the
+    best point's poses it reaches IPOPT's minimum."""
+    from dataclasses import replace
+
+    from kneenlp.inference.identify import reduced_fit, solve_simultaneous
+
+    knee = kneenlp.Knee.named("synthetic")
+    shift = {"ACL.femur_anterior": 3.045e-3, "ACL.femur_proximal": -2.207e-3, "ACL.femur_lateral": -1.106e-3}
+    data = hidden(knee, "set3", shift, 4015, tmp_path)
+    fit = base_fit(knee, data, NOISE, seed=4015)
+    problem = replace(fit.problem, free=[*fit.free, *shift])
+    red = reduced_fit(problem, problem.values(fit.theta), q0=fit.q_pred)
+    nlp = solve_simultaneous(problem, problem.values(fit.theta))
+    assert red.success and nlp.success and red.objective < fit.objective
+    assert red.objective == pytest.approx(nlp.objective, rel=1e-5)

@@ -54,38 +54,40 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
     scales = problem.scales
     w = np.sqrt(problem.weights).ravel()
     trials = problem.trials
-    state = {"q": np.asarray(problem.data.q if q0 is None else q0, float).copy(), "x": None, "ok": True}
+    # every trial is solved from the poses of the best point so far (trf's current iterate: its steps
+    # only ever lower the cost), never from a rejected trial point: a knee can have two equilibria,
+    # and a warm start from far away switched branches (objective 25 -> 3221 at the same parameters)
+    state = {"best": (np.inf, np.asarray(problem.data.q if q0 is None else q0, float).copy()), "last": None}
 
-    def solve(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
         theta = problem.theta(x * scales)
-        q, res = solver.solve_batch(trials, theta, state["q"])
+        q, res = solver.solve_batch(trials, theta, state["best"][1])
         if not np.all(res <= 1e-6):  # a trial without equilibrium: try from the forward solver's own start
             bad = np.flatnonzero(~(res <= 1e-6))
             for i, sol in zip(bad, solver.solve([trials[i] for i in bad], theta), strict=True):
                 if sol.converged:
                     q[i], res[i] = sol.q, sol.max_residual
         ok = bool(np.all(res <= 1e-6))
-        if ok:
-            state["q"] = q
-        state["ok"] = ok
-        return q, theta
+        r = problem.residuals(q, theta).ravel() * w
+        state["last"] = (x.copy(), q, theta, ok)
+        return r, q, theta, ok
 
     def fun(x: np.ndarray) -> np.ndarray:
-        q, theta = solve(x)
-        r = problem.residuals(q, theta).ravel() * w
-        state["x"], state["theta"], state["qx"] = x.copy(), theta, q
-        return r if state["ok"] else r + 1e3  # no equilibrium: a large residual turns the step back
+        r, q, _, ok = evaluate(x)
+        if ok and r @ r < state["best"][0]:
+            state["best"] = (float(r @ r), q.copy())
+        return r if ok else r + 1e3  # no equilibrium: a large residual turns the step back
 
     def jac(x: np.ndarray) -> np.ndarray:
-        if state["x"] is None or not np.array_equal(x, state["x"]):
+        if state["last"] is None or not np.array_equal(x, state["last"][0]):
             fun(x)
-        return problem.sensitivities(state["qx"], state["theta"]) * scales * w[:, None]
+        _, q, theta, _ = state["last"]
+        return problem.sensitivities(q, theta) * scales * w[:, None]
 
     x0 = np.clip(np.array([start[n] for n in problem.free]) / scales, problem.lower / scales, problem.upper / scales)
     out = optimize.least_squares(fun, x0, jac=jac, bounds=(problem.lower / scales, problem.upper / scales),
                                  method="trf", x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations)
-    q, theta = solve(out.x)
+    _, q, theta, ok = evaluate(out.x)  # from the best point's poses: out.x's own branch
     values = dict(zip(problem.free, out.x * scales, strict=True))
-    success = bool(out.status > 0 and state["ok"])
-    return ReducedResult(values, q, problem.objective(q, theta), success, int(out.nfev),
+    return ReducedResult(values, q, problem.objective(q, theta), bool(out.status > 0 and ok), int(out.nfev),
                          time.perf_counter() - t0, str(out.message))
