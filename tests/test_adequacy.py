@@ -214,7 +214,7 @@ def test_verdict_picks_by_bic_and_refuses_to_guess_between_equals():
 
     def cand(name, p, bic, aic):
         refit = {"success": True, "delta_bic": bic, "delta_aic": aic, "p_value_after": 0.5, "drop": -aic}
-        return SimpleNamespace(effect=name, p_value=p, refit=refit)
+        return SimpleNamespace(effect=name, p_value=p, refit=refit, parameters=[name])
 
     trials = kneenlp.experiment.protocol.Protocol.load("set3").trials
     r = np.zeros((len(trials), 5))
@@ -304,7 +304,7 @@ def test_verdict_refuses_a_best_refit_the_non_nested_test_cannot_separate():
 
     def cand(name, bic):
         refit = {"success": True, "delta_bic": bic, "delta_aic": bic, "p_value_after": 0.5}
-        return SimpleNamespace(effect=name, p_value=1e-4, refit=refit, df=3)
+        return SimpleNamespace(effect=name, p_value=1e-4, refit=refit, df=3, parameters=[f"{name}.{a}" for a in "xyz"])
 
     args = {"trials": trials, "residuals": rb.reshape(-1, 5), "declared": NoiseModel.parse(NOISE), "dof": 140}
     near = rb + rng.normal(0, 0.02, rb.size)
@@ -316,6 +316,34 @@ def test_verdict_refuses_a_best_refit_the_non_nested_test_cannot_separate():
     v = decide(0.2, [cand("LCL_femoral_attachment", -10.0), cand("MCL_tibial_attachment", -7.0 + 60.0)], **args,
                refit_residuals={"LCL_femoral_attachment": rb, "MCL_tibial_attachment": far})
     assert v.recommended == "LCL_femoral_attachment" and not v.rivals
+
+
+def test_nested_candidates_are_compared_by_their_likelihood_ratio():
+    """A candidate nested in the best (its parameters a subset) rivals it only if the best's extra
+    parameters are not needed (likelihood-ratio chi-square, not Vuong's non-nested z, whose
+    spread vanishes for nested refits): the CI case registration vs registration_anterior_translation."""
+    from types import SimpleNamespace
+
+    from scipy import stats
+
+    from kneenlp.inference.verdict import NESTED_ALPHA, _rival, nested_p
+
+    coords = kneenlp.conventions.COORDINATES
+    full = SimpleNamespace(effect="registration", df=5, parameters=[f"registration.{c}" for c in coords],
+                           refit={"chi2_drop": 169.6, "delta_bic": -84.2})
+    one = SimpleNamespace(effect="registration_anterior_translation", df=1,
+                          parameters=["registration.anterior_translation"],
+                          refit={"chi2_drop": 137.5, "delta_bic": -75.0})
+    assert nested_p(full, one) == pytest.approx(stats.chi2.sf(169.6 - 137.5, 4))
+    # nearly identical residuals would make Vuong's z tiny; the likelihood ratio separates them
+    same = np.zeros(140)
+    assert not _rival(full, one, {"registration": same, "registration_anterior_translation": same + 1e-9})
+    one.refit = {"chi2_drop": 166.0, "delta_bic": -90.0}  # 3.6 more on 4 df: the extra are not needed
+    assert nested_p(full, one) > NESTED_ALPHA and _rival(full, one, {})
+    # and the other way round: a smaller best is rivalled by a bigger one only if that one is needed
+    assert not _rival(one, full, {})
+    one.refit = {"chi2_drop": 137.5, "delta_bic": -75.0}
+    assert _rival(one, full, {})
 
 
 def test_registration_of_one_coordinate_is_a_candidate(model):

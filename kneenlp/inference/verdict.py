@@ -14,7 +14,7 @@ Outcomes (:data:`OUTCOMES`):
   (chi-square p after it >= alpha): it is recommended, unless another significant candidate's
   refit is as good (BIC within :data:`AMBIGUOUS_BIC`, or not worse in Vuong's non-nested test,
   :func:`closeness_z` below :data:`RIVAL_Z`): then both are named and neither is recommended (the
-  protocol cannot tell them apart);
+  protocol cannot tell them apart; nested candidates are compared by their likelihood ratio);
 * ``noise_larger``: only the global test rejects, no candidate is significant and the excess is
   spread evenly over coordinates and load directions (Brown-Forsythe tests of equal spread, p >=
   alpha): the signature of noise larger than declared, reported with the level the data imply;
@@ -41,6 +41,9 @@ AMBIGUOUS_BIC = 2.0
 #: corrected) at one-sided level 0.05, z > 1.645: with many similar candidates (eight 3-parameter
 #: attachment shifts) a BIC lead of a few units is often the noise's choice (issue 15 benchmark).
 RIVAL_Z = 1.645
+#: Level of the likelihood-ratio test between nested candidates (:func:`nested_p`); Vuong's
+#: non-nested statistic does not apply to them (its variance vanishes under the null).
+NESTED_ALPHA = 0.05
 OUTCOMES = ("adequate", "missing_effect", "noise_larger", "unexplained")
 
 
@@ -153,9 +156,27 @@ def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residu
     return Verdict(outcome, alpha, adjusted, [], implied_noise=implied_noise(declared, rss, dof), homogeneity_p=homog)
 
 
+def nested_p(bigger, smaller) -> float:
+    """p-value of the likelihood-ratio test that ``bigger``'s refit explains more than the
+    ``smaller`` candidate nested in it (its parameters a subset): the difference of their
+    chi-square drops (declared noise) against chi-square on the difference of their df."""
+    extra = bigger.df - smaller.df
+    gain = bigger.refit["chi2_drop"] - smaller.refit["chi2_drop"]
+    return float(stats.chi2.sf(max(gain, 0.0), extra)) if extra > 0 else 1.0
+
+
 def _rival(best, other, refit_residuals: dict[str, np.ndarray]) -> bool:
-    """Whether ``other``'s refit explains the data as well as ``best``'s: BIC within
-    :data:`AMBIGUOUS_BIC`, or Vuong's z below :data:`RIVAL_Z`."""
+    """Whether ``other``'s refit explains the data as well as ``best``'s.  Nested candidates
+    (one's parameters a subset of the other's, e.g. ``registration_anterior_translation`` in
+    ``registration``) are compared by their likelihood ratio (:func:`nested_p`, level
+    :data:`NESTED_ALPHA`): the smaller one rivals a bigger best unless the extra parameters are
+    needed, a bigger one rivals a smaller best if it is needed.  Other pairs: BIC within
+    :data:`AMBIGUOUS_BIC`, or Vuong's non-nested z below :data:`RIVAL_Z`."""
+    pb, po = set(best.parameters), set(other.parameters)
+    if po < pb:
+        return nested_p(best, other) >= NESTED_ALPHA
+    if pb < po:
+        return nested_p(other, best) < NESTED_ALPHA
     if other.refit["delta_bic"] - best.refit["delta_bic"] < AMBIGUOUS_BIC:
         return True
     rb, ro = refit_residuals.get(best.effect), refit_residuals.get(other.effect)
