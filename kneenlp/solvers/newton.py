@@ -40,8 +40,11 @@ class NewtonResult:
 class EquilibriumNewton:
     """Newton's method on ``KneeModel.residual`` with the working sets of each iterate."""
 
-    def __init__(self, model):
+    def __init__(self, model, threads: int = 2):
+        """``threads``: threads of the mapped call over a batch's trials (CasADi ``thread`` map;
+        the machine's 2 cores: 15-20 % off a diagnose on Set 4)."""
         self.model = model
+        self.threads = threads
         q = ca.MX.sym("q", 5)
         theta = ca.MX.sym("theta", len(model.parameter_names))
         load, flexion, ws = ca.MX.sym("load", 6), ca.MX.sym("flexion"), ca.MX.sym("ws", model.ws_size)
@@ -54,7 +57,7 @@ class EquilibriumNewton:
         """Residuals (T x 5) and Jacobians dr/dq (T x 5 x 5) at poses ``q`` (T x 5, SI)."""
         n = len(q)
         if n not in self._maps:
-            self._maps[n] = self._fn.map(n)
+            self._maps[n] = self._fn.map(n, "thread", self.threads) if n > 1 and self.threads > 1 else self._fn.map(n)
         model = self.model
         ws = (np.column_stack([model.working_data(q[i], theta, flexions[i]) for i in range(n)])
               if model.ws_size else np.zeros((0, n)))
