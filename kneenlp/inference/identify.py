@@ -82,7 +82,8 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         of the Complex optimizer, or ``initial`` (a list of starting parameter dicts, SI).
     solver : CasADi nlpsol plugin (``ipopt``, ``sqpmethod``, ...), options in ``solver_options``.
     protocol : protocol the data must match (by default the one named in the data, if known).
-    threads : threads of the NLP's trial map (1 in study workers, which run one process per core).
+    threads : threads of the NLP's trial map and of the trials' Newton (1 in study workers, which run one
+        process per core).
     """
     if method not in METHODS:
         raise unknown_name("method", method, METHODS)
@@ -145,7 +146,7 @@ def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fi
     """A second try after IPOPT failed from ``start``: reduced-space Gauss-Newton from the same
     start (every iterate at equilibrium, :mod:`kneenlp.solvers.reduced`), then IPOPT from where it
     stopped; the better of the two tries is returned, its message saying so."""
-    reduced = reduced_least_squares(problem, start, q0=q0)
+    reduced = reduced_least_squares(problem, start, q0=q0, threads=threads)
     fit = solve_simultaneous(problem, reduced.values, "ipopt", solver_options, threads)
     if not fit.success or (failed.success and failed.objective <= fit.objective):
         return failed
@@ -208,7 +209,7 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     # per-trial ramping for the few that fail, then the forward solver's own start (unloaded pose
     # first; measured poses far from the start's equilibrium, e.g. cartilage much softer than the
     # model's, defeat Newton from them); a trial that still fails starts at its data
-    solver = forward_solver(problem.model)
+    solver = forward_solver(problem.model, threads=threads)
     q0, res0 = solver.solve_batch(data.trials, theta0, data.q)
     ok = res0 <= 1e-6
     if not ok.all():

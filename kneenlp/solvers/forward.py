@@ -51,11 +51,11 @@ class TrialSolution:
 class ForwardSolver:
     """Per-trial equilibrium solver for one model; the rootfinder is built once."""
 
-    def __init__(self, model: KneeModel, tol: float = 1e-6, max_iter: int = 60):
+    def __init__(self, model: KneeModel, tol: float = 1e-6, max_iter: int = 60, threads: int = 2):
         self.model = model
         self.tol = tol
         self.max_iter = max_iter
-        self.newton = EquilibriumNewton(model)
+        self.newton = EquilibriumNewton(model, threads)
         self._contact_columns = [o.column for e, o in model.outputs
                                  if isinstance(e, StagedElement) and o.name == "force"]
 
@@ -178,9 +178,10 @@ def _unloaded(t: Trial) -> Trial:
     return Trial(f"none_flex{t.flexion_deg:g}", t.flexion_deg, {}, "none", 0.0)
 
 
-def forward_solver(model: KneeModel, tol: float = 1e-6) -> ForwardSolver:
-    """The model's forward solver for ``tol``, built once per model (kept in ``model.solvers``)."""
-    key = ("forward", tol)
+def forward_solver(model: KneeModel, tol: float = 1e-6, threads: int = 2) -> ForwardSolver:
+    """The model's forward solver for ``tol``, built once per model (kept in ``model.solvers``);
+    ``threads`` of its batched Newton (1 in study workers, one process per core)."""
+    key = ("forward", tol, threads)
     if key not in model.solvers:
-        model.solvers[key] = ForwardSolver(model, tol=tol)
+        model.solvers[key] = ForwardSolver(model, tol=tol, threads=threads)
     return model.solvers[key]

@@ -44,13 +44,13 @@ class ReducedResult:
 
 
 def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float], *, q0: np.ndarray | None = None,
-                          max_evaluations: int = 60, tol: float = 1e-8) -> ReducedResult:
+                          max_evaluations: int = 60, tol: float = 1e-8, threads: int = 2) -> ReducedResult:
     """Minimise the problem's weighted residual sum over its free parameters from ``start`` (SI),
     with every trial at equilibrium (module docstring); ``q0`` warm-starts the first poses (SI,
     default the measured ones).  Parameters scaled by their scales; stops at relative cost change
-    ``tol`` or after ``max_evaluations`` residual evaluations."""
+    ``tol`` or after ``max_evaluations`` residual evaluations; ``threads`` of the trials' Newton."""
     t0 = time.perf_counter()
-    solver = forward_solver(problem.model)
+    solver = forward_solver(problem.model, threads=threads)
     scales = problem.scales
     w = np.sqrt(problem.weights).ravel()
     trials = problem.trials
