@@ -209,8 +209,8 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     # per-trial ramping for the few that fail, then the forward solver's own start (unloaded pose
     # first; measured poses far from the start's equilibrium, e.g. cartilage much softer than the
     # model's, defeat Newton from them); a trial that still fails starts at its data
-    solver = forward_solver(problem.model, threads=threads)
-    q0, res0 = solver.solve_batch(data.trials, theta0, data.q)
+    solver = forward_solver(problem.model)
+    q0, res0 = solver.solve_batch(data.trials, theta0, data.q, threads)
     ok = res0 <= 1e-6
     if not ok.all():
         failed = np.flatnonzero(~ok)

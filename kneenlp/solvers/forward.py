@@ -51,24 +51,25 @@ class TrialSolution:
 class ForwardSolver:
     """Per-trial equilibrium solver for one model; the rootfinder is built once."""
 
-    def __init__(self, model: KneeModel, tol: float = 1e-6, max_iter: int = 60, threads: int = 2):
+    def __init__(self, model: KneeModel, tol: float = 1e-6, max_iter: int = 60):
         self.model = model
         self.tol = tol
         self.max_iter = max_iter
-        self.newton = EquilibriumNewton(model, threads)
+        self.newton = EquilibriumNewton(model)
         self._contact_columns = [o.column for e, o in model.outputs
                                  if isinstance(e, StagedElement) and o.name == "force"]
 
-    def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Newton on all trials at once (one mapped CasADi call per iteration; the fast path for
-        repeated solves).
+    def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray,
+                    threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """Newton on all trials at once (one mapped CasADi call per iteration over ``threads``
+        threads; the fast path for repeated solves).
 
         Returns poses (T x 5, SI) and each trial's largest residual; trials above ``tol`` are
         retried one by one with :meth:`solve_trial` (load ramping) before being returned.
         """
         q0 = np.asarray(q0, dtype=float)
         out = self.newton.solve(q0, theta, np.array([t.load for t in trials]), np.array([t.flexion for t in trials]),
-                                self.tol, self.max_iter)
+                                self.tol, self.max_iter, threads)
         q = out.q
         res = np.array([self.residual_norm(q[i], theta, t) if out.residual[i] <= self.tol else out.residual[i]
                         for i, t in enumerate(trials)]) if self.model.ws_size else out.residual
@@ -178,10 +179,9 @@ def _unloaded(t: Trial) -> Trial:
     return Trial(f"none_flex{t.flexion_deg:g}", t.flexion_deg, {}, "none", 0.0)
 
 
-def forward_solver(model: KneeModel, tol: float = 1e-6, threads: int = 2) -> ForwardSolver:
-    """The model's forward solver for ``tol``, built once per model (kept in ``model.solvers``);
-    ``threads`` of its batched Newton (1 in study workers, one process per core)."""
-    key = ("forward", tol, threads)
+def forward_solver(model: KneeModel, tol: float = 1e-6) -> ForwardSolver:
+    """The model's forward solver for ``tol``, built once per model (kept in ``model.solvers``)."""
+    key = ("forward", tol)
     if key not in model.solvers:
-        model.solvers[key] = ForwardSolver(model, tol=tol, threads=threads)
+        model.solvers[key] = ForwardSolver(model, tol=tol)
     return model.solvers[key]

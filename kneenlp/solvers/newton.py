@@ -40,42 +40,42 @@ class NewtonResult:
 class EquilibriumNewton:
     """Newton's method on ``KneeModel.residual`` with the working sets of each iterate."""
 
-    def __init__(self, model, threads: int = 2):
-        """``threads``: threads of the mapped call over a batch's trials (CasADi ``thread`` map;
-        the machine's 2 cores: 15-20 % off a diagnose on Set 4)."""
+    def __init__(self, model):
         self.model = model
-        self.threads = threads
         q = ca.MX.sym("q", 5)
         theta = ca.MX.sym("theta", len(model.parameter_names))
         load, flexion, ws = ca.MX.sym("load", 6), ca.MX.sym("flexion"), ca.MX.sym("ws", model.ws_size)
         r = model.residual(q, theta, load, flexion, ws)
         self._fn = ca.Function("residual_and_jacobian", [q, theta, load, flexion, ws], [r, ca.jacobian(r, q)])
-        self._maps: dict[int, ca.Function] = {}
+        self._maps: dict[tuple[int, int], ca.Function] = {}
 
     def evaluate(self, q: np.ndarray, theta: np.ndarray, loads: np.ndarray,
-                 flexions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (T x 5) and Jacobians dr/dq (T x 5 x 5) at poses ``q`` (T x 5, SI)."""
+                 flexions: np.ndarray, threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (T x 5) and Jacobians dr/dq (T x 5 x 5) at poses ``q`` (T x 5, SI); the
+        trials are mapped over ``threads`` threads (CasADi ``thread`` map; 1 in study workers,
+        which run one process per core)."""
         n = len(q)
-        if n not in self._maps:
-            self._maps[n] = self._fn.map(n, "thread", self.threads) if n > 1 and self.threads > 1 else self._fn.map(n)
+        threads = min(threads, n)
+        if (n, threads) not in self._maps:
+            self._maps[n, threads] = self._fn.map(n, "thread", threads) if threads > 1 else self._fn.map(n)
         model = self.model
         ws = (np.column_stack([model.working_data(q[i], theta, flexions[i]) for i in range(n)])
               if model.ws_size else np.zeros((0, n)))
-        r, jac = self._maps[n](q.T, theta, loads.T, flexions[None, :], ws)
+        r, jac = self._maps[n, threads](q.T, theta, loads.T, flexions[None, :], ws)
         r = np.asarray(r).T
         jac = np.asarray(jac).reshape(5, n, 5).transpose(1, 0, 2)
         return r, jac
 
     def solve(self, q0: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
-              tol: float = 1e-6, max_iter: int = 60) -> NewtonResult:
+              tol: float = 1e-6, max_iter: int = 60, threads: int = 2) -> NewtonResult:
         """Solve ``r(q) = 0`` for every trial from ``q0`` (T x 5, SI); ``loads`` T x 6, ``flexions``
-        (T,) rad.  Converged trials have ``residual <= tol``."""
+        (T,) rad; ``threads`` as in :meth:`evaluate`.  Converged trials have ``residual <= tol``."""
         q = np.array(q0, dtype=float).reshape(-1, 5)
         loads = np.asarray(loads, dtype=float).reshape(-1, 6)
         flexions = np.asarray(flexions, dtype=float).ravel()
         T = len(q)
         w = np.asarray(TO_USER)
-        r, jac = self.evaluate(q, theta, loads, flexions)
+        r, jac = self.evaluate(q, theta, loads, flexions, threads)
         evaluations = 1
         lam = np.ones(T)
         active = np.ones(T, dtype=bool)
@@ -97,7 +97,7 @@ class EquilibriumNewton:
                 j = idx[pending]
                 step = np.minimum(lam[j], cap[pending])  # damping, and the step cap as a damping
                 qt = q[j] + step[:, None] * dq[pending]
-                rt, jt = self.evaluate(qt, theta, loads[j], flexions[j])
+                rt, jt = self.evaluate(qt, theta, loads[j], flexions[j], threads)
                 evaluations += 1
                 finite = np.all(np.isfinite(rt), axis=1)
                 bar = np.full(len(j), np.inf)

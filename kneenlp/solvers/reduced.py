@@ -50,7 +50,7 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
     default the measured ones).  Parameters scaled by their scales; stops at relative cost change
     ``tol`` or after ``max_evaluations`` residual evaluations; ``threads`` of the trials' Newton."""
     t0 = time.perf_counter()
-    solver = forward_solver(problem.model, threads=threads)
+    solver = forward_solver(problem.model)
     scales = problem.scales
     w = np.sqrt(problem.weights).ravel()
     trials = problem.trials
@@ -61,7 +61,7 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
 
     def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
         theta = problem.theta(x * scales)
-        q, res = solver.solve_batch(trials, theta, state["best"][1])
+        q, res = solver.solve_batch(trials, theta, state["best"][1], threads)
         if not np.all(res <= 1e-6):  # a trial without equilibrium: try from the forward solver's own start
             bad = np.flatnonzero(~(res <= 1e-6))
             for i, sol in zip(bad, solver.solve([trials[i] for i in bad], theta), strict=True):
