@@ -60,12 +60,14 @@ class ForwardSolver:
                                  if isinstance(e, StagedElement) and o.name == "force"]
 
     def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray,
-                    threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
+                    threads: int = 2, max_retries: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Newton on all trials at once (one mapped CasADi call per iteration over ``threads``
         threads; the fast path for repeated solves).
 
         Returns poses (T x 5, SI) and each trial's largest residual; trials above ``tol`` are
-        retried one by one with :meth:`solve_trial` (load ramping) before being returned.
+        retried one by one with :meth:`solve_trial` (load ramping) before being returned, unless
+        more than ``max_retries`` failed (then they are returned as they are: a caller probing a
+        step, such as a trust-region method, learns cheaply that it went too far).
         """
         q0 = np.asarray(q0, dtype=float)
         out = self.newton.solve(q0, theta, np.array([t.load for t in trials]), np.array([t.flexion for t in trials]),
@@ -73,7 +75,8 @@ class ForwardSolver:
         q = out.q
         res = np.array([self.residual_norm(q[i], theta, t) if out.residual[i] <= self.tol else out.residual[i]
                         for i, t in enumerate(trials)]) if self.model.ws_size else out.residual
-        for i in np.flatnonzero(~(res <= self.tol)):
+        failed = np.flatnonzero(~(res <= self.tol))
+        for i in failed if max_retries is None or len(failed) <= max_retries else ():
             sol = self.solve_trial(trials[i], theta, q0[i], None)
             if sol.max_residual < res[i]:
                 q[i], res[i] = sol.q, sol.max_residual
