@@ -28,7 +28,7 @@ from kneenlp.solvers.forward import forward_solver
 
 #: After the first point at equilibrium, the trials a step loses are retried (load ramps, fresh
 #: starts) only if they are at most this share of all trials; more lost means the step went too
-#: far, and trf shrinks it (a 4 mm PCL attachment refit spent 11 of its 12 s retrying 30 lost
+#: far, and trf shrinks it (a 4 mm PCL attachment refit spent 6 of its 8 s retrying 30 lost
 #: trials, none of which had an equilibrium).
 MAX_RETRIED_SHARE = 0.25
 
