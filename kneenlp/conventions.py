@@ -28,15 +28,32 @@ coordinate                  unit   positive sense
 ``proximal_translation``    mm     tibia moves proximally along ``e3`` (compression)
 ==========================  =====  ===========================================================
 
-Loads (fixed in the femoral frame)
-----------------------------------
+Loads
+-----
 ==========================  =====  ===========================================================
 load component              unit   positive sense
 ==========================  =====  ===========================================================
-``anterior_force``          N      force along ``+X_f`` at the tibial tuberosity (posterior < 0)
-``varus_moment``            N m    pure moment about ``+X_f`` (varus); valgus is negative
-``internal_moment``         N m    pure moment about ``+Y_f`` (internal); external is negative
+``anterior_force``          N      pushes the tibia anteriorly (posterior < 0)
+``varus_moment``            N m    turns the tibia into varus; valgus is negative
+``internal_moment``         N m    turns the tibia internally; external is negative
+``lateral_force``           N      pushes the tibia laterally (optional, default 0)
+``proximal_force``          N      pushes the tibia proximally into the femur: compression (optional)
+``flexion_moment``          N m    flexes the knee (optional; reported only: the prescribed
+                                   flexion carries it)
 ==========================  =====  ===========================================================
+
+Where and along which axes they act (``load_axes``, :func:`load_vector`):
+
+* ``"femoral"`` (the paper): forces at the tibial tuberosity along the femoral axes (anterior
+  ``+X_f``, proximal ``+Y_f``, lateral ``+Z_f``), pure moments about ``+X_f`` (varus) and ``+Y_f``
+  (internal), fixed in the femoral frame;
+* ``"joint"``: as ``"femoral"`` but along the Grood & Suntay axes at the prescribed flexion
+  (floating axis ``e2``, unvarused tibial axis ``e3``, ``e1 = Z_f``), as a clinical laxity device
+  applies them;
+* ``"jcs"``: the generalised forces of the Grood & Suntay joint coordinate system, each conjugate
+  to its coordinate (moments about ``e2`` and ``e3``, forces along ``e1``, ``e2``, ``e3`` acting at
+  the tibial origin), as a robotic knee simulator controls and reports them.  They enter the
+  equilibrium as they are, whatever the pose.
 
 Units: SI inside (m, rad, N, N m, Pa); mm and degrees at every user boundary (files, tables,
 plots, reports).  Ligament stiffness ``k`` is in N per unit strain; strains are fractions inside
@@ -60,9 +77,18 @@ COORDINATE_UNITS: tuple[str, ...] = ("deg", "deg", "mm", "mm", "mm")
 #: Factor from the internal SI unit (rad, m) to the user unit (deg, mm), per coordinate.
 TO_USER: np.ndarray = np.array([180.0 / np.pi, 180.0 / np.pi, 1e3, 1e3, 1e3])
 
-#: Load components accepted in protocols and data files, with units.
+#: Load components every protocol and data file has (the paper's), with units.
 LOAD_COMPONENTS: tuple[str, ...] = ("anterior_force", "varus_moment", "internal_moment")
 LOAD_UNITS: tuple[str, ...] = ("N", "Nm", "Nm")
+#: Further load components a real experiment records (optional, default 0), with units.
+EXTRA_LOAD_COMPONENTS: tuple[str, ...] = ("lateral_force", "proximal_force", "flexion_moment")
+EXTRA_LOAD_UNITS: tuple[str, ...] = ("N", "N", "Nm")
+#: Every load component and its unit.
+ALL_LOAD_COMPONENTS: tuple[str, ...] = LOAD_COMPONENTS + EXTRA_LOAD_COMPONENTS
+ALL_LOAD_UNITS: tuple[str, ...] = LOAD_UNITS + EXTRA_LOAD_UNITS
+#: Size of the internal load vector (:func:`load_vector`): a force at the tuberosity (3), a pure
+#: moment (3), both in the femoral frame, and generalised forces of the five free coordinates (5).
+LOAD_SIZE = 11
 
 #: Load directions of the paper's Table 2: (component, sign).
 DIRECTIONS: dict[str, tuple[str | None, float]] = {
@@ -107,24 +133,36 @@ def coordinate_columns() -> list[str]:
     return [f"{c}_{u}" for c, u in zip(COORDINATES, COORDINATE_UNITS, strict=True)]
 
 
-def load_columns() -> list[str]:
-    """CSV column names of the load components, with units (e.g. ``anterior_force_N``)."""
-    return [f"{c}_{u}" for c, u in zip(LOAD_COMPONENTS, LOAD_UNITS, strict=True)]
+def load_columns(extra: bool = False) -> list[str]:
+    """CSV column names of the load components, with units (e.g. ``anterior_force_N``); with
+    ``extra`` those of the optional components too."""
+    comps, units = (ALL_LOAD_COMPONENTS, ALL_LOAD_UNITS) if extra else (LOAD_COMPONENTS, LOAD_UNITS)
+    return [f"{c}_{u}" for c, u in zip(comps, units, strict=True)]
 
 
-#: Axes along which load components act: the femoral axes (the paper) or the joint axes.
-LOAD_AXES: tuple[str, ...] = ("femoral", "joint")
+#: Axes along which load components act (see the module docstring).
+LOAD_AXES: tuple[str, ...] = ("femoral", "joint", "jcs")
 
 
-def load_vector(anterior_force: float, varus_moment: float, internal_moment: float, *,
-                flexion: float = 0.0, axes: str = "femoral") -> np.ndarray:
-    """Internal 6-vector load ``[Fx, Fy, Fz, Mx, My, Mz]`` (N, N m) in the femoral frame.
+def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: str = "femoral") -> np.ndarray:
+    """Internal load vector (:data:`LOAD_SIZE`) of signed load components (N, N m; absent = 0).
 
-    The force acts at the tibial tuberosity, the moment is a pure moment on the tibia.  With
-    ``axes="femoral"`` the components act along femoral X (anterior force, varus moment) and Y
-    (internal moment); with ``axes="joint"`` along the floating axis ``e2 = (cos f, -sin f, 0)``
-    and the unvarused tibial axis ``e3 = (sin f, cos f, 0)`` at flexion ``f`` (rad).
+    ``[F (3), M (3), Q (5)]``: a force ``F`` at the tibial tuberosity and a pure moment ``M``, both
+    in the femoral frame, and generalised forces ``Q`` added to the equilibrium residual as they are
+    (order of :data:`COORDINATES`).  ``axes`` (module docstring): ``"femoral"`` along femoral X, Y,
+    Z; ``"joint"`` along the floating axis ``e2 = (cos f, -sin f, 0)``, the unvarused tibial axis
+    ``e3 = (sin f, cos f, 0)`` at flexion ``f`` (rad) and ``e1 = Z``; ``"jcs"`` all in ``Q``.  The
+    flexion moment is never applied (the prescribed flexion carries it).
     """
+    get = {c: float(loads.get(c, 0.0)) for c in ALL_LOAD_COMPONENTS}
+    unknown = set(loads) - set(ALL_LOAD_COMPONENTS)
+    if unknown:
+        raise ValueError(f"unknown load component {sorted(unknown)[0]!r}; known: {', '.join(ALL_LOAD_COMPONENTS)}")
+    out = np.zeros(LOAD_SIZE)
+    if axes == "jcs":
+        out[6:] = [get["varus_moment"], get["internal_moment"], get["lateral_force"], get["anterior_force"],
+                   get["proximal_force"]]
+        return out
     if axes == "femoral":
         e2, e3 = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
     elif axes == "joint":
@@ -132,4 +170,7 @@ def load_vector(anterior_force: float, varus_moment: float, internal_moment: flo
         e2, e3 = np.array([c, -s, 0.0]), np.array([s, c, 0.0])
     else:
         raise ValueError(f"unknown load axes {axes!r}; known: {', '.join(LOAD_AXES)}")
-    return np.concatenate([anterior_force * e2, varus_moment * e2 + internal_moment * e3])
+    e1 = np.array([0.0, 0.0, 1.0])
+    out[0:3] = get["anterior_force"] * e2 + get["proximal_force"] * e3 + get["lateral_force"] * e1
+    out[3:6] = get["varus_moment"] * e2 + get["internal_moment"] * e3
+    return out

@@ -111,7 +111,7 @@ def test_cli_diagnose_clean_data_smoke(tmp_path, capsys):
 def test_neutral_effects_leave_the_model_unchanged(model):
     theta = model.theta()
     q = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
-    load = np.array([50.0, 0, 0, 2.0, 0.5, 0])
+    load = np.r_[50.0, 0, 0, 2.0, 0.5, 0, np.zeros(5)]
     r0 = np.asarray(model.evaluate(q, theta, load, 0.5)).ravel()
     on = model.theta({"posterior_capsule.k": 5000.0, "meniscus.k": 1e5, "flexion_offset.delta": 0.02})
     r1 = np.asarray(model.evaluate(q, on, load, 0.5)).ravel()

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from kneenlp.conventions import LOAD_SIZE
 from kneenlp.model.contact import compartment_function, smooth_gate, sphere_plane_force
 
 K = 10e9  # N/m^3
@@ -65,7 +66,7 @@ def test_contact_is_differentiable(model):
     # jacobian of the contact-laden residual exists and is finite at a penetrated pose
     q = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])
     ws = model.working_set(q, model.theta(), 0.0)[1]
-    jac = np.asarray(model.jacobians(q, model.theta(), np.zeros(6), 0.0, ws)[0])
+    jac = np.asarray(model.jacobians(q, model.theta(), np.zeros(LOAD_SIZE), 0.0, ws)[0])
     assert np.all(np.isfinite(jac)) and np.linalg.matrix_rank(jac) == 5
 
 

@@ -7,7 +7,7 @@ import pytest
 
 import kneenlp
 import kneenlp.io.resources
-from kneenlp.conventions import coords_to_user
+from kneenlp.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.experiment.protocol import Protocol, Trial
 from kneenlp.solvers.forward import ForwardSolver
 
@@ -54,7 +54,7 @@ def test_every_ligament_carries_load_in_set3(set3):
 
 def test_acl_pretension_near_700N_at_reference_pose(model):
     ws = model.working_set(np.zeros(5), model.theta(), 0.0)[1]
-    out = np.asarray(model.details(np.zeros(5), model.theta(), np.zeros(6), 0.0, ws)[1]).ravel()
+    out = np.asarray(model.details(np.zeros(5), model.theta(), np.zeros(LOAD_SIZE), 0.0, ws)[1]).ravel()
     columns = [o.column for _, o in model.outputs]
     assert out[columns.index("ACL_force_N")] == pytest.approx(700.0, rel=1e-9)
 

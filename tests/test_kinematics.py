@@ -2,6 +2,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from kneenlp.conventions import LOAD_SIZE, load_vector
 from kneenlp.model.kinematics import tibial_pose
 
 
@@ -49,7 +50,7 @@ def test_sign_conventions_right_knee():
 
 def test_residual_jacobian_matches_finite_differences(model):
     theta = model.theta()
-    load = np.array([50.0, 0, 0, 2.0, 0.5, 0])
+    load = np.r_[50.0, 0, 0, 2.0, 0.5, 0, np.zeros(5)]
     q0 = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
     flex = np.deg2rad(30)
     jac = np.asarray(model.jacobians(q0, theta, load, flex, model.working_set(q0, theta, flex)[1])[0])
@@ -69,6 +70,24 @@ def test_residual_is_virtual_work_of_a_pure_moment(model):
     # flexion shows up 1:1 in the internal-rotation generalised force
     theta = model.theta()
     q = np.array([0.0, 0.0, 0.0, 0.0, -5e-3])  # far from contact
-    r0 = np.asarray(model.evaluate(q, theta, np.zeros(6), 0.0)).ravel()
-    r1 = np.asarray(model.evaluate(q, theta, np.array([0, 0, 0, 0, 3.0, 0]), 0.0)).ravel()
+    r0 = np.asarray(model.evaluate(q, theta, np.zeros(LOAD_SIZE), 0.0)).ravel()
+    r1 = np.asarray(model.evaluate(q, theta, np.r_[0, 0, 0, 0, 3.0, 0, np.zeros(5)], 0.0)).ravel()
     assert np.allclose(r1 - r0, [0, 3.0, 0, 0, 0], atol=1e-9)
+
+
+def test_jcs_loads_are_the_generalised_forces_and_femoral_ones_their_virtual_work(model):
+    # a robot's joint loads ("jcs") enter the residual as they are, at any pose; the same loads
+    # along the femoral axes at 0 deg flexion and zero varus/rotation give the same generalised
+    # forces for the moments (the force acts at the tuberosity, so only its own component agrees)
+    theta = model.theta()
+    q = np.array([0.05, -0.1, 1e-3, 2e-3, -5e-3])
+    loads = {"varus_moment": 2.0, "internal_moment": -1.5, "lateral_force": 10.0, "anterior_force": 50.0,
+             "proximal_force": 40.0, "flexion_moment": 3.0}
+    r0 = np.asarray(model.evaluate(q, theta, np.zeros(LOAD_SIZE), 0.4)).ravel()
+    r1 = np.asarray(model.evaluate(q, theta, load_vector(loads, flexion=0.4, axes="jcs"), 0.4)).ravel()
+    assert np.allclose(r1 - r0, [2.0, -1.5, 10.0, 50.0, 40.0], atol=1e-12)
+    q0 = np.array([0.0, 0.0, 0.0, 0.0, -5e-3])
+    moments = {"varus_moment": 2.0, "internal_moment": -1.5}
+    r0 = np.asarray(model.evaluate(q0, theta, np.zeros(LOAD_SIZE), 0.0)).ravel()
+    r1 = np.asarray(model.evaluate(q0, theta, load_vector(moments, axes="femoral"), 0.0)).ravel()
+    assert np.allclose(r1 - r0, [2.0, -1.5, 0, 0, 0], atol=1e-12)

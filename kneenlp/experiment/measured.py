@@ -16,8 +16,18 @@ column                         meaning
 ``anterior_translation_mm``    measured anterior (+) / posterior (-) translation (mm)
 ``proximal_translation_mm``    measured proximal (+) / distal (-) translation (mm)
 ``protocol`` (optional)        protocol name the trials come from (e.g. ``set3``)
-``load_axes`` (optional)       ``femoral`` (default) or ``joint``, see :mod:`kneenlp.experiment.protocol`
+``load_axes`` (optional)       ``femoral`` (default), ``joint`` or ``jcs`` (a robot's joint
+                               loads), see :mod:`kneenlp.conventions`
+``lateral_force_N`` (optional)   force, + lateral (N)
+``proximal_force_N`` (optional)  force, + proximal: compression of the joint (N)
+``flexion_moment_Nm`` (optional) moment, + flexion (N m): reported, carried by the prescribed flexion
+``side`` (optional)            ``left`` or ``right``: the knee the data come from; a fit refuses
+                               a knee of the other side
 =============================  ===============================================================
+
+Real experiments (``kneenlp import-laxity``) give every trial its measured flexion and all six load
+components; signs are anatomical whatever the side (+varus, +internal, +lateral for a left knee
+too).
 
 Other columns (e.g. ligament forces written by ``simulate``) are ignored; a column that names a
 coordinate or load with a different unit (``anterior_translation_m``) is an error.
@@ -58,6 +68,7 @@ import numpy as np
 import pandas as pd
 
 from kneenlp.conventions import (
+    ALL_LOAD_COMPONENTS,
     COORDINATES,
     LOAD_AXES,
     LOAD_COMPONENTS,
@@ -69,6 +80,7 @@ from kneenlp.errors import InputError
 from kneenlp.experiment.protocol import FLEXION_RANGE, Protocol, Trial, available_protocols, check_load
 
 REQUIRED = ["trial", "flexion_deg", *load_columns(), *coordinate_columns()]
+OPTIONAL_LOADS = load_columns(extra=True)[len(LOAD_COMPONENTS):]
 #: Most rows a measured-data file may have, and the size above which reading it notes the fit's
 #: duration (see module docstring).
 MAX_TRIALS = 1000
@@ -92,6 +104,7 @@ class MeasuredData:
     q: np.ndarray  # (n_trials, 5)
     protocol: str | None = None
     source: str | None = None
+    side: str | None = None  # "left" or "right" if the file says so
 
     def __len__(self) -> int:
         return len(self.trials)
@@ -121,16 +134,22 @@ class MeasuredData:
                              source=src, field="trial")
 
 
-def measured_frame(trials: list[Trial], q_user: np.ndarray, protocol: str | None = None) -> pd.DataFrame:
-    """Build the measured-data table (user units) from trials and poses (n x 5, mm/deg)."""
+def measured_frame(trials: list[Trial], q_user: np.ndarray, protocol: str | None = None,
+                   side: str | None = None) -> pd.DataFrame:
+    """Build the measured-data table (user units) from trials and poses (n x 5, mm/deg); the
+    optional load columns only where a trial has such a load, ``side`` only if given."""
     rows = {
         "protocol": [protocol or ""] * len(trials),
         "trial": [t.id for t in trials],
         "flexion_deg": [t.flexion_deg for t in trials],
         "load_axes": [t.axes for t in trials],
     }
-    for comp, col in zip(LOAD_COMPONENTS, load_columns(), strict=True):
-        rows[col] = [t.loads.get(comp, 0.0) for t in trials]
+    if side is not None:
+        rows["side"] = [side] * len(trials)
+    used = {c for t in trials for c in t.loads}
+    for comp, col in zip(ALL_LOAD_COMPONENTS, load_columns(extra=True), strict=True):
+        if comp in LOAD_COMPONENTS or comp in used:
+            rows[col] = [t.loads.get(comp, 0.0) for t in trials]
     for j, col in enumerate(coordinate_columns()):
         rows[col] = np.asarray(q_user)[:, j]
     return pd.DataFrame(rows)
@@ -148,22 +167,22 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     if not path.is_file():
         raise InputError("file not found", source=src)
     try:
-        df = pd.read_csv(path, dtype={"trial": str, "protocol": str, "load_axes": str})
+        df = pd.read_csv(path, dtype={"trial": str, "protocol": str, "load_axes": str, "side": str})
     except OSError as exc:
         raise InputError(f"cannot read ({exc.strerror or exc})", source=src) from None
     except Exception as exc:  # pandas raises many kinds for garbage (ParserError, UnicodeDecodeError, ...)
         first = (str(exc).splitlines() or [type(exc).__name__])[0]
         raise InputError(f"malformed CSV ({first})", source=src) from None
     df.columns = [str(c).strip() for c in df.columns]
-    expected_units = dict(zip([*COORDINATES, *LOAD_COMPONENTS, "flexion"],
+    expected_units = dict(zip([*COORDINATES, *ALL_LOAD_COMPONENTS, "flexion"],
                               [*[c.rsplit("_", 1)[1] for c in coordinate_columns()],
-                               *[c.rsplit("_", 1)[1] for c in load_columns()], "deg"], strict=True))
+                               *[c.rsplit("_", 1)[1] for c in load_columns(extra=True)], "deg"], strict=True))
     for col in df.columns:
         for name, unit in expected_units.items():
             if col.startswith(name + "_") and col != f"{name}_{unit}" and col[len(name) + 1:].count("_") == 0:
                 raise InputError(f"column {col!r} has the wrong unit; expected {name}_{unit}", source=src,
                                  field=col)
-    dup_cols = sorted({c for c in df.columns if list(df.columns).count(c) > 1} & set(REQUIRED))
+    dup_cols = sorted({c for c in df.columns if list(df.columns).count(c) > 1} & set(REQUIRED + OPTIONAL_LOADS))
     if dup_cols:
         raise InputError("column given twice", source=src, field=dup_cols[0])
     missing = [c for c in REQUIRED if c not in df.columns]
@@ -180,7 +199,7 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     df = df.reset_index(drop=True)
     if df["trial"].isna().any():
         raise InputError(f"row {int(np.argmax(df['trial'].isna())) + 2}: empty trial id", source=src, field="trial")
-    numeric = [c for c in REQUIRED if c != "trial"]
+    numeric = [c for c in REQUIRED + OPTIONAL_LOADS if c != "trial" and c in df.columns]
     for col in numeric:
         vals = pd.to_numeric(df[col], errors="coerce")
         bad = ~np.isfinite(vals.to_numpy(dtype=float))
@@ -197,11 +216,18 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
         if a not in LOAD_AXES:
             raise InputError(f"unknown load axes {a!r}; known: {', '.join(LOAD_AXES)}", source=src,
                              field="load_axes")
+    side = None
+    if "side" in df.columns:
+        sides = {str(v).strip() for v in df["side"].dropna()}
+        if not sides <= {"left", "right"} or len(sides) > 1:
+            raise InputError(f"expected one of left, right for every row, got {', '.join(sorted(sides))}",
+                             source=src, field="side")
+        side = sides.pop() if sides else None
     _check_plausible(df, src)
     trials = []
     for i, row in df.iterrows():
-        loads = {c: float(row[col]) for c, col in zip(LOAD_COMPONENTS, load_columns(), strict=True)
-                 if float(row[col]) != 0.0}
+        loads = {c: float(row[col]) for c, col in zip(ALL_LOAD_COMPONENTS, load_columns(extra=True), strict=True)
+                 if col in df.columns and float(row[col]) != 0.0}
         direction, magnitude = _direction(loads)
         trials.append(Trial(str(row["trial"]), float(row["flexion_deg"]), loads, direction, magnitude,
                             str(axes.iloc[i])))
@@ -213,7 +239,7 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
             raise InputError(f"several protocols in one file: {', '.join(sorted(names))}", source=src,
                              field="protocol")
         name = names.pop() if names else None
-    data = MeasuredData(trials, q, name, src)
+    data = MeasuredData(trials, q, name, src, side)
     if name is not None and protocol is None:
         _check_protocol_name(data, path)
     return data
@@ -228,7 +254,9 @@ def _check_plausible(df: pd.DataFrame, src: str) -> None:
         i = int(np.argmax(bad))
         raise InputError(f"row {i + 2}: flexion {flex[i]:g} deg outside [{lo:g}, {hi:g}]", source=src,
                          field="flexion_deg")
-    for comp, col in zip(LOAD_COMPONENTS, load_columns(), strict=True):
+    for comp, col in zip(ALL_LOAD_COMPONENTS, load_columns(extra=True), strict=True):
+        if col not in df.columns:
+            continue
         for i, v in enumerate(df[col].to_numpy()):
             try:
                 check_load(comp, float(v), src, col)
@@ -278,7 +306,7 @@ def _check_protocol_name(data: MeasuredData, path: Path) -> None:
 def _direction(loads: dict[str, float]) -> tuple[str, float]:
     if not loads:
         return "none", 0.0
-    if len(loads) > 1:
+    if len(loads) > 1 or set(loads) - set(LOAD_COMPONENTS):
         return "combined", 0.0
     (comp, value), = loads.items()
     names = {"anterior_force": ("anterior", "posterior"), "varus_moment": ("varus", "valgus"),

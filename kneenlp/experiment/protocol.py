@@ -16,7 +16,12 @@ Load axes (top-level ``load_axes``):
 * ``"joint"``: along the Grood & Suntay axes at the prescribed flexion (drawer force and varus
   moment along the floating axis ``e2``, internal moment about the tibial axis at zero varus), as a
   clinical laxity device applies them.  These directions depend only on the flexion angle, so the
-  loads stay fixed in the femoral frame during a trial in both cases.
+  loads stay fixed in the femoral frame during a trial in both cases;
+* ``"jcs"``: generalised forces of the joint coordinate system, as a robotic knee simulator
+  applies them (:mod:`kneenlp.conventions`).
+
+A combined load may also name ``lateral_force``, ``proximal_force`` (N) and ``flexion_moment`` (N m,
+reported only).
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.conventions import DIRECTIONS, LOAD_AXES, LOAD_COMPONENTS, load_vector
+from kneenlp.conventions import ALL_LOAD_COMPONENTS, DIRECTIONS, LOAD_AXES, load_vector
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.io.resources import resource
 from kneenlp.model.parameters import number, read_toml
@@ -52,9 +57,8 @@ class Trial:
 
     @property
     def load(self) -> np.ndarray:
-        """Internal 6-vector load ``[F, M]`` in the femoral frame (N, N m)."""
-        return load_vector(*(self.loads.get(c, 0.0) for c in LOAD_COMPONENTS), flexion=self.flexion,
-                           axes=self.axes)
+        """Internal load vector (N, N m; :func:`~kneenlp.conventions.load_vector`)."""
+        return load_vector(self.loads, flexion=self.flexion, axes=self.axes)
 
     def describe(self) -> str:
         """Words for reports, e.g. 'anterior 134 N at 30 deg flexion'."""
@@ -178,7 +182,7 @@ FLEXION_RANGE = (-10.0, 120.0)
 def check_load(component: str, value: float, source: str | None, field: str) -> float:
     """``value`` (N or N m) of a load ``component``, or an error if beyond :data:`MAX_FORCE` /
     :data:`MAX_MOMENT`."""
-    limit, unit = (MAX_FORCE, "N") if component == "anterior_force" else (MAX_MOMENT, "N m")
+    limit, unit = (MAX_FORCE, "N") if component.endswith("_force") else (MAX_MOMENT, "N m")
     if abs(value) > limit:
         raise InputError(f"{value:g} {unit} is beyond the largest laxity load ({limit:g} {unit}); a unit slip?",
                          source=source, field=field)
@@ -222,8 +226,8 @@ def _case_trials(case: object, fld: str, i: int, axes: str, source: str) -> list
         if not isinstance(loads, dict) or not loads:
             raise InputError("must be a table of load components", source=source, field=f"{fld}.loads")
         for k in loads:
-            if k not in LOAD_COMPONENTS:
-                raise unknown_name("load component", k, LOAD_COMPONENTS, source=source).with_context(
+            if k not in ALL_LOAD_COMPONENTS:
+                raise unknown_name("load component", k, ALL_LOAD_COMPONENTS, source=source).with_context(
                     field=f"{fld}.loads")
         values = {k: check_load(k, number(v, source, f"{fld}.loads.{k}"), source, f"{fld}.loads.{k}")
                   for k, v in loads.items()}

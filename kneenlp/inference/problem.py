@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kneenlp.conventions import TO_USER
+from kneenlp.conventions import LOAD_SIZE, TO_USER
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
@@ -120,7 +120,7 @@ class IdentificationProblem:
 
     @property
     def loads(self) -> np.ndarray:
-        return np.array([t.load for t in self.trials]).reshape(-1, 6)
+        return np.array([t.load for t in self.trials]).reshape(-1, LOAD_SIZE)
 
     @property
     def flexions(self) -> np.ndarray:
@@ -145,7 +145,7 @@ class IdentificationProblem:
 
     def data_vector(self, ws: np.ndarray | None = None) -> np.ndarray:
         """The NLP's parameter vector: ``[theta (fixed values, SI), measured (T x 5), weights (T x 5),
-        loads (T x 6), flexions (T)]`` and, for a program with its working sets as data (export),
+        loads (T x LOAD_SIZE), flexions (T)]`` and, for a program with its working sets as data (export),
         ``ws`` (T x ws_size, from :meth:`working_sets`); refitting other data never rebuilds the NLP."""
         meas = self.measured if self.measured is not None else np.zeros((self.n_trials, 5))
         ws = np.zeros((self.n_trials, 0)) if ws is None else np.asarray(ws, float)

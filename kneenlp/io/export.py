@@ -165,7 +165,8 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
         "scaling": {n: {"scale": s, "meaning": f"variable = {n} [SI] / {s:g}"} for n, s in prob.scales.items()},
         "p": prob.p_value.tolist(),
         "p_layout": "theta (all model parameters, SI, in 'parameters' order), measured coordinates (T x 5, "
-                    "mm/deg), weights (T x 5), loads (T x 6, N and N m, femoral frame), flexion (T, rad), "
+                    "mm/deg), weights (T x 5), loads (T x 11: force at the tuberosity and moment, femoral frame; "
+                    "generalised forces; N and N m), flexion (T, rad), "
                     "contact working sets at the start poses (T x ws_size; empty without working sets): per "
                     "point x, y, z (m) and area (m^2) for sphere contact; for mesh contact also the femoral "
                     "distance field's second-order expansion at the point (kneenlp.model.mesh_contact.WS_ROWS), "

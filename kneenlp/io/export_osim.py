@@ -37,7 +37,7 @@ def calibrated_values(knee: Knee, params: dict[str, float]) -> dict[str, dict[st
             if scale is not None:
                 values["linear_stiffness"] = scale * b.stiffness
             if offset is not None:
-                values["slack_length"] = slack_length(b.reference_length, b.ref_strain + offset)
+                values["slack_length"] = slack_length(lig.bundle_length(b), b.ref_strain + offset)
             if values:
                 out[b.name] = values
     return out

@@ -7,6 +7,7 @@ expressions, so the same code serves the symbolic model and numerical evaluation
 from __future__ import annotations
 
 import casadi as ca
+import numpy as np
 
 
 def rot_x(a):
@@ -62,3 +63,23 @@ def generalized_forces(q, p, axes, force, moment):
     jac_p = ca.jacobian(p, q)  # 3x5 translational Jacobian
     jac_w = ca.horzcat(e2, e3, ca.DM.zeros(3, 3))  # angular-velocity Jacobian
     return jac_p.T @ force + jac_w.T @ moment
+
+
+def joint_coordinates(R, p) -> tuple[float, np.ndarray]:
+    """Inverse of :func:`tibial_pose`: flexion (rad) and the five free coordinates (rad, m) of the
+    tibial frame with rotation ``R`` (tibial -> femoral) and origin ``p`` (femoral frame, m).
+
+    ``e3 = R[:, 1] = (cos v sin f, cos v cos f, sin v)`` gives flexion ``f`` and varus ``v``;
+    ``Ry(i) = (Rz(-f) Rx(v))^T R`` gives the internal rotation; the translations solve
+    ``p = lateral e1 + anterior e2 + proximal e3``."""
+    R, p = np.asarray(R, dtype=float), np.asarray(p, dtype=float).ravel()
+    e3 = R[:, 1]
+    varus = float(np.arcsin(np.clip(e3[2], -1.0, 1.0)))
+    flexion = float(np.arctan2(e3[0], e3[1]))
+    base = np.asarray(rot_z(-flexion) @ rot_x(varus))
+    ry = base.T @ R
+    internal = float(np.arctan2(ry[0, 2], ry[0, 0]))
+    e1 = np.array([0.0, 0.0, 1.0])
+    e2 = base[:, 0]
+    lateral, anterior, proximal = np.linalg.solve(np.column_stack([e1, e2, e3]), p)
+    return flexion, np.array([varus, internal, lateral, anterior, proximal])

@@ -4,8 +4,9 @@
 
 * ``q`` (5): free coordinates ``[varus, internal, lateral, anterior, proximal]`` (rad, m),
 * ``theta`` (n): all model parameters in :attr:`KneeModel.parameter_names` order (SI),
-* ``load`` (6): ``[Fx, Fy, Fz, Mx, My, Mz]`` in the femoral frame; the force acts at the tibial
-  tuberosity, the moment is pure (N, N m),
+* ``load`` (:data:`~kneenlp.conventions.LOAD_SIZE`): ``[F, M, Q]``, a force at the tibial
+  tuberosity and a pure moment in the femoral frame (N, N m) and generalised forces added to ``r``
+  as they are (a robot's joint loads; :func:`~kneenlp.conventions.load_vector`),
 * ``flexion`` (1): prescribed flexion (rad),
 * ``ws``: the contact working sets of the trial *taken at the pose q* (:meth:`KneeModel.working_set`:
   the points that can touch and, for mesh contact, the expansion of the contact at q; empty when no
@@ -32,7 +33,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import TO_USER
+from kneenlp.conventions import LOAD_SIZE, TO_USER
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.model.effects import (
     Effect,
@@ -93,7 +94,7 @@ class KneeModel:
         q = ca.SX.sym("q", 5)
         flexion = ca.SX.sym("flexion")
         theta = ca.SX.sym("theta", len(self.parameter_names))
-        load = ca.SX.sym("load", 6)
+        load = ca.SX.sym("load", LOAD_SIZE)
         values = {n: theta[i] for i, n in enumerate(self.parameter_names)}
         flex_e = flexion + sum((e.flexion_offset(values) for e in self.elements), ca.SX(0))
         R, p, axes = tibial_pose(flex_e, q)
@@ -115,7 +116,7 @@ class KneeModel:
             moment += m_e
         force += load[0:3]
         moment += ca.cross(R @ ca.DM(self.knee.tuberosity), load[0:3]) + load[3:6]
-        residual = generalized_forces(q, p, axes, force, moment)
+        residual = generalized_forces(q, p, axes, force, moment) + load[6:LOAD_SIZE]
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 
@@ -130,7 +131,7 @@ class KneeModel:
         self.ws_size = int(sum(sizes))
 
         qm, flexm = ca.MX.sym("q", 5), ca.MX.sym("flexion")
-        thetam, loadm = ca.MX.sym("theta", len(self.parameter_names)), ca.MX.sym("load", 6)
+        thetam, loadm = ca.MX.sym("theta", len(self.parameter_names)), ca.MX.sym("load", LOAD_SIZE)
         wsm = ca.MX.sym("ws", self.ws_size)
         pr = kin(qm, flexm, thetam) if staged else []
         pr = [pr] if isinstance(pr, ca.MX) else list(pr)

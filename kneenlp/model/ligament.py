@@ -88,7 +88,8 @@ class Bundle:
 
     @property
     def reference_length(self) -> float:
-        """Length (m) in the reference pose, where the tibial and femoral frames coincide."""
+        """Length (m) where the tibial and femoral frames coincide (:meth:`Ligament.bundle_length`
+        gives it in the ligament's reference pose)."""
         return float(np.linalg.norm(np.asarray(self.femur) - np.asarray(self.tibia)))
 
 
@@ -110,10 +111,15 @@ class Ligament(ForceElement):
     """
 
     def __init__(self, name: str, bundles: list[Bundle], *, law: ToeLinearLaw | None = None,
-                 candidate: bool = False, defaults: dict[str, float] | None = None, description: str = ""):
+                 candidate: bool = False, defaults: dict[str, float] | None = None, description: str = "",
+                 reference: tuple[np.ndarray, np.ndarray] | None = None):
         if not bundles:
             raise ValueError(f"ligament {name} has no bundles")
         self.name, self.bundles, self.law = name, list(bundles), law or ToeLinearLaw()
+        #: the reference pose (rotation tibial -> femoral, tibial origin in the femoral frame, m)
+        #: where reference strains are defined: the knee's imaged pose (identity by default)
+        self.reference = (np.eye(3), np.zeros(3)) if reference is None else (
+            np.asarray(reference[0], float), np.asarray(reference[1], float))
         self.candidate, self.description = candidate, description
         self._defaults = dict(defaults or {})
         #: a group of bundles with their own properties (parameters: k_scale, ref_strain_offset)
@@ -137,7 +143,17 @@ class Ligament(ForceElement):
 
     @property
     def reference_length(self) -> float:
-        return self.bundles[0].reference_length
+        """Length (m) of the first bundle in the reference pose."""
+        return self.bundle_length(self.bundles[0])
+
+    def tibia_at_reference(self, point) -> np.ndarray:
+        """A tibial point (tibial frame) in the femoral frame at the reference pose (m)."""
+        R, p = self.reference
+        return R @ np.asarray(point, float) + p
+
+    def bundle_length(self, b: Bundle) -> float:
+        """Length (m) of bundle ``b`` in the reference pose."""
+        return float(np.linalg.norm(np.asarray(b.femur) - self.tibia_at_reference(b.tibia)))
 
     def parameters(self) -> list[Parameter]:
         shifts = [] if self.candidate else attachment_parameters(self.name)
@@ -154,7 +170,8 @@ class Ligament(ForceElement):
         over the bundles; femoral and tibial frames coincide there).  An attachment shift along it
         moves the point along the line of action, which laxity data barely see: the reference
         strain absorbs the length change."""
-        u = np.mean([(np.asarray(b.femur) - np.asarray(b.tibia)) / b.reference_length for b in self.bundles], axis=0)
+        u = np.mean([(np.asarray(b.femur) - self.tibia_at_reference(b.tibia)) / self.bundle_length(b)
+                     for b in self.bundles], axis=0)
         return u / np.linalg.norm(u)
 
     def attachment_names(self, side: str) -> list[str]:
@@ -175,9 +192,10 @@ class Ligament(ForceElement):
             scale, offset = values[f"{self.name}.k_scale"], values[f"{self.name}.ref_strain_offset"]
         else:
             own = {kind: values[f"{self.name}.{kind}"] for kind in LIGAMENT_KINDS}
+        R_ref, p_ref = ca.DM(self.reference[0]), ca.DM(self.reference[1])
         for b in self.bundles:
             femur, tibia = ca.DM(b.femur) + shift_f, ca.DM(b.tibia) + shift_t
-            reference = ca.norm_2(femur - tibia) if not self.candidate else b.reference_length
+            reference = ca.norm_2(femur - (R_ref @ tibia + p_ref)) if not self.candidate else self.bundle_length(b)
             arm = pose.R @ tibia
             u = femur - (pose.p + arm)
             length = ca.norm_2(u)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import TO_USER
+from kneenlp.conventions import LOAD_SIZE, TO_USER
 
 #: Largest Newton step (mm for translations, deg for rotations).
 MAX_STEP = 5.0
@@ -44,7 +44,7 @@ class EquilibriumNewton:
         self.model = model
         q = ca.MX.sym("q", 5)
         theta = ca.MX.sym("theta", len(model.parameter_names))
-        load, flexion, ws = ca.MX.sym("load", 6), ca.MX.sym("flexion"), ca.MX.sym("ws", model.ws_size)
+        load, flexion, ws = ca.MX.sym("load", LOAD_SIZE), ca.MX.sym("flexion"), ca.MX.sym("ws", model.ws_size)
         r = model.residual(q, theta, load, flexion, ws)
         self._fn = ca.Function("residual_and_jacobian", [q, theta, load, flexion, ws], [r, ca.jacobian(r, q)])
         self._maps: dict[tuple[int, int], ca.Function] = {}
@@ -71,7 +71,7 @@ class EquilibriumNewton:
         """Solve ``r(q) = 0`` for every trial from ``q0`` (T x 5, SI); ``loads`` T x 6, ``flexions``
         (T,) rad; ``threads`` as in :meth:`evaluate`.  Converged trials have ``residual <= tol``."""
         q = np.array(q0, dtype=float).reshape(-1, 5)
-        loads = np.asarray(loads, dtype=float).reshape(-1, 6)
+        loads = np.asarray(loads, dtype=float).reshape(-1, LOAD_SIZE)
         flexions = np.asarray(flexions, dtype=float).ravel()
         T = len(q)
         w = np.asarray(TO_USER)

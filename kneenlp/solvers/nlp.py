@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import POSE_ENVELOPE_USER, TO_USER
+from kneenlp.conventions import LOAD_SIZE, POSE_ENVELOPE_USER, TO_USER
 from kneenlp.errors import InputError
 
 if TYPE_CHECKING:
@@ -74,13 +74,14 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
     xp = ca.MX.sym("p_free", nf)
     xq = ca.MX.sym("q_user", 5, T)
     nw = model.ws_size if working_sets == "data" else 0
-    par = ca.MX.sym("data", n_theta + 5 * T + 5 * T + 6 * T + T + nw * T)
+    nl = LOAD_SIZE
+    par = ca.MX.sym("data", n_theta + 5 * T + 5 * T + nl * T + T + nw * T)
     theta_in = par[:n_theta]
     meas = ca.reshape(par[n_theta : n_theta + 5 * T], 5, T)
     w = ca.reshape(par[n_theta + 5 * T : n_theta + 10 * T], 5, T)
-    loads = ca.reshape(par[n_theta + 10 * T : n_theta + 16 * T], 6, T)
-    flex = ca.reshape(par[n_theta + 16 * T : n_theta + 17 * T], 1, T)
-    ws_data = ca.reshape(par[n_theta + 17 * T :], nw, T)
+    loads = ca.reshape(par[n_theta + 10 * T : n_theta + (10 + nl) * T], nl, T)
+    flex = ca.reshape(par[n_theta + (10 + nl) * T : n_theta + (11 + nl) * T], 1, T)
+    ws_data = ca.reshape(par[n_theta + (11 + nl) * T :], nw, T)
     # theta element by element, so that fixed parameters (e.g. the contact modulus) depend on no
     # decision variable structurally: the Hessian then never seeds the contact with parameter
     # directions (a dense selection matrix made it ~2x slower).
