@@ -207,13 +207,12 @@ def touchable_box(femur_vertices: np.ndarray, tibia_points: np.ndarray, axis_poi
     ``reach`` of the tibial points swept by flexion about the flexion axis over ``flexion_deg``
     (``reach`` stands for the laxity translations and rotations around that path), padded by
     ``margin``.  Frame of the inputs (flexion is a negative rotation about the lateral axis)."""
-    tree = cKDTree(np.asarray(femur_vertices))
-    hit = np.zeros(len(femur_vertices), dtype=bool)
     c = np.asarray(axis_point, float)
-    for th in np.radians(np.linspace(*flexion_deg, steps)):
-        rot = rotation_about(axis_direction, -th)
-        for lst in tree.query_ball_point((np.asarray(tibia_points) - c) @ rot.T + c, reach):
-            hit[lst] = True
+    swept = np.vstack([(np.asarray(tibia_points) - c) @ rotation_about(axis_direction, -th).T + c
+                       for th in np.radians(np.linspace(*flexion_deg, steps))])
+    # one vectorised query: every femoral vertex within reach of any swept tibial point
+    dist, _ = cKDTree(swept).query(np.asarray(femur_vertices), distance_upper_bound=reach)
+    hit = np.isfinite(dist)
     if not np.any(hit):
         raise ValueError("no femoral surface within reach of the tibia between the given flexions")
     v = np.asarray(femur_vertices)[hit]

@@ -26,7 +26,7 @@ import numpy as np
 from scipy import stats
 
 from kneenlp import interrupts
-from kneenlp.conventions import POSE_ENVELOPE_USER, TO_USER
+from kneenlp.conventions import TO_USER
 from kneenlp.errors import unknown_name
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
@@ -219,7 +219,9 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
                 q0[i], ok[i] = sol.q, True
     # a start pose outside the NLP's pose envelope would be moved onto its bound by IPOPT, far
     # from equilibrium (a slack scattered start reached 36 deg varus): such a trial starts at its data
-    ok &= np.all(np.abs(q0 * TO_USER) < 0.99 * POSE_ENVELOPE_USER, axis=1)
+    lo, hi = problem.pose_bounds_user
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    ok &= np.all(np.abs(q0 * TO_USER - centre) < 0.99 * half, axis=1)
     q0_user = np.where(ok[:, None], q0 * TO_USER, problem.measured)
     n_fail_start = int(np.sum(~ok))
     x0 = nlp.pack_x([start[n] for n in problem.free], q0_user)

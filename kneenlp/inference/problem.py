@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kneenlp.conventions import LOAD_SIZE, TO_USER
+from kneenlp.conventions import LOAD_SIZE, POSE_ENVELOPE_USER, TO_USER
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
@@ -117,6 +117,13 @@ class IdentificationProblem:
     @property
     def upper(self) -> np.ndarray:
         return np.array([p.bounds[1] for p in self.parameters])
+
+    @property
+    def pose_bounds_user(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds (5, mm and deg) of every trial's pose: the physiological envelope
+        (:data:`~kneenlp.conventions.POSE_ENVELOPE_USER`) about the knee's reference pose."""
+        centre = self.model.knee.reference_pose[1] * TO_USER
+        return centre - POSE_ENVELOPE_USER, centre + POSE_ENVELOPE_USER
 
     @property
     def loads(self) -> np.ndarray:

@@ -36,6 +36,8 @@ from kneenlp.geometry.sdf import DistanceField, cached_field
 log = logging.getLogger("kneenlp")
 
 #: Keys of the ``[contact]`` table that are settings, not compartments.
+#: Flexions (deg) over which the tibia is swept to find the femoral surface it can touch.
+TOUCHABLE_FLEXION_DEG = (-5.0, 100.0)
 CONTACT_SETTINGS = ("gate", "working_set", "grid_spacing", "femur", "femur_offset", "tibia")
 #: Keys of a ``[contact.<compartment>]`` table.
 COMPARTMENT_KEYS = ("tibia", "femur", "sphere_center", "sphere_radius")
@@ -114,12 +116,17 @@ def tibial_samples(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, dtype=float), vertex_areas(mesh)
 
 
-def femoral_box(femur: trimesh.Trimesh, tibia_points: np.ndarray, axis: FlexionAxis | None) -> np.ndarray:
-    """The region of the femoral surface the tibia can touch (femoral frame): about the fitted
-    flexion axis, or about the frame's Z axis through the origin without one."""
+def femoral_box(femur: trimesh.Trimesh, tibia_points: np.ndarray, axis: FlexionAxis | None,
+                reference_flexion_deg: float = 0.0) -> np.ndarray:
+    """The region of the femoral surface the tibia can touch (femoral frame): the tibial points
+    (femoral frame, at the reference pose of flexion ``reference_flexion_deg``) flexed about the
+    fitted flexion axis, or about the frame's Z axis through the origin without one, over the
+    flexions of :func:`~kneenlp.geometry.axes.touchable_box`."""
     point = axis.point if axis is not None else np.zeros(3)
     direction = axis.direction if axis is not None else np.array([0.0, 0.0, 1.0])
-    return touchable_box(femur.vertices, tibia_points, point, direction)
+    lo, hi = TOUCHABLE_FLEXION_DEG
+    return touchable_box(femur.vertices, tibia_points, point, direction,
+                         (lo - reference_flexion_deg, hi - reference_flexion_deg))
 
 
 @dataclass

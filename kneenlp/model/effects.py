@@ -67,8 +67,12 @@ class Meniscus(ForceElement):
     name = "meniscus"
     description = "menisci: resistance to condylar translation over the plateau"
 
-    def __init__(self, centres: list[np.ndarray], stiffness: float | None = None):
+    def __init__(self, centres: list[np.ndarray], stiffness: float | None = None,
+                 rest: list[np.ndarray] | None = None):
         self.centres = [np.asarray(c, float) for c in centres]  # femoral frame, m
+        #: where each centre sits over the plateau with the springs relaxed (tibial frame, m): at
+        #: the knee's reference pose (the centres themselves where that pose is the identity)
+        self.rest = [np.asarray(c, float) for c in (rest if rest is not None else centres)]
         self.stiffness = stiffness  # N/m, None: a candidate
         self.candidate = stiffness is None
 
@@ -81,9 +85,9 @@ class Meniscus(ForceElement):
         k = values["meniscus.k"]
         force, moment = ca.SX.zeros(3), ca.SX.zeros(3)
         mask = ca.DM([1.0, 0.0, 1.0])
-        for ref in self.centres:
+        for ref, rest in zip(self.centres, self.rest, strict=True):
             c = pose.to_tibial(ref)
-            f_t = k * mask * (c - ca.DM(ref))  # on the tibia, tibial frame
+            f_t = k * mask * (c - ca.DM(rest))  # on the tibia, tibial frame
             force += pose.R @ f_t
             moment += pose.R @ ca.cross(c, f_t)
         return force, moment
@@ -135,10 +139,12 @@ def parameter_group(name: str, names: list[str], description: str) -> Effect:
     return Effect(name, description, tuple(names))
 
 
-def builtin_elements(centres: list[np.ndarray], meniscus: bool = True) -> list[ForceElement]:
+def builtin_elements(centres: list[np.ndarray], meniscus: bool = True,
+                     rest: list[np.ndarray] | None = None) -> list[ForceElement]:
     """The candidate elements every knee model carries (neutral until freed); ``meniscus=False``
-    for a knee whose menisci are part of its base model."""
-    return [*([Meniscus(centres)] if meniscus else []), FlexionOffset(), Registration()]
+    for a knee whose menisci are part of its base model; ``rest``: the condyle centres' rest
+    positions over the plateaus (:class:`Meniscus`)."""
+    return [*([Meniscus(centres, rest=rest)] if meniscus else []), FlexionOffset(), Registration()]
 
 
 def builtin_groups(ligaments: list[str]) -> list[Effect]:

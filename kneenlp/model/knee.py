@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
 from kneenlp.io.resources import resource
@@ -46,6 +47,7 @@ from kneenlp.model.contact import SphereContact
 from kneenlp.model.effects import Meniscus
 from kneenlp.model.elements import ForceElement
 from kneenlp.model.frames import FRAME_METHODS, Frame, angle_deg, axes_from_flexion, landmark_axes
+from kneenlp.model.kinematics import tibial_pose
 from kneenlp.model.ligament import Bundle, Ligament
 from kneenlp.model.mesh_contact import MeshContact
 from kneenlp.model.parameters import ParameterSet, number, read_toml
@@ -97,6 +99,15 @@ class Knee:
     axis: FlexionAxis | None = None  # fitted flexion axis (femoral frame)
     menisci: float | None = None  # N/m: transverse meniscus springs of the base model ([menisci])
     notes: list[str] = field(default_factory=list)  # how the file became this knee
+    #: the pose in which the geometry was imaged ([reference_pose]): flexion (rad) and the five
+    #: coordinates (rad, m); reference strains refer to it, solvers start from it
+    reference_pose: tuple[float, np.ndarray] = (0.0, np.zeros(5))
+    side: str = "right"  # the side of the knee file (the model is always a right knee)
+
+    @property
+    def reference_transform(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rotation (tibial -> femoral) and tibial origin (femoral frame, m) at the reference pose."""
+        return reference_transform(*self.reference_pose)
 
     @classmethod
     def default(cls) -> Knee:
@@ -137,12 +148,19 @@ class Knee:
             else:
                 contact.append(MeshContact(c.name, self.femur.field, c.points, c.areas, self.gate,
                                            self.femur.mesh.vertices, self.femur.offset))
-        menisci = [Meniscus(self.condyle_centres(), self.menisci)] if self.menisci is not None else []
+        menisci = [Meniscus(self.condyle_centres(), self.menisci, self.condyle_rest())] \
+            if self.menisci is not None else []
         return [*self.ligaments.values(), *contact, *menisci, *self.candidates]
 
     def condyle_centres(self) -> list[np.ndarray]:
         """Centre of each femoral condyle (femoral frame, m): where the meniscus springs act."""
         return [c.centre for c in self.compartments.values()]
+
+    def condyle_rest(self) -> list[np.ndarray]:
+        """Each condyle centre in the tibial frame at the reference pose (m): the meniscus springs'
+        rest positions."""
+        R, p = self.reference_transform
+        return [R.T @ (c - p) for c in self.condyle_centres()]
 
     def with_parameters(self, parameters: ParameterSet | str | Path) -> Knee:
         """The same geometry with another parameter set."""
@@ -187,6 +205,37 @@ class _KneeFile:
                              field="coordinates")
         self.frame = Frame.identity()
         self.notes: list[str] = []
+        self.reference_pose = self.read_reference_pose()
+        self.reference = reference_transform(*self.reference_pose)
+
+    def read_reference_pose(self) -> tuple[float, np.ndarray]:
+        """``[reference_pose]``: the imaged pose of the tibial frame in the femoral frame, in kneenlp's
+        coordinates and signs (deg, mm; all six or none), or zero (the frames coincide)."""
+        doc = self.doc.get("reference_pose")
+        if doc is None:
+            return 0.0, np.zeros(5)
+        keys = ["flexion_deg", *coordinate_columns()]
+        if not isinstance(doc, dict):
+            raise InputError(f"must be a table with {', '.join(keys)}", source=self.src, field="reference_pose")
+        unknown = sorted(set(doc) - set(keys))
+        if unknown:
+            raise InputError(f"unknown key {unknown[0]!r}; known: {', '.join(keys)}", source=self.src,
+                             field=f"reference_pose.{unknown[0]}")
+        missing = [k for k in keys if k not in doc]
+        if missing:
+            raise InputError(f"missing {', '.join(missing)} (give all six coordinates of the imaged pose)",
+                             source=self.src, field="reference_pose")
+        vals = {k: number(doc[k], self.src, f"reference_pose.{k}") for k in keys}
+        q_user = np.array([vals[c] for c in coordinate_columns()])
+        if np.any(np.abs(q_user) > POSE_ENVELOPE_USER) or not -30 <= vals["flexion_deg"] <= 120:
+            raise InputError("beyond any knee pose (|rotations| <= 30/60 deg, |translations| <= 25 mm, flexion -30 "
+                             "... 120 deg): mm and deg expected", source=self.src, field="reference_pose")
+        return float(np.radians(vals["flexion_deg"])), coords_from_user(q_user)
+
+    def at_reference(self, tibial_points: np.ndarray) -> np.ndarray:
+        """Tibial points (tibial frame) in the femoral frame at the reference pose."""
+        R, p = self.reference
+        return np.asarray(tibial_points, float) @ R.T + p
 
     # ------------------------------------------------------------------ raw values (scan, m, right knee)
     def raw_point(self, value: object, fld: str) -> np.ndarray:
@@ -237,7 +286,8 @@ class _KneeFile:
                     parameters=params, gate=self.length(contact, "gate", 0.01, "contact.gate"),
                     working_set=working_set, landmarks=landmarks, source=src,
                     description=str(doc.get("description", "")), candidates=candidates, femur=geometry["femur"],
-                    axis=geometry["axis"], menisci=self.menisci(), notes=self.notes)
+                    axis=geometry["axis"], menisci=self.menisci(), notes=self.notes,
+                    reference_pose=self.reference_pose, side=self.doc.get("side", "right"))
 
     def check_size(self, compartments: dict[str, Compartment]) -> None:
         """The knee's size against :data:`KNEE_SIZE_RANGE`: a unit slip names the likely cause."""
@@ -255,8 +305,9 @@ class _KneeFile:
                              f"{other!r})", source=self.src, field="units")
 
     def check_length(self, femur: np.ndarray, tibia: np.ndarray, fld: str) -> float:
-        """Attachment distance (m) of a bundle: at least 1 mm, at most :data:`MAX_LIGAMENT_LENGTH`."""
-        length = float(np.linalg.norm(femur - tibia))
+        """Attachment distance (m) of a bundle in the reference pose: at least 1 mm, at most
+        :data:`MAX_LIGAMENT_LENGTH`."""
+        length = float(np.linalg.norm(femur - self.at_reference(tibia)))
         if length < 1e-3:
             raise InputError("attachments closer than 1 mm", source=self.src, field=fld)
         if length > MAX_LIGAMENT_LENGTH:
@@ -383,14 +434,15 @@ class _KneeFile:
             if name in spheres:
                 centre, radius = self.frame(spheres[name][0]), spheres[name][1]
             else:
-                centre, radius = self.condyle_centre(axis, points), None
+                centre, radius = self.condyle_centre(axis, self.at_reference(points)), None
             compartments[name] = Compartment(name, mesh, points, areas, centre, radius)
         femur = None
         if femur_raw is not None and mesh_compartments:
             fmesh = self.frame.mesh(femur_raw)
             pts = np.vstack([compartments[n].points for n in mesh_compartments])
             spacing = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing")
-            femur = FemoralSurface(fmesh, offset, spacing, femoral_box(fmesh, pts, axis), sources)
+            box = femoral_box(fmesh, self.at_reference(pts), axis, np.degrees(self.reference_pose[0]))
+            femur = FemoralSurface(fmesh, offset, spacing, box, sources)
         return {"compartments": compartments, "femur": femur, "axis": axis}
 
     def approximate_axes(self, raw_landmarks: dict[str, np.ndarray]) -> np.ndarray:
@@ -450,14 +502,15 @@ class _KneeFile:
                 raise InputError("must be a table with femur and tibia attachments (or bundles)", source=src,
                                  field=fld)
             if "bundles" in lig:
-                ligaments[name] = Ligament(name, self.bundles(lig["bundles"], f"{fld}.bundles"))
+                ligaments[name] = Ligament(name, self.bundles(lig["bundles"], f"{fld}.bundles"),
+                                           reference=self.reference)
                 continue
             for key in ("femur", "tibia"):
                 if key not in lig:
                     raise InputError("missing attachment", source=src, field=f"{fld}.{key}")
             femur, tibia = self.point(lig["femur"], f"{fld}.femur"), self.point(lig["tibia"], f"{fld}.tibia")
             self.check_length(femur, tibia, fld)
-            ligaments[name] = Ligament(name, [Bundle(femur, tibia)])
+            ligaments[name] = Ligament(name, [Bundle(femur, tibia)], reference=self.reference)
         return ligaments
 
     def bundles(self, doc: object, fld: str) -> list[Bundle]:
@@ -516,7 +569,8 @@ class _KneeFile:
                 self.check_length(f, t, fld)
             ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / 100.0
             out.append(Ligament(cname, [Bundle(f, t) for f, t in zip(fem, tib, strict=True)], candidate=True,
-                                defaults={"ref_strain": ref}, description=str(cdoc.get("description", ""))))
+                                defaults={"ref_strain": ref}, description=str(cdoc.get("description", "")),
+                                reference=self.reference))
         return out
 
     def parameter_set(self, parameters, ligaments: dict[str, Ligament]) -> ParameterSet:
@@ -537,6 +591,12 @@ class _KneeFile:
             raise InputError("no parameter set: give 'parameters = FILE' or pass one", source=src,
                              field="parameters")
         return check_parameter_set(params, ligaments, src)
+
+
+def reference_transform(flexion: float, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation (tibial -> femoral) and tibial origin (femoral frame, m) of a pose (rad, m)."""
+    R, p, _ = tibial_pose(flexion, np.asarray(q, float))
+    return np.asarray(R, float), np.asarray(p, float).ravel()
 
 
 def check_parameter_set(params: ParameterSet, ligaments: dict[str, Ligament], knee_source: str | None) -> ParameterSet:

@@ -59,7 +59,8 @@ class KneeModel:
     def __init__(self, knee: Knee, extra_elements: list[ForceElement] | None = None):
         self.knee = knee
         self.elements: list[ForceElement] = [*knee.elements(),
-                                             *builtin_elements(knee.condyle_centres(), knee.menisci is None),
+                                             *builtin_elements(knee.condyle_centres(), knee.menisci is None,
+                                                               knee.condyle_rest()),
                                              *(extra_elements or [])]
         names = [e.name for e in self.elements]
         dup = sorted({n for n in names if names.count(n) > 1})

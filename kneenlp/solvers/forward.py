@@ -29,8 +29,10 @@ from kneenlp.model.elements import StagedElement
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.newton import EquilibriumNewton
 
-COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m: slightly penetrated
-#: Largest |coordinate| of a plausible knee pose (rad, rad, m, m, m).
+COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m from the reference pose: slightly penetrated
+#: Flexion step (deg) of the passive path from a knee's reference pose (:meth:`ForwardSolver.cold_start`).
+PASSIVE_STEP_DEG = 10.0
+#: Largest |coordinate| of a plausible knee pose from the knee's reference pose (rad, rad, m, m, m).
 ENVELOPE = POSE_ENVELOPE_USER / TO_USER
 
 
@@ -53,11 +55,31 @@ class ForwardSolver:
 
     def __init__(self, model: KneeModel, tol: float = 1e-6, max_iter: int = 60):
         self.model = model
+        #: the knee's reference pose: where cold starts begin and the envelope is centred (rad, m)
+        self.reference = np.asarray(model.knee.reference_pose[1], float)
         self.tol = tol
         self.max_iter = max_iter
         self.newton = EquilibriumNewton(model)
         self._contact_columns = [o.column for e, o in model.outputs
                                  if isinstance(e, StagedElement) and o.name == "force"]
+
+    def cold_start(self, flexion: float, theta: np.ndarray) -> np.ndarray:
+        """Where a trial without a warm start begins (rad, m): 0.3 mm proximal of the reference
+        pose (slightly penetrated); for a knee imaged at another pose than its frames' coincidence
+        ([reference_pose]) the unloaded equilibrium at ``flexion`` reached from the reference pose in
+        flexion steps of at most :data:`PASSIVE_STEP_DEG` (the GS translations of such a knee change
+        by millimetres with flexion), or where that path stopped."""
+        q = self.reference + COLD_START
+        f_ref = self.model.knee.reference_pose[0]
+        if not np.any(self.reference) and f_ref == 0.0:
+            return q
+        n = int(np.ceil(abs(np.degrees(flexion - f_ref)) / PASSIVE_STEP_DEG))
+        for f in np.linspace(f_ref, flexion, n + 1)[1:]:
+            q_new, res = self._newton(q, theta, Trial("passive", float(np.degrees(f)), {}))
+            if not res <= self.tol:
+                break
+            q = q_new
+        return q
 
     def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray,
                     threads: int = 2, max_retries: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -108,16 +130,18 @@ class ForwardSolver:
     def solve_trial(self, trial: Trial, theta: np.ndarray, q0: np.ndarray | None = None,
                     q_unloaded: np.ndarray | None = None) -> TrialSolution:
         """Equilibrium of one trial at parameters ``theta`` (SI), warm-started from ``q0``."""
-        start = COLD_START if q0 is None else q0
+        start = self.cold_start(trial.flexion, theta) if q0 is None else q0
         q, res = self._newton(start, theta, trial)
         strategy = "newton"
         if not res <= self.tol:
-            q, res = self._ramp(trial, theta, COLD_START if q_unloaded is None else q_unloaded)
+            start = self.cold_start(trial.flexion, theta) if q_unloaded is None else q_unloaded
+            q, res = self._ramp(trial, theta, start)
             strategy = "ramp"
         sol = self._solution(trial, theta, q, bool(res <= self.tol), res, strategy)
         if not sol.converged:
             sol.strategy, sol.reason = "failed", f"residual {res:.3g} > tolerance {self.tol:g}"
-        elif np.any(np.abs(q) > ENVELOPE) or not any(sol.outputs[c] > 0 for c in self._contact_columns):
+        elif np.any(np.abs(q - self.reference) > ENVELOPE) or not any(sol.outputs[c] > 0
+                                                                        for c in self._contact_columns):
             sol.converged, sol.strategy = False, "failed"
             sol.reason = "equilibrium found only at an implausible (dislocated) pose"
         return sol

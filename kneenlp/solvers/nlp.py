@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import LOAD_SIZE, POSE_ENVELOPE_USER, TO_USER
+from kneenlp.conventions import LOAD_SIZE, TO_USER
 from kneenlp.errors import InputError
 
 if TYPE_CHECKING:
@@ -100,8 +100,9 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
     g = ca.vec(mapped(q_si, theta, loads, flex, ws))
     diff = model.observation.map(T)(q_si, theta) - meas
     f = ca.sum1(ca.sum2(w * diff * diff))
-    lbx = np.concatenate([problem.lower / scales, np.tile(-POSE_ENVELOPE_USER, T)])
-    ubx = np.concatenate([problem.upper / scales, np.tile(POSE_ENVELOPE_USER, T)])
+    lo, hi = problem.pose_bounds_user
+    lbx = np.concatenate([problem.lower / scales, np.tile(lo, T)])
+    ubx = np.concatenate([problem.upper / scales, np.tile(hi, T)])
     return NLPExpressions(ca.vertcat(xp, ca.vec(xq)), par, f, g, lbx, ubx, q_si, theta, flex)
 
 
