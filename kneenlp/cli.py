@@ -414,6 +414,46 @@ def cmd_export_osim(args) -> int:
     return 0
 
 
+def cmd_import_abaqus(args) -> int:
+    from kneenlp.io.import_abaqus import import_abaqus
+
+    with staged_directory(args.out) as stage:
+        knee_file = import_abaqus(args.model, stage.path, side=args.side, name=args.name or Path(args.out).name)
+    print(f"wrote {stage.final(knee_file)} (and parameters.toml, meshes/)")
+    return 0
+
+
+def cmd_import_laxity(args) -> int:
+    from kneenlp.io.laxity_mat import import_laxity
+
+    df = import_laxity(args.mat, args.out, args.side)
+    if args.json:
+        print(json.dumps({"trials": len(df), "out": args.out, "side": args.side}))
+    else:
+        print(f"wrote {args.out}: {len(df)} trials of a {args.side} knee (joint loads, measured flexion; mm, deg, N, "
+              "N m)")
+    return 0
+
+
+def cmd_predict(args) -> int:
+    from kneenlp.inference.predict import predict, write_prediction
+
+    knee = _knee(args)
+    prediction = predict(knee, args.measured)
+    written = []
+    if args.out:
+        with staged_directory(args.out) as stage:
+            written = write_prediction(prediction, stage.path)
+        written = [stage.final(p) for p in written]
+    if args.json:
+        print(json.dumps(prediction.summary() | {"outputs": [str(p) for p in written]}, indent=2))
+    else:
+        print(prediction.report())
+        if written:
+            print("wrote: " + ", ".join(str(p) for p in written))
+    return 0 if prediction.converged.all() else 1
+
+
 def cmd_identifiability(args) -> int:
     from kneenlp.inference.identifiability import identifiability
 
@@ -538,6 +578,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--femur-offset", type=opt.finite, default=0.0,
                    help="mm the articular surface lies outside --femur-mesh (cartilage thickness on bone)")
     p.set_defaults(func=cmd_import_osim, validate=True, out_kind="dir")
+
+    p = sub.add_parser("import-abaqus", help="turn an Abaqus FE knee model (cartilage, fibres, frames) into a knee")
+    p.add_argument("model", help="folder of the FE model: geometry/, ligaments/, frames/ (as the S192803 deposit)")
+    p.add_argument("--out", required=True, help="directory for knee.toml, parameters.toml and meshes/")
+    p.add_argument("--side", required=True, choices=["left", "right"], help="the knee's side")
+    p.add_argument("--name", help="the knee's name (default: the --out folder's name)")
+    p.set_defaults(func=cmd_import_abaqus, validate=True, out_kind="dir")
+
+    p = sub.add_parser("import-laxity", help="robotic laxity measurements (MATLAB struct) -> measured-data CSV")
+    p.add_argument("mat", help="MATLAB file with a processed_laxity_trial struct array")
+    p.add_argument("--out", required=True, help="the measured-data CSV to write")
+    p.add_argument("--side", required=True, choices=["left", "right"],
+                   help="the knee's side (the file's signs are anatomical; the side is recorded and checked "
+                        "against the knee a fit uses)")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_import_laxity, validate=True, out_kind="file")
+
+    p = sub.add_parser("predict", help="simulate every measured trial at its measured load and flexion; compare")
+    p.add_argument("data", help="measured-data CSV (e.g. from import-laxity)")
+    _knee_args(p)
+    p.add_argument("--out", help="write predicted.csv and predicted_laxity.png here")
+    p.add_argument("--json", action="store_true", help="print JSON: rms (mm, deg by column), trials, converged")
+    p.set_defaults(func=cmd_predict, validate=True, out_kind="dir")
 
     p = sub.add_parser("export-osim", help="write a fit of an imported knee into a copy of its OpenSim model")
     p.add_argument("fit", help="the fit's JSON (kneenlp identify --json)")

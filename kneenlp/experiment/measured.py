@@ -72,6 +72,8 @@ from kneenlp.conventions import (
     COORDINATES,
     LOAD_AXES,
     LOAD_COMPONENTS,
+    POSE_ENVELOPE_USER,
+    TO_USER,
     coordinate_columns,
     coords_from_user,
     load_columns,
@@ -114,6 +116,24 @@ class MeasuredData:
         from kneenlp.conventions import coords_to_user
 
         return coords_to_user(self.q)
+
+    def check_knee(self, knee) -> None:
+        """The data fit ``knee`` (a :class:`~kneenlp.model.knee.Knee`): the same side, if the data
+        say theirs, and every measured pose within the knee's reach (the physiological envelope
+        about its reference pose)."""
+        if self.side is not None and self.side != knee.side:
+            raise InputError(f"the data come from a {self.side} knee, knee {knee.name!r} is a {knee.side} knee (a "
+                             f"{knee.side} knee declared {self.side}? import the data again with --side {knee.side})",
+                             source=self.source, field="side")
+        centre = knee.reference_pose[1] * TO_USER
+        far = np.abs(self.q_user - centre) > POSE_ENVELOPE_USER
+        if far.any():
+            i, j = np.argwhere(far)[0]
+            col = coordinate_columns()[j]
+            off = abs(self.q_user[i, j] - centre[j])
+            raise InputError(f"trial {self.trials[i].id!r}: {col} = {self.q_user[i, j]:.4g} is {off:.3g} from knee "
+                             f"{knee.name!r}'s reference pose, beyond what a knee reaches ({POSE_ENVELOPE_USER[j]:g}):"
+                             " another knee, frame or unit?", source=self.source, field=col)
 
     def check_protocol(self, protocol: Protocol) -> None:
         """Every trial known to ``protocol`` with the same load, and none of it missing."""

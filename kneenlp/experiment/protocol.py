@@ -60,6 +60,11 @@ class Trial:
         """Internal load vector (N, N m; :func:`~kneenlp.conventions.load_vector`)."""
         return load_vector(self.loads, flexion=self.flexion, axes=self.axes)
 
+    @property
+    def dominant(self) -> str:
+        """The direction of the trial's largest load (:func:`dominant_direction`), e.g. ``anterior``."""
+        return self.direction if self.direction != "combined" else dominant_direction(self.loads)
+
     def describe(self) -> str:
         """Words for reports, e.g. 'anterior 134 N at 30 deg flexion'."""
         if self.direction == "none":
@@ -70,6 +75,26 @@ class Trial:
             unit = "N" if self.direction in ("anterior", "posterior") else "N m"
             what = f"{self.direction} {self.magnitude:g} {unit}"
         return f"{what} at {self.flexion_deg:g} deg flexion"
+
+
+#: Names of the dominant load of a trial (component, sign) -> direction word.
+DIRECTION_WORDS = {("anterior_force", 1): "anterior", ("anterior_force", -1): "posterior",
+                   ("varus_moment", 1): "varus", ("varus_moment", -1): "valgus",
+                   ("internal_moment", 1): "internal", ("internal_moment", -1): "external",
+                   ("lateral_force", 1): "lateral", ("lateral_force", -1): "medial"}
+#: Typical magnitude of each load component of a laxity test (N, N m): a trial's direction is its
+#: largest component relative to these.
+TYPICAL = {"anterior_force": 100.0, "varus_moment": 5.0, "internal_moment": 5.0, "lateral_force": 100.0}
+
+
+def dominant_direction(loads: dict[str, float]) -> str:
+    """The direction word of a trial's largest load relative to :data:`TYPICAL` (``none`` below a
+    tenth of it)."""
+    rel = {c: loads.get(c, 0.0) / s for c, s in TYPICAL.items()}
+    comp = max(rel, key=lambda c: abs(rel[c]))
+    if abs(rel[comp]) < 0.1:
+        return "none"
+    return DIRECTION_WORDS[(comp, 1 if rel[comp] > 0 else -1)]
 
 
 def trial_id(direction: str, magnitude: float, flexion_deg: float) -> str:

@@ -156,6 +156,47 @@ def residual_map(rmap: pd.DataFrame, path: str | Path, title: str = "") -> Path:
     return _save(fig, path)
 
 
+#: Panels of measured against predicted laxity: the direction pair and the coordinate it moves.
+PAIR_PANELS = ((("anterior", "posterior"), "anterior_translation_mm", "anterior translation [mm]"),
+               (("internal", "external"), "internal_rotation_deg", "internal rotation [deg]"),
+               (("varus", "valgus"), "varus_rotation_deg", "varus rotation [deg]"))
+
+
+def measured_vs_predicted(table: pd.DataFrame, path: str | Path, title: str = "",
+                          extra: dict[str, pd.DataFrame] | None = None) -> Path:
+    """Measured (filled) against predicted (open, joined) laxity per load direction and flexion: the
+    coordinate each direction pair moves against the measured flexion (deg).  ``table`` has the
+    load columns, the predicted coordinates and ``measured_<coordinate>`` (as
+    :meth:`kneenlp.inference.predict.Prediction.table` writes it); ``extra`` adds further
+    predictions (label -> such a table), dashed."""
+    from kneenlp.experiment.protocol import dominant_direction
+
+    load_cols = [c for c in table.columns if c.endswith(("_force_N", "_moment_Nm"))]
+    words = [dominant_direction({c.rsplit("_", 1)[0]: float(r[c]) for c in load_cols}) for _, r in table.iterrows()]
+    fig, axes = _subplots(1, 3, figsize=(14, 4.2))
+    colors = mpl.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, (pair, col, ylabel) in zip(axes, PAIR_PANELS, strict=True):
+        for k, word in enumerate((*pair, "none")):
+            sel = np.array([w == word for w in words])
+            if not sel.any():
+                continue
+            sub = table[sel].sort_values("flexion_deg")
+            c = colors[k % len(colors)]
+            ax.plot(sub["flexion_deg"], sub[f"measured_{col}"], "o", color=c, label=f"{word} measured")
+            ax.plot(sub["flexion_deg"], sub[col], "o--" if word == "none" else "o-", mfc="none", color=c,
+                    label=f"{word} predicted")
+            for label, other in (extra or {}).items():
+                o = other[sel].sort_values("flexion_deg")
+                ax.plot(o["flexion_deg"], o[col], "s:", mfc="none", color=c, alpha=0.7, label=f"{word} {label}")
+        ax.set_xlabel("flexion [deg]")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path)
+
+
 def _subplots(*args, **kwargs):
     """A figure and its axes without pyplot: no global figure registry and no backend switch, so
     importing or calling kneenlp never changes the user's matplotlib backend."""
