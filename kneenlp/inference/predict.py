@@ -104,7 +104,7 @@ def write_prediction(prediction: Prediction, out: Path) -> list[Path]:
     from kneenlp.io.plots import measured_vs_predicted
 
     table = prediction.table()
-    table.to_csv(out / "predicted.csv", index=False, float_format="%.6g")
+    table.to_csv(out / "predicted.csv", index=False, float_format="%.10g")
     fig = measured_vs_predicted(table, out / "predicted_laxity.png",
                                 f"{prediction.knee_name}: measured (filled) and predicted (open)")
     return [out / "predicted.csv", fig]

@@ -1,0 +1,266 @@
+"""A real experiment (issue 21): the S192803 knee from its Abaqus FE model, its robotic laxity
+measurements, and the comparison of model and measurements before fitting.
+
+The import from the original Abaqus files needs the deposit's files beside the repository
+(``../shared/data/du-s192803``, as CI has them); the shipped knee and the shipped MATLAB file are
+tested from the package itself.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import scipy.io
+
+import kneenlp
+from kneenlp.cli import main
+from kneenlp.conventions import coords_to_user
+from kneenlp.experiment.measured import read_measured
+from kneenlp.io.import_abaqus import import_abaqus, law_force, read_abaqus_knee, reference_pose, table_force
+from kneenlp.io.laxity_mat import entry_trial, laxity_frame, read_laxity_mat
+from kneenlp.io.resources import resource
+from kneenlp.model.kinematics import joint_coordinates, tibial_pose
+
+DEPOSIT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "du-s192803"
+needs_deposit = pytest.mark.skipif(not DEPOSIT.is_dir(), reason=f"the S192803 deposit is not at {DEPOSIT}")
+MAT = resource("datasets", "s192803_laxity.mat")
+CSV = resource("datasets", "s192803_laxity.csv")
+
+
+@pytest.fixture(scope="module")
+def fe_model():
+    return read_abaqus_knee(DEPOSIT)
+
+
+@pytest.fixture(scope="module")
+def s192803():
+    return kneenlp.Knee.named("s192803")
+
+
+def test_joint_coordinates_invert_the_pose():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q = rng.uniform([-0.4, -0.8, -0.02, -0.02, -0.03], [0.4, 0.8, 0.02, 0.02, 0.03])
+        f = rng.uniform(-0.3, 2.0)
+        R, p, _ = tibial_pose(f, q)
+        f2, q2 = joint_coordinates(np.asarray(R), np.asarray(p))
+        assert f2 == pytest.approx(f, abs=1e-12) and np.allclose(q2, q, atol=1e-12)
+
+
+@needs_deposit
+def test_fibre_laws_equal_the_connector_tables(fe_model):
+    """kneenlp's toe-linear law of every fibre gives the PROPS-*.inp force at every tabulated length
+    and everywhere on the linear part and the slack side (1e-9 relative); inside the toe Abaqus
+    interpolates the table linearly, kneenlp keeps the quadratic: at most slope * toe / 128 apart,
+    attained midway between tabulated points."""
+    assert len(fe_model.fibres) == 31
+    assert {f.group for f in fe_model.fibres} == {"ACLam", "ACLpl", "PCLal", "PCLpm", "MCLa", "MCLm", "MCLp",
+                                                  "dMCL", "POL", "LCL", "ALS", "PCAPl", "PCAPm", "PFL"}
+    for f in fe_model.fibres:
+        F, D = f.law.table[:, 0], f.law.table[:, 1]
+        scale = F.max()
+        assert np.max(np.abs(law_force(f.law, D) - F)) <= 1e-9 * scale
+        d0 = D[np.flatnonzero(F == 0)[-1]]
+        loaded = D[D > d0]
+        toe_end = d0 + 2 * f.law.lin_strain * f.law.slack_length * 1e3
+        beyond = np.linspace(toe_end, loaded[-1], 7)
+        slack = np.linspace(D[0], d0, 5)
+        for d in (beyond, slack):
+            assert np.max(np.abs(law_force(f.law, d) - table_force(f.law, d))) <= 1e-9 * scale
+        knots = D[(D >= d0) & (D <= toe_end + 1e-9)]
+        mid = (knots[:-1] + knots[1:]) / 2
+        slope = f.law.stiffness / (f.law.slack_length * 1e3)  # N/mm
+        gap = np.abs(law_force(f.law, mid) - table_force(f.law, mid))
+        assert gap.max() == pytest.approx(slope * (toe_end - d0) / 128, rel=1e-6)
+
+
+@needs_deposit
+def test_imported_knee_is_the_shipped_one(fe_model, tmp_path, s192803):
+    """``import-abaqus`` of the deposit writes the knee shipped as ``s192803`` (same fibres, laws,
+    frames and surfaces)."""
+    knee_file = import_abaqus(DEPOSIT, tmp_path / "k", side="left", name="s192803")
+    fresh = kneenlp.Knee.load(knee_file)
+    assert fresh.reference_pose[0] == pytest.approx(s192803.reference_pose[0], abs=1e-12)
+    assert np.allclose(fresh.reference_pose[1], s192803.reference_pose[1], atol=1e-12)
+    for name, lig in s192803.ligaments.items():
+        for a, b in zip(lig.bundles, fresh.ligaments[name].bundles, strict=True):
+            assert np.allclose(a.femur, b.femur, atol=1e-9) and np.allclose(a.tibia, b.tibia, atol=1e-9)
+            assert (a.stiffness, a.ref_strain, a.lin_strain) == pytest.approx((b.stiffness, b.ref_strain,
+                                                                              b.lin_strain), rel=1e-9)
+    for c in s192803.compartments:
+        assert np.allclose(s192803.compartments[c].points, fresh.compartments[c].points, atol=1e-9)
+
+
+def test_shipped_bundles_have_the_fe_slack_lengths(s192803):
+    """A fibre's slack length is reached at the reference (imaged) pose's length / (1 + ref_strain):
+    the knee file's slack_length round-trips through the reference pose (no frame mixed up)."""
+    doc = kneenlp.model.parameters.read_toml(resource("knees", "s192803", "knee.toml"))
+    for name, lig in s192803.ligaments.items():
+        for b, raw in zip(lig.bundles, doc["ligaments"][name]["bundles"], strict=True):
+            slack = lig.bundle_length(b) / (1 + b.ref_strain)
+            assert slack == pytest.approx(raw["slack_length"] * 1e-3, rel=1e-12)
+    assert s192803.side == "left" and len(s192803.ligaments) == 14
+
+
+def test_imaging_pose_is_the_files_pose(s192803):
+    """The package's Grood-Suntay coordinates of the imaged pose, computed from the model's frames
+    (the knee's reference pose), are the measured file's imaging pose (tf_kin_step1_GS, converted
+    by the import's conventions): the same numbers for the same bone positions."""
+    entries = read_laxity_mat(MAT)
+    mat = scipy.io.loadmat(MAT, squeeze_me=True, struct_as_record=False)["processed_laxity_trial"]
+    for e, raw in zip(entries, mat, strict=True):
+        imaging = type(e)(e.index, e.label, e.nominal_flexion, np.asarray(raw.tf_kin_step1_GS, float), e.load)
+        trial, q_user = entry_trial(imaging)
+        assert trial.flexion_deg == pytest.approx(np.degrees(s192803.reference_pose[0]), abs=1e-5)
+        assert np.allclose(q_user, coords_to_user(s192803.reference_pose[1]), atol=2e-5)  # the file's 6 decimals
+
+
+@needs_deposit
+def test_reference_pose_from_the_frames(fe_model):
+    """The same from the deposit's own frame files (independent of the shipped knee)."""
+    flexion, q = reference_pose(fe_model, "left")
+    raw = scipy.io.loadmat(MAT, squeeze_me=True, struct_as_record=False)["processed_laxity_trial"][0]
+    file_flexion, vv, ie, ml, ap, si = raw.tf_kin_baseMRI_cylindrical
+    assert np.degrees(flexion) == pytest.approx(file_flexion, abs=1e-5)
+    # the cylindrical pose: kneenlp's decomposition, varus/internal negated (anatomical signs), SI negated
+    assert np.allclose(coords_to_user(q), [-vv, -ie, ml, ap, -si], atol=2e-5)
+
+
+def test_import_laxity_converts_projections_to_coordinates():
+    """``_GS`` translations are projections on the Grood-Suntay axes; kneenlp's are components
+    along them, which the file's ``_cylindrical`` poses hold (an independent oracle)."""
+    df = laxity_frame(MAT, "left")
+    mat = scipy.io.loadmat(MAT, squeeze_me=True, struct_as_record=False)["processed_laxity_trial"]
+    cyl = np.array([m.tf_kin_step2_cylindrical for m in mat])
+    assert np.allclose(df["lateral_translation_mm"], cyl[:, 3], atol=1e-9)
+    assert np.allclose(df["anterior_translation_mm"], cyl[:, 4], atol=1e-9)
+    assert np.allclose(df["proximal_translation_mm"], -cyl[:, 5], atol=1e-9)
+    assert len(df) == 25 and df["load_axes"].eq("jcs").all() and df["side"].eq("left").all()
+    # every trial moves the way its load pushes, the trial ids come from the numbers
+    assert set(df["trial"].str.split("_flex").str[0]) == {"anterior", "posterior", "internal", "external", "varus",
+                                                          "valgus", "none"}
+    assert (df["proximal_force_N"] > 30).all()  # the compressive preload
+
+
+def test_shipped_dataset_is_the_import_of_the_shipped_mat(tmp_path):
+    out = tmp_path / "data.csv"
+    assert main(["import-laxity", str(MAT), "--side", "left", "--out", str(out)]) == 0
+    fresh, shipped = pd.read_csv(out), pd.read_csv(CSV)
+    assert list(fresh.columns) == list(shipped.columns)
+    num = fresh.select_dtypes("number").columns
+    assert np.allclose(fresh[num].to_numpy(), shipped[num].to_numpy(), rtol=1e-5, atol=1e-5, equal_nan=True)
+    data = read_measured(out)
+    assert data.side == "left" and all(t.axes == "jcs" for t in data.trials)
+    assert data.trials[0].loads["proximal_force"] == pytest.approx(64.4289, abs=1e-3)
+
+
+def test_predict_reports_every_trial(tmp_path, capsys):
+    out = tmp_path / "pred"
+    code = main(["predict", str(CSV), "--knee", "s192803", "--out", str(out), "--json"])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0 and summary["trials"] == 25 and summary["converged"] == 25
+    assert set(summary["rms"]) == {"varus_rotation_deg", "internal_rotation_deg", "lateral_translation_mm",
+                                   "anterior_translation_mm", "proximal_translation_mm"}
+    table = pd.read_csv(out / "predicted.csv")
+    assert list(table["trial"]) == list(pd.read_csv(CSV)["trial"])
+    for col in ("anterior_force_N", "proximal_force_N", "flexion_moment_Nm", "anterior_translation_mm",
+                "error_anterior_translation_mm", "measured_anterior_translation_mm", "converged"):
+        assert col in table.columns
+    err = table["measured_internal_rotation_deg"] - table["internal_rotation_deg"]
+    assert np.allclose(err, table["error_internal_rotation_deg"])
+    assert summary["rms"]["internal_rotation_deg"] == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-6)
+    assert (out / "predicted_laxity.png").stat().st_size > 10_000
+
+
+# ------------------------------------------------------------------ bad input: one line, exit 2
+def _mat(tmp_path: Path, name: str, **entry_overrides) -> Path:
+    """A copy of the shipped MATLAB file with the first entry's fields changed (None removes)."""
+    mat = scipy.io.loadmat(MAT, squeeze_me=True, struct_as_record=False)["processed_laxity_trial"]
+    rows = []
+    for i, m in enumerate(mat):
+        d = {f: getattr(m, f) for f in m._fieldnames}
+        if i == 0:
+            for k, v in entry_overrides.items():
+                if v is None:
+                    d.pop(k)
+                else:
+                    d[k] = v
+        rows.append(d)
+    arr = np.empty(len(rows), dtype=object)
+    arr[:] = rows
+    path = tmp_path / name
+    scipy.io.savemat(path, {"processed_laxity_trial": arr})
+    return path
+
+
+@pytest.mark.parametrize("case, needle", [
+    ("nostruct", "no struct array 'processed_laxity_trial'"),
+    ("nan", "not a finite number"),
+    ("missing_load", "missing load component"),
+    ("newton_mm", "N mm"),
+    ("far", "beyond any knee's reach"),
+    ("no_field", "has no field tf_loads_step2"),
+])
+def test_import_laxity_bad_input(tmp_path, capsys, case, needle):
+    raw = scipy.io.loadmat(MAT, squeeze_me=True, struct_as_record=False)["processed_laxity_trial"][0]
+    if case == "nostruct":
+        path = tmp_path / "x.mat"
+        scipy.io.savemat(path, {"something_else": np.arange(3)})
+    elif case == "nan":
+        pose = np.array(raw.tf_kin_step2_GS, float)
+        pose[4] = np.nan
+        path = _mat(tmp_path, "x.mat", tf_kin_step2_GS=pose)
+    elif case == "missing_load":
+        path = _mat(tmp_path, "x.mat", tf_loads_step2=np.array(raw.tf_loads_step2, float)[:5])
+    elif case == "newton_mm":
+        load = np.array(raw.tf_loads_step2, float)
+        load[:3] *= 1000
+        load[0] = 675.8  # as the example Abaqus file gives it, N mm
+        path = _mat(tmp_path, "x.mat", tf_loads_step2=load)
+    elif case == "far":
+        pose = np.array(raw.tf_kin_step2_GS, float)
+        pose[4] = 450.0
+        path = _mat(tmp_path, "x.mat", tf_kin_step2_GS=pose)
+    else:
+        path = _mat(tmp_path, "x.mat", tf_loads_step2=None)
+    code = main(["import-laxity", str(path), "--side", "left", "--out", str(tmp_path / "d.csv")])
+    err = capsys.readouterr().err
+    assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "d.csv").exists()
+
+
+def test_left_knee_declared_right_is_refused(tmp_path, capsys):
+    out = tmp_path / "right.csv"
+    assert main(["import-laxity", str(MAT), "--side", "right", "--out", str(out)]) == 0
+    code = main(["predict", str(out), "--knee", "s192803"])
+    err = capsys.readouterr().err
+    assert code == 2 and "right knee" in err and "left knee" in err and "--side left" in err
+
+
+def test_pose_beyond_the_knees_reach_is_refused(tmp_path, capsys):
+    df = pd.read_csv(CSV)
+    df.loc[3, "proximal_translation_mm"] = 30.0  # 50 mm from the imaged pose: another frame?
+    path = tmp_path / "far.csv"
+    df.to_csv(path, index=False)
+    code = main(["predict", str(path), "--knee", "s192803"])
+    err = capsys.readouterr().err
+    assert code == 2 and "anterior_flex90" in err and "beyond what a knee reaches" in err
+
+
+def test_sign_slip_is_refused(tmp_path, capsys):
+    """Opposite loads at one flexion that move the knee the wrong way round: a sign slip."""
+    mat = scipy.io.loadmat(MAT, squeeze_me=True, struct_as_record=False)["processed_laxity_trial"]
+    rows = [{f: getattr(m, f) for f in m._fieldnames} for m in mat]
+    for d in rows:
+        d["tf_kin_step2_GS"] = np.array(d["tf_kin_step2_GS"], float) * [1, 1, 1, 1, -1, 1]  # AP negated
+    arr = np.empty(len(rows), dtype=object)
+    arr[:] = rows
+    path = tmp_path / "slip.mat"
+    scipy.io.savemat(path, {"processed_laxity_trial": arr})
+    code = main(["import-laxity", str(path), "--side", "left", "--out", str(tmp_path / "d.csv")])
+    err = capsys.readouterr().err
+    assert code == 2 and "sign slip" in err and "anterior_translation_mm" in err
