@@ -251,18 +251,31 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_identify(args) -> int:
+    from kneenlp.inference.calibrate import Calibration, calibrate, real_experiment
     from kneenlp.inference.identify import identify
+    from kneenlp.simulation import model_for
 
     knee = _knee(args)
     _check_names(knee, args)
-    fit = identify(knee, args.measured, args.method, free=args.free, seed=args.seed, noise=args.noise,
-                   weighted=args.weighted, multistart=args.multistart, solver=args.solver, protocol=args.protocol,
-                   with_effects=args.with_effect)
+    options = {"weighted": args.weighted, "multistart": args.multistart, "solver": args.solver,
+               "protocol": args.protocol, "with_effects": args.with_effect}
+    calibration = None
+    if real_experiment(args.measured) and args.method == "simultaneous":
+        calibration = calibrate(model_for(knee), args.measured, args.free, seed=args.seed, noise=args.noise,
+                                **options)
+        fit = calibration.fit
+    else:
+        fit = identify(knee, args.measured, args.method, free=args.free, seed=args.seed, noise=args.noise, **options)
+        calibration = Calibration(fit, None, [])
     if args.out:
         with staged_directory(args.out) as stage:
             fit.table().to_csv(stage.path / "fit_trials.csv", index=False, float_format="%.10g")
             (stage.path / "fit.json").write_text(fit.to_json())
-    print(fit.to_json() if args.json else fit.report())
+            (stage.path / "calibrated.toml").write_text(calibration.to_toml())
+    if args.json:
+        print(json.dumps(json.loads(fit.to_json()) | calibration.summary(), indent=2))
+    else:
+        print(calibration.report())
     return 0 if fit.success else 1
 
 

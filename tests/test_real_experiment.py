@@ -264,3 +264,57 @@ def test_sign_slip_is_refused(tmp_path, capsys):
     code = main(["import-laxity", str(path), "--side", "left", "--out", str(tmp_path / "d.csv")])
     err = capsys.readouterr().err
     assert code == 2 and "sign slip" in err and "anterior_translation_mm" in err
+
+
+# ------------------------------------------------------------------ calibration (the fit itself: benchmarks)
+def test_calibration_frees_what_the_trials_determine(s192803):
+    """The registration always; of the ligament groups, those the trials move at the knee's values:
+    the superficial MCL (20 % slack in the FE model), the LCL and the PCL never engage in these 25
+    trials and stay at the knee's values."""
+    from kneenlp.inference.calibrate import REGISTRATION, calibration_free, real_experiment
+
+    data = read_measured(CSV)
+    assert real_experiment(data)
+    free, fixed = calibration_free(s192803.model, data)
+    assert free[:5] == REGISTRATION
+    for name in ("MCLa.k_scale", "MCLm.k_scale", "MCLp.k_scale", "PCLal.k_scale", "PCLpm.k_scale", "LCL.k_scale"):
+        assert name in fixed and name not in free
+    assert {"ACLam.k_scale", "dMCL.k_scale", "PFL.k_scale"} <= set(free)
+    assert set(free) | set(fixed) == set(REGISTRATION) | set(kneenlp.inference.problem.default_free(s192803.model))
+
+
+def test_calibrated_parameter_file_round_trips(s192803, tmp_path, capsys):
+    """A calibration's parameter file (group scales and offsets, the registration: [values] with
+    units) is what --parameters reads back: the same values, a model that uses them."""
+    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.model.parameters import ParameterSet
+
+    values = {"ACLam.k_scale": 1.7, "ACLam.ref_strain_offset": 0.021, "registration.varus_rotation": np.radians(4.5),
+              "registration.anterior_translation": 6e-3}
+    pset = s192803.parameters.with_values(values, name="cal")
+    info = {p.name: p for p in s192803.model.parameters}
+    path = tmp_path / "calibrated.toml"
+    path.write_text(pset.to_toml(info, ["test"]))
+    back = ParameterSet.load(path)
+    for n, v in values.items():
+        assert back[n] == pytest.approx(v, rel=1e-12)
+    model = KneeModel(s192803.with_parameters(path))
+    theta = model.theta()
+    assert theta[model.index("registration.varus_rotation")] == pytest.approx(np.radians(4.5))
+    assert np.allclose(model.bias_user(theta), [4.5, 0, 0, 6.0, 0])
+    # the measured data predicted with it: the registration shifts every measured coordinate
+    code = main(["predict", str(CSV), "--knee", "s192803", "--parameters", str(path), "--json"])
+    assert code == 0 and json.loads(capsys.readouterr().out)["converged"] == 25
+
+
+@pytest.mark.parametrize("text, needle", [
+    ('[values]\n"ACLam.k_scle" = {value = 1.0, unit = "1"}\n', "unknown parameter 'ACLam.k_scle'"),
+    ('[values]\n"registration.varus_rotation" = {value = 1.0, unit = "mm"}\n', "does not suit"),
+    ('[values]\n"ACLam.k_scale" = {value = 1.0, unit = "furlong"}\n', "unknown unit 'furlong'"),
+])
+def test_bad_calibrated_values(tmp_path, capsys, text, needle):
+    path = tmp_path / "p.toml"
+    path.write_text('name = "x"\n[contact]\nmodulus = 10.0\n' + text)
+    code = main(["predict", str(CSV), "--knee", "s192803", "--parameters", str(path)])
+    err = capsys.readouterr().err
+    assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err

@@ -603,7 +603,8 @@ def check_parameter_set(params: ParameterSet, ligaments: dict[str, Ligament], kn
     """``params`` if it gives exactly the properties of ``ligaments`` (of the knee file
     ``knee_source``), else an error naming both files."""
     src = knee_source or "the knee"
-    extra = sorted({n.split(".")[0] for n in params.names()} - set(ligaments) - {"contact"})
+    extra = sorted({n.split(".")[0] for n in params.names() if n not in params.meta}
+                   - set(ligaments) - {"contact"})
     if extra:
         raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)} (the ligaments of "
                          f"{src})", source=params.source or src, field=f"ligaments.{extra[0]}")

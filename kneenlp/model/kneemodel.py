@@ -49,6 +49,18 @@ from kneenlp.model.knee import Knee
 from kneenlp.model.parameters import Parameter
 
 
+def check_set_names(params, info: dict[str, Parameter]) -> None:
+    """Every value of the knee's parameter set names a parameter of the model, in a unit of its kind."""
+    src = params.source or params.name
+    for name in params.names():
+        if name not in info:
+            raise unknown_name("parameter", name, list(info), source=src).with_context(field=name)
+        unit = params.meta.get(name)
+        if unit is not None and unit not in dict(info[name].meta.file_units):
+            raise InputError(f"unit {unit!r} does not suit {name} ({info[name].meta.text}); use one of "
+                             f"{', '.join(dict(info[name].meta.file_units))}", source=src, field=f"values.{name}")
+
+
 class KneeModel:
     """Symbolic equilibrium model of a :class:`~kneenlp.model.knee.Knee` (built once, reused).
 
@@ -76,6 +88,7 @@ class KneeModel:
                                      field=e.name)
                 params.setdefault(p.name, p)
         self.parameters: list[Parameter] = list(params.values())
+        check_set_names(knee.parameters, params)
         self.parameter_names = [p.name for p in self.parameters]
         self._index = {n: i for i, n in enumerate(self.parameter_names)}
         self.effects: list[Effect] = [Effect(e.name, e.description, tuple(e.frees()))
@@ -241,10 +254,10 @@ class KneeModel:
         for p in self.parameters:
             if p.name in values:
                 out.append(float(values[p.name]))
+            elif p.name in self.knee.parameters:  # a calibration may set a candidate (e.g. the registration)
+                out.append(self.knee.parameters[p.name])
             elif p.neutral is not None:
                 out.append(p.neutral)
-            elif p.name in self.knee.parameters:
-                out.append(self.knee.parameters[p.name])
             elif p.default is not None:
                 out.append(p.default)
             else:

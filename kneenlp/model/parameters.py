@@ -59,6 +59,9 @@ LIGAMENT_KINDS: tuple[str, ...] = ("k", "ref_strain", "lin_strain")
 #: Accepted file units per kind (factor to SI) and display unit per kind (parameter-set files).
 UNIT_FACTORS: dict[str, dict[str, float]] = {k: dict(v.file_units) for k, v in KINDS.items()}
 DISPLAY_UNITS: dict[str, str] = {k: v.unit for k, v in KINDS.items()}
+#: Every unit a parameter file may give in its ``[values]`` table, with its factor to SI (one
+#: factor per unit whatever the kind; the model checks the unit suits the parameter's kind).
+UNIT_TO_SI: dict[str, float] = {u: f for kind in KINDS.values() for u, f in kind.file_units}
 
 
 @dataclass(frozen=True)
@@ -154,10 +157,40 @@ class ParameterSet:
             if k not in self.values:
                 raise unknown_name("parameter", k, self.values)
         return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
-                            name=self.name, source=self.source, description=self.description)
+                            name=self.name, source=self.source, description=self.description, meta=dict(self.meta))
+
+    def with_values(self, values: Mapping[str, float], name: str | None = None,
+                    description: str | None = None) -> ParameterSet:
+        """A copy with ``values`` (SI) set, new names included (e.g. a calibration's fitted group
+        scales and registration); the model checks the names when it uses the set."""
+        return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
+                            name=name or self.name, source=None,
+                            description=self.description if description is None else description)
 
     def vector(self, names: Iterable[str]) -> list[float]:
         return [self[n] for n in names]
+
+    def to_toml(self, info: Mapping[str, Parameter], header: Iterable[str] = ()) -> str:
+        """Parameter-file text of this set (``ParameterSet.load`` reads it back to the same values):
+        single-law ligaments in ``[ligaments]``, the contact modulus in ``[contact]``, every other
+        parameter in ``[values]`` with its display unit; ``info`` gives each name's metadata."""
+        import tomli_w
+
+        doc: dict = {"name": self.name, "description": self.description,
+                     "units": {kind: DISPLAY_UNITS[kind] for kind in (*LIGAMENT_KINDS, "modulus")},
+                     "ligaments": {}, "contact": {}, "values": {}}
+        ligs = {n.rsplit(".", 1)[0] for n in self.values
+                if all(f"{n.rsplit('.', 1)[0]}.{k}" in self.values for k in LIGAMENT_KINDS)}
+        for name, value in self.values.items():
+            lig, _, key = name.rpartition(".")
+            if lig in ligs and key in LIGAMENT_KINDS:
+                doc["ligaments"].setdefault(lig, {})[key] = value * KINDS[key].to_user
+            elif name == "contact.modulus":
+                doc["contact"]["modulus"] = value * KINDS["modulus"].to_user
+            else:
+                meta = info[name].meta
+                doc["values"][name] = {"value": value * meta.to_user, "unit": meta.unit}
+        return "".join(f"# {h}\n" for h in header) + tomli_w.dumps({k: v for k, v in doc.items() if v != {}})
 
     @classmethod
     def load(cls, path: str | Path) -> ParameterSet:
@@ -198,6 +231,8 @@ class ParameterSet:
                 raise InputError("linear strain limit must be > 0", source=src, field=f"ligaments.{lig}.lin_strain")
             for kind in LIGAMENT_KINDS:
                 plausible(values[f"{lig}.{kind}"], kind, src, f"ligaments.{lig}.{kind}")
+        named, named_units = _named_values(doc.get("values", {}), src)
+        values |= named
         contact = doc.get("contact", {})
         if not isinstance(contact, dict):
             raise InputError("must be a table with modulus", source=src, field="contact")
@@ -214,7 +249,25 @@ class ParameterSet:
             if key in doc and not isinstance(doc[key], str):
                 raise InputError(f"expected a string, got {doc[key]!r}", source=src, field=key)
         return cls(values, name=str(doc.get("name", path.stem)), source=src,
-                   description=str(doc.get("description", "")))
+                   description=str(doc.get("description", "")), meta=named_units)
+
+
+def _named_values(table: object, src: str) -> tuple[dict[str, float], dict[str, str]]:
+    """``[values]``: any model parameter by its full name, ``"NAME" = {value = V, unit = "U"}`` (SI
+    out); a calibration writes the parameters it fitted so (:meth:`ParameterSet.to_toml`)."""
+    if not isinstance(table, dict):
+        raise InputError('must be a table of "NAME" = {value = V, unit = "U"}', source=src, field="values")
+    out, units = {}, {}
+    for name, item in table.items():
+        fld = f"values.{name}"
+        if not isinstance(item, dict) or set(item) != {"value", "unit"}:
+            raise InputError(f'expected {{value = V, unit = "U"}}, got {item!r}', source=src, field=fld)
+        unit = item["unit"]
+        if unit not in UNIT_TO_SI:
+            raise InputError(f"unknown unit {unit!r}; known: {', '.join(UNIT_TO_SI)}", source=src, field=fld)
+        out[name] = number(item["value"], src, fld) * UNIT_TO_SI[unit]
+        units[name] = unit
+    return out, units
 
 
 #: Smallest plausible nonzero ligament stiffness (N per unit strain): ligaments have 10^3-10^5 N;
