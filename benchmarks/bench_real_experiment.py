@@ -1,0 +1,71 @@
+"""Benchmark (issue 21): the S192803 cadaver knee and its robotic laxity measurements.
+
+Prints (2 cores; seconds, mm, deg):
+- the import of the Abaqus model (``import-abaqus``, needs the deposit at ../shared/data/du-s192803)
+  and the knee load with the distance field cached;
+- the prediction of the 25 measured trials with the FE model's own parameters (RMS per coordinate);
+- the calibration (registration + the ligament groups the trials determine; noise estimated): its
+  time and the RMS per coordinate after it, over all trials and over the loaded ones;
+- the issue's targets beside the figures: RMS <= 1.0 mm and <= 2.5 deg after calibration, import
+  plus calibration <= 60 s with the field cached.
+Run: python benchmarks/bench_real_experiment.py
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import kneenlp
+from kneenlp.experiment.measured import read_measured
+from kneenlp.inference.calibrate import calibrate
+from kneenlp.inference.predict import predict
+from kneenlp.io.resources import resource
+
+DEPOSIT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "du-s192803"
+
+
+def row(rms: dict[str, float]) -> str:
+    return ", ".join(f"{c.rsplit('_', 1)[0]} {v:.2f} {c.rsplit('_', 1)[1]}" for c, v in rms.items())
+
+
+def main() -> None:
+    t_import = 0.0
+    if DEPOSIT.is_dir():
+        from kneenlp.io.import_abaqus import import_abaqus
+
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            import_abaqus(DEPOSIT, Path(tmp) / "k", side="left", name="s192803")
+            t_import = time.perf_counter() - t0
+        print(f"import-abaqus of the deposit: {t_import:.2f} s")
+    t0 = time.perf_counter()
+    knee = kneenlp.Knee.named("s192803")
+    model = knee.model
+    t_load = time.perf_counter() - t0
+    print(f"knee load + model build (distance field cached after the first run): {t_load:.2f} s")
+    data = read_measured(resource("datasets", "s192803_laxity.csv"))
+    t0 = time.perf_counter()
+    before = predict(model, data)
+    print(f"predict 25 trials with the FE parameters: {time.perf_counter() - t0:.2f} s, "
+          f"{int(before.converged.sum())}/25 at equilibrium; RMS {row(before.rms())}")
+    t0 = time.perf_counter()
+    cal = calibrate(model, data)
+    t_cal = time.perf_counter() - t0
+    fit = cal.fit
+    loaded = np.array([t.dominant != "none" for t in data.trials])
+    err = data.q_user - fit.predicted_user
+    rms_loaded = {c: float(np.sqrt(np.mean(err[loaded, j] ** 2))) for j, c in enumerate(cal.rms_after)}
+    print(f"calibration: {t_cal:.1f} s ({fit.iterations} IPOPT iterations, {len(fit.problem.free)} free, "
+          f"success {fit.success}); {len(cal.fixed)} group parameters left at the FE values")
+    print(f"  RMS after, all trials: {row(cal.rms_after)}")
+    print(f"  RMS after, loaded trials: {row(rms_loaded)}")
+    print(f"  import + load + calibration: {t_import + t_load + t_cal:.1f} s (target <= 60 s)")
+    print("  targets: <= 1.0 mm and <= 2.5 deg after calibration")
+
+
+if __name__ == "__main__":
+    main()
