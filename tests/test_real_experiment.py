@@ -318,3 +318,18 @@ def test_bad_calibrated_values(tmp_path, capsys, text, needle):
     code = main(["predict", str(CSV), "--knee", "s192803", "--parameters", str(path)])
     err = capsys.readouterr().err
     assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_protocol_files_take_joint_loads_and_the_extra_components():
+    from kneenlp.experiment.protocol import Protocol
+
+    proto = Protocol.from_dict({"load_axes": "jcs", "cases": [
+        {"name": "drawer", "loads": {"anterior_force": 200.0, "proximal_force": 50.0, "flexion_moment": 1.0},
+         "flexion": [30.0]}]})
+    load = proto.trials[0].load
+    assert np.allclose(load[:6], 0) and np.allclose(load[6:], [0, 0, 0, 200.0, 50.0])
+    femoral = Protocol.from_dict({"cases": [{"loads": {"lateral_force": 10.0, "proximal_force": 40.0},
+                                             "flexion": [0.0]}]}).trials[0].load
+    assert np.allclose(femoral, [0, 40.0, 10.0, 0, 0, 0, 0, 0, 0, 0, 0])
+    with pytest.raises(kneenlp.errors.InputError, match="beyond the largest laxity load"):
+        Protocol.from_dict({"cases": [{"loads": {"proximal_force": 5000.0}, "flexion": [0.0]}]})
