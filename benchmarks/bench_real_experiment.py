@@ -22,7 +22,7 @@ import numpy as np
 import kneenlp
 from kneenlp.experiment.measured import read_measured
 from kneenlp.inference.calibrate import calibrate
-from kneenlp.inference.predict import predict
+from kneenlp.inference.predict import predict, rms_by_coordinate
 from kneenlp.io.resources import resource
 
 DEPOSIT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "du-s192803"
@@ -57,8 +57,7 @@ def main() -> None:
     t_cal = time.perf_counter() - t0
     fit = cal.fit
     loaded = np.array([t.dominant != "none" for t in data.trials])
-    err = data.q_user - fit.predicted_user
-    rms_loaded = {c: float(np.sqrt(np.mean(err[loaded, j] ** 2))) for j, c in enumerate(cal.rms_after)}
+    rms_loaded = rms_by_coordinate((data.q_user - fit.predicted_user)[loaded])
     print(f"calibration: {t_cal:.1f} s ({fit.iterations} IPOPT iterations, {len(fit.problem.free)} free, "
           f"success {fit.success}); {len(cal.fixed)} group parameters left at the FE values")
     print(f"  RMS after, all trials: {row(cal.rms_after)}")

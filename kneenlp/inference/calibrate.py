@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from kneenlp.conventions import COORDINATES, coordinate_columns
+from kneenlp.conventions import COORDINATES
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.inference.fit import Fit
-from kneenlp.inference.predict import Prediction, predict
+from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
 from kneenlp.inference.problem import IdentificationProblem, default_free
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import ParameterSet
@@ -78,8 +78,7 @@ class Calibration:
 
     @property
     def rms_after(self) -> dict[str, float]:
-        err = self.fit.data.q_user - self.fit.predicted_user
-        return {c: float(np.sqrt(np.mean(err[:, j] ** 2))) for j, c in enumerate(coordinate_columns())}
+        return rms_by_coordinate(self.fit.data.q_user - self.fit.predicted_user)
 
     def parameter_set(self) -> ParameterSet:
         """The knee's parameter set with the fitted values: ``--parameters`` of later commands."""

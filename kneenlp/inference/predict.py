@@ -24,6 +24,13 @@ from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import TrialSolution, forward_solver
 
 
+def rms_by_coordinate(errors_user: np.ndarray) -> dict[str, float]:
+    """RMS per coordinate column (mm, deg) of errors (T x 5, deg and mm); NaN with no rows."""
+    err = np.asarray(errors_user, float).reshape(-1, 5)
+    return {c: float(np.sqrt(np.mean(err[:, j] ** 2))) if len(err) else float("nan")
+            for j, c in enumerate(coordinate_columns())}
+
+
 @dataclass
 class Prediction:
     """Predicted poses of measured trials and their errors (SI inside, tables in mm and deg)."""
@@ -52,9 +59,7 @@ class Prediction:
         """RMS of measured minus predicted per coordinate column (mm, deg) over the converged
         trials (of ``trials``, a boolean mask, if given)."""
         sel = self.converged if trials is None else self.converged & trials
-        err = self.errors_user[sel]
-        return {c: float(np.sqrt(np.mean(err[:, j] ** 2))) if len(err) else float("nan")
-                for j, c in enumerate(coordinate_columns())}
+        return rms_by_coordinate(self.errors_user[sel])
 
     def table(self) -> pd.DataFrame:
         """The data's columns and trial ids with the predicted poses, the errors (``error_<column>``:

@@ -35,7 +35,9 @@ flexion in the unloaded or anterior trials (the opposite of the screw-home: a mi
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -180,36 +182,37 @@ def laxity_frame(path: str | Path, side: str) -> pd.DataFrame:
         t, q = entry_trial(e)
         trials.append(t)
         poses.append(q)
-    ids = [t.id for t in trials]
-    trials = [Trial(f"{t.id}_{ids[:i].count(t.id) + 1}" if ids.count(t.id) > 1 else t.id, t.flexion_deg, t.loads,
-                    t.direction, t.magnitude, t.axes) for i, t in enumerate(trials)]
+    total, seen = Counter(t.id for t in trials), Counter()
+    for i, t in enumerate(trials):  # ids unique: a repeated load case gets _1, _2, ...
+        if total[t.id] > 1:
+            seen[t.id] += 1
+            trials[i] = dataclasses.replace(t, id=f"{t.id}_{seen[t.id]}")
     df = measured_frame(trials, np.array(poses), protocol="", side=side)
     df["source_label"] = [e.label for e in entries]
     df["source_entry"] = [e.index + 1 for e in entries]
-    _check_directions(df, str(path))
-    _screw_home_note(df, str(path))
+    words = np.array([t.dominant for t in trials])
+    nominal = np.array([e.nominal_flexion if e.nominal_flexion is not None else 10 * round(t.flexion_deg / 10)
+                        for e, t in zip(entries, trials, strict=True)])
+    _check_directions(df, words, nominal, str(path))
+    _screw_home_note(df, words, str(path))
     return df
 
 
-def _check_directions(df: pd.DataFrame, src: str) -> None:
+def _check_directions(df: pd.DataFrame, words: np.ndarray, nominal: np.ndarray, src: str) -> None:
     """Opposite loads at one nominal flexion must move the knee apart the way they push."""
-    words = df["trial"].str.split("_flex").str[0]
-    flex = df["trial"].str.split("_flex").str[1]
     for comp, col in MOVES.items():
-        pos = DIRECTION_WORDS[(comp, 1)]
-        neg = DIRECTION_WORDS[(comp, -1)]
-        for f in sorted(set(flex)):
-            a = df[(words == pos) & (flex == f)]
-            b = df[(words == neg) & (flex == f)]
-            if len(a) and len(b) and a[col].mean() <= b[col].mean():
-                raise InputError(f"the {pos} trial at {f} deg sits at {a[col].mean():.3g}, the {neg} one at "
-                                 f"{b[col].mean():.3g}: the loads push the other way (a sign slip in the poses or the "
+        pos, neg = DIRECTION_WORDS[(comp, 1)], DIRECTION_WORDS[(comp, -1)]
+        for f in sorted(set(nominal)):
+            a = df[(words == pos) & (nominal == f)][col]
+            b = df[(words == neg) & (nominal == f)][col]
+            if len(a) and len(b) and a.mean() <= b.mean():
+                raise InputError(f"the {pos} trial at {f:g} deg sits at {a.mean():.3g}, the {neg} one at "
+                                 f"{b.mean():.3g}: the loads push the other way (a sign slip in the poses or the "
                                  "loads?)", source=src, field=col)
 
 
-def _screw_home_note(df: pd.DataFrame, src: str) -> None:
+def _screw_home_note(df: pd.DataFrame, words: np.ndarray, src: str) -> None:
     flexion = df["flexion_deg"].to_numpy()
-    words = df["trial"].str.split("_flex").str[0].to_numpy()
     near = np.isin(words, ["none", "anterior", "posterior"])
     if near.sum() >= 3 and np.ptp(flexion[near]) > 30:
         slope = np.polyfit(flexion[near], df["internal_rotation_deg"].to_numpy()[near], 1)[0]

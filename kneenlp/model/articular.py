@@ -35,9 +35,9 @@ from kneenlp.geometry.sdf import DistanceField, cached_field
 
 log = logging.getLogger("kneenlp")
 
-#: Keys of the ``[contact]`` table that are settings, not compartments.
 #: Flexions (deg) over which the tibia is swept to find the femoral surface it can touch.
 TOUCHABLE_FLEXION_DEG = (-5.0, 100.0)
+#: Keys of the ``[contact]`` table that are settings, not compartments.
 CONTACT_SETTINGS = ("gate", "working_set", "grid_spacing", "femur", "femur_offset", "tibia")
 #: Keys of a ``[contact.<compartment>]`` table.
 COMPARTMENT_KEYS = ("tibia", "femur", "sphere_center", "sphere_radius")
