@@ -78,9 +78,11 @@ def _check_inputs(args) -> None:
         _check_out(args.out, args.out_kind)
     knee = getattr(args, "knee", None)
     if knee is not None:
-        from kneenlp.model.knee import available_knees
+        from kneenlp.model.knee import available_knees, resolve_knee
 
-        if not Path(knee).exists() and knee not in available_knees():
+        with _naming("--knee"):
+            resolved = resolve_knee(knee)
+        if not resolved.is_file():
             raise InputError(f"file not found, and not a shipped knee ({', '.join(available_knees())})",
                              source=knee, field="--knee")
     if getattr(args, "parameters", None):
@@ -142,11 +144,12 @@ def _knee(args):
 
 def _knee_reference(value: str | None) -> str | None:
     """A --knee value as study workers get it: a shipped knee's name, or an absolute path."""
-    from kneenlp.model.knee import available_knees
+    from kneenlp.model.knee import available_knees, knee_file, resolve_knee
 
-    if value is None or (value in available_knees() and not Path(value).exists()):
+    if value is None:
         return value
-    return str(Path(value).resolve())
+    path = resolve_knee(value)
+    return value if value in available_knees() and path == knee_file(value) else str(path.resolve())
 
 
 def _effect_values(knee, specs: list[str]) -> dict[str, float]:

@@ -333,3 +333,22 @@ def test_protocol_files_take_joint_loads_and_the_extra_components():
     assert np.allclose(femoral, [0, 40.0, 10.0, 0, 0, 0, 0, 0, 0, 0, 0])
     with pytest.raises(kneenlp.errors.InputError, match="beyond the largest laxity load"):
         Protocol.from_dict({"cases": [{"loads": {"proximal_force": 5000.0}, "flexion": [0.0]}]})
+
+
+def test_knee_directories_and_shipped_names(tmp_path, monkeypatch, capsys):
+    """An importer's output folder loads as a knee; a folder that happens to share a shipped knee's
+    name (and holds no knee.toml) does not hide the shipped knee; an empty folder is named."""
+    from kneenlp.model.knee import knee_file, resolve_knee
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "s192803").mkdir()  # e.g. earlier outputs
+    assert resolve_knee("s192803") == knee_file("s192803")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "knee.toml").write_text(knee_file("synthetic").read_text())
+    assert resolve_knee("mine").resolve() == (tmp_path / "mine" / "knee.toml").resolve()
+    (tmp_path / "empty").mkdir()
+    code = main(["predict", str(CSV), "--knee", "empty"])
+    err = capsys.readouterr().err
+    assert code == 2 and "without knee.toml" in err
+    code = main(["predict", str(CSV), "--knee", "s192803", "--json"])
+    assert code == 0 and json.loads(capsys.readouterr().out)["converged"] == 25

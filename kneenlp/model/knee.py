@@ -75,6 +75,21 @@ def knee_file(name: str = DEFAULT_KNEE) -> Path:
     return resource("knees", name, "knee.toml")
 
 
+def resolve_knee(path: str | Path) -> Path:
+    """The knee file ``path`` names: a file as it is; a directory's ``knee.toml``; the name of a
+    shipped knee where no such file or knee directory exists (a folder of that name elsewhere, e.g.
+    one holding other outputs, does not hide the shipped knee)."""
+    p = Path(path)
+    if p.is_dir() and (p / "knee.toml").is_file():
+        return p / "knee.toml"
+    if str(path) in available_knees() and not p.is_file():
+        return knee_file(str(path))
+    if p.is_dir():
+        raise InputError("a directory without knee.toml (give the knee file, or a shipped knee: "
+                         f"{', '.join(available_knees())})", source=str(path))
+    return p
+
+
 def default_knee_file() -> Path:
     """The knee TOML of the embedded default knee."""
     return knee_file(DEFAULT_KNEE)
@@ -121,10 +136,9 @@ class Knee:
 
     @classmethod
     def load(cls, path: str | Path, parameters: str | Path | ParameterSet | None = None) -> Knee:
-        """Read and validate a knee TOML (or the name of a shipped knee); see module docstring."""
-        if isinstance(path, str) and path in available_knees() and not Path(path).exists():
-            path = knee_file(path)
-        return _KneeFile(Path(path)).knee(parameters)
+        """Read and validate a knee TOML, a knee directory holding ``knee.toml`` (as the importers
+        write it), or the name of a shipped knee; see module docstring."""
+        return _KneeFile(resolve_knee(path)).knee(parameters)
 
     @property
     def ligament_names(self) -> list[str]:
