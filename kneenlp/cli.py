@@ -194,9 +194,15 @@ def _effect_values(knee, specs: list[str]) -> dict[str, float]:
 def cmd_diagnose(args) -> int:
     from kneenlp.inference.adequacy import diagnose
     from kneenlp.inference.basefit import base_fit
+    from kneenlp.inference.calibrate import calibrate, real_experiment
+    from kneenlp.simulation import model_for
 
     knee = _knee(args)
-    fit = base_fit(knee, args.measured, args.noise, seed=args.seed)
+    data = args.measured  # read and checked by the options layer
+    if real_experiment(data):  # the base model of a real experiment is its calibration (registration included)
+        fit = calibrate(model_for(knee), data, noise=args.noise, seed=args.seed).fit
+    else:
+        fit = base_fit(knee, data, args.noise, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear")
     if args.out:
         with staged_directory(args.out) as stage:
@@ -470,6 +476,31 @@ def cmd_predict(args) -> int:
     return 0 if prediction.converged.all() else 1
 
 
+def cmd_cross_validate(args) -> int:
+    from kneenlp.inference import crossval
+    from kneenlp.simulation import model_for
+
+    model = model_for(_knee(args))
+    results = crossval.cross_validate(model, args.measured, args.hold_out or None, seed=args.seed)
+    table = crossval.table(results)
+    written = []
+    if args.out:
+        with staged_directory(args.out) as stage:
+            table.to_csv(stage.path / "cross_validation.csv", index=False, float_format="%.6g")
+            for r in results:
+                slug = r.name.replace(" ", "_")
+                r.prediction.table().to_csv(stage.path / f"predicted_{slug}.csv", index=False, float_format="%.10g")
+        written = [str(stage.final(stage.path / "cross_validation.csv"))]
+    if args.json:
+        print(json.dumps({"units": "mm, deg", "hold_outs": table.to_dict(orient="records"), "outputs": written},
+                         indent=2))
+    else:
+        print(crossval.report(results))
+        if written:
+            print("wrote: " + ", ".join(written))
+    return 0 if all(r.prediction.converged.all() for r in results) else 1
+
+
 def cmd_identifiability(args) -> int:
     from kneenlp.inference.identifiability import identifiability
 
@@ -617,6 +648,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="write predicted.csv and predicted_laxity.png here")
     p.add_argument("--json", action="store_true", help="print JSON: rms (mm, deg by column), trials, converged")
     p.set_defaults(func=cmd_predict, validate=True, out_kind="dir")
+
+    p = sub.add_parser("cross-validate", help="calibrate without some trials and predict them (held-out errors)")
+    p.add_argument("data", help="measured-data CSV of a real experiment (e.g. from import-laxity)")
+    _knee_args(p)
+    p.add_argument("--hold-out", action="append", default=[], metavar="NAME",
+                   help="only this hold-out (repeatable): 'flexion <F> deg' (the highest flexion) or a load "
+                        "direction such as anterior or valgus; default: all of them")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the calibrations (default 0)")
+    p.add_argument("--out", help="write cross_validation.csv and each hold-out's predicted_<name>.csv here")
+    p.add_argument("--json", action="store_true", help="print JSON: one row per hold-out (RMS in mm, deg)")
+    p.set_defaults(func=cmd_cross_validate, validate=True, out_kind="dir")
 
     p = sub.add_parser("export-osim", help="write a fit of an imported knee into a copy of its OpenSim model")
     p.add_argument("fit", help="the fit's JSON (kneenlp identify --json)")

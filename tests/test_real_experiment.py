@@ -352,3 +352,71 @@ def test_knee_directories_and_shipped_names(tmp_path, monkeypatch, capsys):
     assert code == 2 and "without knee.toml" in err
     code = main(["predict", str(CSV), "--knee", "s192803", "--json"])
     assert code == 0 and json.loads(capsys.readouterr().out)["converged"] == 25
+
+
+def test_prediction_includes_the_registration(s192803):
+    """What predict compares with the data is the model's observation: a registration (a constant
+    offset between the experiment's frames and the model's) shifts every predicted coordinate by
+    exactly itself and moves no pose."""
+    from kneenlp.inference.predict import predict
+
+    data = read_measured(CSV)
+    keep = [0, 8, 24]
+    from kneenlp.inference.crossval import subset
+
+    part = subset(data, np.isin(np.arange(len(data)), keep))
+    plain = predict(s192803.model, part)
+    shifted = predict(s192803.model, part, {"registration.varus_rotation": np.radians(2.0),
+                                            "registration.anterior_translation": -3e-3})
+    assert np.allclose(np.array([s.q for s in plain.solutions]), np.array([s.q for s in shifted.solutions]))
+    assert np.allclose(shifted.predicted_user - plain.predicted_user, [2.0, 0, 0, -3.0, 0], atol=1e-9)
+
+
+def test_probe_engages_the_groups_slack_in_every_trial(s192803):
+    """At the knee's values the superficial MCL, LCL and PCL are slack in all 25 trials (no
+    sensitivity, nothing to fit); the calibration's probe raises their offsets until each reaches
+    the toe region in its most stretching trial, and leaves every other group alone."""
+    from kneenlp.inference.calibrate import ENGAGE_STRAIN, engaged_probe
+    from kneenlp.solvers.forward import forward_solver
+
+    model = s192803.model
+    data = read_measured(CSV)
+    theta = model.theta()
+    probe, engaged = engaged_probe(model, data, theta)
+    assert {"MCLa", "PCLpm", "LCL"} <= set(engaged) and "ACLam" not in engaged
+    changed = {n for n in model.parameter_names if probe[model.index(n)] != theta[model.index(n)]}
+    assert changed == {f"{g}.ref_strain_offset" for g in engaged}
+    solutions = forward_solver(model).solve(data.trials, probe)
+    for g in engaged:
+        most = max(s.outputs[f"{g}_strain_pct"] for s in solutions if s.converged)
+        assert ENGAGE_STRAIN / 2 <= most <= 2 * ENGAGE_STRAIN, g
+
+
+def test_hold_outs_of_the_experiment():
+    """The highest flexion (84-89 deg measured) and every loaded direction, each held out whole."""
+    from kneenlp.inference.crossval import folds, hold_out
+
+    data = read_measured(CSV)
+    named = dict(folds(data))
+    assert list(named) == ["flexion 87 deg", "anterior", "posterior", "external", "internal", "valgus", "varus"]
+    assert [t.id for t, h in zip(data.trials, named["flexion 87 deg"], strict=True) if h] == [
+        "anterior_flex90", "posterior_flex90", "external_flex90", "internal_flex90", "valgus_flex90", "varus_flex90"]
+    assert int(named["valgus"].sum()) == 4
+    with pytest.raises(ValueError, match="must keep some trials"):
+        hold_out(None, data, np.zeros(len(data), bool))
+
+
+@pytest.mark.slow
+def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
+    """Calibrated on 5-57 deg, the 87 deg trials are predicted (all at equilibrium, finite errors);
+    the command writes the table."""
+    out = tmp_path / "cv"
+    code = main(["cross-validate", str(CSV), "--knee", "s192803", "--hold-out", "flexion 87 deg",
+                 "--out", str(out), "--json"])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0
+    (row,) = summary["hold_outs"]
+    assert row["trials_predicted"] == 6 and row["converged"] == 6 and row["trials_fitted"] == 19
+    assert all(np.isfinite(row[f"rms_{c}"]) and row[f"rms_{c}"] < 15 for c in
+               ("varus_rotation_deg", "internal_rotation_deg", "anterior_translation_mm"))
+    assert len(pd.read_csv(out / "cross_validation.csv")) == 1

@@ -69,8 +69,14 @@ class Trial:
         """Words for reports, e.g. 'anterior 134 N at 30 deg flexion'."""
         if self.direction == "none":
             what = "no load"
-        elif self.direction == "combined":
-            what = "combined load " + ", ".join(f"{k} {v:g}" for k, v in self.loads.items())
+        elif self.direction == "combined":  # a measured load: name its dominant component
+            word = self.dominant
+            if word == "none":
+                what = "measured near-zero load"
+            else:
+                comp = next(c for (c, _), w in DIRECTION_WORDS.items() if w == word)
+                unit = "N" if comp.endswith("force") else "N m"
+                what = f"{word} {abs(self.loads[comp]):.3g} {unit} (measured load)"
         else:
             unit = "N" if self.direction in ("anterior", "posterior") else "N m"
             what = f"{self.direction} {self.magnitude:g} {unit}"
@@ -95,6 +101,28 @@ def dominant_direction(loads: dict[str, float]) -> str:
     if abs(rel[comp]) < 0.1:
         return "none"
     return DIRECTION_WORDS[(comp, 1 if rel[comp] > 0 else -1)]
+
+
+#: Measured flexions (deg) closer than this to the next one belong to one nominal flexion: a robot
+#: scatters a few degrees about its target (S192803: 84.1-88.7 deg for 90, consecutive gaps under
+#: 2.5 deg), while designed protocols space their flexions by 5 deg or more.
+FLEXION_GAP_DEG = 3.0
+
+
+def flexion_groups(trials) -> np.ndarray:
+    """Each trial's nominal flexion (deg): the mean measured flexion of its group, the trials sorted
+    by flexion and split where consecutive ones differ by more than :data:`FLEXION_GAP_DEG`.  A
+    protocol's exact flexions are their own groups."""
+    flexion = np.array([t.flexion_deg for t in trials], float)
+    order = np.argsort(flexion, kind="stable")
+    out = np.empty_like(flexion)
+    start = 0
+    for k in range(1, len(order) + 1):
+        if k == len(order) or flexion[order[k]] - flexion[order[k - 1]] > FLEXION_GAP_DEG:
+            group = order[start:k]
+            out[group] = flexion[group].mean()
+            start = k
+    return out
 
 
 def trial_id(direction: str, magnitude: float, flexion_deg: float) -> str:

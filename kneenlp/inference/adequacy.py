@@ -130,8 +130,8 @@ class Diagnosis:
                          "experiments")
             width = max(len(s.effect) for s in self.ranking)
             for s in self.ranking:
-                ref = (f" refit {s.refit['chi2_drop']:7.1f} dBIC {s.refit['delta_bic']:+6.1f}" if s.refit
-                       else " " * 28)
+                ref = (" " * 28 if not s.refit else f" refit {'failed':>7s}{'':14s}" if not s.refit["success"]
+                       else f" refit {s.refit['chi2_drop']:7.1f} dBIC {s.refit['delta_bic']:+6.1f}")
                 limit = _limit_words(s)
                 p = adj.get(s.effect, s.p_value)
                 lines.append(f"    {s.effect:{width}s} df {s.df} score {s.score_chi2:7.1f}{ref}  p {p:8.2g}"
@@ -202,7 +202,7 @@ def _limit_words(s: EffectScore) -> str:
 def _words(trial, coord: str, unit: str, r: float) -> str:
     where = "above" if r > 0 else "below"
     what = trial.describe().replace("no load", "unloaded")
-    return f"{coord.replace('_', ' ')} {what}: model {abs(r):.2f} {unit} {where} the measurement"
+    return f"{coord.replace('_', ' ')} in {trial.id} ({what}): model {abs(r):.2f} {unit} {where} the measurement"
 
 
 def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list[str] | None = None,
@@ -354,6 +354,12 @@ def verdict_words(d: Diagnosis) -> str:
                 f"noise {v.implied_noise} (sd {v.implied_noise.std:.3g} mm or deg) instead of the declared "
                 f"{d.noise}. Check the measurement error; the parameter uncertainties scale with it.")
     best = d.named
+    if v.unconfirmed:
+        listed = ", ".join(v.unconfirmed[:3]) + (" and more" if len(v.unconfirmed) > 3 else "")
+        return (f"NOT ADEQUATE, NOT EXPLAINED: the misfit ({glob}) is real{pattern}. The score tests single out "
+                f"{listed}, but no refit with them converged to a better fit, so none is shown to explain any of "
+                "it (a one-step estimate is no evidence this far from the data). Look for an effect outside the "
+                "library, or several together.")
     if best is None:
         return (f"NOT ADEQUATE, NOT EXPLAINED: the misfit ({glob}) is uneven (p = {v.homogeneity_p:.2g}) and no "
                 f"candidate effect is significant{pattern}. Look for an effect outside the library.")

@@ -14,13 +14,21 @@ columns, are ranked by a pivoted QR; a parameter is kept while its pivot is at l
 :data:`PIVOT_TOLERANCE` of the largest, i.e. while it changes the coordinates in a direction the
 parameters kept before it do not.  The rest stay at the knee's values (the report names them).
 
+A ligament slack in every trial has no sensitivity at all, whatever the data say: at the knee's
+values a slack PCL cannot be told from an absent one, and the fit could never engage it (its
+gradient is zero).  So the sensitivities are taken at a *probe*: every group whose fibres stay
+slack in every trial at the knee's values has its reference-strain offset raised until its most
+stretched fibre reaches :data:`ENGAGE_STRAIN` in its most stretching trial.  The fit starts at
+the probe (the data then decide whether the group stays engaged), and the report names the groups
+engaged this way.
+
 :func:`calibrate` returns the fit with the RMS per coordinate before (the knee's parameters) and
 after; :meth:`Calibration.parameter_set` is the calibrated parameter file's content.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
@@ -36,6 +44,10 @@ from kneenlp.solvers.forward import forward_solver
 
 #: Smallest pivot (relative to the largest) of a parameter the calibration frees.
 PIVOT_TOLERANCE = 0.02
+#: IPOPT iterations of one calibration attempt (module docstring of :mod:`kneenlp.inference.basefit`).
+MAX_ITER = 80
+#: Strain (fraction) at which the probe engages a group slack in every trial: inside the toe region.
+ENGAGE_STRAIN = 0.02
 REGISTRATION = [f"registration.{c}" for c in COORDINATES]
 
 
@@ -44,13 +56,41 @@ def real_experiment(data: MeasuredData) -> bool:
     return data.side is not None or any(t.axes == "jcs" for t in data.trials)
 
 
-def calibration_free(model: KneeModel, data: MeasuredData) -> tuple[list[str], list[str]]:
-    """(parameters to fit, ligament parameters left at the knee's values): the registration and the
-    ligament parameters the trials determine (module docstring)."""
+def engaged_probe(model: KneeModel, data: MeasuredData, theta: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """(the probe's parameter vector, the groups it engaged): ``theta`` with every grouped ligament
+    slack in every trial engaged to :data:`ENGAGE_STRAIN` (module docstring)."""
+    solver = forward_solver(model)
+    probe, engaged = theta.copy(), []
+    for _ in range(3):  # the poses move with the engaged groups: a few passes settle them
+        solutions = [s for s in solver.solve(data.trials, probe) if s.converged]
+        moved = False
+        for element in model.elements:
+            offset = f"{element.name}.ref_strain_offset"
+            column = f"{element.name}_strain_pct"
+            if offset not in model.parameter_names or not solutions or column not in solutions[0].outputs:
+                continue
+            most = max(s.outputs[column] for s in solutions)
+            if most < ENGAGE_STRAIN / 2 and (most < 0 or element.name in engaged):
+                i = model.index(offset)
+                hi = model.parameter(offset).bounds[1]
+                probe[i] = min(hi, probe[i] + (ENGAGE_STRAIN - most) * (1 + probe[i]))
+                moved = True
+                if element.name not in engaged:
+                    engaged.append(element.name)
+        if not moved:
+            break
+    return probe, engaged
+
+
+def calibration_free(model: KneeModel, data: MeasuredData,
+                     theta: np.ndarray | None = None) -> tuple[list[str], list[str]]:
+    """(parameters to fit, ligament parameters left fixed): the registration and the ligament
+    parameters the trials determine at ``theta`` (default: the knee's values; see
+    :func:`engaged_probe`)."""
     candidates = default_free(model)
     names = [*REGISTRATION, *candidates]
     problem = IdentificationProblem.from_data(model, data, names)
-    theta = model.theta()
+    theta = model.theta() if theta is None else theta
     solutions = forward_solver(model).solve(data.trials, theta)
     ok = np.array([s.converged for s in solutions])
     q = np.array([s.q for s in solutions])
@@ -71,6 +111,8 @@ class Calibration:
     fit: Fit
     before: Prediction | None  # None: an identification without the prediction before it
     fixed: list[str]
+    #: ligament groups slack in every trial at the knee's values, engaged at the fit's start
+    engaged: list[str] = field(default_factory=list)
 
     @property
     def rms_before(self) -> dict[str, float] | None:
@@ -98,7 +140,7 @@ class Calibration:
     def summary(self) -> dict:
         out = {"rms_after": self.rms_after}
         if self.before is not None:
-            out |= {"rms_before": self.rms_before, "fixed": self.fixed,
+            out |= {"rms_before": self.rms_before, "fixed": self.fixed, "engaged": self.engaged,
                     "converged_before": int(self.before.converged.sum())}
         return out
 
@@ -113,7 +155,9 @@ class Calibration:
                  f"    RMS before (the knee's parameters, {int(self.before.converged.sum())}/"
                  f"{len(self.before.solutions)} trials at equilibrium): {row(self.rms_before)}",
                  f"    RMS after: {row(self.rms_after)}",
-                 f"    left at the knee's values (the trials do not determine them): {', '.join(self.fixed) or 'none'}"]
+                 f"    left at the knee's values (the trials do not determine them): {', '.join(self.fixed) or 'none'}",
+                 "    slack in every trial at the knee's values, engaged at the start: "
+                 f"{', '.join(self.engaged) or 'none'}"]
         return "\n".join(lines)
 
 
@@ -124,9 +168,16 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
 
     before = predict(model, data)
     fixed: list[str] = []
+    theta, engaged = engaged_probe(model, data, model.theta())
     if free is None:
-        free, fixed = calibration_free(model, data)
-    theta = model.theta()
+        free, fixed = calibration_free(model, data, theta)
     start = {n: float(theta[model.index(n)]) for n in free} | identify_options.pop("start", {})
+    # the start is the knee (or the probe), not a scatter draw: fresh draws after a poor fit would
+    # start far from it, and a declared noise the misfit exceeds must not trigger them either
+    identify_options.setdefault("restarts", 0)
+    # a start that needs more iterations is wandering: identify's rescue (reduced-space Gauss-Newton,
+    # then IPOPT again) reaches the minimum sooner (S192803: 150 iterations failed, the rescue's
+    # IPOPT needed 50)
+    identify_options.setdefault("solver_options", {"ipopt": {"max_iter": MAX_ITER}})
     fit = identify(model, data, free=free, seed=seed, noise=noise, start=start, **identify_options)
-    return Calibration(fit, before, fixed)
+    return Calibration(fit, before, fixed, engaged)

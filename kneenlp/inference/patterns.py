@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
-from kneenlp.experiment.protocol import Trial
+from kneenlp.experiment.protocol import Trial, flexion_groups
 
 #: |sum z| / sqrt(n) above which a group of residuals is a pattern.
 THRESHOLD = 4.0
@@ -46,14 +46,19 @@ class Pattern:
 
 
 def _groups(trials: Sequence[Trial]) -> list[tuple[str, list[int]]]:
+    """Groups by nominal flexion (measured flexions grouped, :func:`flexion_groups`) and by the
+    dominant load direction (a measured load has all six components)."""
     def load(t: Trial) -> str:
-        return "unloaded" if t.direction == "none" else f"under {t.direction} load"
+        return "unloaded" if t.dominant == "none" else f"under {t.dominant} load"
+
+    def at(f: float) -> str:
+        return f"at {f:g} deg flexion" if f == round(f, 6) else f"at {f:.0f} deg flexion"
 
     out: dict[str, list[int]] = {"in every trial": list(range(len(trials)))}
-    for i, t in enumerate(trials):
-        out.setdefault(f"at {t.flexion_deg:g} deg flexion", []).append(i)
+    for i, (t, f) in enumerate(zip(trials, flexion_groups(trials), strict=True)):
+        out.setdefault(at(f), []).append(i)
         out.setdefault(load(t), []).append(i)
-        out.setdefault(f"{load(t)} at {t.flexion_deg:g} deg flexion", []).append(i)
+        out.setdefault(f"{load(t)} {at(f)}", []).append(i)
     return [(k, v) for k, v in out.items() if len(v) >= 2]
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import coordinate_columns, coords_to_user
+from kneenlp.conventions import coordinate_columns
 from kneenlp.experiment.measured import MeasuredData, measured_frame
 from kneenlp.experiment.protocol import Protocol
 from kneenlp.model.knee import Knee
@@ -38,6 +38,9 @@ class Prediction:
     data: MeasuredData
     solutions: list[TrialSolution]
     knee_name: str
+    #: what the experiment would measure at each solution's pose (T x 5, deg and mm): the model's
+    #: observation, registration included (:meth:`KneeModel.observe`)
+    observed_user: np.ndarray
 
     @property
     def converged(self) -> np.ndarray:
@@ -45,8 +48,8 @@ class Prediction:
 
     @property
     def predicted_user(self) -> np.ndarray:
-        """Predicted coordinates (T x 5, deg and mm); NaN where a trial did not converge."""
-        q = coords_to_user(np.array([s.q for s in self.solutions]))
+        """Predicted measured coordinates (T x 5, deg and mm); NaN where a trial did not converge."""
+        q = np.array(self.observed_user, float)
         q[~self.converged] = np.nan
         return q
 
@@ -100,8 +103,10 @@ def predict(knee: Knee | KneeModel, data: MeasuredData, parameters: dict[str, fl
     model = knee if isinstance(knee, KneeModel) else knee.model
     data.check_knee(model.knee)
     protocol = Protocol(data.protocol or "measured", tuple(data.trials), source=data.source)
-    solutions = forward_solver(model).solve(protocol.trials, model.theta(parameters))
-    return Prediction(data, solutions, model.knee.name)
+    theta = model.theta(parameters)
+    solutions = forward_solver(model).solve(protocol.trials, theta)
+    observed = model.observe(np.array([s.q for s in solutions]), theta)
+    return Prediction(data, solutions, model.knee.name, observed)
 
 
 def write_prediction(prediction: Prediction, out: Path) -> list[Path]:

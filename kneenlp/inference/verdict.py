@@ -19,6 +19,8 @@ Outcomes (:data:`OUTCOMES`):
   spread evenly over coordinates and load directions (Brown-Forsythe tests of equal spread, p >=
   alpha): the signature of noise larger than declared, reported with the level the data imply;
 * ``unexplained``: the misfit is real but no candidate removes it (patterns in words say where).
+  That includes significant score tests whose refits all failed to lower the misfit (named as
+  ``unconfirmed``): the one-step linearisation is no evidence that the effect explains anything.
 """
 
 from __future__ import annotations
@@ -81,8 +83,8 @@ def spread_homogeneity(trials: Sequence[Trial], residuals: np.ndarray) -> float:
     over the load directions (Brown-Forsythe, Bonferroni over the two groupings)."""
     r = np.asarray(residuals, float)
     p_coord = stats.levene(*r.T, center="median").pvalue
-    directions = sorted({t.direction for t in trials})
-    groups = [r[[i for i, t in enumerate(trials) if t.direction == d]].ravel() for d in directions]
+    directions = sorted({t.dominant for t in trials})
+    groups = [r[[i for i, t in enumerate(trials) if t.dominant == d]].ravel() for d in directions]
     groups = [g for g in groups if g.size >= 5]
     p_dir = stats.levene(*groups, center="median").pvalue if len(groups) >= 2 else 1.0
     return float(min(1.0, 2 * min(p_coord, p_dir)))
@@ -109,12 +111,14 @@ class Verdict:
     implied_noise: NoiseModel | None = None
     homogeneity_p: float | None = None
     rivals: list[str] = field(default_factory=list)  # candidates as good as ``best`` (:func:`_rival`)
+    #: significant by their score tests, but their refits found nothing that lowers the misfit
+    unconfirmed: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"outcome": self.outcome, "alpha": self.alpha, "adjusted_p_values": self.adjusted,
                 "significant": self.significant, "named": self.best, "recommended": self.recommended,
-                "rivals": self.rivals,
+                "rivals": self.rivals, "unconfirmed": self.unconfirmed,
                 "implied_noise": str(self.implied_noise) if self.implied_noise else None,
                 "implied_noise_std": self.implied_noise.std if self.implied_noise else None,
                 "homogeneity_p": self.homogeneity_p}
@@ -137,6 +141,9 @@ def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residu
         return Verdict("adequate", alpha, adjusted, [])
     if sig:
         refitted = [c for c in sig if c.refit and c.refit["success"]]
+        if not refitted and sig[0].refit is not None:  # refits tried, none converged: no evidence
+            return Verdict("unexplained", alpha, adjusted, [c.effect for c in sig],
+                           unconfirmed=[c.effect for c in sig if c.refit is not None])
         # BIC, not the raw drop: a candidate with more parameters always drops the misfit more, and
         # AIC's penalty (2 per parameter) let 3-parameter attachment shifts mimic 1-parameter effects
         best = min(refitted, key=lambda c: c.refit["delta_bic"]) if refitted else sig[0]

@@ -1,0 +1,118 @@
+"""Predict what was not fitted: a calibration's errors on trials it did not see.
+
+A calibration's RMS on its own trials says how well the model can be bent to them; the errors on
+held-out trials say how far its predictions can be trusted.  :func:`hold_out` calibrates
+(:func:`~kneenlp.inference.calibrate.calibrate`) on the trials a mask keeps and predicts the others
+with the calibrated parameters, registration included (:func:`~kneenlp.inference.predict.predict`).
+:func:`folds` names the two hold-outs of a laxity experiment:
+
+* ``flexion <F> deg``: the trials at the highest nominal flexion (measured flexions grouped by
+  :func:`~kneenlp.experiment.protocol.flexion_groups`; ``F`` their mean), calibrated on the others;
+* ``<direction>``: every trial whose dominant load is that direction (anterior, valgus, ...),
+  calibrated on the others.
+
+Errors are measured minus predicted, RMS per coordinate (mm, deg), over the held-out trials that
+reach equilibrium (the others are counted and reported, never dropped silently).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from kneenlp.conventions import coordinate_columns
+from kneenlp.experiment.measured import MeasuredData
+from kneenlp.experiment.protocol import flexion_groups
+from kneenlp.inference.calibrate import Calibration, calibrate
+from kneenlp.inference.predict import Prediction, predict
+from kneenlp.model.kneemodel import KneeModel
+
+
+def subset(data: MeasuredData, keep: np.ndarray) -> MeasuredData:
+    """The trials of ``data`` where the boolean mask ``keep`` is true, in order."""
+    keep = np.asarray(keep, bool)
+    return MeasuredData([t for t, k in zip(data.trials, keep, strict=True) if k], data.q[keep],
+                        data.protocol, data.source, data.side)
+
+
+def folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
+    """(name, held-out mask) of the highest-flexion hold-out and of every loaded direction."""
+    nominal = flexion_groups(data.trials)
+    top = nominal == nominal.max()
+    out = [(f"flexion {nominal.max():.0f} deg", top)]
+    words = np.array([t.dominant for t in data.trials])
+    for word in dict.fromkeys(words):
+        if word != "none":
+            out.append((word, words == word))
+    return out
+
+
+@dataclass
+class HeldOut:
+    """One hold-out: the calibration on the kept trials and its prediction of the held-out ones."""
+
+    name: str
+    held: np.ndarray  # boolean mask over the full data's trials
+    calibration: Calibration
+    prediction: Prediction  # of the held-out trials
+
+    def rms(self) -> dict[str, float]:
+        """RMS of measured minus predicted per coordinate column (mm, deg), held-out trials."""
+        return self.prediction.rms()
+
+    def row(self) -> dict:
+        return {"held_out": self.name, "trials_fitted": int((~self.held).sum()),
+                "trials_predicted": int(self.held.sum()),
+                "converged": int(self.prediction.converged.sum()),
+                **{f"fit_rms_{c}": v for c, v in self.calibration.rms_after.items()},
+                **{f"rms_{c}": v for c, v in self.rms().items()}}
+
+
+def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str = "held out",
+             **calibrate_options) -> HeldOut:
+    """Calibrate ``model`` on the trials ``held`` leaves and predict those it holds out."""
+    held = np.asarray(held, bool)
+    if held.all() or not held.any():
+        raise ValueError(f"hold-out {name!r} must keep some trials and hold out some")
+    cal = calibrate(model, subset(data, ~held), **calibrate_options)
+    pred = predict(model, subset(data, held), cal.fit.params)
+    return HeldOut(name, held, cal, pred)
+
+
+def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None = None,
+                   **calibrate_options) -> list[HeldOut]:
+    """Every hold-out of :func:`folds` (or those named in ``which``), in order."""
+    chosen = folds(data)
+    if which is not None:
+        names = [n for n, _ in chosen]
+        unknown = [w for w in which if w not in names]
+        if unknown:
+            from kneenlp.errors import unknown_name
+
+            raise unknown_name("hold-out", unknown[0], names)
+        chosen = [(n, m) for n, m in chosen if n in which]
+    return [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
+
+
+def table(results: list[HeldOut]) -> pd.DataFrame:
+    """One row per hold-out: trial counts, the calibration's RMS on its own trials and the
+    held-out RMS per coordinate (columns ``fit_rms_<coordinate>``, ``rms_<coordinate>``: mm, deg)."""
+    return pd.DataFrame([r.row() for r in results])
+
+
+def report(results: list[HeldOut]) -> str:
+    """The hold-outs as a text table (mm, deg)."""
+    cols = coordinate_columns()
+    head = "  ".join(f"{c.rsplit('_', 1)[0].replace('_translation', '').replace('_rotation', ''):>9}"
+                     for c in cols)
+    units = "  ".join(f"{c.rsplit('_', 1)[1]:>9}" for c in cols)
+    width = max(12, *(len(r.name) for r in results))
+    lines = ["Held-out prediction: RMS of measured minus predicted on trials the calibration did not see",
+             f"{'held out':<{width}}  trials  {head}", f"{'':<{width}}          {units}"]
+    for r in results:
+        cells = "  ".join(f"{v:9.2f}" for v in r.rms().values())
+        n = f"{int(r.prediction.converged.sum())}/{int(r.held.sum())}"
+        lines.append(f"{r.name:<{width}}  {n:>6}  {cells}")
+    return "\n".join(lines)
