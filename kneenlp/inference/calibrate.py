@@ -19,8 +19,8 @@ values a slack PCL cannot be told from an absent one, and the fit could never en
 gradient is zero).  So the sensitivities are taken at a *probe*: every group whose fibres stay
 slack in every trial at the knee's values has its reference-strain offset raised until its most
 stretched fibre reaches :data:`ENGAGE_STRAIN` in its most stretching trial.  The fit starts at
-the probe (the data then decide whether the group stays engaged), and the report names the groups
-engaged this way.
+the probe with those offsets free (the data then decide whether the group stays engaged), and the
+report names the groups engaged this way.
 
 :func:`calibrate` returns the fit with the RMS per coordinate before (the knee's parameters) and
 after; :meth:`Calibration.parameter_set` is the calibrated parameter file's content.
@@ -171,6 +171,10 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     theta, engaged = engaged_probe(model, data, model.theta())
     if free is None:
         free, fixed = calibration_free(model, data, theta)
+        # an engaged group's offset is always fitted: the data, not the probe, decide how taut it is
+        offsets = [f"{g}.ref_strain_offset" for g in engaged]
+        free += [n for n in offsets if n not in free]
+        fixed = [n for n in fixed if n not in offsets]
     start = {n: float(theta[model.index(n)]) for n in free} | identify_options.pop("start", {})
     # the start is the knee (or the probe), not a scatter draw: fresh draws after a poor fit would
     # start far from it, and a declared noise the misfit exceeds must not trigger them either
