@@ -114,3 +114,34 @@ def test_fig2_axes_scan_script_runs(capsys):
     out = capsys.readouterr().out
     assert "2 knees, attachments moved by up to +-2 mm (seed 1)" in out
     assert out.count("\nfemoral ") == 1 and out.count("\njoint ") == 1
+
+
+def test_load_point_shift_adds_the_virtual_work_of_the_moved_force(model):
+    """LoadPoint (a candidate of real experiments): a robot's joint loads whose force acts at the
+    tibial origin shifted by d (tibial frame) add F . d(R d)/dq to the residual, F the force whose
+    components along e1, e2, e3 are the joint forces; oracle: central differences of the tibial pose."""
+    from kneenlp.conventions import load_vector
+    from kneenlp.model.kinematics import tibial_pose
+
+    q = np.array([0.03, -0.1, 0.001, 0.002, -0.001])
+    flexion = 0.6
+    load = load_vector({"anterior_force": 150.0, "lateral_force": -40.0, "proximal_force": -60.0,
+                        "internal_moment": 1.0}, axes="jcs")
+    d = np.array([0.004, -0.003, 0.008])  # m
+    theta0 = model.theta()
+    theta1 = model.theta({"load_point.anterior": d[0], "load_point.proximal": d[1], "load_point.lateral": d[2]})
+    ws = model.working_data(q, theta0, flexion)
+    extra = (np.asarray(model.residual(q, theta1, load, flexion, ws)).ravel()
+             - np.asarray(model.residual(q, theta0, load, flexion, ws)).ravel())
+
+    def point(qq):
+        R, _, axes = tibial_pose(flexion, qq)
+        return np.asarray(R) @ d, np.column_stack([np.asarray(a).ravel() for a in axes])
+
+    _, E = point(q)
+    force = np.linalg.solve(E.T, load[8:11])
+    h = 1e-7
+    oracle = np.array([force @ (point(q + h * np.eye(5)[i])[0] - point(q - h * np.eye(5)[i])[0]) / (2 * h)
+                       for i in range(5)])
+    assert np.allclose(extra, oracle, atol=1e-6 * np.abs(oracle).max())
+    assert np.abs(oracle[:2]).max() > 0.1  # the shift matters (N m)

@@ -6,7 +6,7 @@ An *effect* is something the model adequacy check can add (:mod:`kneenlp.inferen
   ``candidate = True``): at its neutral parameter values it contributes exactly nothing, so the
   base fit is the extended fit with those parameters fixed.  Built in: bundles named in the knee
   file's ``[candidates.<name>]`` (e.g. ``posterior_capsule``, ``ALL``: :class:`Ligament` elements
-  with stiffness 0), :class:`Meniscus`, :class:`FlexionOffset` and :class:`Registration` (all five
+  with stiffness 0), :class:`Meniscus`, :class:`FlexionOffset`, :class:`LoadPoint` and :class:`Registration` (all five
   coordinates; :func:`registration_effects` adds one candidate per coordinate);
 * a parameter group of the base model (:func:`parameter_group`): ``lin_strain`` (the linear
   strain limits) and ``contact_modulus``;
@@ -31,6 +31,9 @@ import numpy as np
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.model.elements import ForceElement, Pose
 from kneenlp.model.parameters import Parameter
+
+#: Axes of :class:`LoadPoint`'s shift, in the order of the tibial frame's X, Y, Z.
+LOAD_POINT_AXES = ("anterior", "proximal", "lateral")
 
 
 @dataclass(frozen=True)
@@ -124,6 +127,26 @@ class Registration(ForceElement):
         return ca.vertcat(*[values[f"registration.{c}"] for c in COORDINATES])
 
 
+class LoadPoint(ForceElement):
+    """The applied force acts elsewhere than the model assumes: its point moved by
+    ``load_point.<anterior|proximal|lateral>`` (mm, tibial frame X, Y, Z) from the tuberosity
+    (femoral or joint axes) or from the tibial origin (a robot's joint loads).  A robot whose
+    load-reference point is registered a few millimetres off the knee's tibial origin applies an
+    extra moment, the force times the offset: 200 N of drawer 8 mm off the origin is 1.6 N m of
+    internal-external moment."""
+
+    name = "load_point"
+    description = "the applied force acts elsewhere than the model's load point"
+    candidate = True
+
+    def parameters(self) -> list[Parameter]:
+        return [Parameter(f"load_point.{a}", "length", f"{a} shift of the point the applied force acts at", 0.0, 0.0)
+                for a in LOAD_POINT_AXES]
+
+    def load_point_offset(self, values: dict) -> ca.SX:
+        return ca.vertcat(*[values[f"load_point.{a}"] for a in LOAD_POINT_AXES])
+
+
 def registration_effects() -> list[Effect]:
     """One candidate per measured coordinate: a registration bias of that coordinate alone
     (``registration_<coordinate>``, 1 degree of freedom).  With only the 5-coordinate
@@ -144,7 +167,7 @@ def builtin_elements(centres: list[np.ndarray], meniscus: bool = True,
     """The candidate elements every knee model carries (neutral until freed); ``meniscus=False``
     for a knee whose menisci are part of its base model; ``rest``: the condyle centres' rest
     positions over the plateaus (:class:`Meniscus`)."""
-    return [*([Meniscus(centres, rest=rest)] if meniscus else []), FlexionOffset(), Registration()]
+    return [*([Meniscus(centres, rest=rest)] if meniscus else []), FlexionOffset(), Registration(), LoadPoint()]
 
 
 def builtin_groups(ligaments: list[str]) -> list[Effect]:

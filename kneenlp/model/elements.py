@@ -11,9 +11,10 @@ Conventions of every method (SI units, CasADi SX expressions):
 * ``values`` maps every model parameter name to its symbol;
 * outputs are scalars, reported per trial (e.g. a ligament's strain and force).
 
-Two optional hooks let an element change what is *not* a force: :meth:`ForceElement.flexion_offset`
-(the true flexion differs from the prescribed one) and :meth:`ForceElement.measurement_bias` (a
-bias of the measured coordinates, e.g. a registration offset).
+Three optional hooks let an element change what is *not* a force: :meth:`ForceElement.flexion_offset`
+(the true flexion differs from the prescribed one), :meth:`ForceElement.measurement_bias` (a
+bias of the measured coordinates, e.g. a registration offset) and
+:meth:`ForceElement.load_point_offset` (the applied force acts elsewhere than its nominal point).
 
 Elements whose force needs an expensive computation over many surface points (contact) split it
 in two stages, :class:`StagedElement`: a cheap SX ``probe`` of the pose and parameters, and an MX
@@ -99,6 +100,11 @@ class ForceElement:
 
     def measurement_bias(self, values: dict[str, ca.SX]) -> ca.SX | None:
         """Added to the model's five coordinates before comparison with measurements (rad, m)."""
+        return None
+
+    def load_point_offset(self, values: dict[str, ca.SX]) -> ca.SX | None:
+        """Shift (tibial frame, m) of the point where the applied force acts, from its nominal point
+        (the tuberosity for femoral or joint axes, the tibial origin for a robot's joint loads)."""
         return None
 
 

@@ -128,8 +128,16 @@ class KneeModel:
             f_e, m_e = e.wrench(pose, values)
             force += f_e
             moment += m_e
+        # the applied force acts at the tuberosity (femoral or joint axes) or, for a robot's joint
+        # loads, at the tibial origin; an element may shift that point (LoadPoint): the joint loads'
+        # force (the vector whose components along e1, e2, e3 are the generalised forces) then adds
+        # the couple of the shift
+        shift = sum((s for e in self.elements if (s := e.load_point_offset(values)) is not None), ca.SX.zeros(3))
+        e1, e2, e3 = axes
+        joint_force = ca.solve(ca.horzcat(e1, e2, e3).T, load[8:11])
         force += load[0:3]
-        moment += ca.cross(R @ ca.DM(self.knee.tuberosity), load[0:3]) + load[3:6]
+        moment += ca.cross(R @ (ca.DM(self.knee.tuberosity) + shift), load[0:3]) + load[3:6]
+        moment += ca.cross(R @ shift, joint_force)
         residual = generalized_forces(q, p, axes, force, moment) + load[6:LOAD_SIZE]
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
