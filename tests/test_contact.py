@@ -55,11 +55,32 @@ def test_gate_is_exactly_zero_without_penetration_and_c2():
     g = smooth_gate(d, delta)
     f = ca.Function("g", [d], [g, ca.jacobian(g, d), ca.hessian(g, d)[0]])
     assert float(f(-1e-3)[0]) == 0.0
-    assert float(f(1e-3)[0]) == pytest.approx(1e-3 - delta / 2)
+    for depth in (delta, 2 * delta, 1e-4, 1e-3):  # the paper's linear law beyond the width, exactly
+        assert float(f(depth)[0]) == pytest.approx(depth, rel=1e-12)
     for x in (0.0, delta):
-        lo, hi = f(x - 1e-12), f(x + 1e-12)
+        lo, hi = f(x - 1e-14), f(x + 1e-14)
         for a, b in zip(lo, hi, strict=True):
             assert float(a) == pytest.approx(float(b), abs=1e-6 / delta)  # curvature scale 1/delta
+
+
+def test_every_copy_of_the_gate_is_the_same_function():
+    """The CasADi gate, its NumPy twin and the compiled mesh kernel's value, slope and curvature
+    (through ``_gate_derivatives``) agree, with slope and curvature the CasADi derivatives."""
+    from kneenlp.model.contact import gate_numpy
+    from kneenlp.model.mesh_contact import _gate_derivatives
+
+    d = ca.SX.sym("d")
+    delta = 1e-5
+    g = smooth_gate(d, delta)
+    f = ca.Function("g", [d], [g, ca.jacobian(g, d), ca.hessian(g, d)[0]])
+    s = np.linspace(-0.5 * delta, 3 * delta, 41)
+    ref = np.array([[float(v) for v in f(x)] for x in s])
+    g0, g1, g2 = _gate_derivatives(s, delta)
+    assert np.allclose(gate_numpy(s, delta), ref[:, 0], rtol=1e-12, atol=1e-20)
+    assert np.allclose(g0, ref[:, 0], rtol=1e-12, atol=1e-20)
+    assert np.allclose(g1, np.where(s > 0, ref[:, 1], 0.0), rtol=1e-9, atol=1e-12)
+    assert np.allclose(g2, np.where(s > 0, ref[:, 2], 0.0), rtol=1e-9, atol=1e-6)
+    assert np.all(np.diff(g0) >= 0)  # monotone
 
 
 def test_contact_is_differentiable(model):

@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from kneenlp.geometry.ramp import ramp_inner, ramp_inner_curvature, ramp_inner_slope
+
 
 @njit(cache=True, inline="always")
 def _basis(t: float, out: np.ndarray) -> None:
@@ -137,11 +139,11 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
         if s <= 0.0:
             continue
         if s < gate:
-            gam = s**3 / gate**2 - s**4 / (2.0 * gate**3)
-            gam1 = 3.0 * s * s / gate**2 - 2.0 * s**3 / gate**3
-            gam2 = 6.0 * s / gate**2 - 6.0 * s * s / gate**3
+            gam = ramp_inner(s, gate)
+            gam1 = ramp_inner_slope(s, gate)
+            gam2 = ramp_inner_curvature(s, gate)
         else:
-            gam, gam1, gam2 = s - 0.5 * gate, 1.0, 0.0
+            gam, gam1, gam2 = s, 1.0, 0.0
         gx, gy, gz = g[p, 0], g[p, 1], g[p, 2]
         rho = np.sqrt(gx * gx + gy * gy + gz * gz)
         nv[0], nv[1], nv[2] = gx / rho, gy / rho, gz / rho

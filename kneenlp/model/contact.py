@@ -6,7 +6,8 @@ by the centroids ``x_i`` and areas ``A_i`` of its mesh faces.  At each tibial po
 is measured along the sphere's normal, ``d_i = R - |x_i - c|``; the pressure is
 ``p_i = K g(d_i)`` with the pressure modulus ``K`` (10 GN/m^3 in the paper) and the contact gate
 ``g`` (:func:`smooth_gate`), a C2 polynomial smoothing of ``max(d, 0)`` over ``0 < d < delta``
-that is exactly zero without penetration and exactly ``d - delta/2`` beyond ``delta``.
+that is exactly zero without penetration and exactly ``d`` beyond ``delta`` (the paper's linear
+law there; :mod:`kneenlp.geometry.ramp`).
 ``delta`` = 0.01 mm by default, far below the penetrations that carry load (0.1-1 mm).  The force on the tibia is
 ``sum_i p_i A_i (x_i - c) / |x_i - c|`` and its moment about the tibial origin follows from the
 same sums:  with ``s_i = p_i A_i / |x_i - c|``, ``S0 = sum s_i`` and ``S1 = sum s_i x_i``,
@@ -24,6 +25,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from kneenlp.geometry.ramp import ramp_inner
 from kneenlp.model.elements import Output, Pose, StagedElement
 from kneenlp.model.parameters import Parameter
 
@@ -32,20 +34,16 @@ MODULUS = Parameter("contact.modulus", "modulus", "elastic-foundation pressure m
 
 
 def smooth_gate(d, delta):
-    """C2-smooth ``max(d, 0)``: zero for ``d <= 0``, ``d - delta/2`` for ``d >= delta``.
-
-    In between ``g = d^3/delta^2 - d^4/(2 delta^3)``; value, slope and curvature are continuous
-    at both ends, and points that do not penetrate contribute exactly zero.
-    """
+    """C2-smooth ``max(d, 0)`` (:mod:`kneenlp.geometry.ramp`): zero for ``d <= 0``, exactly ``d``
+    for ``d >= delta``; points that do not penetrate contribute exactly zero."""
     t = ca.fmin(ca.fmax(d, 0), delta)
-    t2 = t * t
-    return t2 * t * (1 / delta**2) - t2 * t2 * (1 / (2 * delta**3)) + (ca.fmax(d, delta) - delta)
+    return ramp_inner(t, delta) + (ca.fmax(d, delta) - delta)
 
 
 def gate_numpy(d: np.ndarray, delta: float) -> np.ndarray:
     """:func:`smooth_gate` in NumPy (the same polynomial)."""
     t = np.clip(d, 0, delta)
-    return t**3 / delta**2 - t**4 / (2 * delta**3) + np.maximum(d, delta) - delta
+    return ramp_inner(t, delta) + np.maximum(d, delta) - delta
 
 
 def sphere_wrench(c, modulus, radius, x, areas, delta: float):

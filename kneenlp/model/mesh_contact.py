@@ -37,6 +37,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from kneenlp.geometry import kernels
+from kneenlp.geometry.ramp import ramp_inner_curvature, ramp_inner_slope
 from kneenlp.geometry.sdf import DistanceField
 from kneenlp.model.contact import MODULUS, gate_numpy
 from kneenlp.model.elements import Output, Pose, StagedElement
@@ -71,8 +72,8 @@ def _gate_derivatives(s: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarr
     """The gate and its first two derivatives at penetrations ``s`` (m)."""
     t = np.clip(s, 0, delta)
     inner = s < delta
-    g1 = np.where(inner, 3 * t**2 / delta**2 - 2 * t**3 / delta**3, 1.0)
-    g2 = np.where(inner, 6 * t / delta**2 - 6 * t**2 / delta**3, 0.0)
+    g1 = np.where(inner, ramp_inner_slope(t, delta), 1.0)
+    g2 = np.where(inner, ramp_inner_curvature(t, delta), 0.0)
     return gate_numpy(s, delta), g1, g2
 
 
