@@ -65,7 +65,7 @@ def main() -> None:
     fit = cal.fit
     loaded = np.array([t.dominant != "none" for t in data.trials])
     rms_loaded = rms_by_coordinate((data.q_user - fit.predicted_user)[loaded])
-    print(f"calibration: {t_cal:.1f} s ({fit.iterations} IPOPT iterations, {len(fit.problem.free)} free, "
+    print(f"calibration: {t_cal:.1f} s ({fit.method}, {fit.iterations} iterations, {len(fit.problem.free)} free, "
           f"success {fit.success}); {len(cal.fixed)} group parameters left at the FE values")
     if "load_point.lateral" in fit.params:
         print(f"  robot's load point: {1e3 * fit.params['load_point.lateral']:+.1f} mm lateral of the tibial origin "

@@ -25,11 +25,16 @@ report names the groups engaged this way.
 A robot's joint loads act at the robot's load-reference point, registered to the tibia like the
 poses.  A few millimetres of mediolateral error there turn 200 N of drawer into an
 internal-external moment of a newton-metre or more, where the knee is lax.  So for joint loads the
-calibration is refitted with the lateral shift of that point free (:class:`~kneenlp.model.effects.LoadPoint`),
-started from the first fit (S192803: 7 mm medial, sum of squares 546 -> 423, internal rotation RMS
-3.1 -> 2.0 deg; docs/real-experiment.md).  Freed from the knee's values with the rest, the
-extra parameter made IPOPT and its rescue fail; started from the first fit it converges in ~70
-iterations.
+calibration frees the lateral shift of that point too (:class:`~kneenlp.model.effects.LoadPoint`;
+S192803: 9 mm medial, sum of squares 531 -> 390, internal rotation RMS 2.8 -> 1.9 deg;
+docs/real-experiment.md).
+
+The solver is the reduced-space Gauss-Newton (:mod:`kneenlp.solvers.reduced`: every iterate at
+equilibrium) from the probe, stopped at a relative change of :data:`TOLERANCE`; the simultaneous
+NLP (IPOPT with identify's rescue) only where it fails.  On S192803 the reduced solve converges in
+40 evaluations (12 s).  IPOPT from the probe stopped at 80 iterations and needed the rescue (64 s
+in all); with the load point free it failed altogether, and started at the reduced solution it
+moved away from it (sum of squares 390 -> 953 in 200 iterations).
 
 :func:`calibrate` returns the fit with the RMS per coordinate before (the knee's parameters) and
 after; :meth:`Calibration.parameter_set` is the calibrated parameter file's content.
@@ -53,15 +58,18 @@ from kneenlp.solvers.forward import forward_solver
 
 #: Smallest pivot (relative to the largest) of a parameter the calibration frees.
 PIVOT_TOLERANCE = 0.02
-#: IPOPT iterations of one calibration attempt (module docstring of :mod:`kneenlp.inference.basefit`).
+#: Residual evaluations of the reduced-space Gauss-Newton calibration (S192803 converges in 40).
+MAX_EVALUATIONS = 150
+#: Its relative tolerance on the sum of squares (and the step): the working sets of mesh contact
+#: make the cost noisy below ~1e-5 of itself (S192803: 390.1 after 40 evaluations, 389.6 after 400).
+TOLERANCE = 1e-5
+#: IPOPT iterations of the fallback (the simultaneous NLP) when the reduced solve fails.
 MAX_ITER = 80
 #: Strain (fraction) at which the probe engages a group slack in every trial: inside the toe region.
 ENGAGE_STRAIN = 0.02
 REGISTRATION = [f"registration.{c}" for c in COORDINATES]
-#: The robot's load point, freed after the calibration of joint loads (module docstring).
+#: The robot's load point, freed in the calibration of joint loads (module docstring).
 LOAD_POINT = "load_point.lateral"
-#: IPOPT iterations of the load point's refit from the calibration (S192803: 66).
-LOAD_POINT_ITERATIONS = 200
 
 
 def real_experiment(data: MeasuredData) -> bool:
@@ -176,10 +184,13 @@ class Calibration:
 
 def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
               noise=None, load_point: bool = True, **identify_options) -> Calibration:
-    """Fit ``free`` (default :func:`calibration_free`) to the real experiment ``data``; for a
-    robot's joint loads and the default ``free``, ``load_point`` then frees the lateral shift of the
-    point the robot's force acts at (:func:`with_load_point`)."""
-    from kneenlp.inference.identify import identify
+    """Fit ``free`` (default :func:`calibration_free`) to the real experiment ``data`` by
+    reduced-space Gauss-Newton from the knee's values (or the probe), the simultaneous NLP if that
+    fails; for a robot's joint loads and the default ``free``, ``load_point`` frees the lateral
+    shift of the point the robot's force acts at too.  ``identify_options`` as
+    :func:`~kneenlp.inference.identify.identify`'s (``weighted``, ``with_effects``, ``start``; the
+    rest serve the fallback)."""
+    from kneenlp.inference.identify import identify, reduced_fit
 
     before = predict(model, data)
     fixed: list[str] = []
@@ -191,39 +202,23 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         offsets = [f"{g}.ref_strain_offset" for g in engaged]
         free += [n for n in offsets if n not in free]
         fixed = [n for n in fixed if n not in offsets]
-    start = {n: float(theta[model.index(n)]) for n in free} | identify_options.pop("start", {})
-    # the start is the knee (or the probe), not a scatter draw: fresh draws after a poor fit would
-    # start far from it, and a declared noise the misfit exceeds must not trigger them either
-    identify_options.setdefault("restarts", 0)
-    # a start that needs more iterations is wandering: identify's rescue (reduced-space Gauss-Newton,
-    # then IPOPT again) reaches the minimum sooner (S192803: 150 iterations failed, the rescue's
-    # IPOPT needed 50)
-    identify_options.setdefault("solver_options", {"ipopt": {"max_iter": MAX_ITER}})
-    fit = identify(model, data, free=free, seed=seed, noise=noise, start=start, **identify_options)
     if chosen and load_point and any(t.axes == "jcs" for t in data.trials):
-        fit = with_load_point(fit, noise=noise, **identify_options)
+        free = [*free, LOAD_POINT]
+    # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
+    # docstring: IPOPT wandered on this problem, and from a good point made it worse)
+    problem = IdentificationProblem.from_data(model, data, free, noise=noise,
+                                              weighted=identify_options.get("weighted", False),
+                                              with_effects=identify_options.get("with_effects") or ())
+    start = ({n: float(theta[model.index(n)]) for n in problem.free}
+             | problem.check_start(identify_options.pop("start", {})))
+    fit = reduced_fit(problem, start, max_evaluations=MAX_EVALUATIONS, tol=TOLERANCE)
+    if not fit.success:  # the simultaneous NLP, with identify's rescue
+        identify_options.setdefault("restarts", 0)
+        identify_options.setdefault("solver_options", {"ipopt": {"max_iter": MAX_ITER}})
+        fallback = identify(model, data, free=problem.free, seed=seed, noise=noise, start=start,
+                            **{k: v for k, v in identify_options.items() if k != "with_effects"})
+        note = f"reduced-space Gauss-Newton did not converge ({fit.status}); the simultaneous NLP followed"
+        fallback.message = f"{fallback.message}; {note}" if fallback.message else note
+        if fallback.success or fallback.objective < fit.objective:
+            fit = fallback
     return Calibration(fit, before, fixed, engaged)
-
-
-def with_load_point(fit: Fit, **identify_options) -> Fit:
-    """The calibration ``fit`` refitted with the robot's load point free (:data:`LOAD_POINT`),
-    started from ``fit`` itself; ``fit`` unchanged if the refit fails or does not improve it
-    (module docstring: from the knee's values the extra parameter made IPOPT fail, S192803)."""
-    from kneenlp.inference.identify import identify
-
-    if LOAD_POINT in fit.problem.free:
-        return fit
-    start = {n: fit.params[n] for n in fit.problem.free}
-    identify_options["solver_options"] = {"ipopt": {"max_iter": LOAD_POINT_ITERATIONS}}
-    identify_options["restarts"] = 0
-    refit = identify(fit.problem.model, fit.data, free=[*fit.problem.free, LOAD_POINT], start=start,
-                     fixed=fit.problem.fixed, **identify_options)
-    if not refit.success or refit.objective >= fit.objective:
-        note = f"the load point's refit did not improve the calibration ({refit.status}); kept without it"
-        fit.message = f"{fit.message}; {note}" if fit.message else note
-        return fit
-    note = f"load point refitted from the calibration ({refit.iterations} iterations, {refit.seconds:.1f} s)"
-    refit.message = f"{refit.message}; {note}" if refit.message else note
-    refit.seconds += fit.seconds
-    refit.iterations += fit.iterations
-    return refit

@@ -129,10 +129,12 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     return best
 
 
-def reduced_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None) -> Fit:
+def reduced_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None,
+                **options) -> Fit:
     """The fit of ``problem`` by reduced-space Gauss-Newton from ``start`` (SI; poses warm-started
-    from ``q0``, SI): :func:`~kneenlp.solvers.reduced.reduced_least_squares` as a :class:`Fit`."""
-    r = reduced_least_squares(problem, start, q0=q0)
+    from ``q0``, SI): :func:`~kneenlp.solvers.reduced.reduced_least_squares` (``options``:
+    ``max_evaluations``, ``tol``, ``threads``) as a :class:`Fit`."""
+    r = reduced_least_squares(problem, start, q0=q0, **options)
     theta = problem.theta(r.values)
     solver = forward_solver(problem.model)
     max_res = max(solver.residual_norm(qi, theta, t) for t, qi in zip(problem.trials, r.q, strict=True))
