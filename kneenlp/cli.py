@@ -423,7 +423,8 @@ def cmd_import_osim(args) -> int:
     from kneenlp.io.import_osim import import_osim
 
     report = import_osim(args.model, args.out, geometry=args.geometry, groups=args.groups,
-                         femur_mesh=args.femur_mesh, femur_offset=args.femur_offset * 1e-3)
+                         femur_mesh=args.femur_mesh, femur_offset=args.femur_offset * 1e-3,
+                         tuberosity=None if args.tuberosity is None else tuple(v * 1e-3 for v in args.tuberosity))
     print(report.text())
     return 0
 
@@ -624,6 +625,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--femur-mesh", help="femoral surface to use instead of the model's femoral contact mesh")
     p.add_argument("--femur-offset", type=opt.finite, default=0.0,
                    help="mm the articular surface lies outside --femur-mesh (cartilage thickness on bone)")
+    p.add_argument("--tuberosity", type=opt.point3, metavar="X,Y,Z",
+                   help="tibial tuberosity, mm in the tibia body's frame (default: the patellar-tendon insertions, "
+                        "else estimated from the tibial mesh)")
     p.set_defaults(func=cmd_import_osim, validate=True, out_kind="dir")
 
     p = sub.add_parser("import-abaqus", help="turn an Abaqus FE knee model (cartilage, fibres, frames) into a knee")

@@ -47,6 +47,14 @@ def finite(text: str) -> float:
     return value
 
 
+def point3(text: str) -> tuple[float, float, float]:
+    """An argparse type: three finite numbers separated by commas (``X,Y,Z``)."""
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z (three numbers), got {text!r}")
+    return tuple(finite(p.strip()) for p in parts)  # type: ignore[return-value]
+
+
 def positive(text: str) -> float:
     """An argparse type: a finite number > 0."""
     value = finite(text)

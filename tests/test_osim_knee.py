@@ -215,3 +215,37 @@ def test_a_fixed_bundle_group_that_differs_is_found(imported, tmp_path):
     refit = d.refits["PFL_bundles"]
     assert abs(refit.params["PFL.k_scale"] - 1.6) < 3 * refit.stderr["PFL.k_scale"]
     assert "Add PFL_bundles" in d.verdict
+
+
+def test_import_without_a_patellar_tendon(tmp_path, imported):
+    """A model without PT bundles (a total-knee model, e.g. CAMS) imports: the tuberosity is
+    estimated from the tibial mesh and the report says so, or taken from --tuberosity."""
+    import xml.etree.ElementTree as ET
+
+    tree = ET.parse(LENHART)
+    for parent in tree.iter():
+        for child in list(parent):
+            if (child.get("name") or "").startswith("PT"):
+                parent.remove(child)
+    no_pt = tmp_path / "no_pt.osim"
+    tree.write(no_pt)
+    report = import_osim(no_pt, tmp_path / "estimated", groups="coarse", geometry=DATA, femur_mesh=BONE,
+                         femur_offset=0.002)
+    assert any("estimated from the tibial mesh" in s for s in report.skipped)
+    knee = kneenlp.Knee.load(tmp_path / "estimated" / "knee.toml")
+    _, with_pt = imported
+    assert 0.0 < np.linalg.norm(knee.tuberosity - with_pt.tuberosity) < 0.025  # m: an estimate, not the tendon
+    given = (0.05, -0.04, 0.001)
+    report = import_osim(no_pt, tmp_path / "given", groups="coarse", geometry=DATA, femur_mesh=BONE,
+                         femur_offset=0.002, tuberosity=given)
+    assert any("as given" in s for s in report.skipped)
+    doc = (tmp_path / "given" / "knee.toml").read_text()
+    assert re.search(r"tibial_tuberosity = \[\s*0\.05,\s*-0\.04,\s*0\.001,?\s*\]", doc)
+
+
+def test_tuberosity_option_needs_three_numbers(tmp_path, capsys):
+    from kneenlp.cli import main
+
+    code = main(["import-osim", str(LENHART), "--out", str(tmp_path / "k"), "--tuberosity", "1,2"])
+    err = capsys.readouterr().err
+    assert code == 2 and "X,Y,Z" in err and "Traceback" not in err and not (tmp_path / "k").exists()

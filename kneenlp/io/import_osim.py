@@ -75,8 +75,11 @@ def _find_mesh(name: str, folders: list[Path], source: str) -> Path:
 
 def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | None = None, groups: str = "fine",
                 femur_body: str = "femur_distal_r", tibia_body: str = "tibia_proximal_r",
-                femur_mesh: str | Path | None = None, femur_offset: float = 0.0) -> ImportReport:
-    """Write a kneenlp knee from an OpenSim model (see module docstring); lengths in metres."""
+                femur_mesh: str | Path | None = None, femur_offset: float = 0.0,
+                tuberosity: tuple[float, float, float] | None = None) -> ImportReport:
+    """Write a kneenlp knee from an OpenSim model (see module docstring); lengths in metres.
+    ``tuberosity``: the tibial tuberosity in the tibia body's frame (m), for a model without
+    patellar-tendon bundles (:func:`_tuberosity`)."""
     osim = Path(osim)
     src = str(osim)
     try:
@@ -122,11 +125,13 @@ def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | Non
             path = _find_mesh(found[0].mesh_file, folders, src)
         shutil.copyfile(path, out / "meshes" / path.name)
         meshes[role] = f"meshes/{path.name}"
+    landmarks, where = _landmarks(model, femur_body, tibia_body, tuberosity, out / meshes["tibia"])
+    skipped.append(f"tibial tuberosity {where}")
     doc: dict = {
         "name": osim.stem, "side": "right", "units": "m", "coordinates": "scan", "frame": "cylinders",
         "description": f"imported from {osim.name} by kneenlp import-osim ({groups} bundle groups)",
         "parameters": "parameters.toml",
-        "landmarks": _landmarks(model, femur_body, tibia_body, src),
+        "landmarks": landmarks,
         "contact": {"femur": meshes["femur"], "tibia": meshes["tibia"], "gate": 1e-5, "grid_spacing": 5e-4,
                     **({"femur_offset": float(femur_offset)} if femur_offset else {})},
         "ligaments": {},
@@ -146,21 +151,48 @@ def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | Non
     return ImportReport(knee_file, grouped, skipped)
 
 
-def _landmarks(model, femur_body: str, tibia_body: str, src: str) -> dict[str, list[float]]:
-    """The hip centre (origin of the femur body the knee's femur is welded to, when it is the child
-    of a hip joint) and the tibial tuberosity (centroid of the patellar-tendon insertions)."""
+def _landmarks(model, femur_body: str, tibia_body: str, tuberosity, tibial_mesh: Path) -> tuple[dict, str]:
+    """(landmarks, where the tuberosity came from): the hip centre (origin of the femur body the
+    knee's femur is welded to, when it is the child of a hip joint) and the tibial tuberosity
+    (:func:`_tuberosity`)."""
     out = {}
     for body in sorted(model.welded_bodies(femur_body) - {femur_body}):
         out["hip_center"] = [float(v) for v in model.transform(femur_body, body)[:3, 3]]
         break
+    out["tibial_tuberosity"], where = _tuberosity(model, tibia_body, tuberosity, tibial_mesh)
+    return out, where
+
+
+#: Where the tuberosity is placed from the tibial articular surface when nothing else says
+#: (OpenSim body axes: X anterior, Y proximal): 30 mm distal of its centroid, 10 mm anterior of its
+#: anterior rim; an estimate of an adult tibia (the tuberosity a few centimetres below the joint
+#: line, in front of the plateau), said in the import report.  Only the paper's femoral-axis
+#: drawer force acts there (a robot's joint loads act at the tibial origin).
+TUBEROSITY_DISTAL = 0.030
+TUBEROSITY_ANTERIOR = 0.010
+
+
+def _tuberosity(model, tibia_body: str, given, tibial_mesh: Path) -> tuple[list[float], str]:
+    """The tibial tuberosity (tibia body frame, m) and where it came from: ``given`` (the user's
+    ``--tuberosity``), else the centroid of the patellar-tendon insertions (bundles ``PT...``),
+    else estimated from the tibial contact mesh (:data:`TUBEROSITY_DISTAL`)."""
+    if given is not None:
+        return [float(v) for v in given], "as given (--tuberosity)"
     tibia = model.welded_bodies(tibia_body)
     tendon = [lig.points[-1] for name, lig in model.ligaments.items()
               if name.upper().startswith("PT") and lig.points and lig.points[-1].body in tibia]
-    if not tendon:
-        raise InputError("no patellar-tendon bundle (PT...) to place the tibial tuberosity", source=src,
-                         field="ForceSet")
-    out["tibial_tuberosity"] = [float(v) for v in np.mean([model.point_in_body(p, tibia_body) for p in tendon], axis=0)]
-    return out
+    if tendon:
+        point = np.mean([model.point_in_body(p, tibia_body) for p in tendon], axis=0)
+        return [float(v) for v in point], f"from the patellar-tendon insertions ({len(tendon)} bundles)"
+    import trimesh
+
+    vertices = np.asarray(trimesh.load(tibial_mesh, force="mesh", process=False).vertices, float)
+    centre = vertices.mean(axis=0)
+    point = [vertices[:, 0].max() + TUBEROSITY_ANTERIOR, centre[1] - TUBEROSITY_DISTAL, centre[2]]
+    return ([float(v) for v in point],
+            f"estimated from the tibial mesh (no patellar-tendon bundle): {TUBEROSITY_DISTAL * 1e3:.0f} mm distal of "
+            f"its centroid, {TUBEROSITY_ANTERIOR * 1e3:.0f} mm anterior of its rim; give --tuberosity X,Y,Z (mm, "
+            f"{tibia_body} frame) to place it")
 
 
 def _ranges(names: list[str]) -> list[str]:
