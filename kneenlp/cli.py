@@ -17,6 +17,7 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -362,7 +363,7 @@ def cmd_export(args) -> int:
 
 
 def cmd_design(args) -> int:
-    from kneenlp.inference.design import candidate_pool, default_flexions, design, write_protocol
+    from kneenlp.inference.design import candidate_pool, default_flexions, design, rse_text, write_protocol
 
     knee = _knee(args)
     _check_names(knee, args)
@@ -374,15 +375,20 @@ def cmd_design(args) -> int:
         path = write_protocol(result, args.out)
     except OSError as exc:
         raise write_error(exc, args.out) from None
+    # an unidentified parameter's relative standard error is infinite: null in JSON, never 0
     summary = {"protocol": str(path), "cases": len(result.protocol), "criterion": args.criterion,
-               "value": result.value, "predicted_relative_stderr": result.predicted_rse,
-               "trials": [t.id for t in result.protocol.trials]}
+               "value": result.value if math.isfinite(result.value) else None,
+               "predicted_relative_stderr": {n: v if math.isfinite(v) else None
+                                             for n, v in result.predicted_rse.items()},
+               "trials": [t.id for t in result.protocol.trials], "infeasible": result.infeasible}
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         print(f"wrote {path}: {len(result.protocol)} load cases, {args.criterion}-criterion {result.value:.4g}")
         for n, v in result.predicted_rse.items():
-            print(f"  {n:18s} predicted relative standard error {100 * v:6.2f} %")
+            print(f"  {n:18s} predicted relative standard error {rse_text(v)}")
+        if result.infeasible:
+            print(f"  left out, no equilibrium on this knee: {', '.join(result.infeasible)}")
     return 0
 
 

@@ -85,3 +85,24 @@ def test_protocols_round_trip_through_the_toml_writer(name, tmp_path):
     path.write_text(proto.to_toml(["round trip"]))
     back = Protocol.load(path)
     assert back.trials == proto.trials and back.name == proto.name and back.title == proto.title
+
+
+@pytest.mark.parametrize("name", ["default", "synthetic"])
+def test_designed_protocol_simulates_with_every_trial_converged(name):
+    """Every candidate is checked for equilibrium (knee's values and robustness draws) on its own
+    path from the unloaded pose; the designed protocol then simulates with all trials converged
+    (issue 22: the default knee's design proposed varus_10Nm_flex60, which failed in simulate)."""
+    knee = kneenlp.Knee.named(name)
+    r = design(knee, max_cases=22, criterion="A", robust=2)
+    result = kneenlp.simulate(knee, r.protocol)
+    assert all(s.converged for s in result.solutions), [s.trial.id for s in result.solutions if not s.converged]
+    assert len(r.protocol) == 22 and not set(r.infeasible) & {t.id for t in r.protocol.trials}
+
+
+def test_one_case_design_says_what_it_cannot_identify(capsys, tmp_path):
+    """One load case cannot determine 8 parameters: no "0.00 %" for an unidentified one."""
+    r = design(kneenlp.Knee.named("synthetic"), max_cases=1, criterion="A", robust=1,
+               pool=candidate_pool((30.0,), (1.0,)))
+    assert len(r.protocol) == 1
+    assert sum(not np.isfinite(v) for v in r.predicted_rse.values()) >= len(r.free) - 5
+    assert "not identified" in r.to_toml() and " 0.00 %" not in r.to_toml()

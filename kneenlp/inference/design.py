@@ -77,19 +77,32 @@ def reference_units(problem: IdentificationProblem, theta: np.ndarray) -> np.nda
     return np.where(values != 0, values, problem.scales)
 
 
-def relative_information(problem: IdentificationProblem, theta: np.ndarray) -> np.ndarray:
+def relative_information(problem: IdentificationProblem, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-trial Fisher information of ``problem``'s trials in relative parameter units, shape
-    (n_trials, n, n), at parameters ``theta`` with the problem's noise level.
+    (n_trials, n, n), at parameters ``theta`` with the problem's noise level, and which trials
+    reached equilibrium (n_trials,).
 
-    Trials whose equilibrium cannot be solved at ``theta`` contribute nothing (and are reported
-    by the caller through :func:`design`'s ``failed`` list)."""
-    sols = forward_solver(problem.model).solve(list(problem.trials), theta)
+    Each trial is solved on its own path from the unloaded pose
+    (:meth:`~kneenlp.solvers.forward.ForwardSolver.solve_each`), so a trial found feasible here
+    converges in any protocol it is put in.  Trials without equilibrium contribute nothing."""
+    sols = forward_solver(problem.model).solve_each(list(problem.trials), theta)
     ok = np.array([s.converged for s in sols])
     q = np.array([s.q for s in sols])
     info = fisher_information(problem.sensitivities(q, theta) * reference_units(problem, theta),
                               problem.noise.std)  # per unit relative change
     info[~ok] = 0.0
-    return info
+    return info, ok
+
+
+def relative_standard_errors(info: np.ndarray) -> np.ndarray:
+    """Linearised relative standard error of each parameter from a total information matrix;
+    ``inf`` for a parameter the information does not determine (a component in its null space),
+    never the 0 a pseudo-inverse would give."""
+    w, v = np.linalg.eigh((info + info.T) / 2)
+    null = w <= 1e-10 * max(float(w.max()), 1e-300)
+    cov = (v[:, ~null] / w[~null]) @ v[:, ~null].T
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return np.where(np.any(np.abs(v[:, null]) > 1e-6, axis=1), np.inf, se)
 
 
 def criterion_value(info: np.ndarray, kind: str, reference_se: np.ndarray | None = None) -> float:
@@ -118,12 +131,21 @@ class DesignResult:
     predicted_rse: dict[str, float]  # at the knee's parameter set
     free: list[str]
     history: list[tuple[int, float]] = field(default_factory=list)
+    #: candidate load cases left out: no equilibrium at the knee's parameters or a robustness draw
+    infeasible: list[str] = field(default_factory=list)
 
     def to_toml(self) -> str:
         header = [f"Designed by kneenlp: {self.criterion}-optimal, {len(self.protocol)} load cases.",
                   "Predicted relative standard errors (uniform noise, linearised): "
-                  + ", ".join(f"{n} {100 * v:.2f} %" for n, v in self.predicted_rse.items())]
+                  + ", ".join(f"{n} {rse_text(v)}" for n, v in self.predicted_rse.items())]
+        if self.infeasible:
+            header.append(f"Left out (no equilibrium on this knee): {', '.join(self.infeasible)}")
         return self.protocol.to_toml(header)
+
+
+def rse_text(value: float) -> str:
+    """A relative standard error for people: percent, or "not identified" (infinite)."""
+    return f"{100 * value:.2f} %" if np.isfinite(value) else "not identified"
 
 
 def predicted_rse(model: KneeModel, protocol: Protocol, free: list[str], noise: str | NoiseModel,
@@ -131,9 +153,8 @@ def predicted_rse(model: KneeModel, protocol: Protocol, free: list[str], noise: 
     """Linearised relative standard error of each free parameter for ``protocol``."""
     problem = IdentificationProblem(model, protocol.trials, free, noise=NoiseModel.parse(noise))
     theta = problem.theta() if theta is None else theta
-    info = relative_information(problem, theta).sum(axis=0)
-    cov = np.linalg.pinv(info)
-    return {n: float(np.sqrt(cov[i, i])) for i, n in enumerate(free)}
+    se = relative_standard_errors(relative_information(problem, theta)[0].sum(axis=0))
+    return {n: float(v) for n, v in zip(free, se, strict=True)}
 
 
 def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", *,
@@ -155,14 +176,17 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
     free = problem.free
     rng = np.random.default_rng(seed)
     thetas = [problem.theta()] + [problem.theta(problem.scatter(rng)) for _ in range(max(0, robust - 1))]
-    infos = np.array([relative_information(problem, th) for th in thetas])  # (R, T, n, n)
+    computed = [relative_information(problem, th) for th in thetas]
+    infos = np.array([c[0] for c in computed])  # (R, T, n, n)
+    # a candidate without equilibrium at the knee's parameters or at any robustness draw is never proposed
+    feasible = np.all([c[1] for c in computed], axis=0)
     n_par = len(free)
     ridge = 1e-9 * np.eye(n_par)
     ref_se = [None] * len(thetas)
     if criterion == "R":
         ref = reference if isinstance(reference, Protocol) else Protocol.load(reference)
         ref_problem = IdentificationProblem(model, ref.trials, free, noise=problem.noise)
-        ref_se = [np.sqrt(np.diag(np.linalg.pinv(relative_information(ref_problem, th).sum(axis=0)))) for th in thetas]
+        ref_se = [relative_standard_errors(relative_information(ref_problem, th)[0].sum(axis=0)) for th in thetas]
 
     def value(selected: list[int]) -> float:
         if not selected:
@@ -172,8 +196,10 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
 
     chosen: list[int] = []
     history = []
-    candidates = list(range(len(pool)))
-    while len(chosen) < min(max_cases, len(pool)):
+    candidates = [i for i in range(len(pool)) if feasible[i]]
+    if not candidates:
+        raise InputError("no candidate load case reaches equilibrium on this knee", field="pool")
+    while len(chosen) < min(max_cases, len(candidates)):
         best, best_v = None, np.inf
         for c in candidates:
             if c in chosen:
@@ -203,7 +229,8 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
                      f"kneenlp design: {criterion}-optimal for {len(free)} parameters, robust over {len(thetas)} "
                      f"parameter sets, noise {noise}")
     rse = predicted_rse(model, proto, free, noise)
-    return DesignResult(proto, criterion, value(chosen), rse, free, history)
+    infeasible = [pool.trials[i].id for i in range(len(pool)) if not feasible[i]]
+    return DesignResult(proto, criterion, value(chosen), rse, free, history, infeasible)
 
 
 def write_protocol(result: DesignResult, path: str | Path) -> Path:
