@@ -543,7 +543,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("diagnose", help="model adequacy: where the fit fails and which effect is missing")
     p.add_argument("data", help="measured-data CSV")
     _knee_args(p)
-    p.add_argument("--noise", default="uniform:0.5", type=opt.noise,
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise_level,
                    help="noise model of the data (default uniform:0.5)")
     p.add_argument("--refit", type=opt.integer(0, opt.MAX_CASES), default=4,
                    help="refit the best N candidates (default 4)")
@@ -560,7 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
     _knee_args(p)
     p.add_argument("--free", type=opt.names,
                    help="comma-separated parameters to identify (default: k and ref_strain of all)")
-    p.add_argument("--noise", type=opt.noise, help="noise model of the data for the covariance, e.g. uniform:0.5")
+    p.add_argument("--noise", type=opt.noise_level, help="noise model of the data for the covariance, e.g. uniform:0.5")
     p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the paper's start scatter")
     p.add_argument("--multistart", type=opt.integer(1, opt.MAX_STARTS), default=1,
@@ -681,7 +681,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--protocol", default="set4", help="protocol name or TOML file")
     p.add_argument("--free", type=opt.names,
                    help="comma-separated parameters (default: stiffness and reference strain of each)")
-    p.add_argument("--noise", default="uniform:0.5", type=opt.noise, help="noise model (mm, deg)")
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise_level, help="noise model (mm, deg)")
     _knee_args(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_identifiability, validate=True)
@@ -695,7 +695,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", default="set4", help="reference protocol of criterion R (default set4)")
     p.add_argument("--flexions", default=None, type=opt.flexions,
                    help="candidate flexion angles, deg (default 0,15,...,60; to 90 for a multi-bundle knee)")
-    p.add_argument("--noise", default="uniform:0.5", type=opt.noise, help="noise model (mm, deg)")
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise_level, help="noise model (mm, deg)")
     p.add_argument("--robust", type=opt.integer(1, opt.MAX_ROBUST), default=3,
                    help="parameter sets averaged over (knee's + scatter draws)")
     p.add_argument("--free", type=opt.names, help="comma-separated parameters to identify")

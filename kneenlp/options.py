@@ -99,6 +99,18 @@ def noise(text: str) -> str:
     return text
 
 
+def noise_level(text: str) -> str:
+    """An argparse type: a noise model with a level above zero (for the commands that judge a
+    misfit or a covariance against it; a zero level would divide by zero)."""
+    from kneenlp.experiment.noise import NoiseModel
+
+    noise(text)
+    if not NoiseModel.parse(text).std > 0:
+        raise argparse.ArgumentTypeError(f"needs a noise level above zero (the misfit is judged against it), "
+                                         f"got {text!r}; e.g. uniform:0.5")
+    return text
+
+
 def solver(text: str) -> str:
     """An argparse type: a CasADi nlpsol plugin that is installed."""
     import casadi
