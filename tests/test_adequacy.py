@@ -421,3 +421,14 @@ def test_reduced_space_refit_stays_on_its_equilibrium_branch(tmp_path):
     nlp = solve_simultaneous(problem, problem.values(fit.theta))
     assert red.success and nlp.success and red.objective < fit.objective
     assert red.objective == pytest.approx(nlp.objective, rel=1e-5)
+
+
+def test_diagnose_refuses_a_fit_with_nothing_left_to_test(tmp_path, capsys):
+    """One trial (5 observations) against 8 free parameters: no "ADEQUATE", one line, exit 2."""
+    table = kneenlp.simulate(kneenlp.Knee.named("synthetic"), "set2").measured(NOISE, 1)
+    one = table[table["trial"] == "anterior_134N_flex30"].drop(columns=["protocol"])
+    one.to_csv(tmp_path / "one.csv", index=False)
+    capsys.readouterr()
+    assert main(["diagnose", "--knee", "synthetic", str(tmp_path / "one.csv"), "--refit", "0"]) == 2
+    out = capsys.readouterr()
+    assert "5 observations" in out.err and "8 free parameters" in out.err and "ADEQUATE" not in out.out

@@ -33,6 +33,7 @@ import numpy as np
 import pandas as pd
 
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
+from kneenlp.errors import InputError
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.inference.candidates import EffectScore, refit_with, score_effects
 from kneenlp.inference.detection import detection_limits, simulated_limits_either_way
@@ -224,6 +225,12 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
     sigma = noise.std
     r = fit.residuals
     n_obs = r.size
+    if n_obs <= len(fit.free):
+        raise InputError(f"{n_obs} observations ({len(fit.data)} trial(s) x 5 coordinates) cannot judge a fit of "
+                         f"{len(fit.free)} free parameters: no degree of freedom is left to test; measure more trials",
+                         source=fit.data.source)
+    if not sigma > 0:
+        raise InputError(f"needs a noise level above zero, got {noise}", field="noise")
     chi2, dof, p_value = chi_square_test(r, fit.weights, sigma**2, len(fit.free))
     rms = float(np.sqrt(np.mean(r**2)))
     expected = float(sigma * np.sqrt(dof / n_obs))
