@@ -93,6 +93,23 @@ def test_export_osim_changes_only_the_calibrated_values(imported, tmp_path):
     assert model.ligaments["LCL1"].slack_length == O.read_osim(LENHART).ligaments["LCL1"].slack_length
 
 
+@pytest.mark.parametrize("params, out, needle", [
+    ({"ACL.k_scle": 1.2}, "cal.osim", "unknown parameter 'ACL.k_scle'"),
+    ({"ACL.k_scale": "1.2"}, "cal.osim", "expected a finite number"),
+    ({"ACL.k_scale": 1.2}, "missing/cal.osim", "does not exist"),
+])
+def test_export_osim_bad_input(imported, tmp_path, params, out, needle):
+    """A misspelt parameter, a value that is text, an output in a missing directory: one line, no
+    file written (issue 24)."""
+    from kneenlp.errors import InputError
+
+    _, knee = imported
+    (tmp_path / "fit.json").write_text(json.dumps({"params": params}))
+    with pytest.raises(InputError, match=needle):
+        export_osim(tmp_path / "fit.json", knee, LENHART, tmp_path / out)
+    assert not (tmp_path / out).exists()
+
+
 _READBACK = r"""
 import json, sys
 try:

@@ -15,9 +15,10 @@ slack length scaled as kneenlp's straight-line one is (wrapped paths keep their 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
-from kneenlp.errors import InputError
+from kneenlp.errors import InputError, unknown_name
 from kneenlp.io.osim import OsimError, write_calibrated
 from kneenlp.model.knee import Knee
 from kneenlp.model.ligament import slack_length
@@ -58,7 +59,17 @@ def export_osim(fit_json: str | Path, knee: Knee | str | Path, model: str | Path
                          field="params")
     if not Path(model).is_file():
         raise InputError("file not found", source=str(model), field="--model")
+    if not Path(out).resolve().parent.is_dir():
+        raise InputError(f"the directory {Path(out).resolve().parent} does not exist", source=str(out), field="--out")
     knee = knee if isinstance(knee, Knee) else Knee.load(knee)
+    known = set(knee.model.parameter_names)
+    exported = [f"{g}.{k}" for g, lig in knee.ligaments.items() if lig.grouped
+                for k in ("k_scale", "ref_strain_offset")]
+    for name, value in params.items():
+        if name not in known:  # the list names what export-osim writes (the model has many more)
+            raise unknown_name("parameter", name, exported, source=str(path)).with_context(field=f"params.{name}")
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise InputError(f"expected a finite number, got {value!r}", source=str(path), field=f"params.{name}")
     values = calibrated_values(knee, {k: float(v) for k, v in params.items()})
     if not values:
         raise InputError("the fit frees no bundle group of this knee (expected <group>.k_scale or "
