@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -177,3 +178,32 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     assert np.allclose(r1, r2, rtol=1e-5, atol=1e-5), (r1, r2)
     assert np.allclose(scan.compartments["medial"].centre, ref.compartments["medial"].centre,
                        atol=1e-8)
+
+
+@pytest.fixture()
+def default_copy(tmp_path):
+    """The default (Lenhart, metre) knee file beside its resources, to edit one field."""
+    src = knee_file("default")
+    dst = src.parent / f"_test_{tmp_path.name}.toml"  # beside the original: its relative mesh paths hold
+    yield src, dst
+    dst.unlink(missing_ok=True)
+
+
+@pytest.mark.parametrize("old, new, field, needle", [
+    ("gate = 1e-5", "gate = 0.01", "contact.gate", "10 mm in this file's unit ('m')"),
+    ("femur_offset = 0.002", "femur_offset = 2.0", "contact.femur_offset", "2000 mm"),
+    ("grid_spacing = 5e-4", "grid_spacing = 0.5", "contact.grid_spacing", "500 mm"),
+    ("grid_spacing = 5e-4", "grid_spacing = 1e-6", "contact.grid_spacing", "0.001 mm"),
+    ("grid_spacing = 5e-4", "grid_spacing = 5e-5", "contact.grid_spacing", "GB"),
+])
+def test_contact_lengths_in_the_wrong_unit_or_too_fine(default_copy, old, new, field, needle):
+    """A contact length written in another unit, or a distance-field grid too fine for memory, is
+    a one-line error naming the field, before any work (issue 24: a 1 um grid tried to allocate
+    1 PiB; femur_offset = 2.0 in a metre knee failed trials later with 'residual 867')."""
+    src, dst = default_copy
+    text = src.read_text()
+    assert old in text
+    dst.write_text(text.replace(old, new))
+    with pytest.raises(InputError, match=re.escape(needle)) as err:
+        Knee.load(dst)
+    assert err.value.field == field and "\n" not in str(err.value)

@@ -52,6 +52,13 @@ def _weights(t: np.ndarray, order: int) -> np.ndarray:
     return np.stack([s, 3 * t - 2, 1 - 3 * t, t], axis=1)
 
 
+#: Peak memory per grid node while a field is built (bytes): node coordinates, distances, the
+#: clipped values, the spline coefficients and scipy's work array.
+BYTES_PER_NODE = 80
+#: Largest field built (bytes): the issue-24 bound of 2 GB for a knee load, with room for the rest.
+MAX_FIELD_BYTES = 1.5e9
+
+
 @dataclass
 class DistanceField:
     """Tricubic B-spline of a clipped signed distance on the grid ``origin + spacing * (i, j, k)``
@@ -75,6 +82,14 @@ class DistanceField:
         return np.array([lo, self.origin + self.spacing * (np.array(self.shape) - 2)])
 
     # ------------------------------------------------------------------ construction
+    @staticmethod
+    def grid(box: np.ndarray, spacing: float) -> tuple[np.ndarray, tuple[int, int, int]]:
+        """(origin, shape) of the grid representing ``box`` (2 x 3, m) at ``spacing`` (m): nodes
+        on multiples of the spacing, padded by the spline's support."""
+        lo = np.floor(np.asarray(box[0], float) / spacing - 3) * spacing
+        hi = np.ceil(np.asarray(box[1], float) / spacing + 3) * spacing
+        return lo, tuple(int(np.ceil((hi[i] - lo[i]) / spacing)) + 1 for i in range(3))
+
     @classmethod
     def from_mesh(cls, mesh: trimesh.Trimesh, box: np.ndarray, *, spacing: float = 5e-4, offset: float = 0.0,
                   band: float = 2e-3, depth: float = 3e-3, n_check: int = 4000,
@@ -93,9 +108,11 @@ class DistanceField:
         t0 = time.perf_counter()
         # nodes on multiples of the spacing in the mesh's frame: the same anatomy in the same frame gives
         # the same grid whatever the exact box
-        lo = np.floor(np.asarray(box[0], float) / spacing - 3) * spacing
-        hi = np.ceil(np.asarray(box[1], float) / spacing + 3) * spacing
-        shape = tuple(int(np.ceil((hi[i] - lo[i]) / spacing)) + 1 for i in range(3))
+        lo, shape = cls.grid(box, spacing)
+        if np.prod(shape, dtype=float) * BYTES_PER_NODE > MAX_FIELD_BYTES:
+            raise ValueError(f"a distance field of {np.prod(shape, dtype=float):.3g} nodes needs "
+                             f"{np.prod(shape, dtype=float) * BYTES_PER_NODE / 1e9:.3g} GB; at most "
+                             f"{MAX_FIELD_BYTES / 1e9:g} GB")
         axes = [lo[i] + spacing * np.arange(shape[i]) for i in range(3)]
         nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         exact = MeshDistance(mesh)

@@ -30,8 +30,9 @@ S192803: 9 mm medial, sum of squares 531 -> 390, internal rotation RMS 2.8 -> 1.
 docs/real-experiment.md).
 
 The solver is the reduced-space Gauss-Newton (:mod:`kneenlp.solvers.reduced`: every iterate at
-equilibrium) from the probe, stopped at a relative change of :data:`TOLERANCE`; the simultaneous
-NLP (IPOPT with identify's rescue) only where it fails.  On S192803 the reduced solve converges in
+equilibrium) from the probe; the simultaneous
+NLP (IPOPT with identify's rescue) only where it fails.  Its tolerance is the contact's
+(:func:`kneenlp.solvers.reduced.tolerance`).  On S192803 the reduced solve converges in
 40 evaluations (12 s).  IPOPT from the probe stopped at 80 iterations and needed the rescue (64 s
 in all); with the load point free it failed altogether, and started at the reduced solution it
 moved away from it (sum of squares 390 -> 953 in 200 iterations).
@@ -60,9 +61,6 @@ from kneenlp.solvers.forward import forward_solver
 PIVOT_TOLERANCE = 0.02
 #: Residual evaluations of the reduced-space Gauss-Newton calibration (S192803 converges in 40).
 MAX_EVALUATIONS = 150
-#: Its relative tolerance on the sum of squares (and the step): the working sets of mesh contact
-#: make the cost noisy below ~1e-5 of itself (S192803: 390.1 after 40 evaluations, 389.6 after 400).
-TOLERANCE = 1e-5
 #: IPOPT iterations of the fallback (the simultaneous NLP) when the reduced solve fails.
 MAX_ITER = 80
 #: Strain (fraction) at which the probe engages a group slack in every trial: inside the toe region.
@@ -211,7 +209,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
                                               with_effects=identify_options.get("with_effects") or ())
     start = ({n: float(theta[model.index(n)]) for n in problem.free}
              | problem.check_start(identify_options.pop("start", {})))
-    fit = reduced_fit(problem, start, max_evaluations=MAX_EVALUATIONS, tol=TOLERANCE)
+    fit = reduced_fit(problem, start, max_evaluations=MAX_EVALUATIONS)
     if not fit.success:  # the simultaneous NLP, with identify's rescue
         identify_options.setdefault("restarts", 0)
         identify_options.setdefault("solver_options", {"ipopt": {"max_iter": MAX_ITER}})

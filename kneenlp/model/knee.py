@@ -31,6 +31,7 @@ import trimesh
 from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
+from kneenlp.geometry.sdf import BYTES_PER_NODE, MAX_FIELD_BYTES, DistanceField
 from kneenlp.io.resources import resource
 from kneenlp.model.articular import (
     COMPARTMENT_KEYS,
@@ -58,6 +59,11 @@ DEFAULT_KNEE = "default"
 #: mm) must lie in this range, far enough from any real knee (a rabbit's to a horse's) that only a
 #: unit slip (a knee 1000x too big or too small: ``units`` not matching the numbers) is caught.
 KNEE_SIZE_RANGE = (5e-3, 0.5)
+#: Plausible range (mm) of the contact lengths of a knee file: the gate (0.01 mm by default), the
+#: cartilage on a bone surface and the distance field's grid.  A value outside is a unit slip (a
+#: gate of 0.01 "mm" in a metre knee is 10 mm) or, for the grid, a field too coarse to represent
+#: cartilage or too fine to fit in memory.
+PLAUSIBLE_MM = {"gate": (1e-4, 0.1), "femur_offset": (0.0, 6.0), "grid_spacing": (0.05, 2.0)}
 #: Longest plausible ligament (m, attachment distance in the reference pose; the superficial MCL
 #: is about 0.1 m): attachments further apart are a typo or mixed units.
 MAX_LIGAMENT_LENGTH = 0.3
@@ -258,12 +264,18 @@ class _KneeFile:
         return np.array([number(v, self.src, fld) for v in value]) * self.scale * self.mirror
 
     def length(self, table: dict, key: str, default_mm: float, fld: str, positive: bool = True) -> float:
-        """A length setting in the file's unit -> m (defaults are given in mm, whatever the unit)."""
+        """A length setting in the file's unit -> m (defaults are given in mm, whatever the unit),
+        checked against :data:`PLAUSIBLE_MM` (a length written in the other unit is caught)."""
         if key not in table:
             return default_mm * 1e-3
         value = number(table[key], self.src, fld) * self.scale
         if value < 0 or (positive and value == 0):
             raise InputError(f"must be {'> 0' if positive else '>= 0'}", source=self.src, field=fld)
+        lo, hi = PLAUSIBLE_MM.get(key, (0.0, np.inf))
+        if value and not lo <= value * 1e3 <= hi:
+            raise InputError(f"{table[key]!r} is {value * 1e3:.4g} mm in this file's unit ({self.units!r}); "
+                             f"{key} is {lo:g}-{hi:g} mm (default {default_mm:g} mm): written in another unit?",
+                             source=self.src, field=fld)
         return value
 
     def mesh(self, value: object, fld: str) -> trimesh.Trimesh:
@@ -456,6 +468,13 @@ class _KneeFile:
             pts = np.vstack([compartments[n].points for n in mesh_compartments])
             spacing = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing")
             box = femoral_box(fmesh, self.at_reference(pts), axis, np.degrees(self.reference_pose[0]))
+            nodes = float(np.prod(DistanceField.grid(box, spacing)[1], dtype=float))
+            if nodes * BYTES_PER_NODE > MAX_FIELD_BYTES:  # checked before any allocation
+                finest = spacing * (nodes * BYTES_PER_NODE / MAX_FIELD_BYTES) ** (1 / 3)
+                raise InputError(f"a distance field at {spacing * 1e3:g} mm over the contact region needs "
+                                 f"{nodes * BYTES_PER_NODE / 1e9:.3g} GB (at most {MAX_FIELD_BYTES / 1e9:g} GB): use "
+                                 f"at least {finest * 1e3:.2g} mm (default 0.5 mm)", source=self.src,
+                                 field="contact.grid_spacing")
             femur = FemoralSurface(fmesh, offset, spacing, box, sources)
         return {"compartments": compartments, "femur": femur, "axis": axis}
 
