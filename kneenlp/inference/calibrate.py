@@ -30,12 +30,11 @@ S192803: 9 mm medial, sum of squares 531 -> 390, internal rotation RMS 2.8 -> 1.
 docs/real-experiment.md).
 
 The solver is the reduced-space Gauss-Newton (:mod:`kneenlp.solvers.reduced`: every iterate at
-equilibrium) from the probe; the simultaneous
-NLP (IPOPT with identify's rescue) only where it fails.  Its tolerance is the contact's
-(:func:`kneenlp.solvers.reduced.tolerance`).  On S192803 the reduced solve converges in
-40 evaluations (12 s).  IPOPT from the probe stopped at 80 iterations and needed the rescue (64 s
-in all); with the load point free it failed altogether, and started at the reduced solution it
-moved away from it (sum of squares 390 -> 953 in 200 iterations).
+equilibrium) from the probe, with the contact's tolerance (:func:`kneenlp.solvers.reduced.tolerance`);
+the simultaneous NLP (IPOPT with identify's rescue) runs only where it fails.  On S192803 the
+reduced solve converges in 40 evaluations (12 s).  IPOPT from the probe stopped at 80 iterations
+and needed the rescue (64 s in all); with the load point free it failed altogether, and started
+at the reduced solution it moved away from it (sum of squares 390 -> 953 in 200 iterations).
 
 :func:`calibrate` returns the fit with the RMS per coordinate before (the knee's parameters) and
 after; :meth:`Calibration.parameter_set` is the calibrated parameter file's content.
