@@ -207,3 +207,26 @@ def test_contact_lengths_in_the_wrong_unit_or_too_fine(default_copy, old, new, f
     with pytest.raises(InputError, match=re.escape(needle)) as err:
         Knee.load(dst)
     assert err.value.field == field and "\n" not in str(err.value)
+
+
+FEMUR_LINE = 'femur = "../lenhart2015/opensim/lenhart2015-R-femur-subchondral-bone.stl"'
+TIBIA_LINE = 'tibia = "../lenhart2015/opensim/lenhart2015-R-tibia-cartilage.stl"'
+
+
+@pytest.mark.parametrize("swap, needle", [
+    ({FEMUR_LINE: FEMUR_LINE.replace("femur-subchondral-bone", "tibia-cartilage"),
+      TIBIA_LINE: TIBIA_LINE.replace("tibia-cartilage", "femur-subchondral-bone")}, "meshes swapped?"),
+    ({TIBIA_LINE: TIBIA_LINE.replace("tibia-cartilage", "femur-subchondral-bone")}, "the same file given twice?"),
+])
+def test_swapped_or_repeated_meshes(default_copy, swap, needle):
+    """Femoral and tibial meshes swapped, or the femur given twice (issue 24: exit 3, or silently
+    wrong): one line naming contact.tibia and the slip."""
+    src, dst = default_copy
+    text = src.read_text()
+    for old, new in swap.items():
+        assert old in text
+        text = text.replace(old, new)
+    dst.write_text(text)
+    with pytest.raises(InputError, match=re.escape(needle)) as err:
+        Knee.load(dst)
+    assert err.value.field == "contact.tibia"

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.errors import InputError, unknown_name
@@ -417,6 +418,8 @@ class _KneeFile:
             raise InputError(f"compartment {mesh_compartments[0]!r} has neither a femoral mesh (contact.femur) "
                              "nor an explicit sphere (sphere_center, sphere_radius)", source=src, field="contact")
         femur_raw = trimesh.util.concatenate(femur_parts) if femur_parts else None
+        if femur_raw is not None:
+            check_bone_order(femur_raw, tibiae, self.at_reference, raw_landmarks.get("hip_center"), approx[1], src)
         offset = self.length(contact, "femur_offset", 0.0, "contact.femur_offset", positive=False)
         # condyle split and flexion axis (scan coordinates), then the frame
         axis = split = None
@@ -647,6 +650,26 @@ def check_parameter_set(params: ParameterSet, ligaments: dict[str, Ligament], kn
         raise InputError(f"parameter set {params.source or params.name} lacks {', '.join(missing)}",
                          source=knee_source, field="parameters")
     return params
+
+
+def check_bone_order(femur: trimesh.Trimesh, tibiae: dict[str, trimesh.Trimesh], at_reference,
+                     hip: np.ndarray | None, proximal: np.ndarray, src: str) -> None:
+    """The femoral and tibial meshes are two bones, the femur's on the hip's side of the tibia's
+    (scan coordinates, the tibia placed by ``at_reference``; towards ``hip`` when the file has it,
+    else along ``proximal``): a mesh given twice or the two swapped is an input error naming the
+    slip, not a failed fit later."""
+    tibia = trimesh.util.concatenate(list(tibiae.values()))
+    gap, _ = cKDTree(np.asarray(femur.vertices)).query(np.asarray(tibia.vertices), 1)
+    scale = float(np.median(tibia.edges_unique_length)) or 1.0
+    if np.mean(gap < 1e-6 * scale) > 0.5:
+        raise InputError("the tibial mesh is (part of) the femoral mesh: the same file given twice?", source=src,
+                         field="contact.tibia")
+    centre = at_reference(tibia.vertices).mean(axis=0)
+    up = (hip - centre) if hip is not None else np.asarray(proximal, float)
+    if (femur.vertices.mean(axis=0) - centre) @ up < 0:
+        towards = "the hip centre" if hip is not None else "the scan's proximal axis"
+        raise InputError(f"the tibial mesh lies above the femoral one (towards {towards}): the femoral and tibial "
+                         "meshes swapped?", source=src, field="contact.tibia")
 
 
 def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_file: str) -> trimesh.Trimesh:
