@@ -230,3 +230,20 @@ def test_swapped_or_repeated_meshes(default_copy, swap, needle):
     with pytest.raises(InputError, match=re.escape(needle)) as err:
         Knee.load(dst)
     assert err.value.field == "contact.tibia"
+
+
+@pytest.mark.parametrize("shift", ["anterior", "distal"])
+def test_tibia_out_of_reach(default_copy, tmp_path, shift):
+    """A tibia placed 80 mm anterior or 40 mm distal of the femur (issue 24: exit 3, "no femoral
+    surface within reach"): one line naming contact.tibia and what to check."""
+    import trimesh
+
+    src, dst = default_copy
+    mesh = trimesh.load(src.parent.parent / "lenhart2015" / "opensim" / "lenhart2015-R-tibia-cartilage.stl")
+    mesh.apply_translation([0.08, 0, 0] if shift == "anterior" else [0, -0.04, 0])
+    moved = tmp_path / "tibia.stl"
+    mesh.export(moved)
+    dst.write_text(src.read_text().replace(TIBIA_LINE, f'tibia = "{moved.as_posix()}"'))
+    with pytest.raises(InputError, match="within reach") as err:
+        Knee.load(dst)
+    assert err.value.field == "contact.tibia"

@@ -470,7 +470,12 @@ class _KneeFile:
             fmesh = self.frame.mesh(femur_raw)
             pts = np.vstack([compartments[n].points for n in mesh_compartments])
             spacing = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing")
-            box = femoral_box(fmesh, self.at_reference(pts), axis, np.degrees(self.reference_pose[0]))
+            try:
+                box = femoral_box(fmesh, self.at_reference(pts), axis, np.degrees(self.reference_pose[0]))
+            except ValueError as exc:  # the tibia never comes near the femur over the flexion range
+                raise InputError(f"{exc} (more than 8 mm apart at every flexion): is the tibia placed in the "
+                                 "femur's frame and in the file's unit?", source=self.src,
+                                 field="contact.tibia") from None
             nodes = float(np.prod(DistanceField.grid(box, spacing)[1], dtype=float))
             if nodes * BYTES_PER_NODE > MAX_FIELD_BYTES:  # checked before any allocation
                 finest = spacing * (nodes * BYTES_PER_NODE / MAX_FIELD_BYTES) ** (1 / 3)
