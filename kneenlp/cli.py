@@ -748,10 +748,16 @@ def _fail(line: str, status: int, as_json: bool, error: dict | None = None) -> i
     return status
 
 
+def _interrupted(signum: int, as_json: bool) -> int:
+    if signum == signal.SIGTERM:
+        return _fail("terminated (SIGTERM); finished work is kept", EXIT_TERMINATED, as_json)
+    return _fail("interrupted (Ctrl-C); finished work is kept", EXIT_INTERRUPTED, as_json)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     as_json = "--json" in argv  # until the options are parsed
-    from kneenlp.interrupts import Interrupted, catching_signals
+    from kneenlp.interrupts import Interrupted, catching_signals, pending
 
     with catching_signals():
         try:
@@ -769,10 +775,10 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr.close()
             return 0
         except KeyboardInterrupt as exc:
-            if isinstance(exc, Interrupted) and exc.signum == signal.SIGTERM:
-                return _fail("terminated (SIGTERM); finished work is kept", EXIT_TERMINATED, as_json)
-            return _fail("interrupted (Ctrl-C); finished work is kept", EXIT_INTERRUPTED, as_json)
+            return _interrupted(exc.signum if isinstance(exc, Interrupted) else signal.SIGINT, as_json)
         except Exception as exc:  # a bug, not bad input: one line, unless debugging
+            if pending() is not None:  # the signal's doing (e.g. raised inside a compiled kernel)
+                return _interrupted(pending(), as_json)
             if os.environ.get("KNEENLP_DEBUG"):
                 raise
             text = " ".join(f"{type(exc).__name__}: {exc}".split())

@@ -62,13 +62,23 @@ def catching_signals() -> Iterator[None]:
             signal.signal(s, h)
 
 
-def check() -> None:
-    """Raise :class:`Interrupted` if a signal arrived under :func:`catching_signals` (even if a
-    solver swallowed the exception)."""
+def pending() -> int | None:
+    """The signal received under :func:`catching_signals`, if any (``None`` otherwise).  An
+    exception raised while it is pending is the interrupt's doing: a signal handler that raises
+    inside a compiled (numba) function surfaces as ``SystemError``, not as :class:`Interrupted`."""
     for s in SIGNALS:
         handler = signal.getsignal(s)
         if isinstance(handler, _Handler) and handler.received is not None:
-            raise Interrupted(handler.received)
+            return handler.received
+    return None
+
+
+def check() -> None:
+    """Raise :class:`Interrupted` if a signal arrived under :func:`catching_signals` (even if a
+    solver swallowed the exception)."""
+    signum = pending()
+    if signum is not None:
+        raise Interrupted(signum)
 
 
 @contextlib.contextmanager

@@ -27,3 +27,25 @@ def test_noise_is_seeded_and_bounded(tmp_path):
     assert a.equals(b) and not a.equals(c)
     err = a[coordinate_columns()].to_numpy() - res.table()[coordinate_columns()].to_numpy()
     assert np.abs(err).max() <= 0.5 and np.abs(err).max() > 0.3
+
+
+def test_a_signal_inside_a_compiled_kernel_is_still_an_interrupt(monkeypatch, capsys, tmp_path):
+    """SIGTERM whose handler raises inside a numba kernel surfaces as SystemError (issue 24:
+    diagnose exited 3, "CPUDispatcher(contact_expansion)"); the exit code is still 143."""
+    import os
+    import signal
+    import time
+
+    import kneenlp.cli as cli
+
+    def command(args):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        except KeyboardInterrupt:
+            raise SystemError("CPUDispatcher(contact_expansion) returned a result with an exception set") from None
+        return 0
+
+    monkeypatch.setattr(cli, "cmd_simulate", command)
+    code = main(["simulate", "--knee", "synthetic", "--no-plots", "--out", str(tmp_path / "o")])
+    assert code == 143 and "terminated (SIGTERM)" in capsys.readouterr().err
