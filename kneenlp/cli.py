@@ -428,9 +428,11 @@ def _knee_args(p: argparse.ArgumentParser, parameters: bool = True) -> None:
 def cmd_import_osim(args) -> int:
     from kneenlp.io.import_osim import import_osim
 
-    report = import_osim(args.model, args.out, geometry=args.geometry, groups=args.groups,
-                         femur_mesh=args.femur_mesh, femur_offset=args.femur_offset * 1e-3,
-                         tuberosity=None if args.tuberosity is None else tuple(v * 1e-3 for v in args.tuberosity))
+    with staged_directory(args.out) as stage:  # a refused import leaves nothing behind (no meshes/)
+        report = import_osim(args.model, stage.path, geometry=args.geometry, groups=args.groups,
+                             femur_mesh=args.femur_mesh, femur_offset=args.femur_offset * 1e-3,
+                             tuberosity=None if args.tuberosity is None else tuple(v * 1e-3 for v in args.tuberosity))
+    report.knee_file = Path(args.out) / report.knee_file.name
     print(report.text())
     return 0
 

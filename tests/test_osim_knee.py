@@ -266,3 +266,23 @@ def test_tuberosity_option_needs_three_numbers(tmp_path, capsys):
     code = main(["import-osim", str(LENHART), "--out", str(tmp_path / "k"), "--tuberosity", "1,2"])
     err = capsys.readouterr().err
     assert code == 2 and "X,Y,Z" in err and "Traceback" not in err and not (tmp_path / "k").exists()
+
+
+def test_refused_import_leaves_nothing_behind(tmp_path, capsys):
+    """Issue 24: a refused import-osim left meshes/ in --out."""
+    from kneenlp.cli import main
+
+    out = tmp_path / "k"
+    code = main(["import-osim", str(LENHART), "--out", str(out), "--femur-mesh", str(tmp_path / "missing.stl")])
+    assert code == 2 and "--femur-mesh" in capsys.readouterr().err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_cli_import_writes_the_knee(tmp_path, capsys):
+    from kneenlp.cli import main
+
+    out = tmp_path / "k"
+    assert main(["import-osim", str(LENHART), "--out", str(out), "--femur-mesh", str(BONE), "--femur-offset", "2",
+                 "--groups", "coarse"]) == 0
+    assert f"wrote {out / 'knee.toml'}" in capsys.readouterr().out
+    assert (out / "knee.toml").is_file() and any((out / "meshes").iterdir())
