@@ -604,7 +604,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="kneenlp-study", help="study directory (resumable)")
     p.add_argument("--workers", type=opt.integer(1, opt.MAX_WORKERS), default=None,
                    help="local processes (default: all cores)")
-    p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
+    p.add_argument("--scheduler", type=opt.scheduler, help="Dask scheduler address tcp://HOST:PORT")
     p.add_argument("--dask", action="store_true", help="run on a local Dask cluster")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.add_argument("--json", action="store_true", help="print a JSON summary")

@@ -111,6 +111,15 @@ def noise_level(text: str) -> str:
     return text
 
 
+def scheduler(text: str) -> str:
+    """An argparse type: a Dask scheduler address ``SCHEME://HOST:PORT`` (e.g. tcp://10.0.0.5:8786)."""
+    import re
+
+    if not re.fullmatch(r"[a-z]+://[^\s:/]+:\d{1,5}", text):
+        raise argparse.ArgumentTypeError(f"expected a scheduler address like tcp://HOST:PORT, got {text!r}")
+    return text
+
+
 def solver(text: str) -> str:
     """An argparse type: a CasADi nlpsol plugin that is installed."""
     import casadi

@@ -142,3 +142,15 @@ def kneenlp_problems():
     from kneenlp.io.resources import resource
 
     return resource()
+
+
+@pytest.mark.parametrize("address, needle", [("localhost", "tcp://HOST:PORT"),
+                                             ("tcp://127.0.0.1:1", "cannot connect to the Dask scheduler")])
+def test_scheduler_refused_before_any_output(tmp_path, capsys, address, needle):
+    """A malformed or unreachable scheduler address is one line, exit 2, and leaves no study.json
+    or samples/ behind (issue 24)."""
+    out = tmp_path / "s"
+    code = main(["study", "--knee", "synthetic", "--sets", "1", "--samples", "1", "--scheduler", address,
+                 "--out", str(out), "--quiet"])
+    assert code == 2 and needle in capsys.readouterr().err
+    assert not (out / "study.json").exists() and not (out / "samples").exists()

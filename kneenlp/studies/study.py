@@ -237,16 +237,22 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
         Protocol.load(s)  # validates names early
     if spec.start not in STARTS:
         raise unknown_name("start", spec.start, STARTS)
+    workers = workers or os.cpu_count() or 1
+    # Dask first: a missing package or an unreachable scheduler writes nothing into ``out``
+    dask = _dask_client(scheduler, dask_local, workers) if scheduler or dask_local else None
     study = Study(spec, Path(out))
     study.prepare()
     todo = study.pending()
-    workers = workers or os.cpu_count() or 1
     bar = _progress(len(spec.tasks()), len(spec.tasks()) - len(todo), progress)
     if todo:
-        for row in _execute(spec, todo, workers, scheduler, dask_local):
+        for row in _execute(spec, todo, workers, dask):
             interrupts.check()  # a sample whose solve was interrupted is not recorded
             study.record(row)
             bar.update(1)
+    elif dask is not None:  # nothing left to run (a finished study resumed)
+        for part in dask:
+            if part is not None:
+                part.close()
     bar.close()
     if analyse:
         from kneenlp.studies.report import analyse_study
@@ -255,24 +261,28 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
     return study
 
 
-def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, scheduler: str | None,
-             dask_local: bool) -> Iterable[dict]:
-    if scheduler or dask_local:
+def _dask_client(scheduler: str | None, dask_local: bool, workers: int):
+    """(client, cluster or None): connected to ``scheduler`` or to a new local cluster."""
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError("Dask is not installed: pip install 'kneenlp[dask]'",
+                         field="--scheduler" if scheduler else "--dask") from None
+    if scheduler:
         try:
-            from dask.distributed import Client, LocalCluster
-            from dask.distributed import as_completed as dask_completed
-        except ImportError:
-            raise InputError("Dask is not installed: pip install 'kneenlp[dask]'", field="scheduler") from None
-        cluster = None
-        if scheduler:
-            try:
-                client = Client(scheduler, timeout="20s")
-            except (OSError, TimeoutError, ValueError, TypeError) as exc:
-                raise InputError(f"cannot connect to the Dask scheduler {scheduler!r} ({type(exc).__name__}: {exc})",
-                                 field="--scheduler") from None
-        else:
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
-            client = Client(cluster)
+            return Client(scheduler, timeout="20s"), None
+        except (OSError, TimeoutError, ValueError, TypeError) as exc:
+            raise InputError(f"cannot connect to the Dask scheduler {scheduler!r} ({type(exc).__name__}: {exc})",
+                             field="--scheduler") from None
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    return Client(cluster), cluster
+
+
+def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, dask) -> Iterable[dict]:
+    if dask is not None:
+        from dask.distributed import as_completed as dask_completed
+
+        client, cluster = dask
         try:
             futures = [client.submit(_worker_sample, spec, s, i, pure=False) for s, i in todo]
             for fut in dask_completed(futures):
