@@ -247,3 +247,17 @@ def test_tibia_out_of_reach(default_copy, tmp_path, shift):
     with pytest.raises(InputError, match="within reach") as err:
         Knee.load(dst)
     assert err.value.field == "contact.tibia"
+
+
+def test_one_tibial_mesh_in_the_other_unit(knee_copy):
+    """One plateau's mesh in metres in a millimetre knee (issue 24: 17 mm/deg off, exit 0, since
+    the knee's size check spans both plateaus): caught on that mesh, before any work."""
+    import trimesh
+
+    path = knee_copy.parent / "meshes" / "tibia_medial.stl"
+    mesh = trimesh.load(path)
+    mesh.apply_scale(1e-3)
+    mesh.export(path)
+    with pytest.raises(InputError, match=r"spans 0\.0\d+ mm with units = 'mm'.*in m\?") as err:
+        Knee.load(knee_copy)
+    assert err.value.field == "contact.medial.tibia"

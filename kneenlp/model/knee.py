@@ -280,9 +280,19 @@ class _KneeFile:
         return value
 
     def mesh(self, value: object, fld: str) -> trimesh.Trimesh:
-        """A mesh named in the file, in scan coordinates (m, mirrored for a left knee)."""
-        return read_mesh(mesh_path(self.path.parent, value, self.src, fld), self.scale, self.mirror,
+        """A mesh named in the file, in scan coordinates (m, mirrored for a left knee), its size
+        checked against :data:`KNEE_SIZE_RANGE` on its own (one mesh in the other unit is caught
+        before any work, not only when the knee's overall size is)."""
+        mesh = read_mesh(mesh_path(self.path.parent, value, self.src, fld), self.scale, self.mirror,
                          field=fld, knee_file=self.src)
+        size = float(np.ptp(mesh.vertices, axis=0).max())
+        lo, hi = KNEE_SIZE_RANGE
+        if not lo <= size <= hi:
+            other = "m" if self.units == "mm" else "mm"
+            raise InputError(f"{value} spans {size * 1e3:.3g} mm with units = {self.units!r}, "
+                             f"{'1000x' if size > hi else '1/1000 of'} a knee's: is this mesh in {other}?",
+                             source=self.src, field=fld)
+        return mesh
 
     def point(self, value: object, fld: str) -> np.ndarray:
         return self.frame(self.raw_point(value, fld))
