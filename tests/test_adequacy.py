@@ -432,3 +432,22 @@ def test_diagnose_refuses_a_fit_with_nothing_left_to_test(tmp_path, capsys):
     assert main(["diagnose", "--knee", "synthetic", str(tmp_path / "one.csv"), "--refit", "0"]) == 2
     out = capsys.readouterr()
     assert "5 observations" in out.err and "8 free parameters" in out.err and "ADEQUATE" not in out.out
+
+
+@pytest.mark.parametrize("share, advised", [(0.21, False), (0.8, True)])
+def test_verdict_advises_adding_only_an_effect_that_explains_most_of_the_misfit(monkeypatch, share, advised):
+    """Issue 24: a candidate removing 20-22 % of the excess misfit (and changing with the noise
+    seed) was followed by "Add it and look for a further effect"."""
+    from types import SimpleNamespace
+
+    from kneenlp.inference import adequacy
+    from kneenlp.inference.verdict import Verdict
+
+    monkeypatch.setattr(adequacy, "estimate_words", lambda *a: "an estimate")
+    refit = {"excess_explained": share, "chi2_drop": 40.0, "lr_p_value": 1e-9, "rms": 0.5, "p_value_after": 1e-6}
+    best = SimpleNamespace(effect="MCL_femoral_attachment", refit=refit, score_chi2=50.0)
+    v = Verdict("unexplained", 0.05, {"global": 1e-12, best.effect: 1e-6}, [best.effect], best.effect)
+    d = SimpleNamespace(decision=v, chi2=300.0, dof=100, p_value=1e-12, patterns=[], named=best, ranking=[best],
+                        expected_rms=0.29, fit=None, refits={}, noise="uniform:0.5")
+    words = adequacy.verdict_words(d)
+    assert ("Add it" in words) is advised and ("do not add it" in words) is not advised
