@@ -198,27 +198,6 @@ class ForwardSolver:
         return [out[i] for i in range(len(trials))]
 
 
-    def solve_each(self, trials: list[Trial] | tuple[Trial, ...], theta: np.ndarray) -> list[TrialSolution]:
-        """Solve every trial on its own path: Newton, then load ramping, from the unloaded pose at
-        its flexion, never from another trial's pose.  A trial's result then does not depend on the
-        other trials, and a trial that converges here converges in any protocol: :meth:`solve`
-        ramps from the same unloaded pose when its warm start fails (design's feasibility check)."""
-        unloaded: dict[float, TrialSolution] = {}
-        out = []
-        for t in trials:
-            key = round(t.flexion_deg, 9)
-            if key not in unloaded:
-                unloaded[key] = self.solve_trial(_unloaded(t), theta)
-            base = unloaded[key]
-            if _is_unloaded(t):
-                out.append(self.solve_trial(t, theta, base.q if base.converged else None))
-            elif base.converged:
-                out.append(self.solve_trial(t, theta, base.q, base.q))
-            else:
-                out.append(self.solve_trial(t, theta))
-        return out
-
-
 def _is_unloaded(t: Trial) -> bool:
     return not any(v != 0 for v in t.loads.values())
 
