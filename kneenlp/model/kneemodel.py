@@ -130,8 +130,8 @@ class KneeModel:
             moment += m_e
         # the applied force acts at the tuberosity (femoral or joint axes) or, for a robot's joint
         # loads, at the tibial origin; an element may shift that point (LoadPoint): the joint loads'
-        # force (the vector whose components along e1, e2, e3 are the generalised forces) then adds
-        # the couple of the shift
+        # force (the vector whose projections on e1, e2, e3 are the joint forces) then adds the
+        # couple of the shift
         shift = sum((s for e in self.elements if (s := e.load_point_offset(values)) is not None), ca.SX.zeros(3))
         e1, e2, e3 = axes
         joint_force = ca.solve(ca.horzcat(e1, e2, e3).T, load[8:11])
