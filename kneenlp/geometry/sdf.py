@@ -91,6 +91,17 @@ class DistanceField:
         return lo, tuple(int(np.ceil((hi[i] - lo[i]) / spacing)) + 1 for i in range(3))
 
     @classmethod
+    def check_memory(cls, box: np.ndarray, spacing: float) -> None:
+        """``ValueError`` (saying the finest spacing that fits) if the field over ``box`` at
+        ``spacing`` would need more than :data:`MAX_FIELD_BYTES` to build."""
+        need = float(np.prod(cls.grid(box, spacing)[1], dtype=float)) * BYTES_PER_NODE
+        if need > MAX_FIELD_BYTES:
+            finest = spacing * (need / MAX_FIELD_BYTES) ** (1 / 3)
+            raise ValueError(f"a distance field at {spacing * 1e3:g} mm over the contact region needs {need / 1e9:.3g} "
+                             f"GB (at most {MAX_FIELD_BYTES / 1e9:g} GB): use at least {finest * 1e3:.2g} mm "
+                             "(default 0.5 mm)")
+
+    @classmethod
     def from_mesh(cls, mesh: trimesh.Trimesh, box: np.ndarray, *, spacing: float = 5e-4, offset: float = 0.0,
                   band: float = 2e-3, depth: float = 3e-3, n_check: int = 4000,
                   rng_seed: int = 0) -> DistanceField:
@@ -108,11 +119,8 @@ class DistanceField:
         t0 = time.perf_counter()
         # nodes on multiples of the spacing in the mesh's frame: the same anatomy in the same frame gives
         # the same grid whatever the exact box
+        cls.check_memory(box, spacing)
         lo, shape = cls.grid(box, spacing)
-        if np.prod(shape, dtype=float) * BYTES_PER_NODE > MAX_FIELD_BYTES:
-            raise ValueError(f"a distance field of {np.prod(shape, dtype=float):.3g} nodes needs "
-                             f"{np.prod(shape, dtype=float) * BYTES_PER_NODE / 1e9:.3g} GB; at most "
-                             f"{MAX_FIELD_BYTES / 1e9:g} GB")
         axes = [lo[i] + spacing * np.arange(shape[i]) for i in range(3)]
         nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         exact = MeshDistance(mesh)

@@ -131,7 +131,8 @@ class DesignResult:
     predicted_rse: dict[str, float]  # at the knee's parameter set
     free: list[str]
     history: list[tuple[int, float]] = field(default_factory=list)
-    #: candidate load cases left out: no equilibrium at the knee's parameters or a robustness draw
+    #: candidate load cases left out: no equilibrium at the knee's parameters, in the pool or in a
+    #: designed protocol as simulate solves it
     infeasible: list[str] = field(default_factory=list)
 
     def to_toml(self) -> str:

@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
-from kneenlp.geometry.sdf import BYTES_PER_NODE, MAX_FIELD_BYTES, DistanceField
+from kneenlp.geometry.sdf import DistanceField
 from kneenlp.io.resources import resource
 from kneenlp.model.articular import (
     COMPARTMENT_KEYS,
@@ -285,13 +285,7 @@ class _KneeFile:
         before any work, not only when the knee's overall size is)."""
         mesh = read_mesh(mesh_path(self.path.parent, value, self.src, fld), self.scale, self.mirror,
                          field=fld, knee_file=self.src)
-        size = float(np.ptp(mesh.vertices, axis=0).max())
-        lo, hi = KNEE_SIZE_RANGE
-        if not lo <= size <= hi:
-            other = "m" if self.units == "mm" else "mm"
-            raise InputError(f"{value} spans {size * 1e3:.3g} mm with units = {self.units!r}, "
-                             f"{'1000x' if size > hi else '1/1000 of'} a knee's: is this mesh in {other}?",
-                             source=self.src, field=fld)
+        self.check_extent(mesh.vertices, str(value), fld)
         return mesh
 
     def point(self, value: object, fld: str) -> np.ndarray:
@@ -329,17 +323,19 @@ class _KneeFile:
     def check_size(self, compartments: dict[str, Compartment]) -> None:
         """The knee's size against :data:`KNEE_SIZE_RANGE`: a unit slip names the likely cause."""
         points = np.vstack([c.points for c in compartments.values()])
-        size = float((points.max(axis=0) - points.min(axis=0)).max())
+        self.check_extent(points, "the tibial cartilage", "units")
+
+    def check_extent(self, points: np.ndarray, what: str, fld: str) -> None:
+        """The largest extent of ``points`` (m) against :data:`KNEE_SIZE_RANGE` (each mesh on its own
+        when read, the whole tibial cartilage once built): outside, a unit slip is named."""
+        size = float(np.ptp(np.asarray(points, float), axis=0).max())
         lo, hi = KNEE_SIZE_RANGE
+        if lo <= size <= hi:
+            return
         other = "m" if self.units == "mm" else "mm"
-        if size > hi:
-            raise InputError(f"the tibial cartilage spans {size:.3g} m, 1000x a knee: units = {self.units!r} but "
-                             f"the meshes and points look like {other}? (set units = {other!r})", source=self.src,
-                             field="units")
-        if size < lo:
-            raise InputError(f"the tibial cartilage spans {size * 1e3:.3g} mm, 1/1000 of a knee: units = "
-                             f"{self.units!r} but the meshes and points look like {other}? (set units = "
-                             f"{other!r})", source=self.src, field="units")
+        raise InputError(f"{what} spans {size * 1e3:.3g} mm with units = {self.units!r}, "
+                         f"{'1000x' if size > hi else '1/1000 of'} a knee's: is it in {other}? (set units = "
+                         f"{other!r}, or convert it)", source=self.src, field=fld)
 
     def check_length(self, femur: np.ndarray, tibia: np.ndarray, fld: str) -> float:
         """Attachment distance (m) of a bundle in the reference pose: at least 1 mm, at most
@@ -486,13 +482,10 @@ class _KneeFile:
                 raise InputError(f"{exc} (more than 8 mm apart at every flexion): is the tibia placed in the "
                                  "femur's frame and in the file's unit?", source=self.src,
                                  field="contact.tibia") from None
-            nodes = float(np.prod(DistanceField.grid(box, spacing)[1], dtype=float))
-            if nodes * BYTES_PER_NODE > MAX_FIELD_BYTES:  # checked before any allocation
-                finest = spacing * (nodes * BYTES_PER_NODE / MAX_FIELD_BYTES) ** (1 / 3)
-                raise InputError(f"a distance field at {spacing * 1e3:g} mm over the contact region needs "
-                                 f"{nodes * BYTES_PER_NODE / 1e9:.3g} GB (at most {MAX_FIELD_BYTES / 1e9:g} GB): use "
-                                 f"at least {finest * 1e3:.2g} mm (default 0.5 mm)", source=self.src,
-                                 field="contact.grid_spacing")
+            try:  # before any allocation
+                DistanceField.check_memory(box, spacing)
+            except ValueError as exc:
+                raise InputError(str(exc), source=self.src, field="contact.grid_spacing") from None
             femur = FemoralSurface(fmesh, offset, spacing, box, sources)
         return {"compartments": compartments, "femur": femur, "axis": axis}
 
