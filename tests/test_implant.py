@@ -65,3 +65,42 @@ def test_set3_converges_and_loads_move_the_tibia_their_way(implant_knee):
         assert len(positive) == 2 and len(negative) == 2, load
         assert (positive[coordinate] > reference).all(), (load, positive[coordinate].tolist(), reference)
         assert (negative[coordinate] < reference).all(), (load, negative[coordinate].tolist(), reference)
+
+
+def test_open_edges_distance_is_the_distance_to_the_border():
+    """Oracle: a flat square (2 x 2, z = 0) has its border as open edges; the distance of a point
+    to it is the closed form of the distance to a square's boundary."""
+    from kneenlp.geometry.rim import OpenEdges
+
+    u = np.linspace(-1.0, 1.0, 9)
+    x, y = np.meshgrid(u, u, indexing="ij")
+    square = trimesh.Trimesh(np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)]), implant._grid_faces(9, 9, False))
+    rim = OpenEdges(square)
+    assert not rim.closed and len(rim) == 32
+    pts = np.random.default_rng(0).uniform(-1.5, 1.5, (200, 3))
+    ax, ay = np.abs(pts[:, 0]), np.abs(pts[:, 1])
+    inside = (ax <= 1) & (ay <= 1)
+    planar = np.where(inside, np.minimum(1 - ax, 1 - ay),
+                      np.hypot(np.maximum(ax - 1, 0), np.maximum(ay - 1, 0)))
+    np.testing.assert_allclose(rim.distance(pts), np.hypot(planar, pts[:, 2]), atol=1e-12)
+    assert OpenEdges(trimesh.creation.icosphere()).closed
+
+
+def test_cropped_femur_contact_beyond_its_edge_fails_the_trial(tmp_path):
+    """Issue 22: an implant femur cropped to 10 mm condyle half width (the inlay reaches 15 mm): the
+    knee report warns that the mesh is open where the tibia reaches, and a valgus trial whose
+    lateral tibial points pass the edge fails with that reason instead of carrying fake contact.
+    The shipped implant (17 mm) is open too, but not where the tibia reaches."""
+    from kneenlp.io.resources import resource
+    from kneenlp.simulation import simulate
+
+    implant.write_implant_knee(tmp_path, implant.FemoralComponent(half_width=10.0))
+    toml = tmp_path / "knee.toml"
+    toml.write_text(toml.read_text().replace("../../parameters/table1.toml", str(resource("parameters", "table1.toml"))))
+    cropped = kneenlp.Knee.load(tmp_path)
+    assert cropped.open_edge_note().startswith("WARNING: the femoral mesh is open where the tibia reaches")
+    out = simulate(cropped, "set3")
+    failed = {s.trial.id: s.reason for s in out.solutions if not s.converged}
+    assert "valgus_10Nm_flex30" in failed
+    assert all("open edge" in r for r in failed.values()), failed
+    assert "not where the tibia reaches" in kneenlp.Knee.named("implant").open_edge_note()

@@ -200,16 +200,21 @@ def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
 
 
-def touchable_box(femur_vertices: np.ndarray, tibia_points: np.ndarray, axis_point: np.ndarray,
-                  axis_direction: np.ndarray, flexion_deg: tuple[float, float] = (-5.0, 100.0),
-                  reach: float = 8e-3, margin: float = 3e-3, steps: int = 43) -> np.ndarray:
-    """Box (2 x 3, m) around the femoral surface the tibia can touch: femoral vertices within
-    ``reach`` of the tibial points swept by flexion about the flexion axis over ``flexion_deg``
-    (``reach`` stands for the laxity translations and rotations around that path), padded by
-    ``margin``.  Frame of the inputs (flexion is a negative rotation about the lateral axis)."""
+def sweep(points: np.ndarray, axis_point: np.ndarray, axis_direction: np.ndarray,
+          flexion_deg: tuple[float, float] = (-5.0, 100.0), steps: int = 43) -> np.ndarray:
+    """``points`` (N x 3) flexed about the axis through ``axis_point`` along ``axis_direction`` at
+    ``steps`` flexions over ``flexion_deg`` (stacked, steps * N x 3; flexion is a negative rotation
+    about the lateral axis)."""
     c = np.asarray(axis_point, float)
-    swept = np.vstack([(np.asarray(tibia_points) - c) @ rotation_about(axis_direction, -th).T + c
-                       for th in np.radians(np.linspace(*flexion_deg, steps))])
+    return np.vstack([(np.asarray(points) - c) @ rotation_about(axis_direction, -th).T + c
+                      for th in np.radians(np.linspace(*flexion_deg, steps))])
+
+
+def touchable_box(femur_vertices: np.ndarray, swept: np.ndarray, reach: float = 8e-3,
+                  margin: float = 3e-3) -> np.ndarray:
+    """Box (2 x 3, m) around the femoral surface the tibia can touch: femoral vertices within
+    ``reach`` of the ``swept`` tibial points (:func:`sweep`; ``reach`` stands for the laxity
+    translations and rotations around that path), padded by ``margin``."""
     # one vectorised query: every femoral vertex within reach of any swept tibial point
     dist, _ = cKDTree(swept).query(np.asarray(femur_vertices), distance_upper_bound=reach)
     hit = np.isfinite(dist)

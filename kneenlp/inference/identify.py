@@ -36,7 +36,7 @@ from kneenlp.inference.problem import IdentificationProblem
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.simulation import model_for
-from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.forward import forward_solver, rim_reason
 from kneenlp.solvers.nlp import IdentificationNLP, build_nlp
 from kneenlp.solvers.reduced import reduced_least_squares
 
@@ -243,7 +243,11 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
         q_sol, theta_sol = q_user / TO_USER, problem.theta(values)
         left_out = max(problem.model.left_out_penetration(qi, theta_sol, t.flexion)
                        for t, qi in zip(problem.trials, q_sol, strict=True))
-    success = bool(st.get("success", False)) and max_res <= 1e-6 and left_out <= 0
+    rim = -np.inf
+    if problem.model.ws_size:
+        rim = max(problem.model.rim_penetration(qi, theta_sol, t.flexion)
+                  for t, qi in zip(problem.trials, q_sol, strict=True))
+    success = bool(st.get("success", False)) and max_res <= 1e-6 and left_out <= 0 and rim <= 0
     msg = "" if n_fail_start == 0 else (f"{n_fail_start} trial(s) had no equilibrium inside the pose envelope at "
                                         "the start; started at data")
     if bool(st.get("success", False)) and max_res > 1e-6:
@@ -252,6 +256,8 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
         note = (f"a contact point outside the working sets penetrates {1e3 * left_out:.3f} mm: enlarge "
                 "contact.working_set in the knee file (or the contact left the represented femoral surface)")
         msg = (msg + "; " if msg else "") + note
+    if rim > 0:
+        msg = (msg + "; " if msg else "") + rim_reason(rim)
     return Fit.build(problem, "simultaneous", problem.theta(values), q_user / TO_USER,
                      status=str(st.get("return_status", "unknown")), success=success,
                      iterations=iterations, seconds=seconds, max_residual=max_res,

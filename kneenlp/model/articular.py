@@ -29,14 +29,18 @@ import numpy as np
 import trimesh
 
 from kneenlp.errors import InputError
-from kneenlp.geometry.axes import CondyleSplit, FlexionAxis, split_plateaus, touchable_box
+from kneenlp.geometry.axes import CondyleSplit, FlexionAxis, split_plateaus, sweep, touchable_box
 from kneenlp.geometry.distance import vertex_areas
+from kneenlp.geometry.rim import OpenEdges, at_open_edge
 from kneenlp.geometry.sdf import DistanceField, cached_field
 
 log = logging.getLogger("kneenlp")
 
 #: Flexions (deg) over which the tibia is swept to find the femoral surface it can touch.
 TOUCHABLE_FLEXION_DEG = (-5.0, 100.0)
+#: Gap (m) within which a swept tibial point counts as reaching the femoral surface (the knee
+#: report's check of open edges, :meth:`FemoralSurface.open_edge_reached`).
+RIM_GAP = 0.5e-3
 #: Keys of the ``[contact]`` table that are settings, not compartments.
 CONTACT_SETTINGS = ("gate", "working_set", "grid_spacing", "femur", "femur_offset", "tibia")
 #: Keys of a ``[contact.<compartment>]`` table.
@@ -80,6 +84,21 @@ class FemoralSurface:
         """The distance field, built once per surface and kept in the on-disk cache."""
         return cached_field(self.mesh, self.box, progress=log.info, spacing=self.spacing, offset=self.offset)
 
+    @cached_property
+    def rim(self) -> OpenEdges:
+        """The open edges of the represented surface (none for a watertight mesh)."""
+        return OpenEdges(self.mesh, self.offset)
+
+    def open_edge_reached(self, swept: np.ndarray) -> int:
+        """How many of the ``swept`` tibial points (femoral frame, m) come within :data:`RIM_GAP`
+        of the surface where its nearest point is on the open edge (0 for a watertight mesh)."""
+        if self.rim.closed:
+            return 0
+        lo, hi = self.field.bounds
+        x = swept[np.all((swept >= lo) & (swept <= hi), axis=1)]
+        d, at_rim = at_open_edge(self.field, self.rim, x)
+        return int(np.count_nonzero(at_rim & (d < RIM_GAP)))
+
     def describe(self) -> str:
         what = (f"{' + '.join(self.sources) or 'mesh'} ({len(self.mesh.faces)} faces)"
                 + (f", articular surface {self.offset * 1e3:g} mm outside it" if self.offset else ""))
@@ -116,17 +135,21 @@ def tibial_samples(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, dtype=float), vertex_areas(mesh)
 
 
-def femoral_box(femur: trimesh.Trimesh, tibia_points: np.ndarray, axis: FlexionAxis | None,
-                reference_flexion_deg: float = 0.0) -> np.ndarray:
-    """The region of the femoral surface the tibia can touch (femoral frame): the tibial points
-    (femoral frame, at the reference pose of flexion ``reference_flexion_deg``) flexed about the
-    fitted flexion axis, or about the frame's Z axis through the origin without one, over the
-    flexions of :func:`~kneenlp.geometry.axes.touchable_box`."""
+def swept_tibia(tibia_points: np.ndarray, axis: FlexionAxis | None, reference_flexion_deg: float = 0.0) -> np.ndarray:
+    """The tibial points (femoral frame, at the reference pose of flexion ``reference_flexion_deg``)
+    flexed about the fitted flexion axis, or about the frame's Z axis through the origin without
+    one, over :data:`TOUCHABLE_FLEXION_DEG` (:func:`~kneenlp.geometry.axes.sweep`)."""
     point = axis.point if axis is not None else np.zeros(3)
     direction = axis.direction if axis is not None else np.array([0.0, 0.0, 1.0])
     lo, hi = TOUCHABLE_FLEXION_DEG
-    return touchable_box(femur.vertices, tibia_points, point, direction,
-                         (lo - reference_flexion_deg, hi - reference_flexion_deg))
+    return sweep(tibia_points, point, direction, (lo - reference_flexion_deg, hi - reference_flexion_deg))
+
+
+def femoral_box(femur: trimesh.Trimesh, tibia_points: np.ndarray, axis: FlexionAxis | None,
+                reference_flexion_deg: float = 0.0) -> np.ndarray:
+    """The region of the femoral surface the tibia can touch (femoral frame):
+    :func:`~kneenlp.geometry.axes.touchable_box` of the :func:`swept_tibia` points."""
+    return touchable_box(femur.vertices, swept_tibia(tibia_points, axis, reference_flexion_deg))
 
 
 @dataclass

@@ -37,12 +37,15 @@ from kneenlp.io.resources import resource
 from kneenlp.model.articular import (
     COMPARTMENT_KEYS,
     CONTACT_SETTINGS,
+    RIM_GAP,
+    TOUCHABLE_FLEXION_DEG,
     Compartment,
     FemoralSurface,
     femoral_box,
     field_summary,
     mesh_path,
     split_tibia,
+    swept_tibia,
     tibial_samples,
 )
 from kneenlp.model.contact import SphereContact
@@ -168,7 +171,7 @@ class Knee:
                                              self.working_set))
             else:
                 contact.append(MeshContact(c.name, self.femur.field, c.points, c.areas, self.gate,
-                                           self.femur.mesh.vertices, self.femur.offset))
+                                           self.femur.mesh.vertices, self.femur.offset, self.femur.rim))
         menisci = [Meniscus(self.condyle_centres(), self.menisci, self.condyle_rest())] \
             if self.menisci is not None else []
         return [*self.ligaments.values(), *contact, *menisci, *self.candidates]
@@ -201,8 +204,26 @@ class Knee:
             lines.append(f"{c.name}: {len(c.points)} tibial points ({c.areas.sum() * 1e6:.0f} mm^2) against the "
                          f"{what}")
         if self.femur is not None:
-            lines += [self.femur.describe(), field_summary(self.femur.field)]
+            lines += [self.femur.describe(), field_summary(self.femur.field), self.open_edge_note()]
         return "\n".join(lines)
+
+    def open_edge_note(self) -> str:
+        """Whether the femoral mesh is open where the tibia reaches: the tibial cartilage swept over
+        the touchable flexions at the reference pose, points within
+        :data:`~kneenlp.model.articular.RIM_GAP` of the surface at its open edge counted."""
+        rim = self.femur.rim
+        if rim.closed:
+            return "femoral mesh: closed (no open edge)"
+        R, p = self.reference_transform
+        pts = np.vstack([c.points for c in self.compartments.values() if not c.sphere]) @ R.T + p
+        n = self.femur.open_edge_reached(swept_tibia(pts, self.axis, np.degrees(self.reference_pose[0])))
+        if not n:
+            return (f"femoral mesh: open ({len(rim)} edges), but not where the tibia reaches between "
+                    f"{TOUCHABLE_FLEXION_DEG[0]:g} and {TOUCHABLE_FLEXION_DEG[1]:g} deg flexion")
+        return (f"WARNING: the femoral mesh is open where the tibia reaches: {n} swept tibial points come within "
+                f"{RIM_GAP * 1e3:g} mm of its open edge between {TOUCHABLE_FLEXION_DEG[0]:g} and "
+                f"{TOUCHABLE_FLEXION_DEG[1]:g} deg flexion; a trial with contact there fails (the distance "
+                "beyond an open edge is no penetration): extend the femoral mesh or use the closed cartilage solid")
 
 
 class _KneeFile:

@@ -223,6 +223,16 @@ class KneeModel:
                 worst = max(worst, float(-gap[left_out].min()))
         return worst
 
+    def rim_penetration(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> float:
+        """Largest penetration (m) of a tibial point whose nearest femoral point lies on an open edge
+        of the femoral mesh (-inf if none): contact there is an artefact of a cropped surface
+        (:meth:`~kneenlp.model.mesh_contact.MeshContact.rim_penetration`)."""
+        staged = [e for e in self.staged if hasattr(e, "rim_penetration")]
+        if not staged:
+            return -np.inf
+        R, p = (np.asarray(v) for v in self.pose(q, flexion, theta))
+        return max(e.rim_penetration(R, p) for e in staged)
+
     def working_sets_function(self, n_trials: int) -> ca.Function:
         """The working sets of ``n_trials`` poses as a CasADi function with zero derivative
         (:class:`~kneenlp.model.workingsets.WorkingSets`), built once per number of trials."""

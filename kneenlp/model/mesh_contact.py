@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 
 from kneenlp.geometry import kernels
 from kneenlp.geometry.ramp import ramp_inner_curvature, ramp_inner_slope
+from kneenlp.geometry.rim import OpenEdges, at_open_edge
 from kneenlp.geometry.sdf import DistanceField
 from kneenlp.model.contact import MODULUS, gate_numpy
 from kneenlp.model.elements import Output, Pose, StagedElement
@@ -136,7 +137,8 @@ class MeshContact(StagedElement):
 
     ``field`` femoral frame, m; ``points`` (N x 3) tibial frame, m; ``areas`` (N,) m^2; ``gate``
     m; ``femur_vertices`` (femoral frame, m) with ``offset`` (m) bound the gap of points outside
-    the field's grid.  Parameter: ``contact.modulus``.  Outputs: contact force (N) and largest
+    the field's grid; ``rim``: the surface's open edges, where contact is refused
+    (:meth:`rim_penetration`).  Parameter: ``contact.modulus``.  Outputs: contact force (N) and largest
     penetration (mm).
     """
 
@@ -145,13 +147,14 @@ class MeshContact(StagedElement):
     working_set_size = 1  # one expansion per compartment and trial
 
     def __init__(self, compartment: str, field: DistanceField, points: np.ndarray, areas: np.ndarray, gate: float,
-                 femur_vertices: np.ndarray | None = None, offset: float = 0.0):
+                 femur_vertices: np.ndarray | None = None, offset: float = 0.0, rim: OpenEdges | None = None):
         self.name, self.compartment = f"contact_{compartment}", compartment
         self.field = field
         self.points, self.areas = np.asarray(points, float), np.asarray(areas, float)
         self.gate = float(gate)
         self.description = f"{compartment} compartment: femoral surface (distance field) vs tibial cartilage"
         self._outside = (cKDTree(np.asarray(femur_vertices)), float(offset)) if femur_vertices is not None else None
+        self.rim = rim
         self._reach = float(np.max(np.linalg.norm(self.points, axis=1)))  # farthest point from the tibial origin
         # remembered poses (rows: R column-major, p) and their candidate points, newest first
         self._poses = np.zeros((0, 12))
@@ -237,6 +240,18 @@ class MeshContact(StagedElement):
         X = self.points[cand] @ np.asarray(R).T + np.asarray(p).ravel()
         d = self.field.evaluate(X)[0]
         return cand[(d < 0) & (d > -0.99 * self.field.depth) & self.in_field(X)]
+
+    def rim_penetration(self, R: np.ndarray, p: np.ndarray) -> float:
+        """Largest penetration (m) of a point whose nearest femoral point lies on the surface's open
+        edge (-inf if none, or without open edges): a cropped femoral mesh seen from beyond its
+        edge, where the field's sign comes from the rim's pseudo-normal and the "contact" is fake."""
+        if self.rim is None or self.rim.closed:
+            return -np.inf
+        idx = self.select(R, p, None)
+        if not len(idx):
+            return -np.inf
+        d, at_rim = at_open_edge(self.field, self.rim, self.points[idx] @ np.asarray(R).T + np.asarray(p).ravel())
+        return float(np.max(-d[at_rim])) if np.any(at_rim) else -np.inf
 
     def pack(self, indices, R, p, values):
         """The expansion of the contact at pose ``(R, p)`` over the points :meth:`select` chooses

@@ -144,6 +144,9 @@ class ForwardSolver:
                                                                         for c in self._contact_columns):
             sol.converged, sol.strategy = False, "failed"
             sol.reason = "equilibrium found only at an implausible (dislocated) pose"
+        elif (rim := self.model.rim_penetration(q, theta, trial.flexion)) > 0:
+            sol.converged, sol.strategy = False, "failed"
+            sol.reason = rim_reason(rim)
         return sol
 
     def _ramp(self, trial: Trial, theta: np.ndarray, q_start: np.ndarray, min_step: float = 1 / 64):
@@ -196,6 +199,12 @@ class ForwardSolver:
                     unloaded[key] = sol.q
             out[i] = sol
         return [out[i] for i in range(len(trials))]
+
+
+def rim_reason(penetration: float) -> str:
+    """Why a pose with contact at the femoral mesh's open edge is refused (``penetration`` m)."""
+    return (f"contact beyond the femoral surface's open edge: a tibial point {1e3 * penetration:.2f} mm 'inside' where "
+            "the femoral mesh ends (a cropped or partial surface; the knee report says where it is open)")
 
 
 def _is_unloaded(t: Trial) -> bool:

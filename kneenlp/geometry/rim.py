@@ -1,0 +1,76 @@
+"""The open edges (rim) of a surface mesh: where a cropped or partial surface ends.
+
+A femoral articular surface given as an open mesh (the cartilage's top surface, a cropped implant
+component) has edges used by one face only.  Beyond such an edge the signed distance is not a
+distance to a surface any more: it is the distance to the edge line, signed by the rim's
+pseudo-normal, so a tibial point 4-6 mm past the edge and a little below it counts as
+penetrating.  :class:`OpenEdges` finds the rim and measures how far points are from it, so that
+contact whose nearest femoral point lies on the rim can be refused (issue 22:
+:meth:`kneenlp.model.mesh_contact.MeshContact.rim_penetration`).
+
+Lengths are in the mesh's unit (kneenlp: metres).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from kneenlp.geometry.sdf import DistanceField
+
+#: A point is at the open edge when its nearest surface point lies within this many grid spacings
+#: of the edge (the spline field rounds the distance there over about a spacing).
+RIM_SPACINGS = 1.0
+#: Segments looked at per point (nearest by midpoint): rim edges are short and of similar length.
+NEAREST_SEGMENTS = 8
+
+
+class OpenEdges:
+    """The edges of ``mesh`` used by one face, moved outward by ``offset`` along the vertex normals
+    (the represented surface is ``offset`` outside the mesh, :class:`~kneenlp.geometry.sdf.
+    DistanceField`)."""
+
+    def __init__(self, mesh: trimesh.Trimesh, offset: float = 0.0):
+        edges, counts = np.unique(np.asarray(mesh.edges_sorted), axis=0, return_counts=True)
+        rim = edges[counts == 1]
+        vertices = np.asarray(mesh.vertices, float) + offset * np.asarray(mesh.vertex_normals, float)
+        #: rim segments (n x 2 x 3)
+        self.segments = vertices[rim]
+        self._tree = cKDTree(self.segments.mean(axis=1)) if len(rim) else None
+
+    @property
+    def closed(self) -> bool:
+        """True when the mesh has no open edge (a watertight surface)."""
+        return self._tree is None
+
+    def __len__(self) -> int:
+        return len(self.segments)
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Distance (N,) from every point (N x 3) to the nearest rim segment (inf without a rim)."""
+        x = np.asarray(points, float).reshape(-1, 3)
+        if self._tree is None or not len(x):
+            return np.full(len(x), np.inf)
+        k = min(NEAREST_SEGMENTS, len(self.segments))
+        _, idx = self._tree.query(x, k)
+        idx = np.reshape(idx, (len(x), k))
+        a, b = self.segments[idx, 0], self.segments[idx, 1]  # N x k x 3
+        ab = b - a
+        length2 = np.maximum(np.einsum("nkj,nkj->nk", ab, ab), 1e-300)
+        t = np.clip(np.einsum("nkj,nkj->nk", x[:, None] - a, ab) / length2, 0.0, 1.0)
+        return np.linalg.norm(a + t[..., None] * ab - x[:, None], axis=2).min(axis=1)
+
+
+def at_open_edge(field: DistanceField, rim: OpenEdges, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(d, mask)`` for points (N x 3, the field's frame): the field's signed distance and whether
+    the nearest surface point (reached along the field's gradient) lies on the open edge, within
+    :data:`RIM_SPACINGS` grid spacings of it.  There ``d`` measures the distance to the edge, not
+    to a surface: a negative one is no penetration."""
+    x = np.asarray(points, float).reshape(-1, 3)
+    d, g = field.evaluate(x, order=1)
+    if rim.closed:
+        return d, np.zeros(len(x), dtype=bool)
+    norm = np.linalg.norm(g, axis=1)
+    n = np.divide(g, norm[:, None], out=np.zeros_like(g), where=norm[:, None] > 0)
+    return d, (norm > 0) & (rim.distance(x - d[:, None] * n) <= RIM_SPACINGS * field.spacing)
