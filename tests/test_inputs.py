@@ -261,3 +261,28 @@ def test_one_tibial_mesh_in_the_other_unit(knee_copy):
     with pytest.raises(InputError, match=r"spans 0\.0\d+ mm with units = 'mm'.*in m\?") as err:
         Knee.load(knee_copy)
     assert err.value.field == "contact.medial.tibia"
+
+
+@pytest.mark.parametrize("knee", ["synthetic", "default"])
+def test_declared_side_contradicted_by_the_geometry(knee_copy, default_copy, knee):
+    """A right knee declared left (issue 24: 16.6 mm/deg off, exit 0): read as a left knee, its
+    collateral ligaments change sides; one line naming `side` and the fix."""
+    path = knee_copy if knee == "synthetic" else default_copy[1]
+    text = (knee_copy if knee == "synthetic" else default_copy[0]).read_text()
+    assert 'side = "right"' in text
+    path.write_text(text.replace('side = "right"', 'side = "left"'))
+    with pytest.raises(InputError, match=re.escape("is it a right knee? (set side = 'right')")) as err:
+        Knee.load(path)
+    assert err.value.field == "side" and "collateral" in str(err.value)
+
+
+def test_named_plateaus_on_the_wrong_sides(knee_copy):
+    """[contact.medial] and [contact.lateral] naming each other's meshes contradict the side the
+    ligaments give: the error says which evidence disagrees."""
+    text = knee_copy.read_text()
+    swapped = (text.replace("meshes/tibia_medial.stl", "@").replace("meshes/tibia_lateral.stl", "meshes/tibia_medial.stl")
+               .replace("@", "meshes/tibia_lateral.stl"))
+    knee_copy.write_text(swapped)
+    with pytest.raises(InputError, match=re.escape("lateral plateau ([contact.lateral]) lies medial")) as err:
+        Knee.load(knee_copy)
+    assert err.value.field == "side"

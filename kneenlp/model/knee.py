@@ -57,6 +57,10 @@ from kneenlp.model.ligament import Bundle, Ligament
 from kneenlp.model.mesh_contact import MeshContact
 from kneenlp.model.parameters import ParameterSet, number, read_toml
 
+#: Ligament names (prefixes, upper case) on the medial and the lateral side of the knee, the
+#: evidence :meth:`_KneeFile.check_side` weighs against the declared side.
+MEDIAL_LIGAMENTS = ("MCL", "SMCL", "DMCL", "POL", "PMC")
+LATERAL_LIGAMENTS = ("LCL", "FCL", "PFL", "ALS", "ALL")
 #: The knee ``Knee.default()`` loads.
 DEFAULT_KNEE = "default"
 #: Plausible size of a knee (m): the largest extent of the tibial cartilage (human plateaus: 60-90
@@ -326,6 +330,7 @@ class _KneeFile:
             raise InputError("missing (anterior/posterior loads act there)", source=src,
                              field="landmarks.tibial_tuberosity")
         ligaments = self.ligaments()
+        self.check_side(ligaments, geometry["compartments"], landmarks)
         candidates = self.candidates()
         params = self.parameter_set(parameters, ligaments)
         contact = doc.get("contact", {})
@@ -340,6 +345,38 @@ class _KneeFile:
                     description=str(doc.get("description", "")), candidates=candidates, femur=geometry["femur"],
                     axis=geometry["axis"], menisci=self.menisci(), notes=self.notes,
                     reference_pose=self.reference_pose, side=self.doc.get("side", "right"))
+
+    def check_side(self, ligaments: dict[str, Ligament], compartments: dict[str, Compartment],
+                   landmarks: dict[str, np.ndarray]) -> None:
+        """The declared ``side`` against the geometry, in the model's frame (a right knee: Z lateral):
+        the collateral ligaments (medial: MCL, POL; lateral: LCL, PFL, ALS/ALL, fibular side), the
+        compartments the file names itself and the epicondyles.  A mirrored knee declared the other
+        side puts each of them on the wrong side; one contradiction is an error naming it."""
+        evidence = []  # (what, lateral-minus-medial z, m)
+        z = {side: [float(np.mean([[b.femur[2], b.tibia[2]] for b in lig.bundles]))
+                    for name, lig in ligaments.items() if name.upper().startswith(prefixes)]
+             for side, prefixes in (("medial", MEDIAL_LIGAMENTS), ("lateral", LATERAL_LIGAMENTS))}
+        if z["medial"] and z["lateral"]:
+            evidence.append(("the lateral collateral ligaments (LCL ...) lie medial of the medial ones (MCL ...)",
+                             np.mean(z["lateral"]) - np.mean(z["medial"])))
+        elif z["medial"] or z["lateral"]:
+            side = "medial" if z["medial"] else "lateral"
+            evidence.append((f"the {side} collateral ligaments lie on the {'lateral' if side == 'medial' else 'medial'}"
+                             " side", -np.mean(z[side]) if side == "medial" else np.mean(z[side])))
+        named = {n for n in self.doc.get("contact", {}) if n in ("medial", "lateral")
+                 and isinstance(self.doc["contact"][n], dict) and "tibia" in self.doc["contact"][n]}
+        if named == {"medial", "lateral"}:
+            evidence.append(("the file's lateral plateau ([contact.lateral]) lies medial of its medial one",
+                             compartments["lateral"].points[:, 2].mean() - compartments["medial"].points[:, 2].mean()))
+        if {"medial_epicondyle", "lateral_epicondyle"} <= set(landmarks):
+            evidence.append(("the lateral epicondyle lies medial of the medial one",
+                             landmarks["lateral_epicondyle"][2] - landmarks["medial_epicondyle"][2]))
+        wrong = [what for what, dz in evidence if dz < 0]
+        if wrong:
+            side = self.doc.get("side", "right")
+            other = "left" if side == "right" else "right"
+            raise InputError(f"the knee is declared {side!r}, but {wrong[0]} once it is read as a {side} knee: "
+                             f"is it a {other} knee? (set side = {other!r})", source=self.src, field="side")
 
     def check_size(self, compartments: dict[str, Compartment]) -> None:
         """The knee's size against :data:`KNEE_SIZE_RANGE`: a unit slip names the likely cause."""
