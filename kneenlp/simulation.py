@@ -138,6 +138,7 @@ def simulate(knee: Knee | KneeModel | None = None, protocol: Protocol | str = "s
     model = model_for(knee or Knee.default())
     knee = model.knee
     protocol = protocol if isinstance(protocol, Protocol) else Protocol.load(protocol)
+    knee.check_flexions(protocol.trials, protocol.source)
     theta = model.theta(parameters)
     solver = forward_solver(model, tol)
     t0 = time.perf_counter()

@@ -286,3 +286,23 @@ def test_named_plateaus_on_the_wrong_sides(knee_copy):
     with pytest.raises(InputError, match=re.escape("lateral plateau ([contact.lateral]) lies medial")) as err:
         Knee.load(knee_copy)
     assert err.value.field == "side"
+
+
+def test_flexion_beyond_the_represented_surface(tmp_path, capsys):
+    """A trial at 115 deg on a mesh knee whose femoral surface is represented to 100 deg (issue 24:
+    diagnose failed after 300 s with a numba dispatcher error): one line naming the trial, exit 2,
+    from simulate and from a fit's data alike."""
+    protocol = tmp_path / "p115.toml"
+    protocol.write_text('name = "p115"\n[[cases]]\ndirection = "anterior"\nmagnitude = [134.0]\nflexion = [30.0, 115.0]\n')
+    code, err = run_cli(capsys, "simulate", "--protocol", str(protocol), "--out", str(tmp_path / "out"))
+    assert code == 2 and "anterior_134N_flex115" in err and "between -5 and 100 deg" in err
+    assert not (tmp_path / "out").exists()
+    synthetic = kneenlp.simulate(Knee.named("synthetic"), Protocol.load(protocol))  # spheres: any flexion
+    data = synthetic.measured("uniform:0.5", 0)
+    csv = tmp_path / "d.csv"
+    data.to_csv(csv, index=False)
+    from kneenlp.inference.identify import identify
+
+    with pytest.raises(InputError, match="115 deg flexion") as err:
+        identify(Knee.default(), read_measured(csv))
+    assert err.value.field == "flexion"

@@ -125,6 +125,7 @@ class MeasuredData:
             raise InputError(f"the data come from a {self.side} knee, knee {knee.name!r} is a {knee.side} knee (a "
                              f"{knee.side} knee declared {self.side}? import the data again with --side {knee.side})",
                              source=self.source, field="side")
+        knee.check_flexions(self.trials, self.source)
         centre = knee.reference_pose[1] * TO_USER
         far = np.abs(self.q_user - centre) > POSE_ENVELOPE_USER
         if far.any():

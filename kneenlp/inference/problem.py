@@ -82,6 +82,7 @@ class IdentificationProblem:
                   with_effects: Sequence[str] = ()) -> IdentificationProblem:
         """The problem of identifying ``free`` (default: k and ref_strain of every ligament, plus
         the parameters of ``with_effects``) from measured ``data``."""
+        model.knee.check_flexions(data.trials, data.source)
         free = list(free or default_free(model))
         for name in with_effects:
             free += [n for n in model.effect(name).free_names() if n not in free]

@@ -211,6 +211,25 @@ class Knee:
             lines += [self.femur.describe(), field_summary(self.femur.field), self.open_edge_note()]
         return "\n".join(lines)
 
+    @property
+    def flexion_range_deg(self) -> tuple[float, float] | None:
+        """Flexions (deg) the knee's femoral surface is represented for (the distance field covers
+        the region the tibia touches over :data:`~kneenlp.model.articular.TOUCHABLE_FLEXION_DEG`);
+        None for a knee without a femoral mesh (explicit spheres hold at any flexion)."""
+        return TOUCHABLE_FLEXION_DEG if self.femur is not None else None
+
+    def check_flexions(self, trials, source: str | None = None) -> None:
+        """Every trial's flexion inside :attr:`flexion_range_deg`: beyond it the tibia touches femoral
+        surface the model does not represent (issue 24: diagnose at 115 deg failed after 300 s)."""
+        span = self.flexion_range_deg
+        if span is None:
+            return
+        for t in trials:
+            if not span[0] <= t.flexion_deg <= span[1]:
+                raise InputError(f"trial {t.id!r} at {t.flexion_deg:g} deg flexion: knee {self.name!r} represents its "
+                                 f"femoral surface between {span[0]:g} and {span[1]:g} deg only (the distance field "
+                                 "covers the region the tibia touches there)", source=source, field="flexion")
+
     def open_edge_note(self) -> str:
         """Whether the femoral mesh is open where the tibia reaches: the tibial cartilage swept over
         the touchable flexions at the reference pose, points within
