@@ -74,7 +74,8 @@ def test_open_edges_distance_is_the_distance_to_the_border():
 
     u = np.linspace(-1.0, 1.0, 9)
     x, y = np.meshgrid(u, u, indexing="ij")
-    square = trimesh.Trimesh(np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)]), implant._grid_faces(9, 9, False))
+    vertices = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    square = trimesh.Trimesh(vertices, implant._grid_faces(9, 9, False))
     rim = OpenEdges(square)
     assert not rim.closed and len(rim) == 32
     pts = np.random.default_rng(0).uniform(-1.5, 1.5, (200, 3))
@@ -96,7 +97,8 @@ def test_cropped_femur_contact_beyond_its_edge_fails_the_trial(tmp_path):
 
     implant.write_implant_knee(tmp_path, implant.FemoralComponent(half_width=10.0))
     toml = tmp_path / "knee.toml"
-    toml.write_text(toml.read_text().replace("../../parameters/table1.toml", str(resource("parameters", "table1.toml"))))
+    table1 = str(resource("parameters", "table1.toml"))
+    toml.write_text(toml.read_text().replace("../../parameters/table1.toml", table1))
     cropped = kneenlp.Knee.load(tmp_path)
     assert cropped.open_edge_note().startswith("WARNING: the femoral mesh is open where the tibia reaches")
     out = simulate(cropped, "set3")

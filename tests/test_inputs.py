@@ -280,8 +280,8 @@ def test_named_plateaus_on_the_wrong_sides(knee_copy):
     """[contact.medial] and [contact.lateral] naming each other's meshes contradict the side the
     ligaments give: the error says which evidence disagrees."""
     text = knee_copy.read_text()
-    swapped = (text.replace("meshes/tibia_medial.stl", "@").replace("meshes/tibia_lateral.stl", "meshes/tibia_medial.stl")
-               .replace("@", "meshes/tibia_lateral.stl"))
+    medial, lateral = "meshes/tibia_medial.stl", "meshes/tibia_lateral.stl"
+    swapped = text.replace(medial, "@").replace(lateral, medial).replace("@", lateral)
     knee_copy.write_text(swapped)
     with pytest.raises(InputError, match=re.escape("lateral plateau ([contact.lateral]) lies medial")) as err:
         Knee.load(knee_copy)
@@ -293,7 +293,8 @@ def test_flexion_beyond_the_represented_surface(tmp_path, capsys):
     diagnose failed after 300 s with a numba dispatcher error): one line naming the trial, exit 2,
     from simulate and from a fit's data alike."""
     protocol = tmp_path / "p115.toml"
-    protocol.write_text('name = "p115"\n[[cases]]\ndirection = "anterior"\nmagnitude = [134.0]\nflexion = [30.0, 115.0]\n')
+    protocol.write_text('name = "p115"\n[[cases]]\ndirection = "anterior"\nmagnitude = [134.0]\n'
+                        'flexion = [30.0, 115.0]\n')
     code, err = run_cli(capsys, "simulate", "--protocol", str(protocol), "--out", str(tmp_path / "out"))
     assert code == 2 and "anterior_134N_flex115" in err and "between -5 and 100 deg" in err
     assert not (tmp_path / "out").exists()
