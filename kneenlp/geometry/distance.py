@@ -93,7 +93,7 @@ class MeshDistance:
             todo = np.arange(len(q))
             kk = min(k, len(self.small))
             while len(todo):
-                dk, ik = self.tree.query(q[todo], kk)
+                dk, ik = self.tree.query(q[todo], kk, workers=-1)
                 ik, dk = self.small[np.reshape(ik, (len(todo), -1))], np.reshape(dk, (len(todo), -1))
                 cand = np.hstack([ik, np.broadcast_to(self.big, (len(todo), len(self.big)))])
                 c, f, dd = _closest_of(self.tris, q[todo], cand)

@@ -41,6 +41,8 @@ TOUCHABLE_FLEXION_DEG = (-5.0, 100.0)
 #: Gap (m) within which a swept tibial point counts as reaching the femoral surface (the knee
 #: report's check of open edges, :meth:`FemoralSurface.open_edge_reached`).
 RIM_GAP = 0.5e-3
+#: Points per chunk when the field's derivatives are evaluated at many points (memory: ~1 kB a point).
+RIM_CHUNK = 50_000
 #: Keys of the ``[contact]`` table that are settings, not compartments.
 CONTACT_SETTINGS = ("gate", "working_set", "grid_spacing", "femur", "femur_offset", "tibia")
 #: Keys of a ``[contact.<compartment>]`` table.
@@ -96,8 +98,12 @@ class FemoralSurface:
             return 0
         lo, hi = self.field.bounds
         x = swept[np.all((swept >= lo) & (swept <= hi), axis=1)]
-        d, at_rim = at_open_edge(self.field, self.rim, x)
-        return int(np.count_nonzero(at_rim & (d < RIM_GAP)))
+        x = x[self.field.evaluate(x)[0] < RIM_GAP]  # compiled, no derivatives: the near ones only
+        reached = 0
+        for start in range(0, len(x), RIM_CHUNK):  # bounded memory: derivatives gather 64 coefficients a point
+            d, at_rim = at_open_edge(self.field, self.rim, x[start:start + RIM_CHUNK])
+            reached += int(np.count_nonzero(at_rim & (d < RIM_GAP)))
+        return reached
 
     def describe(self) -> str:
         what = (f"{' + '.join(self.sources) or 'mesh'} ({len(self.mesh.faces)} faces)"
