@@ -106,3 +106,54 @@ def test_compiled_kernels_equal_the_numpy_references(box):
     for got, ref in zip(kernels.wrench_expansion(d, g, h, t3, r, areas, 1e-5),
                         wrench_expansion(d, g, h, t3, pts, r, areas, 1e-5), strict=True):
         assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+
+def test_cell_minimum_is_the_smallest_coefficient_of_each_cell():
+    """Brute force: every cell's 64 coefficients (lower node i: coefficients i-1 .. i+2 per axis)."""
+    from kneenlp.geometry.kernels import cell_minimum
+
+    c = np.random.default_rng(0).normal(size=(7, 6, 8))
+    got = cell_minimum(c)
+    for i, j, k in np.ndindex(*c.shape):
+        block = c[max(i - 1, 0):i + 3, max(j - 1, 0):j + 3, max(k - 1, 0):k + 3]
+        assert got[i, j, k] == block.min()  # at the border: the part of the block inside the grid
+
+
+def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box):
+    """The compiled pass over all poses (cell-minimum rejection, then the expansion) against the
+    NumPy reference summed over every penetrating point; the value-only pass gives the same wrench."""
+    from kneenlp.geometry import kernels
+    from kneenlp.model.kinematics import rot_x, rot_y
+    from kneenlp.model.mesh_contact import WS_SIZE, wrench_expansion
+
+    mesh, half = box
+    fld = DistanceField.from_mesh(mesh, np.array([-half - 3e-3, half + 3e-3]), spacing=0.5e-3)
+    rng = np.random.default_rng(5)
+    points = np.column_stack([rng.uniform(-6e-3, 6e-3, 400), np.zeros(400), rng.uniform(-5e-3, 5e-3, 400)])
+    areas = rng.uniform(0.2e-6, 0.6e-6, 400)
+    T = 4
+    R = np.stack([np.asarray(rot_x(0.02 * t) @ rot_y(-0.03 * t), float) for t in range(T)])
+    p = np.array([[0.0, half[1] - 0.3e-3 * (t + 1), 0.1e-3 * t] for t in range(T)])  # 0.3 .. 1.2 mm into the top
+    lo, hi = fld.bounds
+    rows = {}
+    for full in (True, False):
+        out = np.empty((T, WS_SIZE))
+        kernels.contact_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
+                              points, areas, R, p, 1e-5, full, 0, T, out)
+        rows[full] = out
+    for t in range(T):
+        X = points @ R[t].T + p[t]
+        d = fld.evaluate(X)[0]
+        sel = (d < 0) & (d > -0.99 * fld.depth)
+        d, g, h, t3 = fld.evaluate(X[sel], order=3)
+        W, J, H = wrench_expansion(d, g, h, t3, X[sel], X[sel] - p[t], areas[sel], 1e-5)
+        row = rows[True][t]
+        assert np.allclose(row[:9].reshape(3, 3, order="F"), R[t]) and np.allclose(row[9:12], p[t])
+        for got, ref in ((row[12:18], W), (row[18:54].reshape(6, 6, order="F"), J),
+                         (row[54:-1].reshape(6, 6, 6).transpose(0, 2, 1), H)):
+            assert np.allclose(got, ref, rtol=1e-10, atol=1e-10 * max(np.abs(ref).max(), 1e-30))
+        assert row[-1] == pytest.approx(max(-d.min(), 0.0) if len(d) else 0.0, abs=1e-15)
+        value = rows[False][t]
+        assert np.allclose(value[12:18], W, rtol=1e-10, atol=1e-10 * max(np.abs(W).max(), 1e-30))
+        assert not np.any(value[18:-1]) and value[-1] == pytest.approx(row[-1], abs=1e-15)
+    assert np.any(rows[True][:, 12:18])  # the poses do touch

@@ -231,45 +231,126 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
     return W, J, H
 
 
+def cell_minimum(coeffs: np.ndarray) -> np.ndarray:
+    """Per grid cell, the smallest of the 64 coefficients that shape the spline in it: ``out[i, j, k]
+    = min(coeffs[i-1:i+3, j-1:j+3, k-1:k+3])`` (``+inf`` where that block leaves the grid).  A
+    B-spline is a convex combination of its coefficients, so the field is at least ``out`` in the
+    cell whose lower node is ``(i, j, k)``: a point there with ``out >= 0`` cannot penetrate, and is
+    passed over with one look-up (:func:`contact_batch`)."""
+    m = np.asarray(coeffs, dtype=np.float64)
+    for axis in range(3):
+        n = m.shape[axis]
+        pad = [(0, 0)] * 3
+        pad[axis] = (1, 2)
+        padded = np.pad(m, pad, constant_values=np.inf)  # node i of m is node i + 1 of padded
+        m = np.minimum.reduce([np.take(padded, np.arange(s, s + n), axis=axis) for s in range(4)])
+    return m
+
+
 @njit(cache=True, nogil=True)
-def contact_expansion(coeffs: np.ndarray, origin: np.ndarray, spacing: float, lo: np.ndarray, hi: np.ndarray,
-                      deepest: float, points: np.ndarray, areas: np.ndarray, candidates: np.ndarray,
-                      R: np.ndarray, p: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """One compartment at one pose, fused: the ``candidates`` of the tibial ``points`` (tibial
-    frame) mapped to the femoral frame (``X = R x + p``), those inside the field's box ``lo..hi``
-    that penetrate by less than ``deepest`` (m), their field derivatives and the contact's
-    wrench expansion (:func:`wrench_expansion`).  Returns ``W, J, H`` and the largest penetration."""
-    n = candidates.shape[0]
-    X = np.empty((n, 3))
-    keep = np.empty(n, dtype=np.int64)
-    m = 0
-    for i in range(n):
-        c = candidates[i]
-        inside = True
-        for a in range(3):
-            X[m, a] = R[a, 0] * points[c, 0] + R[a, 1] * points[c, 1] + R[a, 2] * points[c, 2] + p[a]
-            if X[m, a] < lo[a] or X[m, a] > hi[a]:
-                inside = False
-        if inside:
-            keep[m] = c
-            m += 1
-    d = np.empty(m)
-    field_values(coeffs, origin, spacing, X[:m], d)
-    k = 0
-    for i in range(m):
-        if d[i] < 0.0 and d[i] > -deepest:
-            X[k] = X[i]
-            keep[k] = keep[i]
+def _value_gradient(coeffs: np.ndarray, origin: np.ndarray, spacing: float, x: np.ndarray,
+                    g: np.ndarray) -> float:
+    """Value of the tricubic B-spline at ``x`` (inside the grid); its gradient into ``g``."""
+    wx = np.empty((4, 4))
+    wy = np.empty((4, 4))
+    wz = np.empty((4, 4))
+    ix, iy, iz = _cell(origin, spacing, x, wx, wy, wz)
+    v = gx = gy = gz = 0.0
+    for a in range(4):
+        for b in range(4):
+            cz0 = cz1 = 0.0
+            for c in range(4):
+                co = coeffs[ix - 1 + a, iy - 1 + b, iz - 1 + c]
+                cz0 += co * wz[0, c]
+                cz1 += co * wz[1, c]
+            v += wx[0, a] * wy[0, b] * cz0
+            gx += wx[1, a] * wy[0, b] * cz0
+            gy += wx[0, a] * wy[1, b] * cz0
+            gz += wx[0, a] * wy[0, b] * cz1
+    g[0], g[1], g[2] = gx / spacing, gy / spacing, gz / spacing
+    return v
+
+
+@njit(cache=True, nogil=True)
+def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spacing: float, lo: np.ndarray,
+                  hi: np.ndarray, deepest: float, points: np.ndarray, areas: np.ndarray, R: np.ndarray,
+                  p: np.ndarray, gate: float, full: bool, first: int, last: int, out: np.ndarray) -> None:
+    """One compartment at the poses ``first..last-1`` of ``R`` (T x 3 x 3) and ``p`` (T x 3), fused:
+    every tibial point (tibial frame) mapped to the femoral frame, passed over where the cell's
+    :func:`cell_minimum` says it cannot penetrate, else its field value; the points inside the box
+    ``lo..hi`` that penetrate by less than ``deepest`` (m) make the contact.  Writes each pose's
+    working-set row (``out[t]``, the layout of :data:`kneenlp.model.mesh_contact.WS_SIZE`: the pose,
+    then per unit modulus the wrench, its Jacobian and Hessian (:func:`wrench_expansion`), and the
+    largest penetration).  ``full=False`` writes the wrench only (Jacobian and Hessian zero): the
+    residual's value at the pose itself, at a fraction of the cost."""
+    n_pts = points.shape[0]
+    X = np.empty((n_pts, 3))
+    keep = np.empty(n_pts, dtype=np.int64)
+    g1 = np.empty(3)
+    for t in range(first, last):
+        Rt, pt = R[t], p[t]
+        k = 0
+        for i in range(n_pts):
+            inside = True
+            for a in range(3):
+                X[k, a] = Rt[a, 0] * points[i, 0] + Rt[a, 1] * points[i, 1] + Rt[a, 2] * points[i, 2] + pt[a]
+                if X[k, a] < lo[a] or X[k, a] > hi[a]:
+                    inside = False
+            if not inside:
+                continue
+            ix = int(np.floor((X[k, 0] - origin[0]) / spacing))
+            iy = int(np.floor((X[k, 1] - origin[1]) / spacing))
+            iz = int(np.floor((X[k, 2] - origin[2]) / spacing))
+            if cmin[ix, iy, iz] >= 0.0:
+                continue
+            keep[k] = i
             k += 1
-    dd, g, h, t3 = np.empty(k), np.empty((k, 3)), np.empty((k, 3, 3)), np.empty((k, 3, 3, 3))
-    field_derivatives(coeffs, origin, spacing, X[:k], dd, g, h, t3)
-    r = np.empty((k, 3))
-    a_ = np.empty(k)
-    depth = 0.0
-    for i in range(k):
+        d = np.empty(k)
+        field_values(coeffs, origin, spacing, X[:k], d)
+        m = 0
+        for i in range(k):
+            if d[i] < 0.0 and d[i] > -deepest:
+                X[m] = X[i]
+                keep[m] = keep[i]
+                m += 1
+        row = out[t]
+        row[:] = 0.0
         for a in range(3):
-            r[i, a] = X[i, a] - p[a]
-        a_[i] = areas[keep[i]]
-        depth = max(depth, -dd[i])
-    W, J, H = wrench_expansion(dd, g, h, t3, r, a_, gate)
-    return W, J, H, depth
+            for b in range(3):
+                row[3 * b + a] = Rt[a, b]
+            row[9 + a] = pt[a]
+        depth = 0.0
+        if full:
+            dd, g, h, t3 = np.empty(m), np.empty((m, 3)), np.empty((m, 3, 3)), np.empty((m, 3, 3, 3))
+            field_derivatives(coeffs, origin, spacing, X[:m], dd, g, h, t3)
+            r = np.empty((m, 3))
+            a_ = np.empty(m)
+            for i in range(m):
+                for a in range(3):
+                    r[i, a] = X[i, a] - pt[a]
+                a_[i] = areas[keep[i]]
+                depth = max(depth, -dd[i])
+            W, J, H = wrench_expansion(dd, g, h, t3, r, a_, gate)
+            for a in range(6):
+                row[12 + a] = W[a]
+                for b in range(6):
+                    row[18 + 6 * b + a] = J[a, b]
+                    for c in range(6):
+                        row[54 + 36 * c + 6 * b + a] = H[c, a, b]
+        else:
+            for i in range(m):
+                v = _value_gradient(coeffs, origin, spacing, X[i], g1)
+                s = -v
+                depth = max(depth, s)
+                gam = ramp_inner(s, gate) if s < gate else s
+                rho = np.sqrt(g1[0] * g1[0] + g1[1] * g1[1] + g1[2] * g1[2])
+                w = areas[keep[i]] * gam / rho
+                fx, fy, fz = w * g1[0], w * g1[1], w * g1[2]
+                rx, ry, rz = X[i, 0] - pt[0], X[i, 1] - pt[1], X[i, 2] - pt[2]
+                row[12] += fx
+                row[13] += fy
+                row[14] += fz
+                row[15] += ry * fz - rz * fy
+                row[16] += rz * fx - rx * fz
+                row[17] += rx * fy - ry * fx
+        row[out.shape[1] - 1] = depth

@@ -25,6 +25,7 @@ import json
 import os
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,7 @@ from scipy.ndimage import spline_filter
 from scipy.spatial import cKDTree
 
 from kneenlp.geometry.distance import MeshDistance
-from kneenlp.geometry.kernels import field_values
+from kneenlp.geometry.kernels import cell_minimum, field_values
 
 #: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
 FORMAT_VERSION = 4
@@ -92,6 +93,12 @@ class DistanceField:
     @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(int(s) for s in self.coeffs.shape)
+
+    @cached_property
+    def cell_min(self) -> np.ndarray:
+        """Smallest coefficient shaping each grid cell (:func:`~kneenlp.geometry.kernels.cell_minimum`,
+        m): a lower bound of the field in the cell, derived once from :attr:`coeffs`."""
+        return cell_minimum(self.coeffs)
 
     @property
     def bounds(self) -> np.ndarray:

@@ -190,17 +190,19 @@ class IdentificationProblem:
         trial's equilibrium, ``dq/dp = -(dr/dq)^-1 dr/dp``, then the observation's chain rule."""
         model = self.model
         idx = [model.index(n) for n in (self.free if names is None else names)]
-        rows = []
-        for t, qi in zip(self.trials, np.asarray(q, dtype=float), strict=True):
-            ws = model.working_data(qi, theta, t.flexion)
-            dq, dth = (np.asarray(v) for v in model.jacobians(qi, theta, t.load, t.flexion, ws))
-            dy_dq, dy_dth = (np.asarray(v) for v in model.observation_jacobians(qi, theta))
-            try:
-                dq_dp = -np.linalg.solve(dq, dth[:, idx])
-            except np.linalg.LinAlgError:  # singular equilibrium (e.g. a failed solve): least squares
-                dq_dp = -np.linalg.pinv(dq) @ dth[:, idx]
-            rows.append(dy_dq @ dq_dp + dy_dth[:, idx])
-        return np.vstack(rows)
+        q = np.asarray(q, dtype=float).reshape(-1, 5)
+        T = len(q)
+        ws = model.working_data_batch(q, theta, self.flexions, threads=2)
+        dq, dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
+                   for v in model.jacobians.map(T)(q.T, theta, self.loads.T, self.flexions[None, :], ws.T))
+        dy_dq, dy_dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
+                         for v in model.observation_jacobians.map(T)(q.T, theta))
+        dr_dp = dth[:, :, idx]
+        try:
+            dq_dp = -np.linalg.solve(dq, dr_dp)
+        except np.linalg.LinAlgError:  # a singular equilibrium (e.g. a failed solve): least squares there
+            dq_dp = -np.stack([np.linalg.pinv(a) @ b for a, b in zip(dq, dr_dp, strict=True)])
+        return (dy_dq @ dq_dp + dy_dth[:, :, idx]).reshape(5 * T, len(idx))
 
     # ------------------------------------------------------------------ starts
     def scatter(self, rng: np.random.Generator, reference: Mapping[str, float] | None = None, *,

@@ -25,6 +25,8 @@ there are (expanding it to SX would inline every point of every trial).
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import casadi as ca
@@ -108,6 +110,18 @@ class ForceElement:
         return None
 
 
+def share_out(run: Callable[[int, int], None], n: int, threads: int) -> None:
+    """Call ``run(first, last)`` on ``threads`` contiguous shares of ``range(n)`` at once (compiled
+    loops that release the GIL), or once for all of it."""
+    shares = max(1, min(int(threads), n))
+    if shares == 1:
+        run(0, n)
+        return
+    bounds = np.linspace(0, n, shares + 1).round().astype(int)
+    with ThreadPoolExecutor(shares) as pool:
+        list(pool.map(run, bounds[:-1], bounds[1:]))
+
+
 class StagedElement(ForceElement, ABC):
     """An element whose force comes from an expensive surface computation over tibial sample
     points (see module docstring).
@@ -177,6 +191,13 @@ class StagedElement(ForceElement, ABC):
     def working_data(self, R: np.ndarray, p: np.ndarray, values: dict[str, float]) -> np.ndarray:
         """The working-set input at pose ``(R, p)``: :meth:`pack` of :meth:`select`."""
         return self.pack(self.select(R, p, values), R, p, values)
+
+    def working_data_batch(self, R: np.ndarray, p: np.ndarray, values: dict[str, float], threads: int = 1,
+                           full: bool = True) -> np.ndarray:
+        """:meth:`working_data` at the poses ``R`` (T x 3 x 3), ``p`` (T x 3), one row each.  ``full``:
+        the data for the residual's derivatives too (an element may skip them when ``False``)."""
+        R, p = np.asarray(R, float).reshape(-1, 3, 3), np.asarray(p, float).reshape(-1, 3)
+        return np.array([self.working_data(R[t], p[t], values) for t in range(len(R))]).reshape(len(R), -1)
 
     def unpack(self, ws: ca.MX, n: int) -> ca.MX:
         """The ``ws_width`` x n matrix :meth:`surface_wrench` receives, from the packed input."""

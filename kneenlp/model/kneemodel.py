@@ -194,14 +194,33 @@ class KneeModel:
                 packed.append(e.pack(idx, R, p, values))
         return indices, np.concatenate(packed)
 
+    def poses(self, q: np.ndarray, theta: np.ndarray, flexions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Tibial poses of the coordinates ``q`` (T x 5, SI) at ``flexions`` (T, rad): rotations
+        (T x 3 x 3, tibial -> femoral) and origins (T x 3, femoral frame, m), in one mapped call."""
+        q = np.asarray(q, float).reshape(-1, 5)
+        n = len(q)
+        R, p = self.pose.map(n)(q.T, np.asarray(flexions, float).reshape(1, n), theta)
+        return np.asarray(R).reshape(3, n, 3).transpose(1, 0, 2), np.asarray(p).T
+
+    def working_data_batch(self, q: np.ndarray, theta: np.ndarray, flexions: np.ndarray, threads: int = 1,
+                           full: bool = True) -> np.ndarray:
+        """The packed ``ws`` inputs (T x :attr:`ws_size`) at the poses ``q`` (T x 5, SI) and
+        ``flexions`` (T, rad): every staged element's compiled pass over all poses at once, on
+        ``threads`` threads.  ``full=False``: only what the residual's value needs (its derivatives
+        then are wrong; for function values alone, such as a line search's)."""
+        q = np.asarray(q, float).reshape(-1, 5)
+        if not self.ws_size:
+            return np.zeros((len(q), 0))
+        R, p = self.poses(q, theta, flexions)
+        values = dict(zip(self.parameter_names, np.asarray(theta, float).ravel(), strict=True))
+        return np.hstack([e.working_data_batch(R, p, values, threads, full) for e in self.staged if e.n_working])
+
     def working_data(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> np.ndarray:
         """The packed ``ws`` input of the model's functions at a pose (:meth:`working_set` without
-        the indices: the fast path every solver evaluation takes)."""
+        the indices: :meth:`working_data_batch` of one pose)."""
         if not self.ws_size:
             return np.zeros(0)
-        R, p = (np.asarray(v) for v in self.pose(q, flexion, theta))
-        values = dict(zip(self.parameter_names, np.asarray(theta, float).ravel(), strict=True))
-        return np.concatenate([e.working_data(R, p, values) for e in self.staged if e.n_working])
+        return self.working_data_batch(np.asarray(q, float)[None], theta, np.array([flexion]))[0]
 
     def left_out_penetration(self, q: np.ndarray, theta: np.ndarray, flexion: float,
                              indices: list[np.ndarray] | None = None) -> float:
@@ -233,14 +252,16 @@ class KneeModel:
         R, p = (np.asarray(v) for v in self.pose(q, flexion, theta))
         return max(e.rim_penetration(R, p) for e in staged)
 
-    def working_sets_function(self, n_trials: int) -> ca.Function:
+    def working_sets_function(self, n_trials: int, full: bool = True) -> ca.Function:
         """The working sets of ``n_trials`` poses as a CasADi function with zero derivative
-        (:class:`~kneenlp.model.workingsets.WorkingSets`), built once per number of trials."""
-        key = ("working_sets", n_trials)
+        (:class:`~kneenlp.model.workingsets.WorkingSets`; ``full=False``: for function values only),
+        built once per number of trials."""
+        key = ("working_sets", n_trials, full)
         if key not in self.solvers:
             from kneenlp.model.workingsets import WorkingSets
 
-            self.solvers[key] = WorkingSets(self, n_trials, f"working_sets_{n_trials}")
+            self.solvers[key] = WorkingSets(self, n_trials, f"working_sets_{n_trials}{'' if full else '_value'}",
+                                            full=full)
         return self.solvers[key]
 
     def evaluate(self, q: np.ndarray, theta: np.ndarray, load: np.ndarray, flexion: float) -> np.ndarray:

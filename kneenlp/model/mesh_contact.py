@@ -30,8 +30,6 @@ solve reported as failed.
 
 from __future__ import annotations
 
-import threading
-
 import casadi as ca
 import numpy as np
 from scipy.spatial import cKDTree
@@ -41,14 +39,13 @@ from kneenlp.geometry.ramp import ramp_inner_curvature, ramp_inner_slope
 from kneenlp.geometry.rim import OpenEdges, at_open_edge
 from kneenlp.geometry.sdf import DistanceField
 from kneenlp.model.contact import MODULUS, gate_numpy
-from kneenlp.model.elements import Output, Pose, StagedElement
+from kneenlp.model.elements import Output, Pose, StagedElement, share_out
 from kneenlp.model.parameters import Parameter
 
-#: Points farther than this from the femoral surface at a cached pose are not looked at again while
-#: the tibia stays within :data:`CANDIDATE_REACH` of that pose (m; see :meth:`MeshContact.select`).
+#: Points that may be nearer the femoral surface than this (m) are the candidates the checks look at
+#: (:meth:`MeshContact.candidates`; the contact sums themselves pass over every point that cannot
+#: penetrate with one look-up, :func:`kneenlp.geometry.kernels.contact_batch`).
 CANDIDATE_REACH = 2e-3
-#: Poses remembered with their candidate points (a solver works on up to ~100 trials at a time).
-CANDIDATE_POSES = 256
 
 #: Layout of the working-set input: expansion pose R0 (9, column-major) and p0 (3), wrench W (6),
 #: Jacobian J (36, column-major 6 x 6), Hessian H (216: H[c] 6 x 6 for each wrench component c,
@@ -155,11 +152,6 @@ class MeshContact(StagedElement):
         self.description = f"{compartment} compartment: femoral surface (distance field) vs tibial cartilage"
         self._outside = (cKDTree(np.asarray(femur_vertices)), float(offset)) if femur_vertices is not None else None
         self.rim = rim
-        self._reach = float(np.max(np.linalg.norm(self.points, axis=1)))  # farthest point from the tibial origin
-        # remembered poses (rows: R column-major, p) and their candidate points, newest first
-        self._poses = np.zeros((0, 12))
-        self._candidates: list[np.ndarray] = []
-        self._lock = threading.Lock()
 
     def parameters(self) -> list[Parameter]:
         return [MODULUS]
@@ -203,28 +195,15 @@ class MeshContact(StagedElement):
         return np.all((X >= lo) & (X <= hi), axis=1)
 
     def candidates(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """Indices of the points that can be within :data:`CANDIDATE_REACH` of the femoral surface
-        at pose ``(R, p)``: those of a remembered pose from which no point has moved more than that
-        (translation plus rotation times the farthest point), else every point (and the pose is
-        remembered with its points closer than the reach).  Solvers evaluate many nearby poses; this
-        spares evaluating the field at every tibial point each time."""
-        R, p = np.asarray(R, float), np.asarray(p, float).ravel()
-        key = np.concatenate([R.ravel(order="F"), p])
-        with self._lock:
-            if len(self._poses):
-                # largest displacement of any point: translation + rotation (Frobenius >= spectral norm)
-                diff = self._poses - key
-                moved = np.linalg.norm(diff[:, 9:], axis=1) + np.linalg.norm(diff[:, :9], axis=1) * self._reach
-                best = int(np.argmin(moved))
-                if moved[best] < 0.5 * CANDIDATE_REACH:
-                    return self._candidates[best]
+        """Indices of the points that may be within :data:`CANDIDATE_REACH` of the femoral surface at
+        pose ``(R, p)`` (a superset: the field is at least its cell's smallest coefficient,
+        :attr:`~kneenlp.geometry.sdf.DistanceField.cell_min`) and of those outside the field's grid."""
         X = self._femoral(R, p)
-        d = self.field.evaluate(X)[0]
-        idx = np.flatnonzero((d < CANDIDATE_REACH) | ~self.in_field(X))
-        with self._lock:
-            self._poses = np.vstack([key, self._poses])[:CANDIDATE_POSES]
-            self._candidates = [idx, *self._candidates][:CANDIDATE_POSES]
-        return idx
+        inside = self.in_field(X)
+        near = np.ones(len(X), dtype=bool)
+        cell = np.floor((X[inside] - self.field.origin) / self.field.spacing).astype(np.int64)
+        near[inside] = self.field.cell_min[cell[:, 0], cell[:, 1], cell[:, 2]] < CANDIDATE_REACH
+        return np.flatnonzero(near)
 
     def clearance_near(self, R: np.ndarray, p: np.ndarray, values: dict) -> tuple[np.ndarray, np.ndarray]:
         """Gaps (m) of the :meth:`candidates` only: every other point is farther than half the
@@ -253,19 +232,33 @@ class MeshContact(StagedElement):
         d, at_rim = at_open_edge(self.field, self.rim, self.points[idx] @ np.asarray(R).T + np.asarray(p).ravel())
         return float(np.max(-d[at_rim])) if np.any(at_rim) else -np.inf
 
+    def working_data_batch(self, R: np.ndarray, p: np.ndarray, values: dict, threads: int = 1,
+                           full: bool = True) -> np.ndarray:
+        """The working-set rows (T x :data:`WS_SIZE`) at the poses ``R`` (T x 3 x 3), ``p`` (T x 3):
+        the contact's expansion over every penetrating point inside the field, one compiled pass per
+        share of the poses (``threads`` shares run at once; the kernel releases the GIL).  ``full=False``:
+        the wrench only (the residual's value at the pose; no derivatives)."""
+        R = np.ascontiguousarray(R, dtype=float).reshape(-1, 3, 3)
+        p = np.ascontiguousarray(p, dtype=float).reshape(-1, 3)
+        fld = self.field
+        lo, hi = fld.bounds
+        out = np.empty((len(R), WS_SIZE))
+
+        def run(first: int, last: int) -> None:
+            kernels.contact_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
+                                  self.points, self.areas, R, p, self.gate, full, first, last, out)
+
+        share_out(run, len(R), threads)
+        return out
+
     def pack(self, indices, R, p, values):
         """The expansion of the contact at pose ``(R, p)`` over the points :meth:`select` chooses
         there (``indices``, from the same pose, are not needed: one compiled pass selects and sums)."""
-        R, p = np.asarray(R, float), np.asarray(p, float).ravel()
-        fld = self.field
-        lo, hi = fld.bounds
-        W, J, H, depth = kernels.contact_expansion(fld.coeffs, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                                                   self.points, self.areas, self.candidates(R, p), R, p, self.gate)
-        return np.concatenate([R.ravel(order="F"), p, W, J.ravel(order="F"), H.transpose(0, 2, 1).ravel(), [depth]])
+        return self.working_data_batch(R, p, values)[0]
 
     def working_data(self, R: np.ndarray, p: np.ndarray, values: dict) -> np.ndarray:
         """The working-set input at pose ``(R, p)`` (:meth:`pack` without a separate selection)."""
-        return self.pack(None, R, p, values)
+        return self.working_data_batch(R, p, values)[0]
 
     def pressure(self, R: np.ndarray, p: np.ndarray, modulus: float) -> dict[str, np.ndarray]:
         """The contact at a pose (numeric, every point): per-point penetration (m) and pressure (Pa),

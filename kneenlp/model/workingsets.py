@@ -15,8 +15,6 @@ The last evaluation is memoised: a solver evaluates value, Jacobian and Hessian 
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import casadi as ca
 import numpy as np
 
@@ -24,10 +22,11 @@ import numpy as np
 class WorkingSets(ca.Callback):
     """``(q, theta, flexion) -> ws`` for ``n_trials`` trials of ``model`` (see module docstring)."""
 
-    def __init__(self, model, n_trials: int, name: str = "working_sets", threads: int = 2):
+    def __init__(self, model, n_trials: int, name: str = "working_sets", threads: int = 2, full: bool = True):
         ca.Callback.__init__(self)
         self.model, self.n_trials = model, int(n_trials)
         self.threads = max(1, int(threads))
+        self.full = bool(full)
         self.n_theta = len(model.parameter_names)
         self._key: bytes | None = None
         self._value: np.ndarray | None = None
@@ -61,15 +60,7 @@ class WorkingSets(ca.Callback):
         flexion = np.frombuffer(arg[2], dtype=np.float64)
         key = q.tobytes() + theta.tobytes() + flexion.tobytes()
         if key != self._key:
-            def one(j: int) -> np.ndarray:
-                return self.model.working_data(q[j], theta, float(flexion[j]))
-
-            if self.threads > 1 and self.n_trials > 1:  # the compiled contact loops release the GIL
-                with ThreadPoolExecutor(self.threads) as pool:
-                    cols = list(pool.map(one, range(self.n_trials)))
-            else:
-                cols = [one(j) for j in range(self.n_trials)]
-            self._value = np.concatenate(cols) if cols else np.zeros(0)
+            self._value = self.model.working_data_batch(q, theta, flexion, self.threads, self.full).ravel()
             self._key = key
         np.frombuffer(res[0], dtype=np.float64)[:] = self._value
         return 0

@@ -59,8 +59,7 @@ class EquilibriumNewton:
         if (n, threads) not in self._maps:
             self._maps[n, threads] = self._fn.map(n, "thread", threads) if threads > 1 else self._fn.map(n)
         model = self.model
-        ws = (np.column_stack([model.working_data(q[i], theta, flexions[i]) for i in range(n)])
-              if model.ws_size else np.zeros((0, n)))
+        ws = model.working_data_batch(q, theta, flexions, threads).T
         r, jac = self._maps[n, threads](q.T, theta, loads.T, flexions[None, :], ws)
         r = np.asarray(r).T
         jac = np.asarray(jac).reshape(5, n, 5).transpose(1, 0, 2)

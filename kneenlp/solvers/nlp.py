@@ -165,16 +165,74 @@ def _with_working_sets_of_the_pose(problem: IdentificationProblem, e: NLPExpress
     no_ws = ca.DM.zeros(T * model.ws_size)
     where = ca.Function("poses", [e.x, e.p], [e.q_si, e.theta, e.flexion])(x, ca.vertcat(p, no_ws))
     p_full = ca.vertcat(p, ca.vec(model.working_sets_function(T)(*where)))
+    # values (a line search's trial points) need the contact's wrench only, not its expansion
+    p_value = ca.vertcat(p, ca.vec(model.working_sets_function(T, full=False)(*where)))
     lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", e.g.numel())
     f_of, g_of = ca.Function("f", [e.x, e.p], [e.f]), ca.Function("g", [e.x, e.p], [e.g])
-    grad_f = ca.Function("grad_f", [e.x, e.p], [e.f, ca.gradient(e.f, e.x)])
-    jac_g = ca.Function("jac_g", [e.x, e.p], [e.g, ca.jacobian(e.g, e.x)])
-    lagrangian = lam_f * e.f + ca.dot(lam_g, e.g)
-    hess = ca.Function("hess_lagrangian", [e.x, e.p, lam_f, lam_g], [ca.triu(ca.hessian(lagrangian, e.x)[0])])
+    grad_f, jac_g, hess = _trial_block_derivatives(problem, e)
     derivatives = {
         "grad_f": ca.Function("nlp_grad_f", [x, p], grad_f.call([x, p_full]), ["x", "p"], ["f", "grad_f_x"]),
         "jac_g": ca.Function("nlp_jac_g", [x, p], jac_g.call([x, p_full]), ["x", "p"], ["g", "jac_g_x"]),
         "hess_lag": ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], hess.call([x, p_full, lam_f, lam_g]),
                                 ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"]),
     }
-    return {"x": x, "p": p, "f": f_of(x, p_full), "g": g_of(x, p_full)}, derivatives
+    return {"x": x, "p": p, "f": f_of(x, p_value), "g": g_of(x, p_value)}, derivatives
+
+
+def _trial_block_derivatives(problem: IdentificationProblem, e: NLPExpressions) -> tuple[ca.Function, ...]:
+    """``grad_f``, ``jac_g`` and the upper triangle of the Lagrangian's Hessian of the data form ``e``
+    (inputs ``(x, p)``, the Hessian's also ``(lam_f, lam_g)``), assembled from per-trial blocks.
+
+    Trial ``t`` touches only its own pose and the free parameters, so every derivative is a sum or a
+    stack of dense blocks over ``z_t = (q_t, p_free)``: the objective's gradient, the residual's 5 x
+    (5 + n_free) Jacobian and the (5 + n_free)^2 Hessian of ``lam_f f_t + lam_t' r_t``.  The blocks
+    come from one SX function (the residual expanded: its staged contact is a few operations on the
+    working-set data), mapped over the trials on two threads; IPOPT's sparse matrices are assembled
+    from them.  Differentiating the whole MX graph instead cost ~3x more per Hessian (its colouring
+    seeds every trial with every parameter direction)."""
+    model, free, T = problem.model, problem.free, problem.n_trials
+    nf, n_theta, nl = len(free), len(model.parameter_names), LOAD_SIZE
+    residual = model.residual.expand()
+    q_user, xp = ca.SX.sym("q_user", 5), ca.SX.sym("p_free", nf)
+    theta_in, load, flexion = ca.SX.sym("theta", n_theta), ca.SX.sym("load", nl), ca.SX.sym("flexion")
+    ws, meas, w = ca.SX.sym("ws", model.ws_size), ca.SX.sym("measured", 5), ca.SX.sym("weights", 5)
+    lam_f, lam = ca.SX.sym("lam_f"), ca.SX.sym("lam", 5)
+    pos, scales = {n: j for j, n in enumerate(free)}, problem.scales
+    theta = ca.vertcat(*[scales[pos[n]] * xp[pos[n]] if n in pos else theta_in[i]
+                         for i, n in enumerate(model.parameter_names)])
+    q_si = q_user / ca.DM(TO_USER)
+    r = residual(q_si, theta, load, flexion, ws)
+    diff = model.observation(q_si, theta) - meas
+    f_t = ca.sum1(w * diff * diff)
+    z = ca.vertcat(q_user, xp)
+    ins = [q_user, xp, theta_in, load, flexion, ws, meas, w]
+    first = ca.Function("trial_first", ins, [f_t, ca.gradient(f_t, z), r, ca.jacobian(r, z)])
+    second = ca.Function("trial_hessian", [*ins, lam_f, lam], [ca.hessian(lam_f * f_t + ca.dot(lam, r), z)[0]])
+    first_map, second_map = first.map(T, "thread", 2), second.map(T, "thread", 2)
+
+    x, p = ca.MX.sym("x", e.x.numel()), ca.MX.sym("p", e.p.numel())
+    lam_fm, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 5 * T)
+    xp_m, xq = x[:nf], ca.reshape(x[nf:], 5, T)
+    cut = np.cumsum([0, n_theta, 5 * T, 5 * T, nl * T, T, model.ws_size * T])
+    parts = [p[cut[i]:cut[i + 1]] for i in range(6)]
+    args = [xq, ca.repmat(xp_m, 1, T), ca.repmat(parts[0], 1, T), ca.reshape(parts[3], nl, T),
+            ca.reshape(parts[4], 1, T), ca.reshape(parts[5], model.ws_size, T), ca.reshape(parts[1], 5, T),
+            ca.reshape(parts[2], 5, T)]
+    f_all, g_all, r_all, j_all = first_map(*args)
+    n = 5 + nf
+
+    def block(m: ca.MX, t: int, rows: slice, cols: slice) -> ca.MX:
+        return m[rows, t * n:(t + 1) * n][:, cols]
+
+    qs, ps = slice(0, 5), slice(5, n)
+    grad = ca.vertcat(ca.sum2(g_all[5:, :]), ca.vec(g_all[:5, :]))
+    jac = ca.horzcat(ca.vertcat(*[block(j_all, t, slice(0, 5), ps) for t in range(T)]),
+                     ca.diagcat(*[block(j_all, t, slice(0, 5), qs) for t in range(T)]))
+    h_all = second_map(*args, ca.repmat(lam_fm, 1, T), ca.reshape(lam_g, 5, T))
+    h_pp = sum((block(h_all, t, ps, ps) for t in range(T)), ca.MX.zeros(nf, nf))
+    h_pq = ca.horzcat(*[block(h_all, t, ps, qs) for t in range(T)])
+    h_qq = ca.diagcat(*[block(h_all, t, qs, qs) for t in range(T)])
+    hess = ca.vertcat(ca.horzcat(h_pp, h_pq), ca.horzcat(h_pq.T, h_qq))
+    return (ca.Function("grad_f", [x, p], [ca.sum2(f_all), grad]),
+            ca.Function("jac_g", [x, p], [ca.vec(r_all), jac]),
+            ca.Function("hess_lagrangian", [x, p, lam_fm, lam_g], [ca.triu(hess)]))
