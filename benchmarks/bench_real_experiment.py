@@ -72,6 +72,10 @@ def main() -> None:
               f"({fit.message})")
     print(f"  RMS after, all trials: {row(cal.rms_after)}")
     print(f"  RMS after, loaded trials: {row(rms_loaded)}")
+    if cal.check is not None:
+        print(f"  as predict solves the calibrated knee (from the unloaded state): {int(cal.check.converged.sum())}/"
+              f"{len(data)} at equilibrium; RMS loaded trials {row(cal.check.rms(loaded))}; equilibrium only by "
+              f"the fit's continuation: {', '.join(cal.elsewhere) or 'none'}")
     print(f"  import + load + calibration: {t_import + t_load + t_cal:.1f} s (target <= 60 s)")
     print("  targets: <= 1.0 mm and <= 2.5 deg after calibration")
     outlier = np.array([t.id == "valgus_flex60" for t in data.trials])

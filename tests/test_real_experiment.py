@@ -426,3 +426,23 @@ def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
     failed = predicted[~predicted["converged"]]
     assert len(failed) == 6 - row["converged"]
     assert all(isinstance(r, str) and r for r in failed["reason"])
+
+
+@pytest.mark.slow
+def test_calibration_says_what_predict_reproduces(s192803):
+    """The calibration's report is checked against what a user gets from ``predict`` with the
+    calibrated values: the trials it names as reached only by the fit's continuation are exactly
+    those whose poses predict does not reproduce; every other trial's prediction is the fit's."""
+    from kneenlp.inference.calibrate import SAME_POSE, calibrate
+    from kneenlp.inference.predict import predict
+
+    data = read_measured(CSV)
+    cal = calibrate(s192803.model, data)
+    again = predict(s192803.model, data, cal.fit.params)
+    gap = np.abs(again.observed_user - cal.fit.predicted_user).max(axis=1)
+    differs = {t.id for t, g, ok in zip(data.trials, gap, again.converged, strict=True) if not (ok and g <= SAME_POSE)}
+    assert set(cal.elsewhere) == differs
+    assert len(differs) < len(data) // 2
+    summary = cal.summary()
+    assert summary["equilibrium_elsewhere"] == cal.elsewhere and summary["predicted_converged"] == again.converged.sum()
+    assert ("only by the fit's continuation" in cal.report()) == bool(differs)

@@ -64,6 +64,8 @@ MAX_EVALUATIONS = 150
 MAX_ITER = 80
 #: Strain (fraction) at which the probe engages a group slack in every trial: inside the toe region.
 ENGAGE_STRAIN = 0.02
+#: Largest difference (mm or deg) between the fit's pose of a trial and predict's for the same one.
+SAME_POSE = 0.05
 REGISTRATION = [f"registration.{c}" for c in COORDINATES]
 #: The robot's load point, freed in the calibration of joint loads (module docstring).
 LOAD_POINT = "load_point.lateral"
@@ -131,6 +133,20 @@ class Calibration:
     fixed: list[str]
     #: ligament groups slack in every trial at the knee's values, engaged at the fit's start
     engaged: list[str] = field(default_factory=list)
+    #: ``predict`` at the calibrated values: each trial solved from the knee's unloaded state, as a
+    #: user's ``predict --parameters calibrated.toml`` solves it (None: not checked)
+    check: Prediction | None = None
+
+    @property
+    def elsewhere(self) -> list[str]:
+        """Trials whose calibrated equilibrium ``predict`` does not reach from the unloaded state (it
+        finds none, or another one more than :data:`SAME_POSE` away): the fit found them by
+        continuation in the parameters, on a branch a loading from neutral need not follow."""
+        if self.check is None:
+            return []
+        gap = np.abs(self.check.observed_user - self.fit.predicted_user).max(axis=1)
+        return [t.id for t, g, ok in zip(self.fit.data.trials, gap, self.check.converged, strict=True)
+                if not ok or not g <= SAME_POSE]
 
     @property
     def rms_before(self) -> dict[str, float] | None:
@@ -157,6 +173,9 @@ class Calibration:
 
     def summary(self) -> dict:
         out = {"rms_after": self.rms_after}
+        if self.check is not None:
+            out |= {"rms_predicted": self.check.rms(), "predicted_converged": int(self.check.converged.sum()),
+                    "equilibrium_elsewhere": self.elsewhere}
         if self.before is not None:
             out |= {"rms_before": self.rms_before, "fixed": self.fixed, "engaged": self.engaged,
                     "converged_before": int(self.before.converged.sum())}
@@ -173,10 +192,23 @@ class Calibration:
                  f"    RMS before (the knee's parameters, {int(self.before.converged.sum())}/"
                  f"{len(self.before.solutions)} trials at equilibrium): {row(self.rms_before)}",
                  f"    RMS after: {row(self.rms_after)}",
+                 *self._check_lines(row),
                  f"    left at the knee's values (the trials do not determine them): {', '.join(self.fixed) or 'none'}",
                  "    slack in every trial at the knee's values, engaged at the start: "
                  f"{', '.join(self.engaged) or 'none'}"]
         return "\n".join(lines)
+
+
+    def _check_lines(self, row) -> list[str]:
+        if self.check is None:
+            return []
+        n, ok = len(self.check.solutions), int(self.check.converged.sum())
+        lines = [f"    RMS as predict solves the calibrated knee (each trial from the unloaded state; {ok}/{n} at "
+                 f"equilibrium): {row(self.check.rms())}"]
+        if self.elsewhere:
+            lines.append("    equilibrium found only by the fit's continuation (from the unloaded state predict "
+                         f"reaches none or another): {', '.join(self.elsewhere)}")
+        return lines
 
 
 def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
@@ -218,4 +250,4 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         fallback.message = f"{fallback.message}; {note}" if fallback.message else note
         if fallback.success or fallback.objective < fit.objective:
             fit = fallback
-    return Calibration(fit, before, fixed, engaged)
+    return Calibration(fit, before, fixed, engaged, predict(model, data, fit.params))
