@@ -349,16 +349,20 @@ def cmd_export(args) -> int:
 
     knee = _knee(args)
     _check_names(knee, args)
-    prob = export_problem(knee, args.measured, free=args.free, seed=args.seed, with_effects=args.with_effect)
+    prob = export_problem(knee, args.measured, free=args.free, seed=args.seed, with_effects=args.with_effect,
+                          contact="expansion" if args.format == "nl" else "exact")
     with staged_directory(args.out) as stage:
         files = write_export(prob, args.format, stage.path, nl_common=args.nl_common)
     files = [stage.final(f) for f in files]
     if args.json:
-        print(json.dumps({"format": args.format, "files": [str(f) for f in files],
+        print(json.dumps({"format": args.format, "files": [str(f) for f in files], "contact": prob.contact,
+                          **({"contact_error": prob.contact_error} if prob.contact_error else {}),
                           "variables": len(prob.var_names), "constraints": len(prob.con_names)}, indent=2))
     else:
         print(f"wrote {args.format} export of {len(prob.var_names)} variables, {len(prob.con_names)} constraints: "
               + ", ".join(str(f) for f in files))
+        if prob.contact_error:
+            print(f"contact: {json.loads((files[-1]).read_text())['contact']}")
     return 0
 
 

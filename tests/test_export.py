@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import kneenlp
+import kneenlp.errors
 import kneenlp.io.resources
 from kneenlp.cli import main
 from kneenlp.conventions import TO_USER
@@ -214,3 +215,65 @@ def test_scip_time_limited_solve_is_documented(coarse_case, tmp_path):
     if m.getNSols():
         best = m.getPrimalbound()
         assert best == pytest.approx(f_start, rel=1e-6) or best <= fit.objective * (1 + 1e-6)
+
+
+@pytest.fixture(scope="module")
+def mesh_case(tmp_path_factory):
+    """The default (mesh) knee, Set 2 with noise, and identify's fit of it."""
+    d = tmp_path_factory.mktemp("mesh")
+    knee = kneenlp.Knee.named("default")
+    kneenlp.simulate(knee, "set2").measured("uniform:0.5", 2).to_csv(d / "m.csv", index=False)
+    data = read_measured(d / "m.csv")
+    return knee, data, identify(knee, data, seed=2), d
+
+
+def test_exact_export_of_a_mesh_knee_is_kneenlps_own_residual(mesh_case):
+    """The CasADi/C form of a mesh knee holds the distance field in the graph: its constraints equal
+    kneenlp's equilibrium residual (working sets taken at the pose) at the optimum and at poses
+    around it."""
+    knee, data, fit, _ = mesh_case
+    prob = export_problem(knee, data, seed=2)
+    assert prob.contact == "exact" and prob.contact_error is None
+    g = ca.Function("g", [prob.x, prob.p], [prob.g])
+    model, rng = fit.problem.model, np.random.default_rng(0)
+    for shift in (0.0, 0.3, 1.0):
+        q = fit.q_pred + shift * rng.uniform(-1, 1, fit.q_pred.shape) / np.asarray(TO_USER)  # up to 1 mm, 1 deg
+        x = np.concatenate([[fit.params[n] / prob.scales[n] for n in fit.free], (q * TO_USER).ravel()])
+        got = np.asarray(g(x, prob.p_value)).reshape(-1, 5)
+        ref = np.array([model.evaluate(qi, fit.theta, t.load, t.flexion) for t, qi in zip(data.trials, q, strict=True)])
+        assert np.abs(got - ref).max() <= 1e-9 * max(1.0, np.abs(ref).max())
+
+
+def test_nl_export_of_a_mesh_knee_states_its_approximation(mesh_case, tmp_path, capsys):
+    """.nl cannot hold the field: the expansion at the start poses goes in, and the file, problem.json
+    and the command's JSON say so with the error measured around the start; the exact form is
+    refused for .nl."""
+    knee, data, _, d = mesh_case
+    with pytest.raises(kneenlp.errors.InputError, match="cannot hold mesh contact exactly"):
+        write_export(export_problem(knee, data, seed=2), "nl", tmp_path / "refused")
+    code = main(["export", str(d / "m.csv"), "--format", "nl", "--out", str(tmp_path / "nl"), "--json"])
+    assert code == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["contact"] == "expansion" and out["contact_error"]["max_residual_difference"] > 0
+    side = json.loads((tmp_path / "nl" / "problem.json").read_text())
+    assert side["contact"].startswith("APPROXIMATION") and side["contact_error"] == out["contact_error"]
+    assert "APPROXIMATION" in (tmp_path / "nl" / "kneenlp.nl").read_text().splitlines()[0]
+
+
+@pytest.mark.slow
+def test_exported_casadi_nlp_of_a_mesh_knee_has_identifys_optimum(mesh_case, tmp_path):
+    """Written as CasADi files, loaded back and solved by IPOPT from identify's optimum: it stays
+    there (objective and parameters to 1e-6), i.e. identify's optimum is the exported NLP's."""
+    knee, data, fit, _ = mesh_case
+    prob = export_problem(knee, data, seed=2)
+    write_export(prob, "casadi", tmp_path)
+    f, g = (ca.Function.load(str(tmp_path / f"{n}.casadi")) for n in ("nlp_f", "nlp_g"))
+    x = ca.MX.sym("x", len(prob.x0))
+    solver = ca.nlpsol("s", "ipopt", {"x": x, "f": f(x, prob.p_value), "g": g(x, prob.p_value)},
+                       {"ipopt": {"print_level": 0, "tol": 1e-10, "sb": "yes"}, "print_time": False})
+    x_opt = np.concatenate([[fit.params[n] / prob.scales[n] for n in fit.free], (fit.q_pred * TO_USER).ravel()])
+    res = solver(x0=x_opt, lbx=prob.lbx, ubx=prob.ubx, lbg=0, ubg=0)
+    assert solver.stats()["success"]
+    assert float(res["f"]) == pytest.approx(fit.objective, rel=1e-6)
+    values = np.asarray(res["x"]).ravel()[:prob.n_free] * [prob.scales[n] for n in fit.free]
+    assert np.allclose(values, [fit.params[n] for n in fit.free], rtol=1e-6)

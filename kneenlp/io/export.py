@@ -1,8 +1,19 @@
 """Export the identification NLP for other solvers: AMPL .nl, CasADi serialised functions, C code.
 
-The exported problem is exactly :mod:`kneenlp.solvers.nlp`'s NLP for one knee, one data set and one set of
+The exported problem is :mod:`kneenlp.solvers.nlp`'s NLP for one knee, one data set and one set of
 free parameters, with the data substituted (``.nl``) or supplied as the parameter vector ``p``
-(CasADi and C).  Decision variables: the free parameters scaled to order one (value / scale, the
+(CasADi and C).  Contact:
+
+* CasADi files and C code hold it exactly (``contact="exact"``): the femoral distance field is
+  inside the graph (:mod:`kneenlp.geometry.graph_field`, its coefficients one constant array), so
+  every constraint equals kneenlp's own at every point, and the optimum is ``identify``'s
+  (tests/test_export.py, on the default knee);
+* ``.nl`` holds only expressions AMPL knows, so for a mesh knee its contact is the second-order
+  expansion of the contact wrench at the start poses (``contact="expansion"``): an approximation,
+  exact at the start poses.  The file's header and ``problem.json`` say so and give its error,
+  measured at export time on poses around the start (:func:`expansion_error`).  Knees without
+  working sets (sphere contact) are exact in every format.
+  Decision variables: the free parameters scaled to order one (value / scale, the
 scale and unit are in ``problem.json``) and every trial's five coordinates in mm and deg.
 Constraints: every trial's five equilibrium residuals (N m, N m, N, N, N), all ``= 0``.
 Objective: the sum of squared model-minus-measured coordinates (mm^2 + deg^2).
@@ -27,7 +38,14 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import COORDINATE_UNITS, COORDINATES, RESIDUAL_NAMES, RESIDUAL_UNITS, coords_to_user
+from kneenlp.conventions import (
+    COORDINATE_UNITS,
+    COORDINATES,
+    RESIDUAL_NAMES,
+    RESIDUAL_UNITS,
+    TO_USER,
+    coords_to_user,
+)
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.inference.problem import IdentificationProblem
@@ -38,6 +56,12 @@ from kneenlp.solvers.forward import forward_solver
 from kneenlp.solvers.nlp import nlp_expressions
 
 FORMATS = ("nl", "casadi", "c")
+#: How the exported NLP holds mesh contact (module docstring).
+CONTACT_FORMS = ("exact", "expansion")
+#: Half-width (mm or deg) of the box around the start poses where an expansion's error is measured.
+ERROR_PROBE = 1.0
+#: Poses drawn per trial for that measurement.
+ERROR_SAMPLES = 4
 
 
 @dataclass
@@ -59,6 +83,10 @@ class ExportProblem:
     scales: dict[str, float]
     n_free: int
     meta: dict
+    #: how the contact is held: "exact" (in the graph) or "expansion" (at the start poses, in ``p``)
+    contact: str = "exact"
+    #: for "expansion" on a knee with working sets: its measured error (see :func:`expansion_error`)
+    contact_error: dict | None = None
 
     def function(self) -> ca.Function:
         return ca.Function("nlp", [self.x, self.p], [self.f, self.g], ["x", "p"], ["f", "g"])
@@ -66,16 +94,21 @@ class ExportProblem:
 
 def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, *,
                    free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
-                   with_effects: list[str] | None = None, fixed: dict[str, float] | None = None) -> ExportProblem:
+                   with_effects: list[str] | None = None, fixed: dict[str, float] | None = None,
+                   contact: str = "exact") -> ExportProblem:
     """Build the identification NLP of ``data`` with a start like
-    :func:`kneenlp.inference.identify.identify`'s (``knee`` may be a model with user elements)."""
+    :func:`kneenlp.inference.identify.identify`'s (``knee`` may be a model with user elements);
+    ``contact``: ``"exact"`` (CasADi, C) or ``"expansion"`` (what ``.nl`` can hold; module docstring)."""
+    if contact not in CONTACT_FORMS:
+        raise ValueError(f"contact must be one of {CONTACT_FORMS}, not {contact!r}")
     model = model_for(knee or Knee.default())
     if not isinstance(data, MeasuredData):
         data = read_measured(data)
     problem = IdentificationProblem.from_data(model, data, free, fixed=fixed, with_effects=with_effects or ())
     free = problem.free
     T = problem.n_trials
-    e = nlp_expressions(problem, parallel="serial", working_sets="data")
+    contact = contact if model.ws_size else "exact"  # no working sets: the one form is exact
+    e = nlp_expressions(problem, parallel="serial", working_sets="graph" if contact == "exact" else "data")
     values = problem.scatter(np.random.default_rng(seed))
     values.update(problem.check_start(start))
     q0, res = forward_solver(model).solve_batch(data.trials, problem.theta(values), data.q)
@@ -89,11 +122,36 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
             "trials": [t.id for t in data.trials],
             "parameters": dict(zip(model.parameter_names, problem.theta().tolist(), strict=True)),
             "elements": [f"{type(el).__module__}.{type(el).__name__}:{el.name}" for el in model.elements],
-            "start_seed": seed}
-    ws = problem.working_sets(q0, problem.theta(values))[1]  # contact working sets at the start poses
+            "start_seed": seed, "working_sets": bool(model.ws_size)}
+    theta0 = problem.theta(values)
+    ws = model.working_data_batch(q0, theta0, problem.flexions) if contact == "expansion" else None
+    error = expansion_error(problem, q0, theta0, ws, seed) if contact == "expansion" else None
     return ExportProblem(e.f, e.g, e.x, e.p, problem.data_vector(ws), x0, e.lbx, e.ubx, var_names, var_units,
                          con_names, list(RESIDUAL_UNITS) * T,
-                         {n: float(s) for n, s in zip(free, problem.scales, strict=True)}, len(free), meta)
+                         {n: float(s) for n, s in zip(free, problem.scales, strict=True)}, len(free), meta,
+                         contact, error)
+
+
+def expansion_error(problem: IdentificationProblem, q0: np.ndarray, theta: np.ndarray, ws: np.ndarray,
+                    seed: int = 0) -> dict:
+    """How far the contact's expansion at the start poses ``q0`` (T x 5, SI; working sets ``ws``)
+    is from the contact itself: the equilibrium residuals of both at poses drawn around the start
+    (each coordinate uniform within :data:`ERROR_PROBE` mm or deg), the largest difference (N, N m)
+    and its ratio to the largest residual there."""
+    model = problem.model
+    rng = np.random.default_rng(seed)
+    exact = model.exact_residual
+    worst, scale = 0.0, 0.0
+    for i, t in enumerate(problem.trials):
+        for _ in range(ERROR_SAMPLES):
+            q = q0[i] + rng.uniform(-ERROR_PROBE, ERROR_PROBE, 5) / np.asarray(TO_USER)
+            a = np.asarray(model.residual(q, theta, t.load, t.flexion, ws[i])).ravel()
+            b = np.asarray(exact(q, theta, t.load, t.flexion)).ravel()
+            worst, scale = max(worst, float(np.abs(a - b).max())), max(scale, float(np.abs(b).max()))
+    return {"probe_mm_deg": ERROR_PROBE, "samples_per_trial": ERROR_SAMPLES, "max_residual_difference": worst,
+            "relative": worst / scale if scale else 0.0,
+            "meaning": "largest |expansion - contact| of any equilibrium residual (N, N m) at poses within "
+                       f"+-{ERROR_PROBE:g} mm or deg of the start poses, and its ratio to the largest residual there"}
 
 
 def _derivative_functions(prob: ExportProblem) -> list[ca.Function]:
@@ -134,12 +192,15 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
     if fmt == "nl":
         from kneenlp.io.nlwriter import write_nl
 
+        if prob.contact == "exact" and prob.meta.get("working_sets"):
+            raise InputError("the .nl format cannot hold mesh contact exactly: build the problem with "
+                             "contact='expansion' (what `kneenlp export --format nl` does)", field="--format")
         fn, order = nl_function(prob)
         nq = len(order) - prob.n_free
         extra = write_nl(out / "kneenlp.nl", fn, n_both=nq, x0=prob.x0[order], lbx=prob.lbx[order],
                          ubx=prob.ubx[order], lbg=np.zeros(len(prob.con_names)), ubg=np.zeros(len(prob.con_names)),
                          var_names=[prob.var_names[i] for i in order], con_names=prob.con_names,
-                         objective_name="sum_squared_residuals", title="kneenlp identification",
+                         objective_name="sum_squared_residuals", title=_nl_title(prob),
                          common=nl_common)
         extra["variable_order"] = "nl: coordinates first, then free parameters (see kneenlp.col)"
         files += [out / "kneenlp.nl", out / "kneenlp.row", out / "kneenlp.col"]
@@ -163,14 +224,16 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
         "constraints": [{"name": n, "unit": u, "lb": 0.0, "ub": 0.0}
                         for n, u in zip(prob.con_names, prob.con_units, strict=True)],
         "scaling": {n: {"scale": s, "meaning": f"variable = {n} [SI] / {s:g}"} for n, s in prob.scales.items()},
+        "contact": _contact_words(prob),
+        **({"contact_error": prob.contact_error} if prob.contact_error else {}),
         "p": prob.p_value.tolist(),
         "p_layout": "theta (all model parameters, SI, in 'parameters' order), measured coordinates (T x 5, "
                     "mm/deg), weights (T x 5), loads (T x 11: force at the tuberosity and moment, femoral frame; "
                     "generalised forces; N and N m), flexion (T, rad), "
-                    "contact working sets at the start poses (T x ws_size; empty without working sets): per "
-                    "point x, y, z (m) and area (m^2) for sphere contact; for mesh contact also the femoral "
-                    "distance field's second-order expansion at the point (kneenlp.model.mesh_contact.WS_ROWS), "
-                    "exact at the start poses: kneenlp itself retakes them at every pose it evaluates",
+                    "then, only for contact='expansion', the contact working sets at the start poses (T x "
+                    "ws_size): per point x, y, z (m) and area (m^2) for sphere contact; for mesh contact the "
+                    "pose and the contact wrench's second-order expansion there "
+                    "(kneenlp.model.mesh_contact.WS_SIZE)",
         "source": prob.meta,
         "files": [f.name for f in files],
         **({"nl": extra} if extra else {}),
@@ -179,3 +242,19 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
     files.append(out / "problem.json")
     return files
 
+
+
+def _contact_words(prob: ExportProblem) -> str:
+    if prob.contact == "exact":
+        return ("exact: the contact is computed in the graph from the pose (the femoral distance field's B-spline "
+                "inside it); every constraint is kneenlp's own at every point")
+    err = prob.contact_error or {}
+    return ("APPROXIMATION: mesh contact as the second-order expansion of its wrench at the start poses, exact there "
+            f"only; measured within +-{err.get('probe_mm_deg', ERROR_PROBE):g} mm/deg of them: largest residual "
+            f"error {err.get('max_residual_difference', float('nan')):.3g} N or N m "
+            f"({100 * err.get('relative', float('nan')):.2g} % of the largest residual); the CasADi and C exports "
+            "are exact")
+
+
+def _nl_title(prob: ExportProblem) -> str:
+    return "kneenlp identification" + ("" if prob.contact == "exact" else f" ({_contact_words(prob)})")

@@ -148,6 +148,7 @@ class KneeModel:
 
         self.pose = ca.Function("pose", [q, flexion, theta], [R, p], ["q", "flexion", "theta"], ["R", "p"])
         self.staged = staged
+        self._probes, self._balance = kin, balance
         sizes = [e.ws_width * e.n_working for e in staged]
         self.ws_slices = [slice(a, a + s) for a, s in zip(np.cumsum([0, *sizes[:-1]]), sizes, strict=True)]
         self.ws_size = int(sum(sizes))
@@ -339,6 +340,21 @@ class KneeModel:
         the pose ``q`` (:meth:`working_set`): the implicit-function sensitivities."""
         return self.residual.factory("jac_q_theta", ["q", "theta", "load", "flexion", "ws"],
                                      ["jac:r:q", "jac:r:theta"])
+
+    @cached_property
+    def exact_residual(self) -> ca.Function:
+        """``(q, theta, load, flexion) -> r``: :attr:`residual` with every staged element's wrench
+        computed inside the graph from the pose (:meth:`StagedElement.exact_wrench
+        <kneenlp.model.elements.StagedElement.exact_wrench>`: for mesh contact the distance field
+        itself, :mod:`kneenlp.geometry.graph_field`) instead of from working sets taken outside it.
+        The same function at every pose; slower to evaluate, but self-contained (export)."""
+        q, flexion = ca.MX.sym("q", 5), ca.MX.sym("flexion")
+        theta, load = ca.MX.sym("theta", len(self.parameter_names)), ca.MX.sym("load", LOAD_SIZE)
+        pr = self._probes(q, flexion, theta) if self.staged else []
+        pr = [pr] if isinstance(pr, ca.MX) else list(pr)
+        wrenches = [e.exact_wrench(pr[j]) for j, e in enumerate(self.staged)]
+        r, _ = self._balance(q, flexion, theta, load, *[w[0] for w in wrenches], *[w[1] for w in wrenches])
+        return ca.Function("exact_residual", [q, theta, load, flexion], [r], ["q", "theta", "load", "flexion"], ["r"])
 
     @cached_property
     def observation_jacobians(self) -> ca.Function:

@@ -35,10 +35,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from kneenlp.geometry import kernels
+from kneenlp.geometry.graph_field import field_in_graph
 from kneenlp.geometry.ramp import ramp_inner_curvature, ramp_inner_slope
 from kneenlp.geometry.rim import OpenEdges, at_open_edge
 from kneenlp.geometry.sdf import DistanceField
-from kneenlp.model.contact import MODULUS, gate_numpy
+from kneenlp.model.contact import MODULUS, gate_numpy, smooth_gate
 from kneenlp.model.elements import Output, Pose, StagedElement, share_out
 from kneenlp.model.parameters import Parameter
 
@@ -171,6 +172,25 @@ class MeshContact(StagedElement):
         quad = ca.vertcat(*[ca.bilin(ca.reshape(data[54 + 36 * c: 90 + 36 * c], 6, 6), xi, xi) for c in range(6)])
         w = K * (W0 + J0 @ xi + 0.5 * quad)
         return w[0:3], w[3:6]
+
+    def exact_wrench(self, probe):
+        """The contact's force and moment (femoral frame, about the tibial origin) summed over every
+        tibial point in the graph, with the field evaluated there (:func:`~kneenlp.geometry.graph_field.
+        field_in_graph`): a point counts where :meth:`select` takes it (inside the field's box,
+        penetrating by less than the field's depth).  At every pose it equals the residual with the
+        working sets of that pose."""
+        R, p, K = ca.reshape(probe[0:9], 3, 3), probe[9:12], probe[12]
+        X = R @ ca.DM(self.points.T) + ca.repmat(p, 1, len(self.points))
+        d, g = field_in_graph(self.field, X)
+        lo, hi = self.field.bounds
+        inside = ca.DM.ones(1, len(self.points))
+        for a in range(3):
+            inside = inside * (X[a, :] >= lo[a]) * (X[a, :] <= hi[a])
+        active = inside * (d < 0) * (d > -0.99 * self.field.depth)
+        rho = ca.if_else(active, ca.sqrt(ca.sum1(g * g)), 1.0)
+        pressure = ca.if_else(active, K * smooth_gate(-d, self.gate), 0.0)
+        f = g * ca.repmat(pressure * ca.DM(self.areas).T / rho, 3, 1)
+        return ca.sum2(f), ca.sum2(ca.cross(X - ca.repmat(p, 1, len(self.points)), f))
 
     # ------------------------------------------------------------------ numeric side
     def _femoral(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:

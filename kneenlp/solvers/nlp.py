@@ -64,8 +64,9 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
     """The NLP's expressions (see module docstring); ``parallel``/``threads`` set the trial map.
 
     ``working_sets``: ``"data"`` makes the contact working sets the last part of the data vector
-    (T x ws_size: a self-contained program, e.g. for export, exact where they were taken);
-    ``"pose"`` takes them at every pose evaluated
+    (T x ws_size: a self-contained program, exact where they were taken); ``"graph"`` computes
+    the contact inside the graph from the pose (:attr:`KneeModel.exact_residual`: self-contained
+    and exact everywhere, for export); ``"pose"`` takes them at every pose evaluated
     (:class:`~kneenlp.model.workingsets.WorkingSets`; derivatives then pass through a callback,
     which is slow: :func:`build_nlp` instead supplies the derivative functions of the data form)."""
     model, free, T = problem.model, problem.free, problem.n_trials
@@ -93,11 +94,13 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
         mapped = model.residual.map(T, "thread", threads)
     else:
         mapped = model.residual.map(T, "serial" if parallel == "thread" else parallel)
-    if working_sets == "pose" and model.ws_size:
-        ws = model.working_sets_function(T)(q_si, theta, flex)
+    if working_sets == "graph":
+        exact = model.exact_residual
+        mapped = exact.map(T, "thread", threads) if parallel == "thread" and threads > 1 else exact.map(T)
+        g = ca.vec(mapped(q_si, theta, loads, flex))
     else:
-        ws = ws_data
-    g = ca.vec(mapped(q_si, theta, loads, flex, ws))
+        ws = model.working_sets_function(T)(q_si, theta, flex) if working_sets == "pose" and model.ws_size else ws_data
+        g = ca.vec(mapped(q_si, theta, loads, flex, ws))
     diff = model.observation.map(T)(q_si, theta) - meas
     f = ca.sum1(ca.sum2(w * diff * diff))
     lo, hi = problem.pose_bounds_user
