@@ -22,7 +22,8 @@ def _basis(t: ca.MX) -> tuple[list[ca.MX], list[ca.MX]]:
     """Cubic B-spline weights at fraction ``t`` (any shape) and their derivatives in ``t``
     (:func:`kneenlp.geometry.kernels._basis`, rows 0 and 1)."""
     s = 1 - t
-    w = [s * s * s / 6, (3 * t * t * t - 6 * t * t + 4) / 6, (-3 * t * t * t + 3 * t * t + 3 * t + 1) / 6, t * t * t / 6]
+    w = [s * s * s / 6, (3 * t * t * t - 6 * t * t + 4) / 6, (-3 * t * t * t + 3 * t * t + 3 * t + 1) / 6,
+         t * t * t / 6]
     dw = [-s * s / 2, (3 * t * t - 4 * t) / 2, (-3 * t * t + 2 * t + 1) / 2, t * t / 2]
     return w, dw
 
