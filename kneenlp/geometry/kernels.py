@@ -354,3 +354,34 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
                 row[16] += rz * fx - rx * fz
                 row[17] += rx * fy - ry * fx
         row[out.shape[1] - 1] = depth
+
+
+@njit(cache=True, nogil=True)
+def left_out_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spacing: float, lo: np.ndarray,
+                   hi: np.ndarray, deepest: float, points: np.ndarray, R: np.ndarray, p: np.ndarray, first: int,
+                   last: int, deep: np.ndarray, outside: np.ndarray) -> None:
+    """What :func:`contact_batch` leaves out at the poses ``first..last-1``: into ``deep[t]`` the
+    largest penetration (m) of a point deeper than ``deepest`` (-inf if none), into ``outside[t, i]``
+    whether point ``i`` lies outside the field's box (the caller measures those otherwise)."""
+    n_pts = points.shape[0]
+    x = np.empty(3)
+    one = np.empty(1)
+    for t in range(first, last):
+        Rt, pt = R[t], p[t]
+        worst = -np.inf
+        for i in range(n_pts):
+            inside = True
+            for a in range(3):
+                x[a] = Rt[a, 0] * points[i, 0] + Rt[a, 1] * points[i, 1] + Rt[a, 2] * points[i, 2] + pt[a]
+                if x[a] < lo[a] or x[a] > hi[a]:
+                    inside = False
+            outside[t, i] = not inside
+            if not inside:
+                continue
+            if cmin[int(np.floor((x[0] - origin[0]) / spacing)), int(np.floor((x[1] - origin[1]) / spacing)),
+                    int(np.floor((x[2] - origin[2]) / spacing))] > -deepest:
+                continue
+            field_values(coeffs, origin, spacing, x.reshape(1, 3), one)
+            if one[0] <= -deepest:
+                worst = max(worst, -one[0])
+        deep[t] = worst

@@ -241,12 +241,10 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     left_out = -np.inf
     if problem.model.ws_size:
         q_sol, theta_sol = q_user / TO_USER, problem.theta(values)
-        left_out = max(problem.model.left_out_penetration(qi, theta_sol, t.flexion)
-                       for t, qi in zip(problem.trials, q_sol, strict=True))
+        left_out = float(np.max(problem.model.left_out_batch(q_sol, theta_sol, problem.flexions, threads)))
     rim = -np.inf
     if problem.model.ws_size:
-        rim = max(problem.model.rim_penetration(qi, theta_sol, t.flexion)
-                  for t, qi in zip(problem.trials, q_sol, strict=True))
+        rim = float(np.max(problem.model.rim_batch(q_sol, theta_sol, problem.flexions)))
     success = bool(st.get("success", False)) and max_res <= 1e-6 and left_out <= 0 and rim <= 0
     msg = "" if n_fail_start == 0 else (f"{n_fail_start} trial(s) had no equilibrium inside the pose envelope at "
                                         "the start; started at data")

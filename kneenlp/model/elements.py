@@ -24,10 +24,11 @@ there are (expanding it to SX would inline every point of every trial).
 
 from __future__ import annotations
 
+import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import casadi as ca
 import numpy as np
@@ -112,14 +113,28 @@ class ForceElement:
 
 def share_out(run: Callable[[int, int], None], n: int, threads: int) -> None:
     """Call ``run(first, last)`` on ``threads`` contiguous shares of ``range(n)`` at once (compiled
-    loops that release the GIL), or once for all of it."""
+    loops that release the GIL): the calling thread takes the first share, one new thread each of
+    the others (no pool is kept between calls); an exception in any share is raised here."""
     shares = max(1, min(int(threads), n))
-    if shares == 1:
-        run(0, n)
-        return
     bounds = np.linspace(0, n, shares + 1).round().astype(int)
-    with ThreadPoolExecutor(shares) as pool:
-        list(pool.map(run, bounds[:-1], bounds[1:]))
+    errors: list[BaseException] = []
+
+    def guarded(first: int, last: int) -> None:
+        try:
+            run(first, last)
+        except BaseException as exc:
+            errors.append(exc)
+
+    workers = [threading.Thread(target=guarded, args=(int(a), int(b))) for a, b in pairwise(bounds[1:])]
+    for w in workers:
+        w.start()
+    try:
+        run(int(bounds[0]), int(bounds[1]))
+    finally:
+        for w in workers:
+            w.join()
+    if errors:
+        raise errors[0]
 
 
 class StagedElement(ForceElement, ABC):

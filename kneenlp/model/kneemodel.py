@@ -243,15 +243,40 @@ class KneeModel:
                 worst = max(worst, float(-gap[left_out].min()))
         return worst
 
+    def left_out_batch(self, q: np.ndarray, theta: np.ndarray, flexions: np.ndarray, threads: int = 1) -> np.ndarray:
+        """:meth:`left_out_penetration` of the poses ``q`` (T x 5, SI) at ``flexions`` (T, rad) with
+        the working sets of each pose, for all at once (positive: the pose's contact is not
+        represented; -inf or negative: it is)."""
+        q = np.asarray(q, float).reshape(-1, 5)
+        flexions = np.asarray(flexions, float).ravel()
+        worst = np.full(len(q), -np.inf)
+        staged = [e for e in self.staged if e.n_working]
+        if not staged:
+            return worst
+        R, p = self.poses(q, theta, flexions)
+        for e in staged:
+            if hasattr(e, "left_out_batch"):
+                worst = np.maximum(worst, e.left_out_batch(R, p, threads))
+            else:
+                worst = np.maximum(worst, [self.left_out_penetration(q[t], theta, flexions[t]) for t in range(len(q))])
+        return worst
+
+    def rim_batch(self, q: np.ndarray, theta: np.ndarray, flexions: np.ndarray) -> np.ndarray:
+        """:meth:`rim_penetration` of the poses ``q`` (T x 5, SI) at ``flexions`` (T, rad), all at once."""
+        q = np.asarray(q, float).reshape(-1, 5)
+        worst = np.full(len(q), -np.inf)
+        staged = [e for e in self.staged if hasattr(e, "rim_batch")]
+        if staged:
+            R, p = self.poses(q, theta, flexions)
+            for e in staged:
+                worst = np.maximum(worst, e.rim_batch(R, p))
+        return worst
+
     def rim_penetration(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> float:
         """Largest penetration (m) of a tibial point whose nearest femoral point lies on an open edge
         of the femoral mesh (-inf if none): contact there is an artefact of a cropped surface
-        (:meth:`~kneenlp.model.mesh_contact.MeshContact.rim_penetration`)."""
-        staged = [e for e in self.staged if hasattr(e, "rim_penetration")]
-        if not staged:
-            return -np.inf
-        R, p = (np.asarray(v) for v in self.pose(q, flexion, theta))
-        return max(e.rim_penetration(R, p) for e in staged)
+        (:meth:`~kneenlp.model.mesh_contact.MeshContact.rim_batch`)."""
+        return float(self.rim_batch(np.asarray(q, float)[None], theta, np.array([flexion]))[0])
 
     def working_sets_function(self, n_trials: int, full: bool = True) -> ca.Function:
         """The working sets of ``n_trials`` poses as a CasADi function with zero derivative

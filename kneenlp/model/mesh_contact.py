@@ -244,13 +244,7 @@ class MeshContact(StagedElement):
         """Largest penetration (m) of a point whose nearest femoral point lies on the surface's open
         edge (-inf if none, or without open edges): a cropped femoral mesh seen from beyond its
         edge, where the field's sign comes from the rim's pseudo-normal and the "contact" is fake."""
-        if self.rim is None or self.rim.closed:
-            return -np.inf
-        idx = self.select(R, p, None)
-        if not len(idx):
-            return -np.inf
-        d, at_rim = at_open_edge(self.field, self.rim, self.points[idx] @ np.asarray(R).T + np.asarray(p).ravel())
-        return float(np.max(-d[at_rim])) if np.any(at_rim) else -np.inf
+        return float(self.rim_batch(R, p)[0])
 
     def working_data_batch(self, R: np.ndarray, p: np.ndarray, values: dict, threads: int = 1,
                            full: bool = True) -> np.ndarray:
@@ -270,6 +264,47 @@ class MeshContact(StagedElement):
 
         share_out(run, len(R), threads)
         return out
+
+    def left_out_batch(self, R: np.ndarray, p: np.ndarray, threads: int = 1) -> np.ndarray:
+        """Per pose (``R`` T x 3 x 3, ``p`` T x 3), the largest penetration (m) of a point the contact
+        pass leaves out (-inf if none penetrates): deeper than the field represents, or outside its
+        grid (there measured from the femoral vertices, :meth:`clearance`)."""
+        R = np.ascontiguousarray(R, dtype=float).reshape(-1, 3, 3)
+        p = np.ascontiguousarray(p, dtype=float).reshape(-1, 3)
+        fld = self.field
+        lo, hi = fld.bounds
+        deep, outside = np.empty(len(R)), np.empty((len(R), len(self.points)), dtype=np.bool_)
+
+        def run(first: int, last: int) -> None:
+            kernels.left_out_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
+                                   self.points, R, p, first, last, deep, outside)
+
+        share_out(run, len(R), threads)
+        trial, point = np.nonzero(outside)
+        if len(trial) and self._outside is not None:  # all poses' outside points in one bounded tree query
+            X = np.einsum("nij,nj->ni", R[trial], self.points[point]) + p[trial]
+            tree, offset = self._outside
+            dist, _ = tree.query(X, distance_upper_bound=offset + fld.spacing + fld.band)
+            np.maximum.at(deep, trial, offset + fld.spacing - dist)  # never understated: see clearance
+        return deep
+
+    def rim_batch(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """:meth:`rim_penetration` at the poses ``R`` (T x 3 x 3), ``p`` (T x 3), all at once."""
+        R, p = np.asarray(R, float).reshape(-1, 3, 3), np.asarray(p, float).reshape(-1, 3)
+        worst = np.full(len(R), -np.inf)
+        if self.rim is None or self.rim.closed:
+            return worst
+        X = np.einsum("tij,nj->tni", R, self.points) + p[:, None, :]
+        inside = np.all((X >= self.field.bounds[0]) & (X <= self.field.bounds[1]), axis=2)
+        trial, point = np.nonzero(inside)
+        d = self.field.evaluate(X[trial, point])[0]
+        pen = (d < 0) & (d > -0.99 * self.field.depth)  # the points the contact counts (select)
+        if not np.any(pen):
+            return worst
+        trial, X = trial[pen], X[trial[pen], point[pen]]
+        d, at_rim = at_open_edge(self.field, self.rim, X)
+        np.maximum.at(worst, trial[at_rim], -d[at_rim])
+        return worst
 
     def pack(self, indices, R, p, values):
         """The expansion of the contact at pose ``(R, p)`` over the points :meth:`select` chooses

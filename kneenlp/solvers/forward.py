@@ -95,8 +95,10 @@ class ForwardSolver:
         out = self.newton.solve(q0, theta, np.array([t.load for t in trials]), np.array([t.flexion for t in trials]),
                                 self.tol, self.max_iter, threads)
         q = out.q
-        res = np.array([self.residual_norm(q[i], theta, t) if out.residual[i] <= self.tol else out.residual[i]
-                        for i, t in enumerate(trials)]) if self.model.ws_size else out.residual
+        res = out.residual  # at each pose with its own working sets; a point they leave out must not penetrate
+        if self.model.ws_size:
+            left_out = self.model.left_out_batch(q, theta, np.array([t.flexion for t in trials]), threads)
+            res = np.where(left_out > 0, np.inf, res)
         failed = np.flatnonzero(~(res <= self.tol))
         for i in failed if max_retries is None or len(failed) <= max_retries else ():
             sol = self.solve_trial(trials[i], theta, q0[i], None)
