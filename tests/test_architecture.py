@@ -22,13 +22,14 @@ def example(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("example")
     blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), re.S)
     (tmp / "compression_element.py").write_text(blocks[0])
+    (tmp / "cubic_toe_law.py").write_text(blocks[2])
     sys.path.insert(0, str(tmp))
-    yield tmp, blocks[1]
+    yield tmp, blocks[1], blocks[3]
     sys.path.remove(str(tmp))
 
 
 def test_worked_example(example, monkeypatch):
-    tmp, usage = example
+    tmp, usage, _ = example
     monkeypatch.chdir(tmp)
     scope: dict = {}
     exec(compile(usage, str(DOC), "exec"), scope)
@@ -43,7 +44,7 @@ def test_user_element_on_the_command_line(example, monkeypatch, capsys):
 
     from kneenlp.cli import main
 
-    tmp, _ = example
+    tmp, _, _ = example
     monkeypatch.chdir(tmp)
     assert main(["simulate", "--knee", "synthetic",
                  "--protocol", "set1", "--element", "compression_element:make", "--with-effect",
@@ -98,6 +99,26 @@ def test_objective_is_the_weighted_residual_sum(effect, method, tmp_path):
     assert fit.objective == pytest.approx(wsum, rel=1e-9)
     if method == "simultaneous":
         assert fit.extra["solver_objective"] == pytest.approx(wsum, rel=1e-9)
+
+
+def test_worked_law(example, monkeypatch):
+    """Part 2: a law in one file, named by a knee file: the ACL follows it (its force at a strain is
+    the cubic toe's, not the paper's), the knee moves differently, and identify recovers the ACL's
+    stiffness from data it made."""
+    from kneenlp.model.laws import NUMPY
+
+    tmp, _, usage = example
+    monkeypatch.chdir(tmp)
+    scope: dict = {}
+    exec(compile(usage, str(DOC), "exec"), scope)
+    knee, fit = scope["knee"], scope["fit"]
+    law = knee.model.element("ACL").law
+    assert law.name == "cubic_toe" and knee.model.element("PCL").law.name == "toe_linear"
+    eps = np.array([-0.01, 0.0, 0.02, 0.045, 0.08])
+    assert np.allclose(law.tension(eps, 1000.0, 0.03, NUMPY), [0, 0, 1000 * 0.02**3 / (6.75 * 0.03**2), 15.0, 50.0])
+    plain = kneenlp.simulate(kneenlp.Knee.named("synthetic"), "set3")
+    assert np.abs(scope["kneenlp"].simulate(knee, "set3").q - plain.q).max() > 1e-4
+    assert fit.success and abs(fit.params["ACL.k"] - 10000.0) <= 3 * fit.stderr["ACL.k"]
 
 
 def test_user_element_consistent_across_methods(example):

@@ -49,3 +49,40 @@ def test_acl_pretension_of_table1_is_700N():
     assert paper_eq1(0.10, 10000.0, 0.03) == pytest.approx(700.0)
     l0 = slack_length(0.033, 0.10)
     assert (0.033 - l0) / l0 == pytest.approx(0.10)
+
+
+def test_opensims_law_is_the_papers_in_other_terms():
+    """Blankevoort1991Ligament with transition strain e_t and the paper's Eq. (1) with eps_l = e_t / 2
+    are one function: equal on NumPy arrays and in CasADi, through both kinks."""
+    from kneenlp.model.laws import CASADI, NUMPY, BlankevoortLaw, ToeLinearLaw
+
+    eps = np.linspace(-0.05, 0.2, 2001)
+    for k, eps_l in ((5000.0, 0.03), (123.0, 0.011)):
+        a = ToeLinearLaw().tension(eps, k, eps_l, NUMPY)
+        b = BlankevoortLaw().tension(eps, k, eps_l, NUMPY)
+        assert np.allclose(a, b, rtol=1e-13, atol=1e-10)
+        e = ca.SX.sym("e")
+        f = ca.Function("f", [e], [BlankevoortLaw().tension(e, k, eps_l, CASADI)])
+        assert np.allclose(np.asarray(f(eps.reshape(1, -1))).ravel(), a, rtol=1e-13, atol=1e-10)
+
+
+@pytest.mark.parametrize("law, needle", [("toe_linaer", "unknown law 'toe_linaer'; built in: toe_linear, blankevoort"),
+                                         ("no_such_module:Law", "cannot import law"),
+                                         ("kneenlp.model.laws:Ops", "cannot make law"),
+                                         ("kneenlp.model.laws:CASADI", "cannot make law"),
+                                         ("kneenlp.model.laws:Protocol", "not a ligament law")])
+def test_unknown_law_in_a_knee_file_is_named(tmp_path, law, needle):
+    """A knee file's law that does not exist or is not a law: one line naming the field."""
+    import shutil
+
+    from kneenlp.errors import InputError
+    from kneenlp.io.resources import resource
+    from kneenlp.model.knee import Knee, knee_file
+
+    shutil.copytree(knee_file("synthetic").parent, tmp_path / "k")
+    toml = tmp_path / "k" / "knee.toml"
+    toml.write_text(toml.read_text().replace("../../parameters/table1.toml", str(resource("parameters", "table1.toml")))
+                    .replace("[ligaments.MCL]", f'[ligaments.MCL]\nlaw = "{law}"'))
+    with pytest.raises(InputError, match="ligaments.MCL.law") as err:
+        Knee.load(toml).model  # noqa: B018 - building the model is the point
+    assert needle in str(err.value)

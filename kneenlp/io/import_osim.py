@@ -30,6 +30,7 @@ import tomli_w
 from kneenlp.errors import InputError
 from kneenlp.io.atomic import write_text_atomic
 from kneenlp.io.osim import OsimError, knee_line_elements, ligament_groups, read_osim
+from kneenlp.model.laws import BlankevoortLaw
 
 #: Parameter set written with an imported knee: the paper's contact modulus (the bundles carry
 #: their own properties).
@@ -137,7 +138,7 @@ def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | Non
         "ligaments": {},
     }
     for group, names in grouped.items():
-        doc["ligaments"][group] = {"bundles": [
+        doc["ligaments"][group] = {"law": BlankevoortLaw.name, "bundles": [
             {"name": n, "femur": [float(v) for v in keep[n].femoral_point],
              "tibia": [float(v) for v in keep[n].tibial_point], "stiffness": float(keep[n].linear_stiffness),
              "slack_length": float(keep[n].slack_length), "transition_strain": float(keep[n].transition_strain)}
@@ -145,7 +146,8 @@ def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | Non
     header = (f"# kneenlp knee imported from {osim.name} (kneenlp import-osim; {groups} bundle groups).\n"
               f"# Coordinates: metres in the model's {femur_body} frame ({tibia_body} for tibial points).\n"
               "# Bundles: stiffness in N per unit strain (OpenSim linear_stiffness), slack_length in m,\n"
-              "# transition_strain as OpenSim's (the paper's linear strain limit is half of it).\n")
+              "# transition_strain as OpenSim's (the paper's linear strain limit is half of it); the law is\n"
+              "# OpenSim's Blankevoort1991Ligament (law = \"blankevoort\", kneenlp.model.laws).\n")
     knee_file = write_text_atomic(out / "knee.toml", header + tomli_w.dumps(doc))
     write_text_atomic(out / "parameters.toml", PARAMETERS)
     return ImportReport(knee_file, grouped, skipped)

@@ -966,9 +966,10 @@ def blankevoort_force(length: float | np.ndarray, slack_length: float, linear_st
     Equals Blankevoort & Huiskes (1991) f = k e^2/(4 e_l), f = k (e - e_l) with
     e_l = e_t / 2 (their 'spring parameter' / half the transition strain).
     """
+    from kneenlp.model.laws import NUMPY, BlankevoortLaw
+
     e = np.asarray(length, float) / slack_length - 1.0
-    k, et = linear_stiffness, transition_strain
-    f = np.where(e <= 0, 0.0, np.where(e < et, 0.5 * k / et * e * e, k * (e - 0.5 * et)))
+    f = np.asarray(BlankevoortLaw().tension(e, linear_stiffness, transition_strain / 2, NUMPY))
     return float(f) if f.ndim == 0 else f
 
 

@@ -53,6 +53,7 @@ from kneenlp.model.effects import Meniscus
 from kneenlp.model.elements import ForceElement
 from kneenlp.model.frames import FRAME_METHODS, Frame, angle_deg, axes_from_flexion, landmark_axes
 from kneenlp.model.kinematics import tibial_pose
+from kneenlp.model.laws import DEFAULT_LAW, law_named
 from kneenlp.model.ligament import Bundle, Ligament
 from kneenlp.model.mesh_contact import MeshContact
 from kneenlp.model.parameters import ParameterSet, number, read_toml
@@ -622,16 +623,17 @@ class _KneeFile:
             if not isinstance(lig, dict):
                 raise InputError("must be a table with femur and tibia attachments (or bundles)", source=src,
                                  field=fld)
+            law = law_named(lig.get("law", DEFAULT_LAW), source=src, field=f"{fld}.law")
             if "bundles" in lig:
                 ligaments[name] = Ligament(name, self.bundles(lig["bundles"], f"{fld}.bundles"),
-                                           reference=self.reference)
+                                           reference=self.reference, law=law)
                 continue
             for key in ("femur", "tibia"):
                 if key not in lig:
                     raise InputError("missing attachment", source=src, field=f"{fld}.{key}")
             femur, tibia = self.point(lig["femur"], f"{fld}.femur"), self.point(lig["tibia"], f"{fld}.tibia")
             self.check_length(femur, tibia, fld)
-            ligaments[name] = Ligament(name, [Bundle(femur, tibia)], reference=self.reference)
+            ligaments[name] = Ligament(name, [Bundle(femur, tibia)], reference=self.reference, law=law)
         return ligaments
 
     def bundles(self, doc: object, fld: str) -> list[Bundle]:

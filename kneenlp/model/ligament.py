@@ -1,4 +1,5 @@
-"""Ligament line elements with the toe + linear force-strain law of the paper (Eq. 1-3).
+"""Ligament line elements; by default with the toe + linear force-strain law of the paper (Eq. 1-3),
+any :class:`~kneenlp.model.laws.LigamentLaw` by choice (a knee file's ``law``).
 
 ``f(eps) = 0`` for ``eps <= 0``; ``k eps^2 / (4 eps_l)`` for ``0 <= eps <= 2 eps_l``;
 ``k (eps - eps_l)`` for ``eps >= 2 eps_l`` (Blankevoort & Huiskes 1991), with ``k`` in N per unit
@@ -35,21 +36,19 @@ import casadi as ca
 import numpy as np
 
 from kneenlp.model.elements import ForceElement, Output, Pose
+from kneenlp.model.laws import NUMPY, LigamentLaw, ToeLinearLaw
 from kneenlp.model.parameters import LIGAMENT_KINDS, Parameter, ligament_parameters
 
 
 def force_strain(eps, k, eps_l):
-    """Tensile force (N) of Eq. (1) as a CasADi expression (or number) of strain ``eps``."""
-    t = ca.fmin(ca.fmax(eps, 0), 2 * eps_l)
-    return k * t * t / (4 * eps_l) + k * ca.fmax(eps - 2 * eps_l, 0)
+    """Tensile force (N) of Eq. (1) as a CasADi expression of strain ``eps``
+    (:class:`~kneenlp.model.laws.ToeLinearLaw`)."""
+    return ToeLinearLaw().tension(eps, k, eps_l)
 
 
 def force_strain_numpy(eps: np.ndarray, k: float, eps_l: float) -> np.ndarray:
-    """NumPy version of Eq. (1), used for checking and plotting."""
-    eps = np.asarray(eps, dtype=float)
-    return np.where(
-        eps <= 0, 0.0, np.where(eps <= 2 * eps_l, k * eps**2 / (4 * eps_l), k * (eps - eps_l))
-    )
+    """Eq. (1) on NumPy arrays (the same law), for checking and plotting."""
+    return ToeLinearLaw().tension(np.asarray(eps, dtype=float), k, eps_l, NUMPY)
 
 
 #: Attachment-shift axes, in the order of the frames' X, Y, Z (:mod:`kneenlp.conventions`).
@@ -93,24 +92,16 @@ class Bundle:
         return float(np.linalg.norm(np.asarray(self.femur) - np.asarray(self.tibia)))
 
 
-class ToeLinearLaw:
-    """The paper's Eq. (1) (Blankevoort & Huiskes 1991): parameters ``k`` and ``lin_strain``."""
-
-    kinds = ("k", "lin_strain")
-
-    def tension(self, strain, values: dict) -> object:
-        return force_strain(strain, values["k"], values["lin_strain"])
-
-
 class Ligament(ForceElement):
-    """A ligament: one or more bundles (line elements) sharing one law's parameters and a
-    reference strain.  A *candidate* ligament (e.g. the posterior capsule named in a knee file)
-    has stiffness 0 in the knee's parameter set; adding it as an effect frees its stiffness.
+    """A ligament: one or more bundles (line elements) sharing one law (``law``, default the paper's
+    :class:`~kneenlp.model.laws.ToeLinearLaw`), its parameters and a reference strain.  A
+    *candidate* ligament (e.g. the posterior capsule named in a knee file) has stiffness 0 in the
+    knee's parameter set; adding it as an effect frees its stiffness.
 
     Outputs: strain (%, the largest over the bundles) and force (N, the sum over the bundles).
     """
 
-    def __init__(self, name: str, bundles: list[Bundle], *, law: ToeLinearLaw | None = None,
+    def __init__(self, name: str, bundles: list[Bundle], *, law: LigamentLaw | None = None,
                  candidate: bool = False, defaults: dict[str, float] | None = None, description: str = "",
                  reference: tuple[np.ndarray, np.ndarray] | None = None):
         if not bundles:
@@ -201,10 +192,10 @@ class Ligament(ForceElement):
             length = ca.norm_2(u)
             if self.grouped:
                 strain = length / slack_length(reference, b.ref_strain + offset) - 1
-                tension = self.law.tension(strain, {"k": scale * b.stiffness, "lin_strain": b.lin_strain})
+                tension = self.law.tension(strain, scale * b.stiffness, b.lin_strain)
             else:
                 strain = length / slack_length(reference, own["ref_strain"]) - 1
-                tension = self.law.tension(strain, own)
+                tension = self.law.tension(strain, own["k"], own["lin_strain"])
             yield arm, u / length, strain, tension
 
     def wrench(self, pose: Pose, values: dict) -> tuple[ca.SX, ca.SX]:
