@@ -111,7 +111,7 @@ def law_named(spec: str, *, source: object = None, field: str = "law") -> Ligame
                          field=field) from None
     try:
         made = factory()
-    except Exception as exc:  # noqa: BLE001 - a user's factory: any failure is the file's problem
+    except Exception as exc:
         raise InputError(f"cannot make law {spec!r}: calling it without arguments failed ({type(exc).__name__}: "
                          f"{exc})", source=source, field=field) from None
     if not isinstance(made, LigamentLaw) or not isinstance(getattr(made, "name", None), str):
