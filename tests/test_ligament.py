@@ -83,6 +83,6 @@ def test_unknown_law_in_a_knee_file_is_named(tmp_path, law, needle):
     toml = tmp_path / "k" / "knee.toml"
     toml.write_text(toml.read_text().replace("../../parameters/table1.toml", str(resource("parameters", "table1.toml")))
                     .replace("[ligaments.MCL]", f'[ligaments.MCL]\nlaw = "{law}"'))
-    with pytest.raises(InputError, match="ligaments.MCL.law") as err:
+    with pytest.raises(InputError, match=r"ligaments\.MCL\.law") as err:
         Knee.load(toml).model  # noqa: B018 - building the model is the point
     assert needle in str(err.value)
