@@ -47,3 +47,22 @@ def test_installed_wheel_runs_from_another_directory(wheel, tmp_path):
                           "--out", "out", "--json"], cwd=work, env=env, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout)["converged"] == 26
+
+
+def test_compiled_loops_are_cached_in_the_users_cache(tmp_path):
+    """numba's machine code goes to kneenlp's cache directory ($KNEENLP_CACHE here), never into the
+    installed package."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import kneenlp.geometry.kernels as kernels
+
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"} | {"KNEENLP_CACHE": str(tmp_path)}
+    code = ("import numpy as np\nfrom kneenlp.geometry.kernels import field_values\n"
+            "field_values(np.zeros((5, 5, 5)), np.zeros(3), 1.0, np.full((1, 3), 1.5), np.empty(1))\n")
+    subprocess.run([sys.executable, "-c", code], env=env, check=True, timeout=300)
+    assert list((tmp_path / "numba").rglob("*field_values*.nbi"))
+    package = Path(kernels.__file__).parent
+    assert not list(package.rglob("*.nbi")) and not list(package.rglob("*.nbc"))

@@ -6,13 +6,24 @@ The same mathematics as the NumPy reference implementations
 :func:`kneenlp.model.mesh_contact.wrench_expansion`), fused into one loop over points so that no
 per-point tensor is ever materialised: ~20x faster, which is what makes identification on a real
 knee take seconds.  Tests compare the two to 1e-12.  Compiled once per machine (``cache=True``:
-numba keeps the machine code next to this module, or in ``$NUMBA_CACHE_DIR``).
+numba keeps the machine code in the user's cache, :mod:`kneenlp.geometry.cache`, or in
+``$NUMBA_CACHE_DIR``; never in the package directory).
 """
 
 from __future__ import annotations
 
+import os
+
+import numba
 import numpy as np
 from numba import njit
+
+from kneenlp.geometry.cache import cache_dir
+
+# numba keeps compiled loops next to the module unless told otherwise: into the user's cache
+# instead (a user's own NUMBA_CACHE_DIR wins).  Set before the decorators below read it.
+if not os.environ.get("NUMBA_CACHE_DIR") and (_where := cache_dir("numba")) is not None:
+    numba.config.CACHE_DIR = str(_where)
 
 from kneenlp.geometry.ramp import ramp_inner, ramp_inner_curvature, ramp_inner_slope
 

@@ -33,6 +33,7 @@ import trimesh
 from scipy.ndimage import spline_filter
 from scipy.spatial import cKDTree
 
+from kneenlp.geometry.cache import cache_dir
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.kernels import cell_minimum, field_values
 
@@ -247,18 +248,6 @@ class DistanceField:
         with np.load(path) as z:
             return cls(np.asarray(z["origin"], float), float(z["spacing"]), np.asarray(z["coeffs"], np.float64),
                        float(z["band"]), float(z["depth"]), json.loads(str(z["info"])))
-
-
-def cache_dir() -> Path | None:
-    """Where built fields are kept: ``$KNEENLP_CACHE``, else ``$XDG_CACHE_HOME/kneenlp``, else
-    ``~/.cache/kneenlp``; ``None`` if it cannot be created (fields are then rebuilt each time)."""
-    env = os.environ.get("KNEENLP_CACHE")
-    base = Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "kneenlp"
-    try:
-        base.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return None
-    return base if os.access(base, os.W_OK) else None
 
 
 def field_key(mesh: trimesh.Trimesh, box: np.ndarray, **settings: float) -> str:
