@@ -5,7 +5,8 @@ import trimesh
 
 import kneenlp
 from kneenlp.conventions import LOAD_SIZE
-from kneenlp.model.contact import compartment_function, smooth_gate, sphere_plane_force
+from kneenlp.model.contact import compartment_function, sphere_plane_force
+from kneenlp.model.laws import CASADI, NUMPY, ElasticFoundation, PowerFoundation, gate
 
 K = 10e9  # N/m^3
 
@@ -53,7 +54,7 @@ def test_offset_contact_moment_is_r_cross_f():
 def test_gate_is_exactly_zero_without_penetration_and_c2():
     d = ca.SX.sym("d")
     delta = 1e-5
-    g = smooth_gate(d, delta)
+    g = gate(d, delta)
     f = ca.Function("g", [d], [g, ca.jacobian(g, d), ca.hessian(g, d)[0]])
     assert float(f(-1e-3)[0]) == 0.0
     for depth in (delta, 2 * delta, 1e-4, 1e-3):  # the paper's linear law beyond the width, exactly
@@ -64,24 +65,28 @@ def test_gate_is_exactly_zero_without_penetration_and_c2():
             assert float(a) == pytest.approx(float(b), abs=1e-6 / delta)  # curvature scale 1/delta
 
 
-def test_every_copy_of_the_gate_is_the_same_function():
-    """The CasADi gate, its NumPy twin and the compiled mesh kernel's value, slope and curvature
-    (through ``_gate_derivatives``) agree, with slope and curvature the CasADi derivatives."""
-    from kneenlp.model.contact import gate_numpy
-    from kneenlp.model.mesh_contact import _gate_derivatives
+@pytest.mark.parametrize("law", [ElasticFoundation(), PowerFoundation()], ids=lambda law: law.name)
+def test_every_form_of_a_pressure_law_is_the_same_function(law):
+    """A pressure law's CasADi form, its NumPy form and the compiled kernel's value, slope and
+    curvature agree (slope and curvature the CasADi derivatives), through and beyond the gate;
+    the paper's law is exactly K d beyond the gate, the power law K d_r (d / d_r)^1.5."""
+    from kneenlp.model.laws import REFERENCE_DEPTH
 
     d = ca.SX.sym("d")
     delta = 1e-5
-    g = smooth_gate(d, delta)
+    g = law.pressure(d, 1.0, delta, CASADI)
     f = ca.Function("g", [d], [g, ca.jacobian(g, d), ca.hessian(g, d)[0]])
-    s = np.linspace(-0.5 * delta, 3 * delta, 41)
+    s = np.concatenate([np.linspace(-0.5 * delta, 3 * delta, 41), [1e-4, 5e-4, 2e-3]])
     ref = np.array([[float(v) for v in f(x)] for x in s])
-    g0, g1, g2 = _gate_derivatives(s, delta)
-    assert np.allclose(gate_numpy(s, delta), ref[:, 0], rtol=1e-12, atol=1e-20)
-    assert np.allclose(g0, ref[:, 0], rtol=1e-12, atol=1e-20)
-    assert np.allclose(g1, np.where(s > 0, ref[:, 1], 0.0), rtol=1e-9, atol=1e-12)
-    assert np.allclose(g2, np.where(s > 0, ref[:, 2], 0.0), rtol=1e-9, atol=1e-6)
-    assert np.all(np.diff(g0) >= 0)  # monotone
+    kernel = np.array([law.kernel(float(x), delta) for x in s])
+    assert np.allclose(law.pressure(s, 1.0, delta, NUMPY), ref[:, 0], rtol=1e-12, atol=1e-20)
+    assert np.allclose(kernel[:, 0], ref[:, 0], rtol=1e-12, atol=1e-20)
+    assert np.allclose(kernel[:, 1], np.where(s > 0, ref[:, 1], 0.0), rtol=1e-9, atol=1e-12)
+    assert np.allclose(kernel[:, 2], np.where(s > 0, ref[:, 2], 0.0), rtol=1e-9, atol=1e-6)
+    assert np.all(np.diff(kernel[:41, 0]) >= 0)  # monotone
+    beyond = s[-3:]
+    expected = beyond if law.name == "elastic_foundation" else REFERENCE_DEPTH * (beyond / REFERENCE_DEPTH) ** 1.5
+    assert np.allclose(kernel[-3:, 0], expected, rtol=1e-12)
 
 
 def test_contact_is_differentiable(model):

@@ -9,6 +9,7 @@ import trimesh
 from kneenlp.geometry.axes import fit_cylinder, rotation_about
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.sdf import DistanceField
+from kneenlp.model.laws import ElasticFoundation, PowerFoundation
 
 
 def box_sdf(points: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -103,7 +104,8 @@ def test_compiled_kernels_equal_the_numpy_references(box):
         assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
     r = pts - [0.0, -0.02, 0.0]  # arms from a tibial origin below the plateau
     areas = rng.uniform(0.2e-6, 0.6e-6, n)
-    for got, ref in zip(kernels.wrench_expansion(d, g, h, t3, r, areas, 1e-5),
+    law = ElasticFoundation()
+    for got, ref in zip(kernels.wrench_expansion(d, g, h, t3, r, areas, law.kernel, 1e-5),
                         wrench_expansion(d, g, h, t3, pts, r, areas, 1e-5), strict=True):
         assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
 
@@ -119,9 +121,11 @@ def test_cell_minimum_is_the_smallest_coefficient_of_each_cell():
         assert got[i, j, k] == block.min()  # at the border: the part of the block inside the grid
 
 
-def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box):
+@pytest.mark.parametrize("law", [ElasticFoundation(), PowerFoundation()], ids=lambda law: law.name)
+def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box, law):
     """The compiled pass over all poses (cell-minimum rejection, then the expansion) against the
-    NumPy reference summed over every penetrating point; the value-only pass gives the same wrench."""
+    NumPy reference summed over every penetrating point, for each pressure law; the value-only
+    pass gives the same wrench."""
     from kneenlp.geometry import kernels
     from kneenlp.model.kinematics import rot_x, rot_y
     from kneenlp.model.mesh_contact import WS_SIZE, wrench_expansion
@@ -139,14 +143,14 @@ def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box):
     for full in (True, False):
         out = np.empty((T, WS_SIZE))
         kernels.contact_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                              points, areas, R, p, 1e-5, full, 0, T, out)
+                              points, areas, R, p, law.kernel, 1e-5, full, 0, T, out)
         rows[full] = out
     for t in range(T):
         X = points @ R[t].T + p[t]
         d = fld.evaluate(X)[0]
         sel = (d < 0) & (d > -0.99 * fld.depth)
         d, g, h, t3 = fld.evaluate(X[sel], order=3)
-        W, J, H = wrench_expansion(d, g, h, t3, X[sel], X[sel] - p[t], areas[sel], 1e-5)
+        W, J, H = wrench_expansion(d, g, h, t3, X[sel], X[sel] - p[t], areas[sel], 1e-5, law)
         row = rows[True][t]
         assert np.allclose(row[:9].reshape(3, 3, order="F"), R[t]) and np.allclose(row[9:12], p[t])
         for got, ref in ((row[12:18], W), (row[18:54].reshape(6, 6, order="F"), J),

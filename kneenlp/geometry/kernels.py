@@ -25,7 +25,6 @@ from kneenlp.geometry.cache import cache_dir
 if not os.environ.get("NUMBA_CACHE_DIR") and (_where := cache_dir("numba")) is not None:
     numba.config.CACHE_DIR = str(_where)
 
-from kneenlp.geometry.ramp import ramp_inner, ramp_inner_curvature, ramp_inner_slope
 
 
 @njit(cache=True, inline="always")
@@ -126,7 +125,7 @@ def field_derivatives(coeffs: np.ndarray, origin: np.ndarray, spacing: float, X:
 
 @njit(cache=True, nogil=True)
 def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray, r: np.ndarray,
-                     areas: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     areas: np.ndarray, law, gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """See :func:`kneenlp.model.mesh_contact.wrench_expansion` (same arguments but ``X``, same
     results): wrench (6), Jacobian (6 x 6), Hessian (6 x 6 x 6) per unit modulus."""
     W = np.zeros(6)
@@ -149,12 +148,7 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
         s = -d[p]
         if s <= 0.0:
             continue
-        if s < gate:
-            gam = ramp_inner(s, gate)
-            gam1 = ramp_inner_slope(s, gate)
-            gam2 = ramp_inner_curvature(s, gate)
-        else:
-            gam, gam1, gam2 = s, 1.0, 0.0
+        gam, gam1, gam2 = law(s, gate)  # the pressure law's value and depth derivatives, per unit modulus
         gx, gy, gz = g[p, 0], g[p, 1], g[p, 2]
         rho = np.sqrt(gx * gx + gy * gy + gz * gz)
         nv[0], nv[1], nv[2] = gx / rho, gy / rho, gz / rho
@@ -285,15 +279,17 @@ def _value_gradient(coeffs: np.ndarray, origin: np.ndarray, spacing: float, x: n
 @njit(cache=True, nogil=True)
 def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spacing: float, lo: np.ndarray,
                   hi: np.ndarray, deepest: float, points: np.ndarray, areas: np.ndarray, R: np.ndarray,
-                  p: np.ndarray, gate: float, full: bool, first: int, last: int, out: np.ndarray) -> None:
+                  p: np.ndarray, law, gate: float, full: bool, first: int, last: int, out: np.ndarray) -> None:
     """One compartment at the poses ``first..last-1`` of ``R`` (T x 3 x 3) and ``p`` (T x 3), fused:
     every tibial point (tibial frame) mapped to the femoral frame, passed over where the cell's
     :func:`cell_minimum` says it cannot penetrate, else its field value; the points inside the box
     ``lo..hi`` that penetrate by less than ``deepest`` (m) make the contact.  Writes each pose's
     working-set row (``out[t]``, the layout of :data:`kneenlp.model.mesh_contact.WS_SIZE`: the pose,
     then per unit modulus the wrench, its Jacobian and Hessian (:func:`wrench_expansion`), and the
-    largest penetration).  ``full=False`` writes the wrench only (Jacobian and Hessian zero): the
-    residual's value at the pose itself, at a fraction of the cost."""
+    largest penetration).  ``law`` is the pressure law's compiled ``(depth, gate) -> (h, h', h'')``
+    (:class:`kneenlp.model.laws.PressureLaw`), ``gate`` its gate width (m).  ``full=False`` writes
+    the wrench only (Jacobian and Hessian zero): the residual's value at the pose itself, at a
+    fraction of the cost."""
     n_pts = points.shape[0]
     X = np.empty((n_pts, 3))
     keep = np.empty(n_pts, dtype=np.int64)
@@ -341,7 +337,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
                     r[i, a] = X[i, a] - pt[a]
                 a_[i] = areas[keep[i]]
                 depth = max(depth, -dd[i])
-            W, J, H = wrench_expansion(dd, g, h, t3, r, a_, gate)
+            W, J, H = wrench_expansion(dd, g, h, t3, r, a_, law, gate)
             for a in range(6):
                 row[12 + a] = W[a]
                 for b in range(6):
@@ -353,7 +349,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
                 v = _value_gradient(coeffs, origin, spacing, X[i], g1)
                 s = -v
                 depth = max(depth, s)
-                gam = ramp_inner(s, gate) if s < gate else s
+                gam = law(s, gate)[0]
                 rho = np.sqrt(g1[0] * g1[0] + g1[1] * g1[1] + g1[2] * g1[2])
                 w = areas[keep[i]] * gam / rho
                 fx, fy, fz = w * g1[0], w * g1[1], w * g1[2]

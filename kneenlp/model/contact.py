@@ -5,9 +5,10 @@ its cartilage surface (centre ``c``, radius ``R``), with the tibial cartilage su
 by the centroids ``x_i`` and areas ``A_i`` of its mesh faces.  At each tibial point the penetration
 is measured along the sphere's normal, ``d_i = R - |x_i - c|``; the pressure is
 ``p_i = K g(d_i)`` with the pressure modulus ``K`` (10 GN/m^3 in the paper) and the contact gate
-``g`` (:func:`smooth_gate`), a C2 polynomial smoothing of ``max(d, 0)`` over ``0 < d < delta``
-that is exactly zero without penetration and exactly ``d`` beyond ``delta`` (the paper's linear
-law there; :mod:`kneenlp.geometry.ramp`).
+``g`` (:func:`kneenlp.model.laws.gate`), a C2 polynomial smoothing of ``max(d, 0)`` over ``0 < d <
+delta`` that is exactly zero without penetration and exactly ``d`` beyond ``delta`` (the paper's
+linear law there; :mod:`kneenlp.geometry.ramp`); another pressure law of
+:mod:`kneenlp.model.laws` may replace it.
 ``delta`` = 0.01 mm by default, far below the penetrations that carry load (0.1-1 mm).  The force on the tibia is
 ``sum_i p_i A_i (x_i - c) / |x_i - c|`` and its moment about the tibial origin follows from the
 same sums:  with ``s_i = p_i A_i / |x_i - c|``, ``S0 = sum s_i`` and ``S1 = sum s_i x_i``,
@@ -25,28 +26,15 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from kneenlp.geometry.ramp import ramp_inner
 from kneenlp.model.elements import Output, Pose, StagedElement
+from kneenlp.model.laws import NUMPY, ElasticFoundation, PressureLaw
 from kneenlp.model.parameters import Parameter
 
 #: The cartilage pressure modulus, shared by every contact element.
 MODULUS = Parameter("contact.modulus", "modulus", "elastic-foundation pressure modulus")
 
 
-def smooth_gate(d, delta):
-    """C2-smooth ``max(d, 0)`` (:mod:`kneenlp.geometry.ramp`): zero for ``d <= 0``, exactly ``d``
-    for ``d >= delta``; points that do not penetrate contribute exactly zero."""
-    t = ca.fmin(ca.fmax(d, 0), delta)
-    return ramp_inner(t, delta) + (ca.fmax(d, delta) - delta)
-
-
-def gate_numpy(d: np.ndarray, delta: float) -> np.ndarray:
-    """:func:`smooth_gate` in NumPy (the same polynomial)."""
-    t = np.clip(d, 0, delta)
-    return ramp_inner(t, delta) + np.maximum(d, delta) - delta
-
-
-def sphere_wrench(c, modulus, radius, x, areas, delta: float):
+def sphere_wrench(c, modulus, radius, x, areas, delta: float, law: PressureLaw | None = None):
     """Force and moment (about the tibial origin) on the tibia of a sphere (centre ``c``, tibial
     frame, radius in m) pressed into sample points ``x`` (3 x N) with ``areas`` (1 x N), tibial
     frame; the points may be constants or symbols.  A few vector operations whatever ``N`` is:
@@ -54,7 +42,7 @@ def sphere_wrench(c, modulus, radius, x, areas, delta: float):
     force ``F = S1 - c S0`` and moment ``M = c x S1``."""
     sq = ca.sum1(x * x)  # 1 x N
     dist = ca.sqrt(sq - 2 * (c.T @ x) + ca.dot(c, c))
-    s = modulus * areas * smooth_gate(radius - dist, delta) / dist
+    s = (law or ElasticFoundation()).pressure(radius - dist, modulus, delta) * areas / dist
     s1 = x @ s.T
     return s1 - c * ca.sum2(s), ca.cross(c, s1)
 
@@ -95,8 +83,9 @@ class SphereContact(StagedElement):
     """
 
     def __init__(self, compartment: str, centre: np.ndarray, radius: float, points: np.ndarray,
-                 areas: np.ndarray, gate: float, working_set_size: int = 0):
+                 areas: np.ndarray, gate: float, working_set_size: int = 0, law: PressureLaw | None = None):
         self.name, self.compartment = f"contact_{compartment}", compartment
+        self.law = law or ElasticFoundation()
         self.centre, self.radius = np.asarray(centre, float), float(radius)
         self.points, self.areas, self.gate = np.asarray(points, float), np.asarray(areas, float), float(gate)
         self.working_set_size = int(working_set_size)
@@ -109,7 +98,7 @@ class SphereContact(StagedElement):
         return ca.vertcat(pose.to_tibial(self.centre), values[MODULUS.name])
 
     def surface_wrench(self, probe, data):
-        return sphere_wrench(probe[:3], probe[3], self.radius, data[:3, :], data[3, :], self.gate)
+        return sphere_wrench(probe[:3], probe[3], self.radius, data[:3, :], data[3, :], self.gate, self.law)
 
     def clearance(self, R, p, values):
         centre = np.asarray(R).T @ (self.centre - np.asarray(p).ravel())
@@ -124,7 +113,7 @@ class SphereContact(StagedElement):
         diff = X - self.centre
         dist = np.linalg.norm(diff, axis=1)
         pen = self.radius - dist
-        pres = modulus * gate_numpy(pen, self.gate)
+        pres = self.law.pressure(pen, modulus, self.gate, NUMPY)
         f = diff / dist[:, None] * (pres * self.areas)[:, None]
         w = pres * self.areas
         cop = (X * w[:, None]).sum(axis=0) / w.sum() if w.sum() > 0 else np.full(3, np.nan)

@@ -1,4 +1,4 @@
-"""Ligament force-strain laws: small parts a ligament is built with, named in a knee file.
+"""Force laws as parts, named in a knee file: ligament force-strain laws and contact pressure laws.
 
 A law (:class:`LigamentLaw`) gives a line element's tension (N) from its strain (dimensionless,
 ``(l - l0) / l0``), its stiffness ``k`` (N per unit strain) and its linear strain limit
@@ -18,6 +18,23 @@ Built in (:data:`LAWS`):
 A knee file names a law per ligament (``[ligaments.ACL] law = "blankevoort"``); ``"module:name"``
 names a user's law (a class or factory returning a :class:`LigamentLaw`), as ``--element`` names a
 user's force element.  docs/architecture.md shows a new law in one file.
+
+A contact pressure law (:class:`PressureLaw`) gives the elastic foundation's pressure (Pa) from a
+tibial point's penetration depth (m), the modulus ``K`` (N/m^3, the parameter
+``contact.modulus``) and the width of the C2 gate that starts contact smoothly (m): its
+``pressure`` for CasADi and NumPy, and ``kernel``, a compiled function ``(depth, gate) -> (h, h',
+h'')``, the pressure per unit modulus and its first two derivatives in depth, which the compiled
+contact passes call at every penetrating point (:mod:`kneenlp.geometry.kernels`: they hold no
+law of their own).  Built in (:data:`PRESSURE_LAWS`):
+
+* ``elastic_foundation``: the paper's, ``p = K g(d)`` with the gate ``g`` of
+  :mod:`kneenlp.geometry.ramp` (exactly ``K d`` beyond the gate's width), the default;
+* ``power_1.5``: ``p = K d_r (g(d) / d_r)^1.5`` with ``d_r`` = :data:`REFERENCE_DEPTH` (1 mm):
+  stiffening with depth like a Hertzian contact, equal to the paper's at ``d_r`` (so ``K`` keeps its
+  unit and its scale).
+
+A knee file names one per compartment (``[contact.medial] law = "power_1.5"``) or for all
+(``[contact] law``).
 """
 
 from __future__ import annotations
@@ -30,8 +47,10 @@ from typing import Any, Protocol, runtime_checkable
 
 import casadi as ca
 import numpy as np
+from numba import njit
 
 from kneenlp.errors import InputError
+from kneenlp.geometry.ramp import ramp_inner, ramp_inner_curvature, ramp_inner_slope
 
 
 @dataclass(frozen=True)
@@ -93,16 +112,98 @@ LAWS: Mapping[str, type] = MappingProxyType({law.name: law for law in (ToeLinear
 DEFAULT_LAW = ToeLinearLaw.name
 
 
-def law_named(spec: str, *, source: object = None, field: str = "law") -> LigamentLaw:
-    """The law a knee file names: a built-in name (:data:`LAWS`) or ``"module:name"`` (a class or
-    factory, called without arguments)."""
+# ------------------------------------------------------------------ contact pressure laws
+#: Depth (m) at which the power law equals the paper's linear law.
+REFERENCE_DEPTH = 1e-3
+
+
+def gate(depth, width, ops: Ops = CASADI):
+    """C2-smooth ``max(depth, 0)`` (:mod:`kneenlp.geometry.ramp`): zero for ``depth <= 0``, exactly
+    ``depth`` beyond ``width`` (m)."""
+    t = ops.fmin(ops.fmax(depth, 0), width)
+    return ramp_inner(t, width) + (ops.fmax(depth, width) - width)
+
+
+@njit(cache=True, nogil=True)
+def _gate_derivatives(s: float, width: float) -> tuple[float, float, float]:
+    """:func:`gate` and its first two derivatives at one depth ``s`` (m)."""
+    if s <= 0.0:
+        return 0.0, 0.0, 0.0
+    if s < width:
+        return ramp_inner(s, width), ramp_inner_slope(s, width), ramp_inner_curvature(s, width)
+    return s, 1.0, 0.0
+
+
+@njit(cache=True, nogil=True)
+def linear_pressure(s: float, width: float) -> tuple[float, float, float]:
+    """The paper's pressure per unit modulus and its depth derivatives: the gate itself."""
+    return _gate_derivatives(s, width)
+
+
+@njit(cache=True, nogil=True)
+def power_pressure(s: float, width: float) -> tuple[float, float, float]:
+    """``d_r (g / d_r)^1.5`` per unit modulus and its depth derivatives (``g`` the gate)."""
+    g, g1, g2 = _gate_derivatives(s, width)
+    if g <= 0.0:
+        return 0.0, 0.0, 0.0
+    r = np.sqrt(g / REFERENCE_DEPTH)
+    return g * r, 1.5 * r * g1, 0.75 * g1 * g1 / (REFERENCE_DEPTH * r) + 1.5 * r * g2
+
+
+@runtime_checkable
+class PressureLaw(Protocol):
+    """The elastic foundation's pressure from penetration depth (module docstring)."""
+
+    name: str
+    #: compiled ``(depth, gate) -> (h, h', h'')``: pressure per unit modulus and its depth derivatives
+    kernel: Any
+
+    def pressure(self, depth: Any, modulus: Any, width: float, ops: Ops = CASADI) -> Any:
+        """Pressure (Pa) at penetration ``depth`` (m; <= 0: none) for ``modulus`` (N/m^3) and a
+        gate of ``width`` (m)."""
+        ...
+
+
+class ElasticFoundation:
+    """The paper's law: pressure = modulus x penetration, started by the C2 gate."""
+
+    name = "elastic_foundation"
+    kernel = staticmethod(linear_pressure)
+
+    def pressure(self, depth, modulus, width, ops: Ops = CASADI):
+        return modulus * gate(depth, width, ops)
+
+
+class PowerFoundation:
+    """Pressure ``K d_r (g(d) / d_r)^1.5``: stiffening with depth, the paper's at ``d_r`` = 1 mm."""
+
+    name = "power_1.5"
+    kernel = staticmethod(power_pressure)
+
+    def pressure(self, depth, modulus, width, ops: Ops = CASADI):
+        g = gate(depth, width, ops)
+        return modulus * g * (g / REFERENCE_DEPTH) ** 0.5
+
+
+#: The built-in pressure laws by name.
+PRESSURE_LAWS: Mapping[str, type] = MappingProxyType({law.name: law for law in (ElasticFoundation, PowerFoundation)})
+#: The law of a compartment whose knee file names none.
+DEFAULT_PRESSURE_LAW = ElasticFoundation.name
+
+
+def law_named(spec: str, *, source: object = None, field: str = "law", kind: str = "ligament") -> Any:
+    """The law a knee file names: a built-in name (:data:`LAWS` for ``kind="ligament"``,
+    :data:`PRESSURE_LAWS` for ``kind="pressure"``) or ``"module:name"`` (a class or factory, called
+    without arguments)."""
+    builtin = LAWS if kind == "ligament" else PRESSURE_LAWS
+    protocol = LigamentLaw if kind == "ligament" else PressureLaw
     if not isinstance(spec, str) or not spec:
-        raise InputError(f"must name a law; built in: {', '.join(LAWS)}", source=source, field=field)
-    if spec in LAWS:
-        return LAWS[spec]()
+        raise InputError(f"must name a law; built in: {', '.join(builtin)}", source=source, field=field)
+    if spec in builtin:
+        return builtin[spec]()
     module, sep, attr = spec.partition(":")
     if not sep or not module or not attr:
-        raise InputError(f"unknown law {spec!r}; built in: {', '.join(LAWS)} (or MODULE:NAME of your own)",
+        raise InputError(f"unknown law {spec!r}; built in: {', '.join(builtin)} (or MODULE:NAME of your own)",
                          source=source, field=field)
     try:
         factory = getattr(importlib.import_module(module), attr)
@@ -114,7 +215,8 @@ def law_named(spec: str, *, source: object = None, field: str = "law") -> Ligame
     except Exception as exc:
         raise InputError(f"cannot make law {spec!r}: calling it without arguments failed ({type(exc).__name__}: "
                          f"{exc})", source=source, field=field) from None
-    if not isinstance(made, LigamentLaw) or not isinstance(getattr(made, "name", None), str):
-        raise InputError(f"{spec} made {type(made).__name__}, not a ligament law (a name and tension(strain, k, "
-                         "lin_strain, ops))", source=source, field=field)
+    if not isinstance(made, protocol) or not isinstance(getattr(made, "name", None), str):
+        what = ("a ligament law (a name and tension(strain, k, lin_strain, ops))" if kind == "ligament" else
+                "a pressure law (a name, pressure(depth, modulus, width, ops) and a compiled kernel)")
+        raise InputError(f"{spec} made {type(made).__name__}, not {what}", source=source, field=field)
     return made

@@ -4,9 +4,9 @@ The femoral articular surface is a signed-distance field ``d(x)`` (:class:`~knee
 DistanceField`: a tricubic B-spline of the exact distance to the mesh, femoral frame, metres,
 negative inside the femur).  The tibial cartilage is sampled at its mesh vertices ``x_i`` (tibial
 frame) with lumped areas ``A_i``.  At a pose ``(R, p)`` the point ``X_i = R x_i + p`` penetrates
-the femur by ``s_i = -d(X_i)``; the pressure is ``K g(s_i)`` (the paper's elastic foundation:
-modulus ``K`` times penetration depth, with the C2 gate ``g`` of
-:func:`kneenlp.model.contact.smooth_gate`) and the force on the tibia ``f_i = K g(s_i) A_i n_i``
+the femur by ``s_i = -d(X_i)``; the pressure is ``K h(s_i)`` (the compartment's pressure law,
+:mod:`kneenlp.model.laws`; by default the paper's elastic foundation, modulus ``K`` times
+penetration depth through the C2 gate) and the force on the tibia ``f_i = K h(s_i) A_i n_i``
 acts along the femoral surface normal ``n = grad d / |grad d|`` at ``X_i``; moments are about the
 tibial origin.  Everything is summed in the femoral frame.
 
@@ -36,11 +36,11 @@ from scipy.spatial import cKDTree
 
 from kneenlp.geometry import kernels
 from kneenlp.geometry.graph_field import field_in_graph
-from kneenlp.geometry.ramp import ramp_inner_curvature, ramp_inner_slope
 from kneenlp.geometry.rim import OpenEdges, at_open_edge
 from kneenlp.geometry.sdf import DistanceField
-from kneenlp.model.contact import MODULUS, gate_numpy, smooth_gate
+from kneenlp.model.contact import MODULUS
 from kneenlp.model.elements import Output, Pose, StagedElement, share_out
+from kneenlp.model.laws import CASADI, NUMPY, ElasticFoundation, PressureLaw
 from kneenlp.model.parameters import Parameter
 
 #: Points that may be nearer the femoral surface than this (m) are the candidates the checks look at
@@ -67,17 +67,15 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
 
 
-def _gate_derivatives(s: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The gate and its first two derivatives at penetrations ``s`` (m)."""
-    t = np.clip(s, 0, delta)
-    inner = s < delta
-    g1 = np.where(inner, ramp_inner_slope(t, delta), 1.0)
-    g2 = np.where(inner, ramp_inner_curvature(t, delta), 0.0)
-    return gate_numpy(s, delta), g1, g2
+def _pressure_derivatives(s: np.ndarray, law: PressureLaw, gate: float) -> tuple[np.ndarray, ...]:
+    """The pressure law's value and first two depth derivatives per unit modulus at depths ``s`` (m)."""
+    out = np.array([law.kernel(float(v), gate) for v in np.ravel(s)]).reshape(-1, 3)
+    return out[:, 0], out[:, 1], out[:, 2]
 
 
 def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray, X: np.ndarray, r: np.ndarray,
-                     areas: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     areas: np.ndarray, gate: float, law: PressureLaw | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Wrench (6), Jacobian (6 x 6) and Hessian (6 x 6 x 6) per unit modulus of the contact of the
     points with field values ``d``, gradients ``g``, Hessians ``h`` and third derivatives ``t3``
     (n, n x 3, n x 3 x 3, n x 3 x 3 x 3) at femoral-frame positions ``X``, arms ``r = X - p`` from
@@ -91,7 +89,7 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
     n_pts = len(d)
     if n_pts == 0:
         return np.zeros(6), np.zeros((6, 6)), np.zeros((6, 6, 6))
-    gam, gam1, gam2 = _gate_derivatives(-d, gate)
+    gam, gam1, gam2 = _pressure_derivatives(-d, law or ElasticFoundation(), gate)
     rho = np.linalg.norm(g, axis=1)
     n = g / rho[:, None]
     P = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
@@ -145,8 +143,10 @@ class MeshContact(StagedElement):
     working_set_size = 1  # one expansion per compartment and trial
 
     def __init__(self, compartment: str, field: DistanceField, points: np.ndarray, areas: np.ndarray, gate: float,
-                 femur_vertices: np.ndarray | None = None, offset: float = 0.0, rim: OpenEdges | None = None):
+                 femur_vertices: np.ndarray | None = None, offset: float = 0.0, rim: OpenEdges | None = None,
+                 law: PressureLaw | None = None):
         self.name, self.compartment = f"contact_{compartment}", compartment
+        self.law = law or ElasticFoundation()
         self.field = field
         self.points, self.areas = np.asarray(points, float), np.asarray(areas, float)
         self.gate = float(gate)
@@ -188,7 +188,7 @@ class MeshContact(StagedElement):
             inside = inside * (X[a, :] >= lo[a]) * (X[a, :] <= hi[a])
         active = inside * (d < 0) * (d > -0.99 * self.field.depth)
         rho = ca.if_else(active, ca.sqrt(ca.sum1(g * g)), 1.0)
-        pressure = ca.if_else(active, K * smooth_gate(-d, self.gate), 0.0)
+        pressure = ca.if_else(active, self.law.pressure(-d, K, self.gate, CASADI), 0.0)
         f = g * ca.repmat(pressure * ca.DM(self.areas).T / rho, 3, 1)
         return ca.sum2(f), ca.sum2(ca.cross(X - ca.repmat(p, 1, len(self.points)), f))
 
@@ -260,7 +260,7 @@ class MeshContact(StagedElement):
 
         def run(first: int, last: int) -> None:
             kernels.contact_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                                  self.points, self.areas, R, p, self.gate, full, first, last, out)
+                                  self.points, self.areas, R, p, self.law.kernel, self.gate, full, first, last, out)
 
         share_out(run, len(R), threads)
         return out
@@ -322,7 +322,7 @@ class MeshContact(StagedElement):
         X = self._femoral(R, p)
         d, g = self.field.evaluate(X, order=1)
         pen = -d
-        pres = modulus * gate_numpy(pen, self.gate)
+        pres = self.law.pressure(pen, modulus, self.gate, NUMPY)
         norm = np.linalg.norm(g, axis=1)
         n = np.divide(g, norm[:, None], out=np.zeros_like(g), where=norm[:, None] > 0)
         f = n * (pres * self.areas)[:, None]

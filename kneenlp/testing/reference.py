@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kneenlp.geometry.distance import MeshDistance
-from kneenlp.model.contact import gate_numpy
+from kneenlp.model.laws import NUMPY, ElasticFoundation, PressureLaw
 
 
 @dataclass(frozen=True)
@@ -42,9 +42,11 @@ class ContactState:
 
 
 def reference_contact(distance: MeshDistance, offset: float, points: np.ndarray, areas: np.ndarray,
-                      R: np.ndarray, p: np.ndarray, modulus: float, gate: float) -> ContactState:
+                      R: np.ndarray, p: np.ndarray, modulus: float, gate: float,
+                      law: PressureLaw | None = None) -> ContactState:
     """Contact of tibial ``points`` (tibial frame, m) with ``areas`` (m^2) against the surface
-    ``offset`` (m) outside the mesh of ``distance``, at pose ``(R, p)``, modulus in N/m^3, gate in m."""
+    ``offset`` (m) outside the mesh of ``distance``, at pose ``(R, p)``, modulus in N/m^3, gate in m,
+    pressure by ``law`` (default the paper's elastic foundation)."""
     p = np.asarray(p, float).ravel()
     X = np.asarray(points, float) @ np.asarray(R, float).T + p
     near = distance.lower_bound(X) < offset + 1e-4  # the others are certainly clear of the surface
@@ -52,7 +54,7 @@ def reference_contact(distance: MeshDistance, offset: float, points: np.ndarray,
     if np.any(near):
         d[near], _, normal[near] = distance(X[near])
     pen = offset - d
-    pres = modulus * gate_numpy(pen, gate)
+    pres = (law or ElasticFoundation()).pressure(pen, modulus, gate, NUMPY)
     w = pres * np.asarray(areas, float)
     f = normal * w[:, None]
     cop = (X * w[:, None]).sum(axis=0) / w.sum() if w.sum() > 0 else np.full(3, np.nan)
@@ -73,7 +75,7 @@ def compare_contact(knee, q: np.ndarray, theta: np.ndarray, flexion: float,
     for e in model.staged:
         if not hasattr(e, "field"):
             continue
-        ref = reference_contact(distance, knee.femur.offset, e.points, e.areas, R, p, modulus, e.gate)
+        ref = reference_contact(distance, knee.femur.offset, e.points, e.areas, R, p, modulus, e.gate, e.law)
         got = e.pressure(R, p, modulus)
         out[e.compartment] = {
             "load_N": float(np.linalg.norm(got["force"])), "reference_load_N": ref.load,
