@@ -129,3 +129,20 @@ def test_left_out_batch_agrees_with_the_per_pose_check():
         assert np.array_equal(batch > 0, single > 0)
         assert np.allclose(batch[single > 0], single[single > 0])
         assert np.all(batch > 0) if shift else np.all(batch <= 0)
+
+
+@pytest.mark.parametrize("where, field", [("[contact]\n", "contact.law"), ("[contact.lateral]\n", "contact.lateral.law")])
+def test_unknown_pressure_law_is_named(tmp_path, where, field):
+    import shutil
+
+    from kneenlp.errors import InputError
+    from kneenlp.io.resources import resource
+    from kneenlp.model.knee import Knee, knee_file
+
+    shutil.copytree(knee_file("synthetic").parent, tmp_path / "k")
+    toml = tmp_path / "k" / "knee.toml"
+    toml.write_text(toml.read_text().replace("../../parameters/table1.toml", str(resource("parameters", "table1.toml")))
+                    .replace(where, f'{where}law = "hertz"\n', 1))
+    with pytest.raises(InputError, match="unknown law 'hertz'; built in: elastic_foundation, power_1.5") as err:
+        Knee.load(toml)
+    assert err.value.field == field

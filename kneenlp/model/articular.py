@@ -44,9 +44,9 @@ RIM_GAP = 0.5e-3
 #: Points per chunk when the field's derivatives are evaluated at many points (memory: ~1 kB a point).
 RIM_CHUNK = 50_000
 #: Keys of the ``[contact]`` table that are settings, not compartments.
-CONTACT_SETTINGS = ("gate", "working_set", "grid_spacing", "femur", "femur_offset", "tibia")
+CONTACT_SETTINGS = ("gate", "working_set", "grid_spacing", "femur", "femur_offset", "tibia", "law")
 #: Keys of a ``[contact.<compartment>]`` table.
-COMPARTMENT_KEYS = ("tibia", "femur", "sphere_center", "sphere_radius")
+COMPARTMENT_KEYS = ("tibia", "femur", "sphere_center", "sphere_radius", "law")
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,8 @@ class Compartment:
     areas: np.ndarray  # area lumped to each point (N,), m^2
     centre: np.ndarray
     sphere_radius: float | None = None
+    #: the compartment's pressure law (:class:`~kneenlp.model.laws.PressureLaw`; None: the paper's)
+    law: object = None
 
     @property
     def sphere(self) -> bool:

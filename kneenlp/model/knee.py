@@ -53,7 +53,7 @@ from kneenlp.model.effects import Meniscus
 from kneenlp.model.elements import ForceElement
 from kneenlp.model.frames import FRAME_METHODS, Frame, angle_deg, axes_from_flexion, landmark_axes
 from kneenlp.model.kinematics import tibial_pose
-from kneenlp.model.laws import DEFAULT_LAW, law_named
+from kneenlp.model.laws import DEFAULT_LAW, DEFAULT_PRESSURE_LAW, law_named
 from kneenlp.model.ligament import Bundle, Ligament
 from kneenlp.model.mesh_contact import MeshContact
 from kneenlp.model.parameters import ParameterSet, number, read_toml
@@ -173,10 +173,10 @@ class Knee:
         for c in self.compartments.values():
             if c.sphere:
                 contact.append(SphereContact(c.name, c.centre, c.sphere_radius, c.points, c.areas, self.gate,
-                                             self.working_set))
+                                             self.working_set, c.law))
             else:
                 contact.append(MeshContact(c.name, self.femur.field, c.points, c.areas, self.gate,
-                                           self.femur.mesh.vertices, self.femur.offset, self.femur.rim))
+                                           self.femur.mesh.vertices, self.femur.offset, self.femur.rim, c.law))
         menisci = [Meniscus(self.condyle_centres(), self.menisci, self.condyle_rest())] \
             if self.menisci is not None else []
         return [*self.ligaments.values(), *contact, *menisci, *self.candidates]
@@ -206,8 +206,9 @@ class Knee:
         for c in self.compartments.values():
             what = (f"explicit sphere, radius {c.sphere_radius * 1e3:.1f} mm, centre "
                     f"({', '.join(f'{v * 1e3:.1f}' for v in c.centre)}) mm" if c.sphere else "femoral mesh surface")
+            law = getattr(c.law, "name", DEFAULT_PRESSURE_LAW)
             lines.append(f"{c.name}: {len(c.points)} tibial points ({c.areas.sum() * 1e6:.0f} mm^2) against the "
-                         f"{what}")
+                         f"{what}; pressure law {law}")
         if self.femur is not None:
             lines += [self.femur.describe(), field_summary(self.femur.field), self.open_edge_note()]
         return "\n".join(lines)
@@ -548,7 +549,10 @@ class _KneeFile:
                 centre, radius = self.frame(spheres[name][0]), spheres[name][1]
             else:
                 centre, radius = self.condyle_centre(axis, self.at_reference(points)), None
-            compartments[name] = Compartment(name, mesh, points, areas, centre, radius)
+            spec = tables.get(name, {}).get("law", contact.get("law", DEFAULT_PRESSURE_LAW))
+            where = f"contact.{name}.law" if "law" in tables.get(name, {}) else "contact.law"
+            law = law_named(spec, source=src, field=where, kind="pressure")
+            compartments[name] = Compartment(name, mesh, points, areas, centre, radius, law)
         femur = None
         if femur_raw is not None and mesh_compartments:
             fmesh = self.frame.mesh(femur_raw)
