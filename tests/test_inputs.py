@@ -307,3 +307,27 @@ def test_flexion_beyond_the_represented_surface(tmp_path, capsys):
     with pytest.raises(InputError, match="115 deg flexion") as err:
         identify(Knee.default(), read_measured(csv))
     assert err.value.field == "flexion"
+
+
+@pytest.mark.parametrize("depth_mm, inside", [(8.0, True), (1.0, False)])
+def test_attachment_inside_bone(default_copy, depth_mm, inside):
+    """A femoral attachment moved into the femur, ``depth_mm`` above its most distal articular point
+    (issue 24: accepted silently): deeper than the tolerance it is one line naming the field and the
+    mesh; 1 mm inside (as real attachments on a segmented surface may lie) it is accepted."""
+    import numpy as np
+    import trimesh
+
+    src, dst = default_copy
+    femur = trimesh.load(src.parent.parent / "lenhart2015" / "opensim" / "lenhart2015-R-femur-subchondral-bone.stl")
+    distal = femur.vertices[np.argmin(femur.vertices[:, 1])]  # scan Y points to the hip
+    point = distal + np.array([0.0, depth_mm * 1e-3, 0.0])
+    text = src.read_text()
+    old = "femur = [-0.001151, -0.000054, 0.005299]"
+    assert old in text
+    dst.write_text(text.replace(old, f"femur = [{point[0]:.6f}, {point[1]:.6f}, {point[2]:.6f}]"))
+    if not inside:
+        Knee.load(dst)
+        return
+    with pytest.raises(InputError, match=r"femoral attachment lies 8\.\d mm inside the femoral mesh") as err:
+        Knee.load(dst)
+    assert err.value.field == "ligaments.ACL.femur" and "\n" not in str(err.value)

@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
+from kneenlp.geometry.distance import MeshDistance, winding_number
 from kneenlp.geometry.sdf import DistanceField
 from kneenlp.io.resources import resource
 from kneenlp.model.articular import (
@@ -75,6 +76,10 @@ PLAUSIBLE_MM = {"gate": (1e-4, 0.1), "femur_offset": (0.0, 6.0), "grid_spacing":
 #: Longest plausible ligament (m, attachment distance in the reference pose; the superficial MCL
 #: is about 0.1 m): attachments further apart are a typo or mixed units.
 MAX_LIGAMENT_LENGTH = 0.3
+#: Deepest an attachment may lie inside a bone or cartilage mesh (m): attachments lie on the bone
+#: surface, up to 1.2 mm inside the meshes of the shipped knees (s192803's posterior capsule in its
+#: femoral cartilage solid); deeper is a slip (docs/inputs.md).
+ATTACHMENT_DEPTH = 2.5e-3
 
 
 def available_knees() -> list[str]:
@@ -270,6 +275,8 @@ class _KneeFile:
                              field="coordinates")
         self.frame = Frame.identity()
         self.notes: list[str] = []
+        #: attachments read so far: (field, point in the femoral frame at the reference pose, bone)
+        self.attachments: list[tuple[str, np.ndarray, str]] = []
         self.reference_pose = self.read_reference_pose()
         self.reference = reference_transform(*self.reference_pose)
 
@@ -351,6 +358,7 @@ class _KneeFile:
         ligaments = self.ligaments()
         self.check_side(ligaments, geometry["compartments"], landmarks)
         candidates = self.candidates()
+        self.check_attachments(geometry)
         params = self.parameter_set(parameters, ligaments)
         contact = doc.get("contact", {})
         working_set = contact.get("working_set", 0)
@@ -425,6 +433,51 @@ class _KneeFile:
                              f"({MAX_LIGAMENT_LENGTH * 1e3:g} mm): a typo, or a point in another unit than "
                              f"units = {self.units!r}?", source=self.src, field=fld)
         return length
+
+    def attach(self, femur: np.ndarray, tibia: np.ndarray, femur_field: str, tibia_field: str) -> None:
+        """Remember a bundle's attachments (femoral frame; tibial frame) for :meth:`check_attachments`."""
+        self.attachments += [(femur_field, np.asarray(femur, float), "femoral"),
+                             (tibia_field, self.at_reference(tibia), "tibial")]
+
+    def check_attachments(self, geometry: dict) -> None:
+        """No attachment lies more than :data:`ATTACHMENT_DEPTH` inside a mesh of the knee (the femoral
+        mesh as given, without ``femur_offset``; each tibial mesh at the reference pose).  Inside: the
+        mesh's winding number around the point exceeds 1/2 (:func:`~kneenlp.geometry.distance.
+        winding_number`), which holds for closed meshes and for open ones enclosing the point (a
+        cropped bone); a cartilage sheet encloses nothing but the points just under it."""
+        if not self.attachments:
+            return
+        meshes = []
+        femur = geometry["femur"]
+        if femur is not None:
+            meshes.append(("femoral mesh", " + ".join(femur.sources), femur.mesh, 1.0))
+        R, p = self.reference
+        for c in geometry["compartments"].values():
+            if not c.sphere:
+                m = c.tibia_mesh.copy()
+                m.vertices = np.asarray(m.vertices) @ R.T + p
+                meshes.append((f"{c.name} tibial mesh", c.name, m, -1.0))  # tibial orientation is not used
+        fields = [f for f, _, _ in self.attachments]
+        points = np.array([x for _, x, _ in self.attachments])
+        for what, name, mesh, sign in meshes:
+            lo, hi = mesh.bounds
+            idx = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+            if not len(idx):
+                continue
+            depth = np.abs(MeshDistance(mesh)(points[idx], certify=False)[0])
+            idx, depth = idx[depth > ATTACHMENT_DEPTH], depth[depth > ATTACHMENT_DEPTH]
+            if not len(idx):
+                continue
+            w = winding_number(mesh, points[idx])
+            inside = (w > 0.5) if sign > 0 else (np.abs(w) > 0.5)
+            if inside.any():
+                j = int(np.argmax(np.where(inside, depth, -1.0)))
+                bone = self.attachments[idx[j]][2]
+                raise InputError(f"the {bone} attachment lies {depth[j] * 1e3:.1f} mm inside the {what} ({name}) "
+                                 "in the reference pose; attachments lie on the bone surface (at most "
+                                 f"{ATTACHMENT_DEPTH * 1e3:g} mm inside): a typo or a sign slip, the femoral and "
+                                 "tibial points swapped, or a point in another frame or unit?", source=self.src,
+                                 field=fields[idx[j]])
 
     def menisci(self) -> float | None:
         """``[menisci] stiffness`` (N/mm per compartment) -> N/m, or None (menisci not modelled)."""
@@ -631,6 +684,7 @@ class _KneeFile:
                     raise InputError("missing attachment", source=src, field=f"{fld}.{key}")
             femur, tibia = self.point(lig["femur"], f"{fld}.femur"), self.point(lig["tibia"], f"{fld}.tibia")
             self.check_length(femur, tibia, fld)
+            self.attach(femur, tibia, f"{fld}.femur", f"{fld}.tibia")
             ligaments[name] = Ligament(name, [Bundle(femur, tibia)], reference=self.reference)
         return ligaments
 
@@ -650,6 +704,7 @@ class _KneeFile:
                     raise InputError("missing", source=src, field=f"{f}.{key}")
             femur, tibia = self.point(b["femur"], f"{f}.femur"), self.point(b["tibia"], f"{f}.tibia")
             length = self.check_length(femur, tibia, f)
+            self.attach(femur, tibia, f"{f}.femur", f"{f}.tibia")
             stiffness = number(b["stiffness"], src, f"{f}.stiffness")
             if stiffness < 0:
                 raise InputError("must be >= 0 (N per unit strain)", source=src, field=f"{f}.stiffness")
@@ -686,8 +741,9 @@ class _KneeFile:
                 raise InputError("femur and tibia must be equally long lists of [x, y, z]", source=src, field=fld)
             fem = [self.point(v, f"{fld}.femur") for v in fem]
             tib = [self.point(v, f"{fld}.tibia") for v in tib]
-            for f, t in zip(fem, tib, strict=True):
+            for i, (f, t) in enumerate(zip(fem, tib, strict=True)):
                 self.check_length(f, t, fld)
+                self.attach(f, t, f"{fld}.femur[{i}]", f"{fld}.tibia[{i}]")
             ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / 100.0
             out.append(Ligament(cname, [Bundle(f, t) for f, t in zip(fem, tib, strict=True)], candidate=True,
                                 defaults={"ref_strain": ref}, description=str(cdoc.get("description", "")),
