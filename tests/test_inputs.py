@@ -331,3 +331,51 @@ def test_attachment_inside_bone(default_copy, depth_mm, inside):
     with pytest.raises(InputError, match=r"femoral attachment lies 8\.\d mm inside the femoral mesh") as err:
         Knee.load(dst)
     assert err.value.field == "ligaments.ACL.femur" and "\n" not in str(err.value)
+
+
+HIP_LINE = "hip_center = [0.005551, 0.374181, 0.001171]"
+
+
+@pytest.mark.parametrize("new, field, needle", [
+    ("hip_center = [0.005551, 0.05, 0.001171]", "landmarks.hip_center", "the hip center at the knee?"),
+    ("hip_center = [0.005551, 0.0, 0.374]", "landmarks.hip_center", "from the flexion axis"),
+    ("", "landmarks.hip_center", "a knee in scan coordinates needs the hip centre"),
+    (HIP_LINE + "\nmedial_epicondyle = [0.0, 3.0, -40.0]", "landmarks.medial_epicondyle", "a point in mm with units"),
+])
+def test_landmark_slips(default_copy, new, field, needle):
+    """The hip centre at the knee or beside it, a scan-coordinate knee without it, a landmark in
+    the other unit (issue 24: silently accepted): one line naming the landmark."""
+    src, dst = default_copy
+    text = src.read_text()
+    assert HIP_LINE in text
+    dst.write_text(text.replace(HIP_LINE, new))
+    with pytest.raises(InputError, match=re.escape(needle)) as err:
+        Knee.load(dst)
+    assert err.value.field == field and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("old, new, field", [
+    ("tibial_tuberosity = [32.0, -45.0, 3.0]", "tibial_tuberosity = [0.032, -0.045, 0.003]",
+     "landmarks.tibial_tuberosity"),
+    ("femur = [-3.0, 1.0, 7.0]", "femur = [-0.003, 0.001, 0.007]", "ligaments.ACL.femur"),
+])
+def test_point_in_metres_in_a_millimetre_knee(knee_copy, old, new, field):
+    """One point written in metres in a millimetre knee lands at the frame's origin: named."""
+    text = knee_copy.read_text()
+    assert old in text
+    knee_copy.write_text(text.replace(old, new))
+    with pytest.raises(InputError, match=re.escape("a point in m with units = 'mm'?")) as err:
+        Knee.load(knee_copy)
+    assert err.value.field == field
+
+
+def test_negative_femur_offset_in_import_osim(tmp_path, capsys):
+    """import-osim --femur-offset -2 (issue 24: accepted): exit 2 naming the option, nothing written."""
+    from kneenlp.io.resources import resource
+
+    data = resource("knees", "lenhart2015", "opensim")
+    out = tmp_path / "imp"
+    code, err = run_cli(capsys, "import-osim", str(data / "lenhart2015.osim"), "--out", str(out), "--femur-mesh",
+                        str(data / "lenhart2015-R-femur-subchondral-bone.stl"), "--femur-offset", "-2")
+    assert code == 2 and "--femur-offset: -2 mm" in err and "inside the bone" in err
+    assert not out.exists() or not any(out.iterdir())

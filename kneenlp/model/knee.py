@@ -76,6 +76,19 @@ PLAUSIBLE_MM = {"gate": (1e-4, 0.1), "femur_offset": (0.0, 6.0), "grid_spacing":
 #: Longest plausible ligament (m, attachment distance in the reference pose; the superficial MCL
 #: is about 0.1 m): attachments further apart are a typo or mixed units.
 MAX_LIGAMENT_LENGTH = 0.3
+#: Landmarks in the femur's frame (the others are the tibia's), and the two ends of the limb.
+FEMORAL_LANDMARKS = ("hip_center", "medial_epicondyle", "lateral_epicondyle")
+LIMB_LANDMARKS = ("hip_center", "ankle_center")
+#: Distance (m) of the hip and ankle centres from the knee: femora and tibiae are 0.25-0.55 m long,
+#: so closer is a point of the knee given as the hip (it would turn the frame), further a unit slip.
+LIMB_REACH = (0.15, 1.0)
+#: Least angle (deg) between the knee-to-hip line and the fitted flexion axis (about 90 in a femur).
+HIP_AXIS_ANGLE = 45.0
+#: Furthest (m) any other landmark (epicondyles, tuberosity, plateau edges) lies from the knee.
+KNEE_REACH = 0.15
+#: A point (attachment or landmark) this close to the femoral frame's origin (m) in a millimetre
+#: file is a point written in metres (the origin lies between the condyles, no attachment there).
+NEAR_ORIGIN = 0.5e-3
 #: Deepest an attachment may lie inside a bone or cartilage mesh (m): attachments lie on the bone
 #: surface, up to 1.2 mm inside the meshes of the shipped knees (s192803's posterior capsule in its
 #: femoral cartilage solid); deeper is a slip (docs/inputs.md).
@@ -405,6 +418,36 @@ class _KneeFile:
             raise InputError(f"the knee is declared {side!r}, but {wrong[0]} once it is read as a {side} knee: "
                              f"is it a {other} knee? (set side = {other!r})", source=self.src, field="side")
 
+    def check_landmarks(self, raw: dict[str, np.ndarray], tibia: list[np.ndarray]) -> None:
+        """Landmarks (scan coordinates, m) against the knee's own size, before any fit uses them: the
+        hip and ankle centres :data:`LIMB_REACH` from the knee (the tibial cartilage's centre at the
+        reference pose), every other landmark within :data:`KNEE_REACH` of it and, in a femoral-frame
+        file, not within :data:`NEAR_ORIGIN` of the origin (a point in metres in a millimetre file);
+        a knee in scan coordinates needs ``hip_center``: nothing else gives the femur's long axis."""
+        if self.coordinates == "scan" and "hip_center" not in raw:
+            raise InputError("a knee in scan coordinates needs the hip centre (the femoral Y axis points to it; the "
+                             "scanner's axes say nothing about the femur): give landmarks.hip_center, or give the "
+                             "knee in its femoral frame (coordinates = 'femoral')", source=self.src,
+                             field="landmarks.hip_center")
+        centre = self.at_reference(np.vstack(tibia)).mean(axis=0)
+        for name, point in raw.items():
+            fld = f"landmarks.{name}"
+            here = self.at_reference(point) if name not in FEMORAL_LANDMARKS else point
+            dist = float(np.linalg.norm(here - centre))
+            lo, hi = LIMB_REACH if name in LIMB_LANDMARKS else (0.0, KNEE_REACH)
+            if dist < lo:
+                raise InputError(f"{dist * 1e3:.3g} mm from the knee (the tibial cartilage's centre), less than "
+                                 f"{lo * 1e3:g} mm: the {name.replace('_', ' ')} at the knee? (a point of the knee "
+                                 "copied, or the wrong landmark given)", source=self.src, field=fld)
+            if dist > hi:
+                other = "m" if self.units == "mm" else "mm"
+                raise InputError(f"{dist * 1e3:.4g} mm from the knee (the tibial cartilage's centre), more than "
+                                 f"{hi * 1e3:g} mm: a typo, or a point in {other} with units = {self.units!r}?",
+                                 source=self.src, field=fld)
+            if self.coordinates == "femoral" and self.units == "mm" and np.linalg.norm(point) < NEAR_ORIGIN:
+                raise InputError(f"{np.linalg.norm(point) * 1e3:.3g} mm from the origin of the femoral frame: a "
+                                 "point in m with units = 'mm'?", source=self.src, field=fld)
+
     def check_size(self, compartments: dict[str, Compartment]) -> None:
         """The knee's size against :data:`KNEE_SIZE_RANGE`: a unit slip names the likely cause."""
         points = np.vstack([c.points for c in compartments.values()])
@@ -435,7 +478,15 @@ class _KneeFile:
         return length
 
     def attach(self, femur: np.ndarray, tibia: np.ndarray, femur_field: str, tibia_field: str) -> None:
-        """Remember a bundle's attachments (femoral frame; tibial frame) for :meth:`check_attachments`."""
+        """Remember a bundle's attachments (femoral frame; tibial frame) for :meth:`check_attachments`;
+        in a millimetre file in the femoral frame, a point within :data:`NEAR_ORIGIN` of the origin is
+        one written in metres."""
+        if self.coordinates == "femoral" and self.units == "mm":
+            for point, fld in ((femur, femur_field), (tibia, tibia_field)):
+                if np.linalg.norm(point) < NEAR_ORIGIN:
+                    raise InputError(f"{np.linalg.norm(point) * 1e3:.3g} mm from the origin of the frame, where no "
+                                     "ligament attaches: a point in m with units = 'mm'?", source=self.src,
+                                     field=fld)
         self.attachments += [(femur_field, np.asarray(femur, float), "femoral"),
                              (tibia_field, self.at_reference(tibia), "tibial")]
 
@@ -509,26 +560,29 @@ class _KneeFile:
                                      field=f"contact.{name}.{key}")
         # tibial cartilage, scan coordinates
         tibiae: dict[str, trimesh.Trimesh] = {}
-        approx = self.approximate_axes(raw_landmarks)
+        whole = None
         if "tibia" in contact:
             if any("tibia" in t for t in tables.values()):
                 raise InputError("give the tibial cartilage either once for both plateaus or per compartment",
                                  source=src, field="contact.tibia")
             whole = self.mesh(contact["tibia"], "contact.tibia")
+        for name, table in tables.items():
+            if "tibia" in table:
+                tibiae[name] = self.mesh(table["tibia"], f"contact.{name}.tibia")
+            elif whole is None:
+                raise InputError("missing mesh file", source=src, field=f"contact.{name}.tibia")
+        if whole is None and not tibiae:
+            raise InputError("no tibial cartilage: give contact.tibia or [contact.medial] and [contact.lateral]",
+                             source=src, field="contact")
+        self.check_landmarks(raw_landmarks, [m.vertices for m in ([whole] if whole is not None else tibiae.values())])
+        approx = self.approximate_axes(raw_landmarks)
+        if whole is not None:
             tibiae, _, how = split_tibia(whole, approx[2])
             self.notes.append(f"tibial cartilage split into plateaus: {how}")
             unknown = set(tables) - set(tibiae)
             if unknown:
                 raise InputError(f"compartment {sorted(unknown)[0]!r} has no plateau; the split gives medial, lateral",
                                  source=src, field="contact")
-        for name, table in tables.items():
-            if "tibia" in table:
-                tibiae[name] = self.mesh(table["tibia"], f"contact.{name}.tibia")
-            elif name not in tibiae:
-                raise InputError("missing mesh file", source=src, field=f"contact.{name}.tibia")
-        if not tibiae:
-            raise InputError("no tibial cartilage: give contact.tibia or [contact.medial] and [contact.lateral]",
-                             source=src, field="contact")
         # femoral surface and explicit spheres, scan coordinates
         spheres = {}
         for name, table in tables.items():
@@ -574,8 +628,18 @@ class _KneeFile:
                 try:
                     new = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
                 except (ValueError, np.linalg.LinAlgError, TypeError) as exc:
-                    raise InputError(f"cannot fit cylinders to the femoral condyles ({exc})", source=src,
-                                     field="contact.femur") from None
+                    raise InputError(f"cannot fit cylinders to the femoral condyles ({exc}; {len(femur_raw.faces)} "
+                                     "faces): check that the femoral mesh is in the file's unit (units = "
+                                     f"{self.units!r}) and covers both condyles with more than a few faces, that "
+                                     "landmarks.hip_center is the hip (it sets the proximal direction) and that the "
+                                     "tibial meshes are the tibia's", source=src, field="contact.femur") from None
+                if hip is not None:
+                    tilt = angle_deg(hip - new.point, new.direction)
+                    if min(tilt, 180 - tilt) < HIP_AXIS_ANGLE:
+                        raise InputError(f"the hip centre lies {min(tilt, 180 - tilt):.0f} deg from the flexion axis "
+                                         "fitted to the condyles (a femur's shaft is about 90 deg from it): a medial "
+                                         "or lateral point given as the hip, or the femoral mesh in another frame?",
+                                         source=src, field="landmarks.hip_center")
                 settled = axis is not None and angle_deg(new.direction, axis.direction) < 1e-4 \
                     and np.linalg.norm(new.point - axis.point) < 1e-7
                 axis = new
