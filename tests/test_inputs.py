@@ -379,3 +379,79 @@ def test_negative_femur_offset_in_import_osim(tmp_path, capsys):
                         str(data / "lenhart2015-R-femur-subchondral-bone.stl"), "--femur-offset", "-2")
     assert code == 2 and "--femur-offset: -2 mm" in err and "inside the bone" in err
     assert not out.exists() or not any(out.iterdir())
+
+
+LENHART_DIR = knee_file("default").parent.parent / "lenhart2015" / "opensim"
+
+
+def _femur():
+    import trimesh
+
+    return trimesh.load(LENHART_DIR / "lenhart2015-R-femur-subchondral-bone.stl")
+
+
+def _tibia():
+    import trimesh
+
+    return trimesh.load(LENHART_DIR / "lenhart2015-R-tibia-cartilage.stl")
+
+
+def _inverted(mesh):
+    mesh.invert()
+    return mesh
+
+
+def _moved(mesh, shift):
+    mesh.apply_translation(shift)
+    return mesh
+
+
+def _decimated(mesh, faces):
+    return mesh.simplify_quadric_decimation(face_count=faces)
+
+
+def _degenerate(mesh):
+    import numpy as np
+    import trimesh
+
+    faces = np.column_stack([mesh.faces[:, 0], mesh.faces[:, 0], mesh.faces[:, 1]])
+    return trimesh.Trimesh(mesh.vertices, faces, process=False)
+
+
+def _one_triangle(_mesh):
+    import trimesh
+
+    return trimesh.Trimesh([[0, -0.02, -0.03], [0.03, -0.02, 0.03], [-0.03, -0.02, 0.03]], [[0, 1, 2]])
+
+
+@pytest.mark.parametrize("bone, change, field, needle", [
+    ("femur", _inverted, "contact.femur", "the femoral mesh is inside-out"),
+    ("tibia", lambda m: _moved(m, [0, 0.008, 0]), "contact.tibia", "lies 8.21 mm inside the femoral articular surface"),
+    ("tibia", _one_triangle, "contact.tibia", "1 faces, 3 vertices"),
+    ("femur", lambda m: _decimated(m, 10), "contact.femur", "too coarse to represent the condyles"),
+    ("femur", _degenerate, "contact.femur", "19229 of 19229 faces are degenerate"),
+])
+def test_meshes_that_failed_without_naming_the_cause(default_copy, tmp_path, bone, change, field, needle):
+    """Inverted femoral normals, a tibia 8 mm inside the femur at the reference pose, a one-triangle
+    tibia, a 10-face femur, all-degenerate femoral faces (issue 24: exit 1 with "residual 867/inf",
+    an unhelpful cylinder-fit error or exit 3): one line naming the mesh's field and the slip."""
+    src, dst = default_copy
+    mesh = change(_femur() if bone == "femur" else _tibia())
+    path = tmp_path / f"{bone}.stl"
+    mesh.export(path)
+    line = FEMUR_LINE if bone == "femur" else TIBIA_LINE
+    dst.write_text(src.read_text().replace(line, f'{bone} = "{path.as_posix()}"'))
+    with pytest.raises(InputError, match=re.escape(needle)) as err:
+        Knee.load(dst)
+    assert err.value.field == field and "\n" not in str(err.value)
+
+
+def test_truncated_binary_stl(knee_copy, capsys):
+    """A binary STL cut short (issue 24: blamed on "No module named 'charset_normalizer'"): exit 2,
+    the file named truncated with the sizes."""
+    path = knee_copy.parent / "meshes" / "tibia_medial.stl"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    code, err = run_cli(capsys, "simulate", "--knee", str(knee_copy), "--protocol", "set1", "--no-plots")
+    assert code == 2 and "contact.medial.tibia: mesh tibia_medial.stl is truncated" in err
+    assert f"the file has {len(data) // 2} bytes" in err and "\n" not in err

@@ -21,6 +21,7 @@ field's measured error.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -33,6 +34,7 @@ from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_f
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
 from kneenlp.geometry.distance import MeshDistance, winding_number
+from kneenlp.geometry.rim import OpenEdges
 from kneenlp.geometry.sdf import DistanceField
 from kneenlp.io.resources import resource
 from kneenlp.model.articular import (
@@ -89,6 +91,15 @@ KNEE_REACH = 0.15
 #: A point (attachment or landmark) this close to the femoral frame's origin (m) in a millimetre
 #: file is a point written in metres (the origin lies between the condyles, no attachment there).
 NEAR_ORIGIN = 0.5e-3
+#: Fewest faces of a femoral mesh (the shipped ones: 11,700-22,300): fewer cannot represent condyles.
+MIN_FEMUR_FACES = 500
+#: Least vertices and area (m^2) of a tibial plateau's cartilage mesh (real: 360-2300 vertices,
+#: 820-1350 mm^2 in the shipped knees): contact acts at the vertices.
+MIN_PLATEAU_POINTS = 20
+MIN_PLATEAU_AREA = 100e-6
+#: Deepest (m) the tibial cartilage may lie inside the femoral articular surface at the reference
+#: pose (0.1-0.3 mm in the shipped knees; the distance field is accurate to 1.5 mm inside).
+MAX_REFERENCE_PENETRATION = 1.5e-3
 #: Deepest an attachment may lie inside a bone or cartilage mesh (m): attachments lie on the bone
 #: surface, up to 1.2 mm inside the meshes of the shipped knees (s192803's posterior capsule in its
 #: femoral cartilage solid); deeper is a slip (docs/inputs.md).
@@ -418,6 +429,39 @@ class _KneeFile:
             raise InputError(f"the knee is declared {side!r}, but {wrong[0]} once it is read as a {side} knee: "
                              f"is it a {other} knee? (set side = {other!r})", source=self.src, field="side")
 
+    def check_plateau(self, mesh: trimesh.Trimesh, fld: str, plateaus: int, what: str = "the mesh") -> None:
+        """A tibial cartilage mesh of ``plateaus`` plateaus has enough points and area to carry contact:
+        :data:`MIN_PLATEAU_POINTS` vertices and :data:`MIN_PLATEAU_AREA` each (a one-triangle or
+        truncated mesh failed later with "residual inf")."""
+        area, points = float(mesh.area), len(mesh.vertices)
+        if points < MIN_PLATEAU_POINTS * plateaus or area < MIN_PLATEAU_AREA * plateaus:
+            raise InputError(f"{what} has {len(mesh.faces)} faces, {points} vertices, {area * 1e6:.3g} mm^2: too few "
+                             "to carry contact (a plateau's cartilage is 500-1500 mm^2; contact acts at the vertices, "
+                             f"at least {MIN_PLATEAU_POINTS} and {MIN_PLATEAU_AREA * 1e6:g} mm^2 a plateau): a "
+                             "placeholder, truncated or wrong file, or the wrong unit?", source=self.src, field=fld)
+
+    def check_facing(self, femur: trimesh.Trimesh, tibiae: dict[str, trimesh.Trimesh], offset: float,
+                     fld: str) -> None:
+        """The femoral surface against the tibial cartilage at the reference pose (scan coordinates):
+        its faces nearest the tibia face it (outward normals: an inside-out mesh makes every point
+        penetrate, "residual 867"), and the cartilage lies at most :data:`MAX_REFERENCE_PENETRATION`
+        inside the articular surface (the femoral mesh moved out by ``offset``), measured at points
+        whose nearest femoral point is not on an open edge of the mesh."""
+        points = self.at_reference(np.vstack([m.vertices for m in tibiae.values()]))
+        facing, volume = facing_fraction(femur, points), centroid_volume(femur)
+        if volume < 0 and (facing is None or facing < 0.5):
+            raise InputError(f"the femoral mesh is inside-out: its signed volume is {volume * 1e6:.3g} cm^3"
+                             + (f" and {100 * (1 - facing):.0f} % of its faces nearest the tibia point away from it"
+                                if facing is not None else "") + " (normals into the bone): flip its faces (e.g. "
+                             "trimesh's mesh.invert()) or fix the export", source=self.src, field=fld)
+        depth = reference_penetration(femur, points, offset)
+        if depth > MAX_REFERENCE_PENETRATION:
+            where = "its reference_pose" if "reference_pose" in self.doc else "the tibial meshes' placement"
+            raise InputError(f"the tibial cartilage lies {depth * 1e3:.3g} mm inside the femoral articular surface "
+                             f"at the reference pose (at most {MAX_REFERENCE_PENETRATION * 1e3:g} mm; real scans: 0.3 "
+                             f"mm): check {where}, femur_offset ({offset * 1e3:g} mm) and that both bones are in the "
+                             "same frame and unit", source=self.src, field="contact.tibia")
+
     def check_landmarks(self, raw: dict[str, np.ndarray], tibia: list[np.ndarray]) -> None:
         """Landmarks (scan coordinates, m) against the knee's own size, before any fit uses them: the
         hip and ankle centres :data:`LIMB_REACH` from the knee (the tibial cartilage's centre at the
@@ -574,6 +618,8 @@ class _KneeFile:
         if whole is None and not tibiae:
             raise InputError("no tibial cartilage: give contact.tibia or [contact.medial] and [contact.lateral]",
                              source=src, field="contact")
+        for name, mesh in ({"": whole} if whole is not None else tibiae).items():
+            self.check_plateau(mesh, f"contact.{name}.tibia" if name else "contact.tibia", 2 if not name else 1)
         self.check_landmarks(raw_landmarks, [m.vertices for m in ([whole] if whole is not None else tibiae.values())])
         approx = self.approximate_axes(raw_landmarks)
         if whole is not None:
@@ -583,6 +629,8 @@ class _KneeFile:
             if unknown:
                 raise InputError(f"compartment {sorted(unknown)[0]!r} has no plateau; the split gives medial, lateral",
                                  source=src, field="contact")
+            for name, mesh in tibiae.items():
+                self.check_plateau(mesh, "contact.tibia", 1, f"its {name} plateau")
         # femoral surface and explicit spheres, scan coordinates
         spheres = {}
         for name, table in tables.items():
@@ -608,9 +656,16 @@ class _KneeFile:
             raise InputError(f"compartment {mesh_compartments[0]!r} has neither a femoral mesh (contact.femur) "
                              "nor an explicit sphere (sphere_center, sphere_radius)", source=src, field="contact")
         femur_raw = trimesh.util.concatenate(femur_parts) if femur_parts else None
+        if femur_raw is not None and len(femur_raw.faces) < MIN_FEMUR_FACES:
+            raise InputError(f"the femoral mesh has {len(femur_raw.faces)} faces: too coarse to represent the condyles "
+                             f"(at least {MIN_FEMUR_FACES}; real femoral meshes have 10,000-30,000): a placeholder or "
+                             "over-decimated file?", source=src, field="contact.femur")
         if femur_raw is not None:
             check_bone_order(femur_raw, tibiae, self.at_reference, raw_landmarks.get("hip_center"), approx[1], src)
         offset = self.length(contact, "femur_offset", 0.0, "contact.femur_offset", positive=False)
+        if femur_raw is not None and mesh_compartments:
+            self.check_facing(femur_raw, {n: tibiae[n] for n in mesh_compartments}, offset,
+                              "contact.femur" if "femur" in contact else "contact")
         # condyle split and flexion axis (scan coordinates), then the frame
         axis = split = None
         if femur_raw is not None:
@@ -624,9 +679,11 @@ class _KneeFile:
             # until the axis settles, so the frame does not depend on how the scan was oriented
             hip = raw_landmarks.get("hip_center")
             for _ in range(5):
-                split = split_condyles(femur_raw, med, lat, approx[1])
                 try:
-                    new = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
+                    with warnings.catch_warnings(), np.errstate(all="ignore"):  # a failed fit says why below
+                        warnings.simplefilter("ignore")
+                        split = split_condyles(femur_raw, med, lat, approx[1])
+                        new = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
                 except (ValueError, np.linalg.LinAlgError, TypeError) as exc:
                     raise InputError(f"cannot fit cylinders to the femoral condyles ({exc}; {len(femur_raw.faces)} "
                                      "faces): check that the femoral mesh is in the file's unit (units = "
@@ -877,22 +934,89 @@ def check_bone_order(femur: trimesh.Trimesh, tibiae: dict[str, trimesh.Trimesh],
                          "meshes swapped?", source=src, field="contact.tibia")
 
 
+def centroid_volume(mesh: trimesh.Trimesh) -> float:
+    """Signed volume (m^3) of the cones from the vertex centroid to the faces: the enclosed volume
+    for a closed mesh (negative when inside-out); for an open bone surface, whose centroid lies in
+    the bone, positive with outward normals (21-38 cm^3 for the shipped femoral meshes)."""
+    t = np.asarray(mesh.triangles, float) - np.asarray(mesh.vertices, float).mean(axis=0)
+    return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
+
+
+def facing_fraction(surface: trimesh.Trimesh, points: np.ndarray, reach: float = 0.01) -> float | None:
+    """Of the ``points`` within ``reach`` (m) of a face centre of ``surface``, the fraction whose
+    nearest face's normal points towards them (1 for a surface facing them with outward normals, 0
+    for an inside-out one); None when no point is that near."""
+    centres = np.asarray(surface.triangles_center)
+    dist, face = cKDTree(centres).query(points, 1, distance_upper_bound=reach, workers=-1)
+    ok = np.isfinite(dist)
+    if not ok.any():
+        return None
+    face = face[ok]
+    return float(np.mean(np.einsum("ij,ij->i", surface.face_normals[face], points[ok] - centres[face]) > 0))
+
+
+def reference_penetration(surface: trimesh.Trimesh, points: np.ndarray, offset: float, most: int = 20_000) -> float:
+    """Deepest (m, >= 0) any of ``points`` (at most ``most`` of them, evenly strided) lies inside the
+    surface ``offset`` outside ``surface``, among points whose nearest surface point is not on an
+    open edge (beyond an edge the signed distance is no depth)."""
+    pts = np.asarray(points, float)
+    if len(pts) > most:
+        pts = pts[np.linspace(0, len(pts) - 1, most).round().astype(int)]
+    lo, hi = surface.bounds
+    pts = pts[np.all((pts >= lo - offset - 0.01) & (pts <= hi + offset + 0.01), axis=1)]
+    if not len(pts):
+        return 0.0
+    d, closest, _ = MeshDistance(surface)(pts, certify=False)
+    inner = OpenEdges(surface).distance(closest) > 1e-9
+    d = d[inner] - offset
+    return float(max(0.0, -d.min())) if d.size else 0.0
+
+
+def check_stl(path: Path, knee_file: str, field: str) -> None:
+    """A binary STL's size against the triangle count in its header (84 + 50 bytes a triangle): a
+    truncated or padded file is named as such (trimesh would try it as ASCII and fail obscurely)."""
+    if path.suffix.lower() != ".stl":
+        return
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        head = f.read(84)
+    if head[:5].lower() == b"solid" and b"\0" not in head[:80]:
+        return  # ASCII STL (a binary one may start with "solid" too, but its header is padded with NULs)
+    if size < 84:
+        raise InputError(f"mesh {path.name} is truncated: {size} bytes, less than a binary STL's 84-byte header",
+                         source=knee_file, field=field)
+    n = int.from_bytes(head[80:84], "little")
+    if size < 84 + 50 * n:
+        raise InputError(f"mesh {path.name} is truncated: its header announces {n} triangles ({84 + 50 * n} bytes), "
+                         f"the file has {size} bytes (an interrupted copy or export?)", source=knee_file, field=field)
+
+
 def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_file: str) -> trimesh.Trimesh:
     """Load a mesh with trimesh, validate it and convert it to metres (mirrored for a left knee)."""
     if not path.is_file():
         raise InputError(f"mesh file not found: {path}", source=knee_file, field=field)
+    check_stl(path, knee_file, field)
     try:
         mesh = trimesh.load(path, force="mesh", process=False)  # unprocessed: processing drops NaN vertices
+    except ImportError:  # trimesh's fallback for an unreadable file wants optional modules
+        raise InputError(f"cannot read mesh {path.name}: not a valid {path.suffix.lstrip('.').upper()} file "
+                         "(corrupt or truncated?)", source=knee_file, field=field) from None
     except Exception as exc:  # trimesh raises many exception types for broken files
         raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {' '.join(str(exc).split())})",
                          source=knee_file, field=field) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError(f"mesh {path.name} has no triangles", source=knee_file, field=field)
+        raise InputError(f"mesh {path.name} has no triangles (empty, truncated or not a mesh?)", source=knee_file,
+                         field=field)
     bad = ~np.isfinite(np.asarray(mesh.vertices, float)).all(axis=1)
     if bad.any():
         raise InputError(f"mesh {path.name} has {int(bad.sum())} non-finite vertices (NaN or inf; the first: "
                          f"vertex {int(np.argmax(bad))})", source=knee_file, field=field)
     mesh.process(validate=False)  # as trimesh.load(process=True): merge duplicate vertices
+    area = np.asarray(mesh.area_faces)
+    flat = area <= 1e-12 * max(float(np.ptp(mesh.vertices, axis=0).max()) ** 2, 1e-300)
+    if flat.mean() > 0.5:
+        raise InputError(f"mesh {path.name}: {int(flat.sum())} of {len(flat)} faces are degenerate (zero area: "
+                         "repeated or collinear vertices); a broken export?", source=knee_file, field=field)
     mesh = mesh.copy()
     mesh.vertices = np.asarray(mesh.vertices, float) * scale * mirror
     if mirror[2] < 0:
