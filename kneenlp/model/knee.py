@@ -977,9 +977,13 @@ def check_stl(path: Path, knee_file: str, field: str) -> None:
     truncated or padded file is named as such (trimesh would try it as ASCII and fail obscurely)."""
     if path.suffix.lower() != ".stl":
         return
-    size = path.stat().st_size
-    with path.open("rb") as f:
-        head = f.read(84)
+    try:
+        size = path.stat().st_size
+        with path.open("rb") as f:
+            head = f.read(84)
+    except OSError as exc:
+        raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {exc.strerror or exc})",
+                         source=knee_file, field=field) from None
     if head[:5].lower() == b"solid" and b"\0" not in head[:80]:
         return  # ASCII STL (a binary one may start with "solid" too, but its header is padded with NULs)
     if size < 84:
