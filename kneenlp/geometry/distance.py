@@ -42,7 +42,10 @@ def _pseudo_normals(mesh: trimesh.Trimesh, tris: np.ndarray, face: np.ndarray, c
         b = np.clip(bary[edge], 0, None)
         b /= b.sum(axis=1, keepdims=True)
         blend = np.einsum("ij,ijk->ik", b, mesh.vertex_normals[mesh.faces[face[edge]]])
-        normal[edge] = blend / np.linalg.norm(blend, axis=1, keepdims=True)
+        length = np.linalg.norm(blend, axis=1)
+        ok = length > 1e-12  # opposed vertex normals (a fold) blend to nothing: keep the face normal there
+        rows = np.flatnonzero(edge)[ok]
+        normal[rows] = blend[ok] / length[ok, None]
     return normal
 
 

@@ -33,6 +33,14 @@ from scipy.spatial import cKDTree
 from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
+from kneenlp.geometry.decimate import (
+    FEMUR_RESOLUTION,
+    MAX_MESH_FACES,
+    MAX_READ_FACES,
+    MAX_TEXT_MESH_BYTES,
+    decimate,
+    read_binary_stl,
+)
 from kneenlp.geometry.distance import MeshDistance, winding_number
 from kneenlp.geometry.rim import OpenEdges
 from kneenlp.geometry.sdf import DistanceField
@@ -358,9 +366,18 @@ class _KneeFile:
         """A mesh named in the file, in scan coordinates (m, mirrored for a left knee), its size
         checked against :data:`KNEE_SIZE_RANGE` on its own (one mesh in the other unit is caught
         before any work, not only when the knee's overall size is)."""
+        contact = self.doc.get("contact", {})
+        spacing = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing") \
+            if isinstance(contact, dict) else 0.5e-3
+        # the tibia's vertices are its contact points (at the grid spacing); the femur enters through
+        # the distance field, which needs no facets finer than two grid cells (the default femur: 0.87 mm)
+        resolution = spacing * (FEMUR_RESOLUTION if fld.endswith("femur") else 1.0)
         mesh = read_mesh(mesh_path(self.path.parent, value, self.src, fld), self.scale, self.mirror,
                          field=fld, knee_file=self.src)
         self.check_extent(mesh.vertices, str(value), fld)
+        mesh, note = decimate(mesh, resolution)
+        if note:
+            self.notes.append(f"{fld} ({value}): {note}")
         return mesh
 
     def point(self, value: object, fld: str) -> np.ndarray:
@@ -972,11 +989,12 @@ def reference_penetration(surface: trimesh.Trimesh, points: np.ndarray, offset: 
     return float(max(0.0, -d.min())) if d.size else 0.0
 
 
-def check_stl(path: Path, knee_file: str, field: str) -> None:
+def check_stl(path: Path, knee_file: str, field: str) -> int:
     """A binary STL's size against the triangle count in its header (84 + 50 bytes a triangle): a
-    truncated or padded file is named as such (trimesh would try it as ASCII and fail obscurely)."""
+    truncated file is named as such (trimesh would try it as ASCII and fail obscurely).  Returns the
+    count (0 for another format or an ASCII STL)."""
     if path.suffix.lower() != ".stl":
-        return
+        return 0
     try:
         size = path.stat().st_size
         with path.open("rb") as f:
@@ -985,21 +1003,37 @@ def check_stl(path: Path, knee_file: str, field: str) -> None:
         raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {exc.strerror or exc})",
                          source=knee_file, field=field) from None
     if head[:5].lower() == b"solid" and b"\0" not in head[:80]:
-        return  # ASCII STL (a binary one may start with "solid" too, but its header is padded with NULs)
+        return 0  # ASCII STL (a binary one may start with "solid" too, but its header is padded with NULs)
     if size < 84:
         raise InputError(f"mesh {path.name} is truncated: {size} bytes, less than a binary STL's 84-byte header",
                          source=knee_file, field=field)
     n = int.from_bytes(head[80:84], "little")
+    if n > MAX_READ_FACES:
+        raise InputError(f"mesh {path.name} announces {n:,} triangles, more than the {MAX_READ_FACES:,} a knee reads "
+                         "(meshes are decimated to the contact resolution anyway): decimate it before",
+                         source=knee_file, field=field)
     if size < 84 + 50 * n:
         raise InputError(f"mesh {path.name} is truncated: its header announces {n} triangles ({84 + 50 * n} bytes), "
                          f"the file has {size} bytes (an interrupted copy or export?)", source=knee_file, field=field)
+    return n
 
 
 def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_file: str) -> trimesh.Trimesh:
-    """Load a mesh with trimesh, validate it and convert it to metres (mirrored for a left knee)."""
+    """Load a mesh, validate it and convert it to metres (mirrored for a left knee).  A binary STL
+    of more than :data:`~kneenlp.geometry.decimate.MAX_MESH_FACES` faces is read by a lean reader,
+    to be decimated by the caller (:func:`~kneenlp.geometry.decimate.decimate`)."""
     if not path.is_file():
         raise InputError(f"mesh file not found: {path}", source=knee_file, field=field)
-    check_stl(path, knee_file, field)
+    binary_faces = check_stl(path, knee_file, field)
+    if binary_faces > MAX_MESH_FACES:  # a lean reader (trimesh's takes 1.9 GB for 2 M faces)
+        mesh = trimesh.Trimesh(*read_binary_stl(path, binary_faces), process=False)
+        mesh.metadata["faces_read"] = binary_faces
+        return _checked_mesh(mesh, path, scale, mirror, knee_file, field, merge=False)
+    size = path.stat().st_size
+    if size > MAX_TEXT_MESH_BYTES:
+        raise InputError(f"mesh {path.name} is {size / 1e6:.0f} MB, more than the {MAX_TEXT_MESH_BYTES / 1e6:.0f} "
+                         "MB read in this format (a knee load stays below 2 GB): save it as binary STL, or decimate it",
+                         source=knee_file, field=field)
     try:
         mesh = trimesh.load(path, force="mesh", process=False)  # unprocessed: processing drops NaN vertices
     except ImportError:  # trimesh's fallback for an unreadable file wants optional modules
@@ -1008,6 +1042,12 @@ def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_
     except Exception as exc:  # trimesh raises many exception types for broken files
         raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {' '.join(str(exc).split())})",
                          source=knee_file, field=field) from None
+    return _checked_mesh(mesh, path, scale, mirror, knee_file, field)
+
+
+def _checked_mesh(mesh: object, path: Path, scale: float, mirror: np.ndarray, knee_file: str, field: str,
+                  merge: bool = True) -> trimesh.Trimesh:
+    """:func:`read_mesh`'s checks and conversion of a mesh as read (``merge``: merge duplicate vertices)."""
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(f"mesh {path.name} has no triangles (empty, truncated or not a mesh?)", source=knee_file,
                          field=field)
@@ -1015,7 +1055,8 @@ def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_
     if bad.any():
         raise InputError(f"mesh {path.name} has {int(bad.sum())} non-finite vertices (NaN or inf; the first: "
                          f"vertex {int(np.argmax(bad))})", source=knee_file, field=field)
-    mesh.process(validate=False)  # as trimesh.load(process=True): merge duplicate vertices
+    if merge:
+        mesh.process(validate=False)  # as trimesh.load(process=True): merge duplicate vertices
     area = np.asarray(mesh.area_faces)
     flat = area <= 1e-12 * max(float(np.ptp(mesh.vertices, axis=0).max()) ** 2, 1e-300)
     if flat.mean() > 0.5:
