@@ -455,3 +455,25 @@ def test_truncated_binary_stl(knee_copy, capsys):
     code, err = run_cli(capsys, "simulate", "--knee", str(knee_copy), "--protocol", "set1", "--no-plots")
     assert code == 2 and "contact.medial.tibia: mesh tibia_medial.stl is truncated" in err
     assert f"the file has {len(data) // 2} bytes" in err and "\n" not in err
+
+
+def test_huge_study_refused_early(tmp_path, capsys):
+    """study --samples 1000000 (issue 24: no early message): refused at once with its estimated time
+    and disk, naming --samples and --yes; nothing written.  The estimate scales with the study."""
+    import argparse
+
+    from kneenlp.cli import _study_size
+
+    out = tmp_path / "st"
+    code, err = run_cli(capsys, "study", "--knee", "synthetic", "--samples", "1000000", "--workers", "2",
+                        "--out", str(out))
+    assert code == 2 and "--samples: 4 sets x 1,000,000 samples = 4,000,000 fits" in err and "--yes" in err
+    assert "sample files (16.4 GB)" in err and "\n" not in err and not out.exists()
+    args = argparse.Namespace(sets=["set1"], samples=100, workers=1, scheduler=None, dask=False, knee="synthetic",
+                              yes=False)
+    small = _study_size(args)
+    assert "100 fits: about 5 min on 1 worker" in small
+    args.knee = "default"
+    assert "about 1.67 h on 1 worker (~60 s a fit on a mesh knee)" in _study_size(args)
+    args.samples, args.yes = 20_000, True
+    assert "20,000 fits" in _study_size(args)
