@@ -48,8 +48,10 @@ try:
 except InputError as exc:
     print(json.dumps({"error": str(exc), "seconds": time.perf_counter() - t1}))
     sys.exit(0)
-out = {"seconds": time.perf_counter() - t1, "import_seconds": t1 - t0,
-       "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+# this process's peak resident memory (VmHWM; ru_maxrss would keep the parent's across fork and exec)
+hwm = [line for line in open("/proc/self/status") if line.startswith("VmHWM")]
+peak = int(hwm[0].split()[1]) / 1e6 if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+out = {"seconds": time.perf_counter() - t1, "import_seconds": t1 - t0, "peak_rss_gb": peak,
        "femur_faces": len(knee.femur.mesh.faces),
        "tibia_faces": sum(len(c.tibia_mesh.faces) for c in knee.compartments.values()),
        "tibia_points": sum(len(c.points) for c in knee.compartments.values()),

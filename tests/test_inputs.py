@@ -477,3 +477,42 @@ def test_huge_study_refused_early(tmp_path, capsys):
     assert "about 1.67 h on 1 worker (~60 s a fit on a mesh knee)" in _study_size(args)
     args.samples, args.yes = 20_000, True
     assert "20,000 fits" in _study_size(args)
+
+
+def test_fine_mesh_decimated_to_the_contact_resolution(tmp_path, monkeypatch):
+    """The decimation path on a moderately large mesh: the implant's femoral component subdivided
+    once (46,816 faces) with the limit lowered to 20,000 is read by the lean binary reader (the same
+    triangles as trimesh's), decimated below the limit within 20 um of the surface, and the knee
+    report says so; above the read limit the file is refused unread, naming it."""
+    import numpy as np
+    import trimesh
+
+    import kneenlp.geometry.decimate as dec
+    import kneenlp.model.knee as knee_module
+    from kneenlp.geometry.distance import MeshDistance
+
+    src = knee_file("implant").parent
+    shutil.copytree(src, tmp_path / "implant")
+    text = (src / "knee.toml").read_text().replace("../../parameters/table1.toml",
+                                                   str(src.parent.parent / "parameters" / "table1.toml"))
+    (tmp_path / "implant" / "knee.toml").write_text(text)
+    original = trimesh.load(src / "meshes" / "femur_component.stl")
+    fine = original.subdivide()
+    path = tmp_path / "implant" / "meshes" / "femur_component.stl"
+    fine.export(path)
+    vertices, faces = dec.read_binary_stl(path, len(fine.faces))
+    assert len(faces) == 46816 and np.allclose(np.sort(vertices[faces].reshape(-1, 9), axis=0),
+                                               np.sort(np.asarray(fine.triangles, np.float32).reshape(-1, 9),
+                                                       axis=0))
+    monkeypatch.setattr(dec, "MAX_MESH_FACES", 20_000)
+    monkeypatch.setattr(knee_module, "MAX_MESH_FACES", 20_000)
+    knee = Knee.load(tmp_path / "implant" / "knee.toml")
+    femur = knee.femur.mesh
+    assert len(femur.faces) <= 20_000
+    assert "contact.femur (meshes/femur_component.stl): 46,816 faces decimated to" in "\n".join(knee.notes)
+    gap = np.abs(MeshDistance(original)(femur.vertices * 1e3)[0])  # the knee is in m, the file in mm
+    assert gap.max() < 0.02, gap.max()
+    monkeypatch.setattr(knee_module, "MAX_READ_FACES", 40_000)
+    with pytest.raises(InputError, match="announces 46,816 triangles, more than the 40,000") as err:
+        Knee.load(tmp_path / "implant" / "knee.toml")
+    assert err.value.field == "contact.femur"

@@ -31,6 +31,9 @@ MAX_READ_FACES = 2_500_000
 #: A femoral mesh's contact resolution in grid spacings (its facets are seen through the distance
 #: field's cubic spline); a tibial mesh's is one grid spacing (its vertices are the contact points).
 FEMUR_RESOLUTION = 2.0
+#: A first, careful decimation leaving more than this many times the target faces is followed by a
+#: second, coarser one to the target.
+SECOND_PASS = 2.0
 #: Largest mesh file read in another format than binary STL (ASCII STL: about 250 bytes a face).
 MAX_TEXT_MESH_BYTES = 100e6
 #: Area (in units of the resolution squared) of an equilateral triangle with edges of it.
@@ -75,8 +78,12 @@ def decimate(mesh: trimesh.Trimesh, resolution: float) -> tuple[trimesh.Trimesh,
     if len(mesh.faces) > target:
         from fast_simplification import simplify
 
+        # the most careful collapses first (agg 0 stops where the surface would move: on a smooth mesh
+        # within 0.2 um on average, 10 um at most), then, if that left too many faces, coarser ones
         vertices, faces = simplify(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64),
-                                   target_count=target, agg=7.0)
+                                   target_count=target, agg=0.0)
+        if len(faces) > SECOND_PASS * target:
+            vertices, faces = simplify(vertices, faces, target_count=target, agg=1.0)
         out = trimesh.Trimesh(vertices, faces, process=True)
         out.update_faces(out.nondegenerate_faces())  # collapses can leave slivers of zero area
         out.remove_unreferenced_vertices()
