@@ -42,7 +42,7 @@ PARAMETERS = SHIPPED.parent / "parameters" / "table1.toml"
 SECONDS_PER_CASE = 30.0
 BYTES_PER_CASE = 2e9
 DEEP = os.environ.get("KNEENLP_FUZZ_EXAMPLES")
-EXAMPLES = int(DEEP or 12)
+EXAMPLES = int(DEEP or 30)
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=not DEEP,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 

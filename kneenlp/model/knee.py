@@ -899,7 +899,7 @@ class _KneeFile:
             if not isinstance(name, str) or not name.strip():
                 raise InputError(f"expected a parameter file name, got {name!r}", source=src, field="parameters")
             path = self.path.parent / name
-            if not path.is_file():
+            if not is_file(path):
                 raise InputError(f"parameter file {name!r} not found ({path})", source=src, field="parameters")
             params = ParameterSet.load(path)
         else:
@@ -989,6 +989,14 @@ def reference_penetration(surface: trimesh.Trimesh, points: np.ndarray, offset: 
     return float(max(0.0, -d.min())) if d.size else 0.0
 
 
+def is_file(path: Path) -> bool:
+    """``path.is_file()``, False for a name the system cannot look up (too long, an invalid byte)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def check_stl(path: Path, knee_file: str, field: str) -> int:
     """A binary STL's size against the triangle count in its header (84 + 50 bytes a triangle): a
     truncated file is named as such (trimesh would try it as ASCII and fail obscurely).  Returns the
@@ -1022,7 +1030,7 @@ def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_
     """Load a mesh, validate it and convert it to metres (mirrored for a left knee).  A binary STL
     of more than :data:`~kneenlp.geometry.decimate.MAX_MESH_FACES` faces is read by a lean reader,
     to be decimated by the caller (:func:`~kneenlp.geometry.decimate.decimate`)."""
-    if not path.is_file():
+    if not is_file(path):
         raise InputError(f"mesh file not found: {path}", source=knee_file, field=field)
     binary_faces = check_stl(path, knee_file, field)
     if binary_faces > MAX_MESH_FACES:  # a lean reader (trimesh's takes 1.9 GB for 2 M faces)
