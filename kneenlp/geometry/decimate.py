@@ -6,9 +6,11 @@ shipped meshes have 8,600-22,300 faces with edges of 0.4-0.9 mm.  A segmentation
 of faces (a 2-million-face femur ran for 300 s in 4.5 GB before it was stopped), nearly all of them
 finer than the contact resolves.  A mesh of more than :data:`MAX_MESH_FACES` faces is therefore
 decimated (quadric error metric edge collapses, ``fast-simplification``) to the face count of
-equilateral triangles with edges of its contact resolution (:func:`resolution_faces`: the grid
-spacing for a tibial mesh, :data:`FEMUR_RESOLUTION` of them for a femoral one), at most
-:data:`MAX_MESH_FACES`; the knee report says so.  A binary STL that large is read by a lean reader
+equilateral triangles with edges of the contact resolution, the grid spacing
+(:func:`resolution_faces`), at most :data:`MAX_MESH_FACES`; the knee report says so.  The most
+careful collapses come first (``agg = 0``, which stops where the surface would move: 0.2 um on
+average on the subdivided default femur), coarser ones only if those leave more than
+:data:`SECOND_PASS` times the target.  A binary STL that large is read by a lean reader
 (:func:`read_binary_stl`).  A mesh file of more than :data:`MAX_READ_FACES` faces (or, in another
 format than binary STL, of more than :data:`MAX_TEXT_MESH_BYTES`) is refused unread: reading and
 decimating it would pass the 2 GB bound of a knee load.  The measured effect on contact force and
@@ -28,9 +30,6 @@ MAX_MESH_FACES = 200_000
 #: Faces above which a mesh file is refused unread (binary STL: 50 bytes a face, 125 MB): reading
 #: and decimating a mesh takes about 700 bytes a face (1.7 GB peak for 2.2 million faces).
 MAX_READ_FACES = 2_500_000
-#: A femoral mesh's contact resolution in grid spacings (its facets are seen through the distance
-#: field's cubic spline); a tibial mesh's is one grid spacing (its vertices are the contact points).
-FEMUR_RESOLUTION = 2.0
 #: A first, careful decimation leaving more than this many times the target faces is followed by a
 #: second, coarser one to the target.
 SECOND_PASS = 2.0

@@ -34,7 +34,6 @@ from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_f
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
 from kneenlp.geometry.decimate import (
-    FEMUR_RESOLUTION,
     MAX_MESH_FACES,
     MAX_READ_FACES,
     MAX_TEXT_MESH_BYTES,
@@ -367,11 +366,10 @@ class _KneeFile:
         checked against :data:`KNEE_SIZE_RANGE` on its own (one mesh in the other unit is caught
         before any work, not only when the knee's overall size is)."""
         contact = self.doc.get("contact", {})
-        spacing = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing") \
+        # the contact resolution: the distance field's grid (a femur decimated to twice it changed the
+        # contact force by up to 3 %, to it by less than 1 %: benchmarks/bench_decimation.py)
+        resolution = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing") \
             if isinstance(contact, dict) else 0.5e-3
-        # the tibia's vertices are its contact points (at the grid spacing); the femur enters through
-        # the distance field, which needs no facets finer than two grid cells (the default femur: 0.87 mm)
-        resolution = spacing * (FEMUR_RESOLUTION if fld.endswith("femur") else 1.0)
         mesh = read_mesh(mesh_path(self.path.parent, value, self.src, fld), self.scale, self.mirror,
                          field=fld, knee_file=self.src)
         self.check_extent(mesh.vertices, str(value), fld)
