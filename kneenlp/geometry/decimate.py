@@ -61,7 +61,8 @@ def read_binary_stl(path: Path, faces: int) -> tuple[np.ndarray, np.ndarray]:
 
 def resolution_faces(mesh: trimesh.Trimesh, resolution: float) -> int:
     """Faces of ``mesh``'s surface in equilateral triangles of edge ``resolution`` (mesh unit)."""
-    return math.ceil(float(mesh.area) / (_EQUILATERAL * resolution**2))
+    area = float(mesh.metadata.get("area", mesh.area))  # as read (read_mesh keeps it)
+    return math.ceil(area / (_EQUILATERAL * resolution**2))
 
 
 def decimate(mesh: trimesh.Trimesh, resolution: float) -> tuple[trimesh.Trimesh, str | None]:

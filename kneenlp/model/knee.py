@@ -1068,8 +1068,10 @@ def _checked_mesh(mesh: object, path: Path, scale: float, mirror: np.ndarray, kn
     if flat.mean() > 0.5:
         raise InputError(f"mesh {path.name}: {int(flat.sum())} of {len(flat)} faces are degenerate (zero area: "
                          "repeated or collinear vertices); a broken export?", source=knee_file, field=field)
+    total = float(area.sum()) * scale**2  # kept: the decimation needs it, and a large mesh's areas cost seconds
     mesh = mesh.copy()
     mesh.vertices = np.asarray(mesh.vertices, float) * scale * mirror
+    mesh.metadata["area"] = total
     if mirror[2] < 0:
         mesh.invert()  # keep the face orientation after mirroring
     return mesh
