@@ -516,3 +516,17 @@ def test_fine_mesh_decimated_to_the_contact_resolution(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="announces 46,816 triangles, more than the 40,000") as err:
         Knee.load(tmp_path / "implant" / "knee.toml")
     assert err.value.field == "contact.femur"
+
+
+def test_landmarks_of_the_users_own_and_the_hip_in_metres(knee_copy):
+    """A landmark of the user's own name is kept wherever it lies on the limb (not held to the knee's
+    150 mm); the hip centre written in m in a mm knee is named as that unit slip."""
+    text = knee_copy.read_text()
+    anchor = "hip_center = [0.0, 420.0, 0.0]"
+    assert anchor in text
+    knee_copy.write_text(text.replace(anchor, anchor + "\nfemoral_head_marker = [10.0, 400.0, -30.0]"))
+    assert "femoral_head_marker" in Knee.load(knee_copy).landmarks
+    knee_copy.write_text(text.replace(anchor, "hip_center = [0.0, 0.42, 0.0]"))
+    with pytest.raises(InputError, match=re.escape("a point in m with units = 'mm'?")) as err:
+        Knee.load(knee_copy)
+    assert err.value.field == "landmarks.hip_center"

@@ -93,7 +93,10 @@ LIMB_LANDMARKS = ("hip_center", "ankle_center")
 LIMB_REACH = (0.15, 1.0)
 #: Least angle (deg) between the knee-to-hip line and the fitted flexion axis (about 90 in a femur).
 HIP_AXIS_ANGLE = 45.0
-#: Furthest (m) any other landmark (epicondyles, tuberosity, plateau edges) lies from the knee.
+#: The landmarks kneenlp knows at the knee (any other name is the user's own and only kept).
+KNEE_LANDMARKS = ("medial_epicondyle", "lateral_epicondyle", "tibial_tuberosity", "medial_plateau_edge",
+                  "lateral_plateau_edge")
+#: Furthest (m) any of them (epicondyles, tuberosity, plateau edges) lies from the knee.
 KNEE_REACH = 0.15
 #: A point (attachment or landmark) this close to the femoral frame's origin (m) in a millimetre
 #: file is a point written in metres (the origin lies between the condyles, no attachment there).
@@ -480,8 +483,9 @@ class _KneeFile:
     def check_landmarks(self, raw: dict[str, np.ndarray], tibia: list[np.ndarray]) -> None:
         """Landmarks (scan coordinates, m) against the knee's own size, before any fit uses them: the
         hip and ankle centres :data:`LIMB_REACH` from the knee (the tibial cartilage's centre at the
-        reference pose), every other landmark within :data:`KNEE_REACH` of it and, in a femoral-frame
-        file, not within :data:`NEAR_ORIGIN` of the origin (a point in metres in a millimetre file);
+        reference pose), the :data:`KNEE_LANDMARKS` within :data:`KNEE_REACH` of it (a landmark of the
+        user's own within the limb's reach) and, in a femoral-frame file, none of those within
+        :data:`NEAR_ORIGIN` of the origin (a point in metres in a millimetre file);
         a knee in scan coordinates needs ``hip_center``: nothing else gives the femur's long axis."""
         if self.coordinates == "scan" and "hip_center" not in raw:
             raise InputError("a knee in scan coordinates needs the hip centre (the femoral Y axis points to it; the "
@@ -491,9 +495,14 @@ class _KneeFile:
         centre = self.at_reference(np.vstack(tibia)).mean(axis=0)
         for name, point in raw.items():
             fld = f"landmarks.{name}"
+            if self.coordinates == "femoral" and self.units == "mm" and np.linalg.norm(point) < NEAR_ORIGIN \
+                    and name in (*LIMB_LANDMARKS, *KNEE_LANDMARKS):
+                raise InputError(f"{np.linalg.norm(point) * 1e3:.3g} mm from the origin of the femoral frame: a "
+                                 "point in m with units = 'mm'?", source=self.src, field=fld)
             here = self.at_reference(point) if name not in FEMORAL_LANDMARKS else point
             dist = float(np.linalg.norm(here - centre))
-            lo, hi = LIMB_REACH if name in LIMB_LANDMARKS else (0.0, KNEE_REACH)
+            lo, hi = LIMB_REACH if name in LIMB_LANDMARKS else (0.0, KNEE_REACH) if name in KNEE_LANDMARKS \
+                else (0.0, LIMB_REACH[1])  # a landmark of the user's own: anywhere on the limb
             if dist < lo:
                 raise InputError(f"{dist * 1e3:.3g} mm from the knee (the tibial cartilage's centre), less than "
                                  f"{lo * 1e3:g} mm: the {name.replace('_', ' ')} at the knee? (a point of the knee "
@@ -503,9 +512,6 @@ class _KneeFile:
                 raise InputError(f"{dist * 1e3:.4g} mm from the knee (the tibial cartilage's centre), more than "
                                  f"{hi * 1e3:g} mm: a typo, or a point in {other} with units = {self.units!r}?",
                                  source=self.src, field=fld)
-            if self.coordinates == "femoral" and self.units == "mm" and np.linalg.norm(point) < NEAR_ORIGIN:
-                raise InputError(f"{np.linalg.norm(point) * 1e3:.3g} mm from the origin of the femoral frame: a "
-                                 "point in m with units = 'mm'?", source=self.src, field=fld)
 
     def check_size(self, compartments: dict[str, Compartment]) -> None:
         """The knee's size against :data:`KNEE_SIZE_RANGE`: a unit slip names the likely cause."""
