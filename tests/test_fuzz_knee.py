@@ -2,7 +2,8 @@
 
 Hand-made cases (every knee-file slip of issue 24) run the command line in this process on copies
 of two shipped mesh knees: the implant knee (millimetres, femoral frame) and the default knee
-(metres, scan coordinates, the Lenhart meshes beside it).  Each must exit 2 with one stderr line
+(metres, scan coordinates, the Lenhart meshes beside it); the mutations also take the synthetic
+knee (explicit spheres).  Each must exit 2 with one stderr line
 naming the knee file (or the option) and the field, the JSON error object on stdout with ``--json``,
 and nothing written to ``--out``.  Hypothesis then mutates the shipped knee files as a user would
 slip: a field deleted, a number scaled by 1e-3 or 1e3 (a unit slip), two strings swapped, a mesh
@@ -54,6 +55,9 @@ def base(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("kneefuzz")
     shutil.copy(PARAMETERS, d / "table1.toml")
     shutil.copytree(SHIPPED / "implant", d / "implant")
+    shutil.copytree(SHIPPED / "synthetic", d / "synthetic")
+    text = (d / "synthetic" / "knee.toml").read_text()
+    (d / "synthetic" / "knee.toml").write_text(text.replace("../../parameters/table1.toml", "../table1.toml"))
     (d / "default").mkdir()
     shutil.copy(LENHART / "lenhart2015-R-femur-subchondral-bone.stl", d / "default" / "femur.stl")
     shutil.copy(LENHART / "lenhart2015-R-tibia-cartilage.stl", d / "default" / "tibia.stl")
@@ -266,7 +270,8 @@ def dumps(doc: dict, prefix: str = "") -> str:
     return "\n".join(lines)
 
 
-MESHES = {"implant": ["meshes/femur_component.stl", "meshes/inlay.stl"], "default": ["femur.stl", "tibia.stl"]}
+MESHES = {"implant": ["meshes/femur_component.stl", "meshes/inlay.stl"], "default": ["femur.stl", "tibia.stl"],
+          "synthetic": ["meshes/tibia_medial.stl", "meshes/tibia_lateral.stl"]}
 
 
 def mutate(doc: dict, d: Path, knee: str, data) -> str:
@@ -294,9 +299,9 @@ def mutate(doc: dict, d: Path, knee: str, data) -> str:
         get(doc, a[:-1])[a[-1]], get(doc, b[:-1])[b[-1]] = vb, va
         return f"{kind} {a} {b}"
     elif kind == "swap-meshes":
-        other = data.draw(st.sampled_from([*MESHES["implant"], *MESHES["default"]]))
+        owner, other = data.draw(st.sampled_from([(k, m) for k, ms in MESHES.items() for m in ms]))
         own = data.draw(st.sampled_from(MESHES[knee]))
-        source = d.parent / ("implant" if other in MESHES["implant"] else "default") / other
+        source = d.parent / owner / other
         if source != d / own:
             shutil.copy(source, d / own)
         return f"{kind} {own} <- {other}"
@@ -315,7 +320,7 @@ def mutate(doc: dict, d: Path, knee: str, data) -> str:
 def test_mutated_shipped_knees_load_or_say_why(base: Path, tmp_path_factory, data):
     """A shipped knee with one slip loads, or raises a one-line input error naming its file; never
     another exception, within the time and memory limits of a case."""
-    knee = data.draw(st.sampled_from(["implant", "default"]))
+    knee = data.draw(st.sampled_from(["implant", "default", "synthetic"]))
     d = tmp_path_factory.mktemp("mutant")
     shutil.copytree(base, d, dirs_exist_ok=True)
     path = d / knee / "knee.toml"
