@@ -321,9 +321,46 @@ def cmd_compare_methods(args) -> int:
     return 0 if all(f.success for f in fits) else 1
 
 
+#: Fits (sets x samples) a study runs without --yes; the paper's study has 4 x 1000.
+MAX_STUDY_FITS = 10_000
+#: Seconds a study fit takes on one core, as estimated before a study (measured: 1.7-5.4 s on the
+#: synthetic knee; a mesh knee's fit solves its trials with mesh contact: about a minute).
+SECONDS_PER_FIT = {"spheres": 3.0, "mesh": 60.0}
+#: Disk a sample file takes (a 0.6 kB JSON file in a 4 kB block).
+BYTES_PER_SAMPLE = 4096
+
+
+def _study_size(args) -> str:
+    """The study's size in fits, time and disk (estimated from :data:`SECONDS_PER_FIT` and
+    :data:`BYTES_PER_SAMPLE`); an input error naming ``--samples`` beyond :data:`MAX_STUDY_FITS`
+    fits without ``--yes``, before any work (issue 24: ``--samples 1000000`` gave no early message)."""
+    from kneenlp.model.knee import resolve_knee
+    from kneenlp.model.parameters import read_toml
+
+    fits = len(args.sets) * args.samples
+    workers = args.workers or (1 if args.scheduler or args.dask else os.cpu_count() or 1)
+    contact = read_toml(resolve_knee(args.knee or "default")).get("contact", {})
+    mesh = isinstance(contact, dict) and ("femur" in contact or any(isinstance(t, dict) and "femur" in t
+                                                                    for t in contact.values()))
+    seconds = fits * SECONDS_PER_FIT["mesh" if mesh else "spheres"] / workers
+    span = f"{seconds / 3600:,.3g} h" if seconds < 36000 else f"{seconds / 3600:,.0f} h"
+    if seconds < 3600:
+        span = f"{seconds / 60:.2g} min"
+    text = (f"{len(args.sets)} sets x {args.samples:,} samples = {fits:,} fits: about {span} on {workers} "
+            f"worker{'s' if workers > 1 else ''} (~{SECONDS_PER_FIT['mesh' if mesh else 'spheres']:g} s a fit on "
+            f"{'a mesh' if mesh else 'this'} knee) and {fits:,} sample files ({fits * BYTES_PER_SAMPLE / 1e9:.3g} GB)")
+    if fits > MAX_STUDY_FITS and not args.yes:
+        raise InputError(f"{text}; more than {MAX_STUDY_FITS:,} fits needs --yes (a Monte Carlo's standard error falls "
+                         "as 1/sqrt(samples): 100-1000 samples a set are usually enough)", field="--samples")
+    return text
+
+
 def cmd_study(args) -> int:
     from kneenlp.studies.study import StudySpec, run_study
 
+    size = _study_size(args)
+    if args.samples * len(args.sets) > MAX_STUDY_FITS:
+        print(f"kneenlp: note: {size}", file=sys.stderr)
     spec = StudySpec(sets=tuple(args.sets), samples=args.samples, noise=args.noise, seed=args.seed,
                      method=args.method, knee=_knee_reference(args.knee),
                      free=tuple(args.free) if args.free else None,
@@ -612,6 +649,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dask", action="store_true", help="run on a local Dask cluster")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.add_argument("--yes", action="store_true",
+                   help=f"run a study of more than {MAX_STUDY_FITS:,} fits (sets x samples) after its estimate")
     p.set_defaults(func=cmd_study, validate=True, out_kind="dir")
 
     p = sub.add_parser("export", help="write the identification NLP for other solvers (.nl, CasADi, C)")

@@ -307,3 +307,226 @@ def test_flexion_beyond_the_represented_surface(tmp_path, capsys):
     with pytest.raises(InputError, match="115 deg flexion") as err:
         identify(Knee.default(), read_measured(csv))
     assert err.value.field == "flexion"
+
+
+@pytest.mark.parametrize("depth_mm, inside", [(8.0, True), (1.0, False)])
+def test_attachment_inside_bone(default_copy, depth_mm, inside):
+    """A femoral attachment moved into the femur, ``depth_mm`` above its most distal articular point
+    (issue 24: accepted silently): deeper than the tolerance it is one line naming the field and the
+    mesh; 1 mm inside (as real attachments on a segmented surface may lie) it is accepted."""
+    import numpy as np
+    import trimesh
+
+    src, dst = default_copy
+    femur = trimesh.load(src.parent.parent / "lenhart2015" / "opensim" / "lenhart2015-R-femur-subchondral-bone.stl")
+    distal = femur.vertices[np.argmin(femur.vertices[:, 1])]  # scan Y points to the hip
+    point = distal + np.array([0.0, depth_mm * 1e-3, 0.0])
+    text = src.read_text()
+    old = "femur = [-0.001151, -0.000054, 0.005299]"
+    assert old in text
+    dst.write_text(text.replace(old, f"femur = [{point[0]:.6f}, {point[1]:.6f}, {point[2]:.6f}]"))
+    if not inside:
+        Knee.load(dst)
+        return
+    with pytest.raises(InputError, match=r"femoral attachment lies 8\.\d mm inside the femoral mesh") as err:
+        Knee.load(dst)
+    assert err.value.field == "ligaments.ACL.femur" and "\n" not in str(err.value)
+
+
+HIP_LINE = "hip_center = [0.005551, 0.374181, 0.001171]"
+
+
+@pytest.mark.parametrize("new, field, needle", [
+    ("hip_center = [0.005551, 0.05, 0.001171]", "landmarks.hip_center", "the hip center at the knee?"),
+    ("hip_center = [0.005551, 0.0, 0.374]", "landmarks.hip_center", "from the flexion axis"),
+    ("", "landmarks.hip_center", "a knee in scan coordinates needs the hip centre"),
+    (HIP_LINE + "\nmedial_epicondyle = [0.0, 3.0, -40.0]", "landmarks.medial_epicondyle", "a point in mm with units"),
+])
+def test_landmark_slips(default_copy, new, field, needle):
+    """The hip centre at the knee or beside it, a scan-coordinate knee without it, a landmark in
+    the other unit (issue 24: silently accepted): one line naming the landmark."""
+    src, dst = default_copy
+    text = src.read_text()
+    assert HIP_LINE in text
+    dst.write_text(text.replace(HIP_LINE, new))
+    with pytest.raises(InputError, match=re.escape(needle)) as err:
+        Knee.load(dst)
+    assert err.value.field == field and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("old, new, field", [
+    ("tibial_tuberosity = [32.0, -45.0, 3.0]", "tibial_tuberosity = [0.032, -0.045, 0.003]",
+     "landmarks.tibial_tuberosity"),
+    ("femur = [-3.0, 1.0, 7.0]", "femur = [-0.003, 0.001, 0.007]", "ligaments.ACL.femur"),
+])
+def test_point_in_metres_in_a_millimetre_knee(knee_copy, old, new, field):
+    """One point written in metres in a millimetre knee lands at the frame's origin: named."""
+    text = knee_copy.read_text()
+    assert old in text
+    knee_copy.write_text(text.replace(old, new))
+    with pytest.raises(InputError, match=re.escape("a point in m with units = 'mm'?")) as err:
+        Knee.load(knee_copy)
+    assert err.value.field == field
+
+
+def test_negative_femur_offset_in_import_osim(tmp_path, capsys):
+    """import-osim --femur-offset -2 (issue 24: accepted): exit 2 naming the option, nothing written."""
+    from kneenlp.io.resources import resource
+
+    data = resource("knees", "lenhart2015", "opensim")
+    out = tmp_path / "imp"
+    code, err = run_cli(capsys, "import-osim", str(data / "lenhart2015.osim"), "--out", str(out), "--femur-mesh",
+                        str(data / "lenhart2015-R-femur-subchondral-bone.stl"), "--femur-offset", "-2")
+    assert code == 2 and "--femur-offset: -2 mm" in err and "inside the bone" in err
+    assert not out.exists() or not any(out.iterdir())
+
+
+LENHART_DIR = knee_file("default").parent.parent / "lenhart2015" / "opensim"
+
+
+def _femur():
+    import trimesh
+
+    return trimesh.load(LENHART_DIR / "lenhart2015-R-femur-subchondral-bone.stl")
+
+
+def _tibia():
+    import trimesh
+
+    return trimesh.load(LENHART_DIR / "lenhart2015-R-tibia-cartilage.stl")
+
+
+def _inverted(mesh):
+    mesh.invert()
+    return mesh
+
+
+def _moved(mesh, shift):
+    mesh.apply_translation(shift)
+    return mesh
+
+
+def _decimated(mesh, faces):
+    return mesh.simplify_quadric_decimation(face_count=faces)
+
+
+def _degenerate(mesh):
+    import numpy as np
+    import trimesh
+
+    faces = np.column_stack([mesh.faces[:, 0], mesh.faces[:, 0], mesh.faces[:, 1]])
+    return trimesh.Trimesh(mesh.vertices, faces, process=False)
+
+
+def _one_triangle(_mesh):
+    import trimesh
+
+    return trimesh.Trimesh([[0, -0.02, -0.03], [0.03, -0.02, 0.03], [-0.03, -0.02, 0.03]], [[0, 1, 2]])
+
+
+@pytest.mark.parametrize("bone, change, field, needle", [
+    ("femur", _inverted, "contact.femur", "the femoral mesh is inside-out"),
+    ("tibia", lambda m: _moved(m, [0, 0.008, 0]), "contact.tibia", "lies 8.21 mm inside the femoral articular surface"),
+    ("tibia", _one_triangle, "contact.tibia", "1 faces, 3 vertices"),
+    ("femur", lambda m: _decimated(m, 10), "contact.femur", "too coarse to represent the condyles"),
+    ("femur", _degenerate, "contact.femur", "19229 of 19229 faces are degenerate"),
+])
+def test_meshes_that_failed_without_naming_the_cause(default_copy, tmp_path, bone, change, field, needle):
+    """Inverted femoral normals, a tibia 8 mm inside the femur at the reference pose, a one-triangle
+    tibia, a 10-face femur, all-degenerate femoral faces (issue 24: exit 1 with "residual 867/inf",
+    an unhelpful cylinder-fit error or exit 3): one line naming the mesh's field and the slip."""
+    src, dst = default_copy
+    mesh = change(_femur() if bone == "femur" else _tibia())
+    path = tmp_path / f"{bone}.stl"
+    mesh.export(path)
+    line = FEMUR_LINE if bone == "femur" else TIBIA_LINE
+    dst.write_text(src.read_text().replace(line, f'{bone} = "{path.as_posix()}"'))
+    with pytest.raises(InputError, match=re.escape(needle)) as err:
+        Knee.load(dst)
+    assert err.value.field == field and "\n" not in str(err.value)
+
+
+def test_truncated_binary_stl(knee_copy, capsys):
+    """A binary STL cut short (issue 24: blamed on "No module named 'charset_normalizer'"): exit 2,
+    the file named truncated with the sizes."""
+    path = knee_copy.parent / "meshes" / "tibia_medial.stl"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    code, err = run_cli(capsys, "simulate", "--knee", str(knee_copy), "--protocol", "set1", "--no-plots")
+    assert code == 2 and "contact.medial.tibia: mesh tibia_medial.stl is truncated" in err
+    assert f"the file has {len(data) // 2} bytes" in err and "\n" not in err
+
+
+def test_huge_study_refused_early(tmp_path, capsys):
+    """study --samples 1000000 (issue 24: no early message): refused at once with its estimated time
+    and disk, naming --samples and --yes; nothing written.  The estimate scales with the study."""
+    import argparse
+
+    from kneenlp.cli import _study_size
+
+    out = tmp_path / "st"
+    code, err = run_cli(capsys, "study", "--knee", "synthetic", "--samples", "1000000", "--workers", "2",
+                        "--out", str(out))
+    assert code == 2 and "--samples: 4 sets x 1,000,000 samples = 4,000,000 fits" in err and "--yes" in err
+    assert "sample files (16.4 GB)" in err and "\n" not in err and not out.exists()
+    args = argparse.Namespace(sets=["set1"], samples=100, workers=1, scheduler=None, dask=False, knee="synthetic",
+                              yes=False)
+    small = _study_size(args)
+    assert "100 fits: about 5 min on 1 worker" in small
+    args.knee = "default"
+    assert "about 1.67 h on 1 worker (~60 s a fit on a mesh knee)" in _study_size(args)
+    args.samples, args.yes = 20_000, True
+    assert "20,000 fits" in _study_size(args)
+
+
+def test_fine_mesh_decimated_to_the_contact_resolution(tmp_path, monkeypatch):
+    """The decimation path on a moderately large mesh: the implant's femoral component subdivided
+    once (46,816 faces) with the limit lowered to 20,000 is read by the lean binary reader (the same
+    triangles as trimesh's), decimated below the limit within 20 um of the surface, and the knee
+    report says so; above the read limit the file is refused unread, naming it."""
+    import numpy as np
+    import trimesh
+
+    import kneenlp.geometry.decimate as dec
+    import kneenlp.model.knee as knee_module
+    from kneenlp.geometry.distance import MeshDistance
+
+    src = knee_file("implant").parent
+    shutil.copytree(src, tmp_path / "implant")
+    text = (src / "knee.toml").read_text().replace("../../parameters/table1.toml",
+                                                   str(src.parent.parent / "parameters" / "table1.toml"))
+    (tmp_path / "implant" / "knee.toml").write_text(text)
+    original = trimesh.load(src / "meshes" / "femur_component.stl")
+    fine = original.subdivide()
+    path = tmp_path / "implant" / "meshes" / "femur_component.stl"
+    fine.export(path)
+    vertices, faces = dec.read_binary_stl(path, len(fine.faces))
+    assert len(faces) == 46816 and np.allclose(np.sort(vertices[faces].reshape(-1, 9), axis=0),
+                                               np.sort(np.asarray(fine.triangles, np.float32).reshape(-1, 9),
+                                                       axis=0))
+    monkeypatch.setattr(dec, "MAX_MESH_FACES", 20_000)
+    monkeypatch.setattr(knee_module, "MAX_MESH_FACES", 20_000)
+    knee = Knee.load(tmp_path / "implant" / "knee.toml")
+    femur = knee.femur.mesh
+    assert len(femur.faces) <= 20_000
+    assert "contact.femur (meshes/femur_component.stl): 46,816 faces decimated to" in "\n".join(knee.notes)
+    gap = np.abs(MeshDistance(original)(femur.vertices * 1e3)[0])  # the knee is in m, the file in mm
+    assert gap.max() < 0.02, gap.max()
+    monkeypatch.setattr(knee_module, "MAX_READ_FACES", 40_000)
+    with pytest.raises(InputError, match="announces 46,816 triangles, more than the 40,000") as err:
+        Knee.load(tmp_path / "implant" / "knee.toml")
+    assert err.value.field == "contact.femur"
+
+
+def test_landmarks_of_the_users_own_and_the_hip_in_metres(knee_copy):
+    """A landmark of the user's own name is kept wherever it lies on the limb (not held to the knee's
+    150 mm); the hip centre written in m in a mm knee is named as that unit slip."""
+    text = knee_copy.read_text()
+    anchor = "hip_center = [0.0, 420.0, 0.0]"
+    assert anchor in text
+    knee_copy.write_text(text.replace(anchor, anchor + "\nfemoral_head_marker = [10.0, 400.0, -30.0]"))
+    assert "femoral_head_marker" in Knee.load(knee_copy).landmarks
+    knee_copy.write_text(text.replace(anchor, "hip_center = [0.0, 0.42, 0.0]"))
+    with pytest.raises(InputError, match=re.escape("a point in m with units = 'mm'?")) as err:
+        Knee.load(knee_copy)
+    assert err.value.field == "landmarks.hip_center"

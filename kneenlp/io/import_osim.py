@@ -30,6 +30,7 @@ import tomli_w
 from kneenlp.errors import InputError
 from kneenlp.io.atomic import write_text_atomic
 from kneenlp.io.osim import OsimError, knee_line_elements, ligament_groups, read_osim
+from kneenlp.model.knee import PLAUSIBLE_MM
 from kneenlp.model.laws import BlankevoortLaw
 
 #: Parameter set written with an imported knee: the paper's contact modulus (the bundles carry
@@ -83,6 +84,11 @@ def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | Non
     patellar-tendon bundles (:func:`_tuberosity`)."""
     osim = Path(osim)
     src = str(osim)
+    lo, hi = PLAUSIBLE_MM["femur_offset"]
+    if not (femur_offset == 0 or max(lo, 0.1) <= femur_offset * 1e3 <= hi):
+        raise InputError(f"{femur_offset * 1e3:g} mm: the cartilage thickness on the bone of --femur-mesh is 0 or "
+                         f"0.1-{hi:g} mm (a negative offset puts the surface inside the bone; below 0.1 mm: given in "
+                         "m?)", field="--femur-offset")
     try:
         model = read_osim(osim)
     except OsimError as exc:

@@ -21,6 +21,7 @@ field's measured error.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -32,6 +33,15 @@ from scipy.spatial import cKDTree
 from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
+from kneenlp.geometry.decimate import (
+    MAX_MESH_FACES,
+    MAX_READ_FACES,
+    MAX_TEXT_MESH_BYTES,
+    decimate,
+    read_binary_stl,
+)
+from kneenlp.geometry.distance import MeshDistance, winding_number
+from kneenlp.geometry.rim import OpenEdges
 from kneenlp.geometry.sdf import DistanceField
 from kneenlp.io.resources import resource
 from kneenlp.model.articular import (
@@ -76,6 +86,35 @@ PLAUSIBLE_MM = {"gate": (1e-4, 0.1), "femur_offset": (0.0, 6.0), "grid_spacing":
 #: Longest plausible ligament (m, attachment distance in the reference pose; the superficial MCL
 #: is about 0.1 m): attachments further apart are a typo or mixed units.
 MAX_LIGAMENT_LENGTH = 0.3
+#: Landmarks in the femur's frame (the others are the tibia's), and the two ends of the limb.
+FEMORAL_LANDMARKS = ("hip_center", "medial_epicondyle", "lateral_epicondyle")
+LIMB_LANDMARKS = ("hip_center", "ankle_center")
+#: Distance (m) of the hip and ankle centres from the knee: femora and tibiae are 0.25-0.55 m long,
+#: so closer is a point of the knee given as the hip (it would turn the frame), further a unit slip.
+LIMB_REACH = (0.15, 1.0)
+#: Least angle (deg) between the knee-to-hip line and the fitted flexion axis (about 90 in a femur).
+HIP_AXIS_ANGLE = 45.0
+#: The landmarks kneenlp knows at the knee (any other name is the user's own and only kept).
+KNEE_LANDMARKS = ("medial_epicondyle", "lateral_epicondyle", "tibial_tuberosity", "medial_plateau_edge",
+                  "lateral_plateau_edge")
+#: Furthest (m) any of them (epicondyles, tuberosity, plateau edges) lies from the knee.
+KNEE_REACH = 0.15
+#: A point (attachment or landmark) this close to the femoral frame's origin (m) in a millimetre
+#: file is a point written in metres (the origin lies between the condyles, no attachment there).
+NEAR_ORIGIN = 0.5e-3
+#: Fewest faces of a femoral mesh (the shipped ones: 11,700-22,300): fewer cannot represent condyles.
+MIN_FEMUR_FACES = 500
+#: Least vertices and area (m^2) of a tibial plateau's cartilage mesh (real: 360-2300 vertices,
+#: 820-1350 mm^2 in the shipped knees): contact acts at the vertices.
+MIN_PLATEAU_POINTS = 20
+MIN_PLATEAU_AREA = 100e-6
+#: Deepest (m) the tibial cartilage may lie inside the femoral articular surface at the reference
+#: pose (0.1-0.3 mm in the shipped knees; the distance field is accurate to 1.5 mm inside).
+MAX_REFERENCE_PENETRATION = 1.5e-3
+#: Deepest an attachment may lie inside a bone or cartilage mesh (m): attachments lie on the bone
+#: surface, up to 1.2 mm inside the meshes of the shipped knees (s192803's posterior capsule in its
+#: femoral cartilage solid); deeper is a slip (docs/inputs.md).
+ATTACHMENT_DEPTH = 2.5e-3
 
 
 def available_knees() -> list[str]:
@@ -272,6 +311,8 @@ class _KneeFile:
                              field="coordinates")
         self.frame = Frame.identity()
         self.notes: list[str] = []
+        #: attachments read so far: (field, point in the femoral frame at the reference pose, bone)
+        self.attachments: list[tuple[str, np.ndarray, str]] = []
         self.reference_pose = self.read_reference_pose()
         self.reference = reference_transform(*self.reference_pose)
 
@@ -329,9 +370,17 @@ class _KneeFile:
         """A mesh named in the file, in scan coordinates (m, mirrored for a left knee), its size
         checked against :data:`KNEE_SIZE_RANGE` on its own (one mesh in the other unit is caught
         before any work, not only when the knee's overall size is)."""
+        contact = self.doc.get("contact", {})
+        # the contact resolution: the distance field's grid (a femur decimated to twice it changed the
+        # contact force by up to 3 %, to it by less than 1 %: benchmarks/bench_decimation.py)
+        resolution = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing") \
+            if isinstance(contact, dict) else 0.5e-3
         mesh = read_mesh(mesh_path(self.path.parent, value, self.src, fld), self.scale, self.mirror,
                          field=fld, knee_file=self.src)
         self.check_extent(mesh.vertices, str(value), fld)
+        mesh, note = decimate(mesh, resolution)
+        if note:
+            self.notes.append(f"{fld} ({value}): {note}")
         return mesh
 
     def point(self, value: object, fld: str) -> np.ndarray:
@@ -353,6 +402,7 @@ class _KneeFile:
         ligaments = self.ligaments()
         self.check_side(ligaments, geometry["compartments"], landmarks)
         candidates = self.candidates()
+        self.check_attachments(geometry)
         params = self.parameter_set(parameters, ligaments)
         contact = doc.get("contact", {})
         working_set = contact.get("working_set", 0)
@@ -399,6 +449,72 @@ class _KneeFile:
             raise InputError(f"the knee is declared {side!r}, but {wrong[0]} once it is read as a {side} knee: "
                              f"is it a {other} knee? (set side = {other!r})", source=self.src, field="side")
 
+    def check_plateau(self, mesh: trimesh.Trimesh, fld: str, plateaus: int, what: str = "the mesh") -> None:
+        """A tibial cartilage mesh of ``plateaus`` plateaus has enough points and area to carry contact:
+        :data:`MIN_PLATEAU_POINTS` vertices and :data:`MIN_PLATEAU_AREA` each (a one-triangle or
+        truncated mesh failed later with "residual inf")."""
+        area, points = float(mesh.area), len(mesh.vertices)
+        if points < MIN_PLATEAU_POINTS * plateaus or area < MIN_PLATEAU_AREA * plateaus:
+            raise InputError(f"{what} has {len(mesh.faces)} faces, {points} vertices, {area * 1e6:.3g} mm^2: too few "
+                             "to carry contact (a plateau's cartilage is 500-1500 mm^2; contact acts at the vertices, "
+                             f"at least {MIN_PLATEAU_POINTS} and {MIN_PLATEAU_AREA * 1e6:g} mm^2 a plateau): a "
+                             "placeholder, truncated or wrong file, or the wrong unit?", source=self.src, field=fld)
+
+    def check_facing(self, femur: trimesh.Trimesh, tibiae: dict[str, trimesh.Trimesh], offset: float,
+                     fld: str) -> None:
+        """The femoral surface against the tibial cartilage at the reference pose (scan coordinates):
+        its faces nearest the tibia face it (outward normals: an inside-out mesh makes every point
+        penetrate, "residual 867"), and the cartilage lies at most :data:`MAX_REFERENCE_PENETRATION`
+        inside the articular surface (the femoral mesh moved out by ``offset``), measured at points
+        whose nearest femoral point is not on an open edge of the mesh."""
+        points = self.at_reference(np.vstack([m.vertices for m in tibiae.values()]))
+        facing, volume = facing_fraction(femur, points), centroid_volume(femur)
+        if volume < 0 and (facing is None or facing < 0.5):
+            raise InputError(f"the femoral mesh is inside-out: its signed volume is {volume * 1e6:.3g} cm^3"
+                             + (f" and {100 * (1 - facing):.0f} % of its faces nearest the tibia point away from it"
+                                if facing is not None else "") + " (normals into the bone): flip its faces (e.g. "
+                             "trimesh's mesh.invert()) or fix the export", source=self.src, field=fld)
+        depth = reference_penetration(femur, points, offset)
+        if depth > MAX_REFERENCE_PENETRATION:
+            where = "its reference_pose" if "reference_pose" in self.doc else "the tibial meshes' placement"
+            raise InputError(f"the tibial cartilage lies {depth * 1e3:.3g} mm inside the femoral articular surface "
+                             f"at the reference pose (at most {MAX_REFERENCE_PENETRATION * 1e3:g} mm; real scans: 0.3 "
+                             f"mm): check {where}, femur_offset ({offset * 1e3:g} mm) and that both bones are in the "
+                             "same frame and unit", source=self.src, field="contact.tibia")
+
+    def check_landmarks(self, raw: dict[str, np.ndarray], tibia: list[np.ndarray]) -> None:
+        """Landmarks (scan coordinates, m) against the knee's own size, before any fit uses them: the
+        hip and ankle centres :data:`LIMB_REACH` from the knee (the tibial cartilage's centre at the
+        reference pose), the :data:`KNEE_LANDMARKS` within :data:`KNEE_REACH` of it (a landmark of the
+        user's own within the limb's reach) and, in a femoral-frame file, none of those within
+        :data:`NEAR_ORIGIN` of the origin (a point in metres in a millimetre file);
+        a knee in scan coordinates needs ``hip_center``: nothing else gives the femur's long axis."""
+        if self.coordinates == "scan" and "hip_center" not in raw:
+            raise InputError("a knee in scan coordinates needs the hip centre (the femoral Y axis points to it; the "
+                             "scanner's axes say nothing about the femur): give landmarks.hip_center, or give the "
+                             "knee in its femoral frame (coordinates = 'femoral')", source=self.src,
+                             field="landmarks.hip_center")
+        centre = self.at_reference(np.vstack(tibia)).mean(axis=0)
+        for name, point in raw.items():
+            fld = f"landmarks.{name}"
+            if self.coordinates == "femoral" and self.units == "mm" and np.linalg.norm(point) < NEAR_ORIGIN \
+                    and name in (*LIMB_LANDMARKS, *KNEE_LANDMARKS):
+                raise InputError(f"{np.linalg.norm(point) * 1e3:.3g} mm from the origin of the femoral frame: a "
+                                 "point in m with units = 'mm'?", source=self.src, field=fld)
+            here = self.at_reference(point) if name not in FEMORAL_LANDMARKS else point
+            dist = float(np.linalg.norm(here - centre))
+            lo, hi = LIMB_REACH if name in LIMB_LANDMARKS else (0.0, KNEE_REACH) if name in KNEE_LANDMARKS \
+                else (0.0, LIMB_REACH[1])  # a landmark of the user's own: anywhere on the limb
+            if dist < lo:
+                raise InputError(f"{dist * 1e3:.3g} mm from the knee (the tibial cartilage's centre), less than "
+                                 f"{lo * 1e3:g} mm: the {name.replace('_', ' ')} at the knee? (a point of the knee "
+                                 "copied, or the wrong landmark given)", source=self.src, field=fld)
+            if dist > hi:
+                other = "m" if self.units == "mm" else "mm"
+                raise InputError(f"{dist * 1e3:.4g} mm from the knee (the tibial cartilage's centre), more than "
+                                 f"{hi * 1e3:g} mm: a typo, or a point in {other} with units = {self.units!r}?",
+                                 source=self.src, field=fld)
+
     def check_size(self, compartments: dict[str, Compartment]) -> None:
         """The knee's size against :data:`KNEE_SIZE_RANGE`: a unit slip names the likely cause."""
         points = np.vstack([c.points for c in compartments.values()])
@@ -427,6 +543,59 @@ class _KneeFile:
                              f"({MAX_LIGAMENT_LENGTH * 1e3:g} mm): a typo, or a point in another unit than "
                              f"units = {self.units!r}?", source=self.src, field=fld)
         return length
+
+    def attach(self, femur: np.ndarray, tibia: np.ndarray, femur_field: str, tibia_field: str) -> None:
+        """Remember a bundle's attachments (femoral frame; tibial frame) for :meth:`check_attachments`;
+        in a millimetre file in the femoral frame, a point within :data:`NEAR_ORIGIN` of the origin is
+        one written in metres."""
+        if self.coordinates == "femoral" and self.units == "mm":
+            for point, fld in ((femur, femur_field), (tibia, tibia_field)):
+                if np.linalg.norm(point) < NEAR_ORIGIN:
+                    raise InputError(f"{np.linalg.norm(point) * 1e3:.3g} mm from the origin of the frame, where no "
+                                     "ligament attaches: a point in m with units = 'mm'?", source=self.src,
+                                     field=fld)
+        self.attachments += [(femur_field, np.asarray(femur, float), "femoral"),
+                             (tibia_field, self.at_reference(tibia), "tibial")]
+
+    def check_attachments(self, geometry: dict) -> None:
+        """No attachment lies more than :data:`ATTACHMENT_DEPTH` inside a mesh of the knee (the femoral
+        mesh as given, without ``femur_offset``; each tibial mesh at the reference pose).  Inside: the
+        mesh's winding number around the point exceeds 1/2 (:func:`~kneenlp.geometry.distance.
+        winding_number`), which holds for closed meshes and for open ones enclosing the point (a
+        cropped bone); a cartilage sheet encloses nothing but the points just under it."""
+        if not self.attachments:
+            return
+        meshes = []
+        femur = geometry["femur"]
+        if femur is not None:
+            meshes.append(("femoral mesh", " + ".join(femur.sources), femur.mesh, 1.0))
+        R, p = self.reference
+        for c in geometry["compartments"].values():
+            if not c.sphere:
+                m = c.tibia_mesh.copy()
+                m.vertices = np.asarray(m.vertices) @ R.T + p
+                meshes.append((f"{c.name} tibial mesh", c.name, m, -1.0))  # tibial orientation is not used
+        fields = [f for f, _, _ in self.attachments]
+        points = np.array([x for _, x, _ in self.attachments])
+        for what, name, mesh, sign in meshes:
+            lo, hi = mesh.bounds
+            idx = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+            if not len(idx):
+                continue
+            depth = np.abs(MeshDistance(mesh)(points[idx], certify=False)[0])
+            idx, depth = idx[depth > ATTACHMENT_DEPTH], depth[depth > ATTACHMENT_DEPTH]
+            if not len(idx):
+                continue
+            w = winding_number(mesh, points[idx])
+            inside = (w > 0.5) if sign > 0 else (np.abs(w) > 0.5)
+            if inside.any():
+                j = int(np.argmax(np.where(inside, depth, -1.0)))
+                bone = self.attachments[idx[j]][2]
+                raise InputError(f"the {bone} attachment lies {depth[j] * 1e3:.1f} mm inside the {what} ({name}) "
+                                 "in the reference pose; attachments lie on the bone surface (at most "
+                                 f"{ATTACHMENT_DEPTH * 1e3:g} mm inside): a typo or a sign slip, the femoral and "
+                                 "tibial points swapped, or a point in another frame or unit?", source=self.src,
+                                 field=fields[idx[j]])
 
     def menisci(self) -> float | None:
         """``[menisci] stiffness`` (N/mm per compartment) -> N/m, or None (menisci not modelled)."""
@@ -458,26 +627,33 @@ class _KneeFile:
                                      field=f"contact.{name}.{key}")
         # tibial cartilage, scan coordinates
         tibiae: dict[str, trimesh.Trimesh] = {}
-        approx = self.approximate_axes(raw_landmarks)
+        whole = None
         if "tibia" in contact:
             if any("tibia" in t for t in tables.values()):
                 raise InputError("give the tibial cartilage either once for both plateaus or per compartment",
                                  source=src, field="contact.tibia")
             whole = self.mesh(contact["tibia"], "contact.tibia")
+        for name, table in tables.items():
+            if "tibia" in table:
+                tibiae[name] = self.mesh(table["tibia"], f"contact.{name}.tibia")
+            elif whole is None:
+                raise InputError("missing mesh file", source=src, field=f"contact.{name}.tibia")
+        if whole is None and not tibiae:
+            raise InputError("no tibial cartilage: give contact.tibia or [contact.medial] and [contact.lateral]",
+                             source=src, field="contact")
+        for name, mesh in ({"": whole} if whole is not None else tibiae).items():
+            self.check_plateau(mesh, f"contact.{name}.tibia" if name else "contact.tibia", 2 if not name else 1)
+        self.check_landmarks(raw_landmarks, [m.vertices for m in ([whole] if whole is not None else tibiae.values())])
+        approx = self.approximate_axes(raw_landmarks)
+        if whole is not None:
             tibiae, _, how = split_tibia(whole, approx[2])
             self.notes.append(f"tibial cartilage split into plateaus: {how}")
             unknown = set(tables) - set(tibiae)
             if unknown:
                 raise InputError(f"compartment {sorted(unknown)[0]!r} has no plateau; the split gives medial, lateral",
                                  source=src, field="contact")
-        for name, table in tables.items():
-            if "tibia" in table:
-                tibiae[name] = self.mesh(table["tibia"], f"contact.{name}.tibia")
-            elif name not in tibiae:
-                raise InputError("missing mesh file", source=src, field=f"contact.{name}.tibia")
-        if not tibiae:
-            raise InputError("no tibial cartilage: give contact.tibia or [contact.medial] and [contact.lateral]",
-                             source=src, field="contact")
+            for name, mesh in tibiae.items():
+                self.check_plateau(mesh, "contact.tibia", 1, f"its {name} plateau")
         # femoral surface and explicit spheres, scan coordinates
         spheres = {}
         for name, table in tables.items():
@@ -503,9 +679,16 @@ class _KneeFile:
             raise InputError(f"compartment {mesh_compartments[0]!r} has neither a femoral mesh (contact.femur) "
                              "nor an explicit sphere (sphere_center, sphere_radius)", source=src, field="contact")
         femur_raw = trimesh.util.concatenate(femur_parts) if femur_parts else None
+        if femur_raw is not None and len(femur_raw.faces) < MIN_FEMUR_FACES:
+            raise InputError(f"the femoral mesh has {len(femur_raw.faces)} faces: too coarse to represent the condyles "
+                             f"(at least {MIN_FEMUR_FACES}; real femoral meshes have 10,000-30,000): a placeholder or "
+                             "over-decimated file?", source=src, field="contact.femur")
         if femur_raw is not None:
             check_bone_order(femur_raw, tibiae, self.at_reference, raw_landmarks.get("hip_center"), approx[1], src)
         offset = self.length(contact, "femur_offset", 0.0, "contact.femur_offset", positive=False)
+        if femur_raw is not None and mesh_compartments:
+            self.check_facing(femur_raw, {n: tibiae[n] for n in mesh_compartments}, offset,
+                              "contact.femur" if "femur" in contact else "contact")
         # condyle split and flexion axis (scan coordinates), then the frame
         axis = split = None
         if femur_raw is not None:
@@ -519,12 +702,24 @@ class _KneeFile:
             # until the axis settles, so the frame does not depend on how the scan was oriented
             hip = raw_landmarks.get("hip_center")
             for _ in range(5):
-                split = split_condyles(femur_raw, med, lat, approx[1])
                 try:
-                    new = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
+                    with warnings.catch_warnings(), np.errstate(all="ignore"):  # a failed fit says why below
+                        warnings.simplefilter("ignore")
+                        split = split_condyles(femur_raw, med, lat, approx[1])
+                        new = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
                 except (ValueError, np.linalg.LinAlgError, TypeError) as exc:
-                    raise InputError(f"cannot fit cylinders to the femoral condyles ({exc})", source=src,
-                                     field="contact.femur") from None
+                    raise InputError(f"cannot fit cylinders to the femoral condyles ({exc}; {len(femur_raw.faces)} "
+                                     "faces): check that the femoral mesh is in the file's unit (units = "
+                                     f"{self.units!r}) and covers both condyles with more than a few faces, that "
+                                     "landmarks.hip_center is the hip (it sets the proximal direction) and that the "
+                                     "tibial meshes are the tibia's", source=src, field="contact.femur") from None
+                if hip is not None:
+                    tilt = angle_deg(hip - new.point, new.direction)
+                    if min(tilt, 180 - tilt) < HIP_AXIS_ANGLE:
+                        raise InputError(f"the hip centre lies {min(tilt, 180 - tilt):.0f} deg from the flexion axis "
+                                         "fitted to the condyles (a femur's shaft is about 90 deg from it): a medial "
+                                         "or lateral point given as the hip, or the femoral mesh in another frame?",
+                                         source=src, field="landmarks.hip_center")
                 settled = axis is not None and angle_deg(new.direction, axis.direction) < 1e-4 \
                     and np.linalg.norm(new.point - axis.point) < 1e-7
                 axis = new
@@ -637,6 +832,7 @@ class _KneeFile:
                     raise InputError("missing attachment", source=src, field=f"{fld}.{key}")
             femur, tibia = self.point(lig["femur"], f"{fld}.femur"), self.point(lig["tibia"], f"{fld}.tibia")
             self.check_length(femur, tibia, fld)
+            self.attach(femur, tibia, f"{fld}.femur", f"{fld}.tibia")
             ligaments[name] = Ligament(name, [Bundle(femur, tibia)], reference=self.reference, law=law)
         return ligaments
 
@@ -656,6 +852,7 @@ class _KneeFile:
                     raise InputError("missing", source=src, field=f"{f}.{key}")
             femur, tibia = self.point(b["femur"], f"{f}.femur"), self.point(b["tibia"], f"{f}.tibia")
             length = self.check_length(femur, tibia, f)
+            self.attach(femur, tibia, f"{f}.femur", f"{f}.tibia")
             stiffness = number(b["stiffness"], src, f"{f}.stiffness")
             if stiffness < 0:
                 raise InputError("must be >= 0 (N per unit strain)", source=src, field=f"{f}.stiffness")
@@ -692,8 +889,9 @@ class _KneeFile:
                 raise InputError("femur and tibia must be equally long lists of [x, y, z]", source=src, field=fld)
             fem = [self.point(v, f"{fld}.femur") for v in fem]
             tib = [self.point(v, f"{fld}.tibia") for v in tib]
-            for f, t in zip(fem, tib, strict=True):
+            for i, (f, t) in enumerate(zip(fem, tib, strict=True)):
                 self.check_length(f, t, fld)
+                self.attach(f, t, f"{fld}.femur[{i}]", f"{fld}.tibia[{i}]")
             ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / 100.0
             out.append(Ligament(cname, [Bundle(f, t) for f, t in zip(fem, tib, strict=True)], candidate=True,
                                 defaults={"ref_strain": ref}, description=str(cdoc.get("description", "")),
@@ -711,7 +909,7 @@ class _KneeFile:
             if not isinstance(name, str) or not name.strip():
                 raise InputError(f"expected a parameter file name, got {name!r}", source=src, field="parameters")
             path = self.path.parent / name
-            if not path.is_file():
+            if not is_file(path):
                 raise InputError(f"parameter file {name!r} not found ({path})", source=src, field="parameters")
             params = ParameterSet.load(path)
         else:
@@ -763,24 +961,129 @@ def check_bone_order(femur: trimesh.Trimesh, tibiae: dict[str, trimesh.Trimesh],
                          "meshes swapped?", source=src, field="contact.tibia")
 
 
+def centroid_volume(mesh: trimesh.Trimesh) -> float:
+    """Signed volume (m^3) of the cones from the vertex centroid to the faces: the enclosed volume
+    for a closed mesh (negative when inside-out); for an open bone surface, whose centroid lies in
+    the bone, positive with outward normals (21-38 cm^3 for the shipped femoral meshes)."""
+    t = np.asarray(mesh.triangles, float) - np.asarray(mesh.vertices, float).mean(axis=0)
+    return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
+
+
+def facing_fraction(surface: trimesh.Trimesh, points: np.ndarray, reach: float = 0.01) -> float | None:
+    """Of the ``points`` within ``reach`` (m) of a face centre of ``surface``, the fraction whose
+    nearest face's normal points towards them (1 for a surface facing them with outward normals, 0
+    for an inside-out one); None when no point is that near."""
+    centres = np.asarray(surface.triangles_center)
+    dist, face = cKDTree(centres).query(points, 1, distance_upper_bound=reach, workers=-1)
+    ok = np.isfinite(dist)
+    if not ok.any():
+        return None
+    face = face[ok]
+    return float(np.mean(np.einsum("ij,ij->i", surface.face_normals[face], points[ok] - centres[face]) > 0))
+
+
+def reference_penetration(surface: trimesh.Trimesh, points: np.ndarray, offset: float, most: int = 20_000) -> float:
+    """Deepest (m, >= 0) any of ``points`` (at most ``most`` of them, evenly strided) lies inside the
+    surface ``offset`` outside ``surface``, among points whose nearest surface point is not on an
+    open edge (beyond an edge the signed distance is no depth)."""
+    pts = np.asarray(points, float)
+    if len(pts) > most:
+        pts = pts[np.linspace(0, len(pts) - 1, most).round().astype(int)]
+    lo, hi = surface.bounds
+    pts = pts[np.all((pts >= lo - offset - 0.01) & (pts <= hi + offset + 0.01), axis=1)]
+    if not len(pts):
+        return 0.0
+    d, closest, _ = MeshDistance(surface)(pts, certify=False)
+    inner = OpenEdges(surface).distance(closest) > 1e-9
+    d = d[inner] - offset
+    return float(max(0.0, -d.min())) if d.size else 0.0
+
+
+def is_file(path: Path) -> bool:
+    """``path.is_file()``, False for a name the system cannot look up (too long, an invalid byte)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
+
+
+def check_stl(path: Path, knee_file: str, field: str) -> int:
+    """A binary STL's size against the triangle count in its header (84 + 50 bytes a triangle): a
+    truncated file is named as such (trimesh would try it as ASCII and fail obscurely).  Returns the
+    count (0 for another format or an ASCII STL)."""
+    if path.suffix.lower() != ".stl":
+        return 0
+    try:
+        size = path.stat().st_size
+        with path.open("rb") as f:
+            head = f.read(84)
+    except OSError as exc:
+        raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {exc.strerror or exc})",
+                         source=knee_file, field=field) from None
+    if head[:5].lower() == b"solid" and b"\0" not in head[:80]:
+        return 0  # ASCII STL (a binary one may start with "solid" too, but its header is padded with NULs)
+    if size < 84:
+        raise InputError(f"mesh {path.name} is truncated: {size} bytes, less than a binary STL's 84-byte header",
+                         source=knee_file, field=field)
+    n = int.from_bytes(head[80:84], "little")
+    if n > MAX_READ_FACES:
+        raise InputError(f"mesh {path.name} announces {n:,} triangles, more than the {MAX_READ_FACES:,} a knee reads "
+                         "(meshes are decimated to the contact resolution anyway): decimate it before",
+                         source=knee_file, field=field)
+    if size < 84 + 50 * n:
+        raise InputError(f"mesh {path.name} is truncated: its header announces {n} triangles ({84 + 50 * n} bytes), "
+                         f"the file has {size} bytes (an interrupted copy or export?)", source=knee_file, field=field)
+    return n
+
+
 def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_file: str) -> trimesh.Trimesh:
-    """Load a mesh with trimesh, validate it and convert it to metres (mirrored for a left knee)."""
-    if not path.is_file():
+    """Load a mesh, validate it and convert it to metres (mirrored for a left knee).  A binary STL
+    of more than :data:`~kneenlp.geometry.decimate.MAX_MESH_FACES` faces is read by a lean reader,
+    to be decimated by the caller (:func:`~kneenlp.geometry.decimate.decimate`)."""
+    if not is_file(path):
         raise InputError(f"mesh file not found: {path}", source=knee_file, field=field)
+    binary_faces = check_stl(path, knee_file, field)
+    if binary_faces > MAX_MESH_FACES:  # a lean reader (trimesh's takes 1.9 GB for 2 M faces)
+        mesh = trimesh.Trimesh(*read_binary_stl(path, binary_faces), process=False)
+        mesh.metadata["faces_read"] = binary_faces
+        return _checked_mesh(mesh, path, scale, mirror, knee_file, field, merge=False)
+    size = path.stat().st_size
+    if size > MAX_TEXT_MESH_BYTES:
+        raise InputError(f"mesh {path.name} is {size / 1e6:.0f} MB, more than the {MAX_TEXT_MESH_BYTES / 1e6:.0f} "
+                         "MB read in this format (a knee load stays below 2 GB): save it as binary STL, or decimate it",
+                         source=knee_file, field=field)
     try:
         mesh = trimesh.load(path, force="mesh", process=False)  # unprocessed: processing drops NaN vertices
+    except ImportError:  # trimesh's fallback for an unreadable file wants optional modules
+        raise InputError(f"cannot read mesh {path.name}: not a valid {path.suffix.lstrip('.').upper()} file "
+                         "(corrupt or truncated?)", source=knee_file, field=field) from None
     except Exception as exc:  # trimesh raises many exception types for broken files
         raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {' '.join(str(exc).split())})",
                          source=knee_file, field=field) from None
+    return _checked_mesh(mesh, path, scale, mirror, knee_file, field)
+
+
+def _checked_mesh(mesh: object, path: Path, scale: float, mirror: np.ndarray, knee_file: str, field: str,
+                  merge: bool = True) -> trimesh.Trimesh:
+    """:func:`read_mesh`'s checks and conversion of a mesh as read (``merge``: merge duplicate vertices)."""
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError(f"mesh {path.name} has no triangles", source=knee_file, field=field)
+        raise InputError(f"mesh {path.name} has no triangles (empty, truncated or not a mesh?)", source=knee_file,
+                         field=field)
     bad = ~np.isfinite(np.asarray(mesh.vertices, float)).all(axis=1)
     if bad.any():
         raise InputError(f"mesh {path.name} has {int(bad.sum())} non-finite vertices (NaN or inf; the first: "
                          f"vertex {int(np.argmax(bad))})", source=knee_file, field=field)
-    mesh.process(validate=False)  # as trimesh.load(process=True): merge duplicate vertices
+    if merge:
+        mesh.process(validate=False)  # as trimesh.load(process=True): merge duplicate vertices
+    area = np.asarray(mesh.area_faces)
+    flat = area <= 1e-12 * max(float(np.ptp(mesh.vertices, axis=0).max()) ** 2, 1e-300)
+    if flat.mean() > 0.5:
+        raise InputError(f"mesh {path.name}: {int(flat.sum())} of {len(flat)} faces are degenerate (zero area: "
+                         "repeated or collinear vertices); a broken export?", source=knee_file, field=field)
+    total = float(area.sum()) * scale**2  # kept: the decimation needs it, and a large mesh's areas cost seconds
     mesh = mesh.copy()
     mesh.vertices = np.asarray(mesh.vertices, float) * scale * mirror
+    mesh.metadata["area"] = total
     if mirror[2] < 0:
         mesh.invert()  # keep the face orientation after mirroring
     return mesh
