@@ -48,6 +48,13 @@ HIDDEN = [("posterior_capsule", "posterior_capsule.k", 1), ("meniscus", "meniscu
           ("ALL", "ALL.k", 1), ("LCL_femoral_attachment", "LCL.femur_anterior", 1)]
 
 
+def hidden_effects(knee) -> list[tuple[str, str, int]]:
+    """The :data:`HIDDEN` effects that are candidates of ``knee`` (the default knee's menisci are part
+    of its base model; ``ALL`` is the synthetic knee's)."""
+    known = {e.name for e in knee.model.effects}
+    return [h for h in HIDDEN if h[0] in known]
+
+
 def protocol_for(name: str, knee, out: Path):
     """A packaged protocol, or ``designed``: an A-optimal 16-case protocol for ``knee``."""
     from kneenlp.experiment.protocol import Protocol
@@ -75,7 +82,7 @@ def limits_for(knee, protocol, out: Path) -> dict[str, float]:
     sigma = kneenlp.experiment.noise.NoiseModel.parse(NOISE).std
     level = ALPHA / (len(fit.model.effects) + 1)
     out_limits = {}
-    for effect, par, sign in HIDDEN:
+    for effect, par, sign in hidden_effects(knee):
         names = list(fit.model.effect(effect).parameters)
         to_si = 1 / fit.model.parameter(par).to_user
         out_limits[f"{par}:linear"] = detection_limits(fit, sigma, names, len(names), level)[par] * to_si
@@ -155,7 +162,7 @@ def cases(args, knee, out: Path):
         if args.hidden:
             limits = limits_for(knee, protocol, out)
             theta = knee.model.theta()
-            for effect, par, sign in HIDDEN:
+            for effect, par, sign in hidden_effects(knee):
                 for factor in args.factors:
                     for i in range(args.hidden):
                         base = theta[knee.model.index(par)]
