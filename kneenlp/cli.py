@@ -111,10 +111,10 @@ def _check_inputs(args) -> None:
 def _check_names(knee, args) -> None:
     """``--free`` and ``--with-effect`` must name parameters and effects of the model (checked
     after the knee is read, before the work)."""
-    from kneenlp.inference.problem import check_free
-    from kneenlp.simulation import model_for
+    from kneenlp.experiment.problem import check_free
+    from kneenlp.model.kneemodel import KneeModel
 
-    model = model_for(knee)
+    model = KneeModel.of(knee)
     for spec in getattr(args, "with_effect", None) or []:
         with _naming("--with-effect"):
             model.effect(spec.partition(":")[0])
@@ -158,9 +158,9 @@ def _effect_values(knee, specs: list[str]) -> dict[str, float]:
     ``registration:anterior_translation=1.5``) -> parameter values in SI."""
     import numpy as np
 
-    from kneenlp.simulation import model_for
+    from kneenlp.model.kneemodel import KneeModel
 
-    model = model_for(knee)
+    model = KneeModel.of(knee)
     values: dict[str, float] = {}
     for spec in specs or []:
         name, _, rest = spec.partition(":")
@@ -196,12 +196,12 @@ def cmd_diagnose(args) -> int:
     from kneenlp.inference.adequacy import diagnose
     from kneenlp.inference.basefit import base_fit
     from kneenlp.inference.calibrate import calibrate, real_experiment
-    from kneenlp.simulation import model_for
+    from kneenlp.model.kneemodel import KneeModel
 
     knee = _knee(args)
     data = args.measured  # read and checked by the options layer
     if real_experiment(data):  # the base model of a real experiment is its calibration (registration included)
-        fit = calibrate(model_for(knee), data, noise=args.noise, seed=args.seed).fit
+        fit = calibrate(KneeModel.of(knee), data, noise=args.noise, seed=args.seed).fit
     else:
         fit = base_fit(knee, data, args.noise, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear")
@@ -263,7 +263,7 @@ def cmd_simulate(args) -> int:
 def cmd_identify(args) -> int:
     from kneenlp.inference.calibrate import Calibration, calibrate, real_experiment
     from kneenlp.inference.identify import identify
-    from kneenlp.simulation import model_for
+    from kneenlp.model.kneemodel import KneeModel
 
     knee = _knee(args)
     _check_names(knee, args)
@@ -271,7 +271,7 @@ def cmd_identify(args) -> int:
                "protocol": args.protocol, "with_effects": args.with_effect}
     calibration = None
     if real_experiment(args.measured) and args.method == "simultaneous":
-        calibration = calibrate(model_for(knee), args.measured, args.free, seed=args.seed, noise=args.noise,
+        calibration = calibrate(KneeModel.of(knee), args.measured, args.free, seed=args.seed, noise=args.noise,
                                 **options)
         fit = calibration.fit
     else:
@@ -528,9 +528,9 @@ def cmd_predict(args) -> int:
 
 def cmd_cross_validate(args) -> int:
     from kneenlp.inference import crossval
-    from kneenlp.simulation import model_for
+    from kneenlp.model.kneemodel import KneeModel
 
-    model = model_for(_knee(args))
+    model = KneeModel.of(_knee(args))
     results = crossval.cross_validate(model, args.measured, args.hold_out or None, seed=args.seed)
     table = crossval.table(results)
     written = []

@@ -110,6 +110,10 @@ RESIDUAL_NAMES: tuple[str, ...] = (
     "force_proximal",
 )
 RESIDUAL_UNITS: tuple[str, ...] = ("N m", "N m", "N", "N", "N")
+#: A pose is an equilibrium when no residual component exceeds this (N or N m): the forward
+#: solver's, the simulation's and every identification's one tolerance (the nested Complex method
+#: penalises only above the paper's looser 1e-3, :data:`kneenlp.solvers.nested.CONSTRAINT_TOL`).
+EQUILIBRIUM_TOL = 1e-6
 
 
 #: The physiological envelope of a knee pose in user units (deg, deg, mm, mm, mm): the largest

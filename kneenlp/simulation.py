@@ -19,12 +19,6 @@ from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import TrialSolution, forward_solver
 
 
-def model_for(knee: Knee | KneeModel) -> KneeModel:
-    """The CasADi model of ``knee``, built once per knee object (:attr:`Knee.model`).  A
-    :class:`KneeModel` (e.g. one built with extra user elements) is returned as it is."""
-    return knee if isinstance(knee, KneeModel) else knee.model
-
-
 @dataclass
 class SimulationResult:
     """Equilibria of every trial of a protocol (``solutions`` in SI; tables in user units)."""
@@ -59,7 +53,7 @@ class SimulationResult:
         unit is in each column name), convergence."""
         trials = [s.trial for s in self.solutions]
         df = measured_frame(trials, coords_to_user(self.q), self.protocol.name)
-        model = self.model or model_for(self.knee)
+        model = self.model or KneeModel.of(self.knee)
         theta = model.theta(self.parameters)
         for element, out in model.outputs:
             if element.candidate and all(theta[model.index(n)] == model.parameter(n).neutral
@@ -101,7 +95,7 @@ class SimulationResult:
             raise ConvergenceError("cannot write measured data: trials did not converge: "
                                    + ", ".join(s.trial.id for s in self.failed), self)
         rng = np.random.default_rng(seed)
-        model = self.model or model_for(self.knee)
+        model = self.model or KneeModel.of(self.knee)
         bias = model.bias_user(model.theta(self.parameters))
         q_user = coords_to_user(self.q) + bias + noise.sample(rng, self.q.shape)
         return measured_frame([s.trial for s in self.solutions], q_user, self.protocol.name)
@@ -135,7 +129,7 @@ def simulate(knee: Knee | KneeModel | None = None, protocol: Protocol | str = "s
     ``{"ACL.k": 12000.0}``).  Returns a :class:`SimulationResult`; trials that do not converge are
     listed in ``result.failed`` (with their residual), never silently kept.
     """
-    model = model_for(knee or Knee.default())
+    model = KneeModel.of(knee or Knee.default())
     knee = model.knee
     protocol = protocol if isinstance(protocol, Protocol) else Protocol.load(protocol)
     knee.check_flexions(protocol.trials, protocol.source)

@@ -17,6 +17,7 @@ from kneenlp.inference.detection import noncentrality_needed
 from kneenlp.inference.identify import identify
 from kneenlp.inference.patterns import failure_patterns
 from kneenlp.inference.verdict import holm
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import SHIFT_AXES
 
 NOISE = "uniform:0.5"
@@ -145,7 +146,7 @@ def test_every_effect_changes_simulated_data():
         return kneenlp.simulate(knee, "set1", parameters=values).measured("none").iloc[:, -5:].to_numpy()
 
     clean = measured()
-    model = knee.model
+    model = KneeModel.of(knee)
     for effect in model.effects:
         name = effect.parameters[0]
         spec = f"{effect.name}:{name}={STRENGTH[model.parameter(name).kind]}"
@@ -264,7 +265,7 @@ def test_base_fit_restarts_out_of_a_wrong_basin(tmp_path):
     in a wrong basin (RMS 0.69 against 0.07).  The base fit restarts until the misfit is plausible
     or reproduced, so it ends in the best basin whatever the seed."""
     knee = kneenlp.Knee.named("synthetic")
-    values = {f"{lig}.lin_strain": 0.08 for lig in knee.model.ligament_names}
+    values = {f"{lig}.lin_strain": 0.08 for lig in KneeModel.of(knee).ligament_names}
     path = tmp_path / "m.csv"
     kneenlp.simulate(knee, "set4", parameters=values).measured("none").to_csv(path, index=False)
     rms = [base_fit(knee, path, NOISE, seed=s).rms for s in (1, 2)]

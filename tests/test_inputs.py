@@ -142,7 +142,7 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     import numpy as np
     import trimesh
 
-    from kneenlp.simulation import model_for
+    from kneenlp.model.kneemodel import KneeModel
 
     rot = trimesh.transformations.rotation_matrix(0.4, [0.3, 1.0, 0.2])[:3, :3]
     shift = np.array([120.0, -35.0, 410.0])
@@ -170,7 +170,7 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     (tmp_path / "knee.toml").write_text(text)
     scan = Knee.load(tmp_path / "knee.toml")
     ref = Knee.named("synthetic")
-    m1, m2 = model_for(ref), model_for(scan)
+    m1, m2 = KneeModel.of(ref), KneeModel.of(scan)
     q = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
     load = np.r_[50.0, 0, 0, 2.0, 0.5, 0, np.zeros(5)]
     r1 = np.asarray(m1.evaluate(q, m1.theta(), load, 0.3)).ravel()

@@ -13,16 +13,6 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "kneenlp"
 DOC = ROOT / "docs" / "architecture.md"
 
-#: Imports against the layers that are known and being removed (importer, imported).
-ALLOWED: set[tuple[str, str]] = {
-    ("kneenlp.solvers.nested", "kneenlp.inference.problem"),
-    ("kneenlp.solvers.nlp", "kneenlp.inference.problem"),
-    ("kneenlp.solvers.reduced", "kneenlp.inference.problem"),
-}
-#: Circles that are known and being removed.
-ALLOWED_CYCLES: set[str] = {"kneenlp.model.knee -> kneenlp.model.kneemodel -> kneenlp.model.knee"}
-
-
 def layer_table() -> list[list[str]]:
     """The modules of each layer, top (imported by all) first, from docs/architecture.md."""
     text = DOC.read_text()
@@ -85,11 +75,8 @@ def test_no_import_goes_down_the_layers():
     names = [row[0] for row in table]
     bad = sorted((m, i) for m, targets in graph().items() for i in targets
                  if layer_of(i, table) > layer_of(m, table))
-    unexpected = [f"{m} ({names[layer_of(m, table)]}) imports {i} ({names[layer_of(i, table)]})"
-                  for m, i in bad if (m, i) not in ALLOWED]
-    assert not unexpected, "imports against the layers of docs/architecture.md:\n" + "\n".join(unexpected)
-    stale = ALLOWED - set(bad)
-    assert not stale, f"allowed violations that are gone (remove them from ALLOWED): {sorted(stale)}"
+    found = [f"{m} ({names[layer_of(m, table)]}) imports {i} ({names[layer_of(i, table)]})" for m, i in bad]
+    assert not found, "imports against the layers of docs/architecture.md:\n" + "\n".join(found)
 
 
 def test_no_import_cycle():
@@ -109,9 +96,7 @@ def test_no_import_cycle():
     for m in sorted(g):
         if m not in state:
             visit(m, [m])
-    unexpected = sorted(set(cycles) - ALLOWED_CYCLES)
-    assert not unexpected, "modules importing each other in a circle:\n" + "\n".join(unexpected)
-    assert not ALLOWED_CYCLES - set(cycles), "allowed circles that are gone: remove them from ALLOWED_CYCLES"
+    assert not cycles, "modules importing each other in a circle:\n" + "\n".join(cycles)
 
 
 def test_the_walk_sees_function_level_and_relative_imports(tmp_path):

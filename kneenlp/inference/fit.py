@@ -10,7 +10,7 @@ import pandas as pd
 
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES, coordinate_columns
 from kneenlp.experiment.measured import MeasuredData
-from kneenlp.inference.problem import IdentificationProblem
+from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.inference.statistics import chi_square_test, gauss_newton_covariance, noise_variance, svd_rank
 from kneenlp.model.kneemodel import KneeModel
 

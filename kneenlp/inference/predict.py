@@ -100,7 +100,7 @@ class Prediction:
 def predict(knee: Knee | KneeModel, data: MeasuredData, parameters: dict[str, float] | None = None) -> Prediction:
     """Every trial of ``data`` solved at its measured flexion and load on ``knee`` (its parameter set,
     ``parameters`` overriding by name, SI)."""
-    model = knee if isinstance(knee, KneeModel) else knee.model
+    model = KneeModel.of(knee)
     data.check_knee(model.knee)
     protocol = Protocol(data.protocol or "measured", tuple(data.trials), source=data.source)
     theta = model.theta(parameters)

@@ -31,6 +31,7 @@ from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.protocol import Protocol, Trial
 from kneenlp.model.articular import Compartment
 from kneenlp.model.knee import Knee
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.simulation import SimulationResult
 from kneenlp.solvers.forward import TrialSolution
 
@@ -105,7 +106,7 @@ def solution(result: SimulationResult, trial: str | Trial | TrialSolution) -> Tr
 def pose(result: SimulationResult, sol: TrialSolution) -> tuple[np.ndarray, np.ndarray]:
     """The tibial pose of a solution: ``R`` (tibial -> femoral rotation) and ``p`` (tibial origin in
     the femoral frame, m), so that ``x_femoral = R @ x_tibial + p``."""
-    model = result.model or result.knee.model
+    model = result.model or KneeModel.of(result.knee)
     theta = model.theta(result.parameters)
     R, p = model.pose(sol.q, sol.trial.flexion, theta)
     return np.asarray(R, float), np.asarray(p, float).ravel()
@@ -115,7 +116,7 @@ def contact_maps(result: SimulationResult, trial: str | Trial | TrialSolution) -
     """Per-vertex contact pressure of every compartment at a trial's pose (:class:`ContactMap`, SI),
     from each contact element's ``pressure`` (mesh or sphere contact alike)."""
     sol = solution(result, trial)
-    model = result.model or result.knee.model
+    model = result.model or KneeModel.of(result.knee)
     modulus = float(model.theta(result.parameters)[model.index("contact.modulus")])
     R, p = pose(result, sol)
     elements = {e.compartment: e for e in model.staged if hasattr(e, "pressure") and hasattr(e, "compartment")}

@@ -23,7 +23,6 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -172,6 +171,8 @@ class Knee:
     #: coordinates (rad, m); reference strains refer to it, solvers start from it
     reference_pose: tuple[float, np.ndarray] = (0.0, np.zeros(5))
     side: str = "right"  # the side of the knee file (the model is always a right knee)
+    #: the knee's CasADi model once built (:meth:`kneenlp.model.kneemodel.KneeModel.of` builds and keeps it)
+    built_model: object = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def reference_transform(self) -> tuple[np.ndarray, np.ndarray]:
@@ -197,13 +198,6 @@ class Knee:
     @property
     def ligament_names(self) -> list[str]:
         return list(self.ligaments)
-
-    @cached_property
-    def model(self):
-        """The CasADi model of this knee (:class:`~kneenlp.model.kneemodel.KneeModel`), built once."""
-        from kneenlp.model.kneemodel import KneeModel  # the model is built from the knee
-
-        return KneeModel(self)
 
     def elements(self) -> list[ForceElement]:
         """The knee's force elements: its ligaments, one contact element per compartment and the

@@ -103,6 +103,16 @@ class KneeModel:
         self.solvers: dict[tuple, object] = {}
         self._build()
 
+    @classmethod
+    def of(cls, knee: Knee | KneeModel) -> KneeModel:
+        """The model of ``knee``, built once per knee object (kept on it); a :class:`KneeModel`
+        (e.g. one built with extra user elements) is returned as it is."""
+        if isinstance(knee, KneeModel):
+            return knee
+        if knee.built_model is None:
+            knee.built_model = cls(knee)
+        return knee.built_model
+
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
         q = ca.SX.sym("q", 5)

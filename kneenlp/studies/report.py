@@ -43,7 +43,7 @@ def _write_parquet(df: pd.DataFrame, path: Path) -> bool:
 
 def predicted_std(study, set_name: str) -> dict[str, float]:
     """Linearised (Gauss-Newton) standard deviation of each free parameter at the true values (SI)."""
-    from kneenlp.inference.problem import IdentificationProblem, default_free
+    from kneenlp.experiment.problem import IdentificationProblem, default_free
     from kneenlp.inference.statistics import gauss_newton_covariance
 
     spec = study.spec

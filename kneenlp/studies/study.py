@@ -87,8 +87,8 @@ def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2) -> 
     ``threads`` of the NLP's trial map: 1 in worker processes (one process per core already)."""
     from kneenlp.conventions import coordinate_columns, coords_from_user
     from kneenlp.experiment.measured import MeasuredData
+    from kneenlp.experiment.problem import default_free
     from kneenlp.inference.identify import identify
-    from kneenlp.inference.problem import default_free
     from kneenlp.studies.truth import study_model, study_truth
 
     row: dict = {"set": set_name, "sample": index, "seed": -1}
