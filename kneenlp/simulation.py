@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import coords_to_user
+from kneenlp.conventions import EQUILIBRIUM_TOL, coords_to_user
 from kneenlp.experiment.measured import measured_frame
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Protocol
+from kneenlp.io.atomic import write_csv_atomic
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import TrialSolution, forward_solver
@@ -96,14 +97,12 @@ class SimulationResult:
                                    + ", ".join(s.trial.id for s in self.failed), self)
         rng = np.random.default_rng(seed)
         model = self.model or KneeModel.of(self.knee)
-        bias = model.bias_user(model.theta(self.parameters))
-        q_user = coords_to_user(self.q) + bias + noise.sample(rng, self.q.shape)
-        return measured_frame([s.trial for s in self.solutions], q_user, self.protocol.name)
+        y = model.observe(self.q, model.theta(self.parameters))  # what the instrument reads, biases included
+        return measured_frame([s.trial for s in self.solutions], y + noise.sample(rng, self.q.shape),
+                              self.protocol.name)
 
     def to_csv(self, path: str | Path) -> Path:
-        path = Path(path)
-        self.table().to_csv(path, index=False, float_format="%.10g")
-        return path
+        return write_csv_atomic(self.table(), path, index=False, float_format="%.10g")
 
     def summary(self) -> dict:
         return {
@@ -122,7 +121,7 @@ class SimulationResult:
 
 
 def simulate(knee: Knee | KneeModel | None = None, protocol: Protocol | str = "set3",
-             parameters: dict[str, float] | None = None, tol: float = 1e-6) -> SimulationResult:
+             parameters: dict[str, float] | None = None, tol: float = EQUILIBRIUM_TOL) -> SimulationResult:
     """Solve every trial of ``protocol`` on ``knee`` (default: the embedded knee).
 
     ``parameters`` overrides values of the knee's parameter set (SI, by name, e.g.

@@ -37,9 +37,8 @@ import numpy as np
 from kneenlp.conventions import (
     EQUILIBRIUM_TOL,
     LOAD_SIZE,
-    POSE_ENVELOPE_USER,
-    coords_from_user,
     coords_to_user,
+    pose_envelope_user,
 )
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.measured import MeasuredData
@@ -207,8 +206,7 @@ class IdentificationProblem:
     def pose_bounds_user(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds (5, mm and deg) of every trial's pose: the physiological envelope
         (:data:`~kneenlp.conventions.POSE_ENVELOPE_USER`) about the knee's reference pose."""
-        centre = coords_to_user(self.model.knee.reference_pose[1])
-        return centre - POSE_ENVELOPE_USER, centre + POSE_ENVELOPE_USER
+        return pose_envelope_user(self.model.knee.reference_pose[1])
 
     def inside_pose_bounds(self, q: np.ndarray, margin: float = 0.99) -> np.ndarray:
         """Per trial: are the poses ``q`` (T x 5, SI) inside ``margin`` of the pose bounds?"""
@@ -270,7 +268,7 @@ class IdentificationProblem:
         """The measurements as :class:`MeasuredData` (SI poses)."""
         if self.measured is None:
             raise InputError("this problem has no measurements (a design problem)")
-        return MeasuredData(list(self.trials), coords_from_user(self.measured), self.protocol, self.source)
+        return MeasuredData.from_user(list(self.trials), self.measured, self.protocol, self.source)
 
     def theta(self, values: Mapping[str, float] | Sequence[float] | np.ndarray | None = None) -> np.ndarray:
         """Full parameter vector (SI): fixed values, then the free ``values`` (dict or in order)."""

@@ -20,7 +20,7 @@ import numpy as np
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.inference.statistics import gauss_newton_covariance, svd_rank
+from kneenlp.inference.statistics import gauss_newton_covariance, svd_rank, weighted_svd
 
 
 @dataclass
@@ -98,7 +98,7 @@ def identifiability(knee, protocol: Protocol | str, free: list[str] | None = Non
     nm = problem.noise
     variance = nm.std**2
     w = np.full(sens.shape[0], 1.0 / max(variance, 1e-300))
-    _, sv, vt = np.linalg.svd(np.sqrt(w)[:, None] * sens * problem.scales, full_matrices=True)
+    _, sv, vt = weighted_svd(sens, w, problem.scales)
     cov = gauss_newton_covariance(sens, w, np.full(sens.shape[0], variance), problem.scales, free)
     stderr = {n: float(np.sqrt(c)) for n, c in zip(free, np.diag(cov), strict=True)}
     units = {p.name: (p.unit, p.to_user) for p in problem.parameters}

@@ -30,6 +30,7 @@ from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import Protocol, available_protocols
 from kneenlp.inference.fit import Fit
+from kneenlp.inference.starts import best_fit, run_starts
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import forward_solver, rim_reason
@@ -88,24 +89,25 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     rng = np.random.default_rng(seed)
     if method == "nested":
         return _nested(problem, start, rng, seed, dict(nested_options or {}))
-    best: Fit | None = None
-    k = 0
 
-    def good(f: Fit | None) -> bool:
-        return f is not None and f.success and not _at_bounds(f) and not _implausible_misfit(f)
+    def good(f: Fit) -> bool:
+        return f.success and not _at_bounds(f) and not _implausible_misfit(f)
 
-    while k < max(1, multistart) or (not good(best) and k < max(1, multistart) + restarts):
+    def rank(f: Fit) -> tuple[bool, bool, float]:  # good first, then converged, then the lower objective
+        return good(f), f.success, -f.objective if f.success else 0.0
+
+    def solve(k: int) -> Fit:
         s = problem.scatter(rng)
         if k == 0 and start:
             s.update(start)
         fit = solve_simultaneous(problem, s, solver, solver_options, threads)
         if not fit.success and solver == "ipopt":
             fit = _rescued(problem, s, fit, solver_options, threads)
-        if best is None or (good(fit) and not good(best)) or \
-                (fit.success and good(fit) == good(best) and fit.objective < best.objective) or \
-                (fit.success and not best.success):
-            best = fit
-        k += 1
+        return fit
+
+    fits = run_starts(solve, at_least=multistart, at_most=max(1, multistart) + restarts,
+                      done=lambda fits: good(best_fit(fits, rank)))
+    best, k = best_fit(fits, rank), len(fits)
     if best.success and _at_bounds(best):
         note = "ligament parameters at their bounds: a poor local minimum or a model that cannot fit the data"
         best.message = f"{best.message}; {note}" if best.message else note

@@ -43,11 +43,12 @@ from kneenlp.conventions import (
     COORDINATES,
     RESIDUAL_NAMES,
     RESIDUAL_UNITS,
-    TO_USER,
+    coords_from_user,
 )
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.io.atomic import atomic_target, write_text_atomic
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import equilibrium_start
@@ -143,7 +144,7 @@ def expansion_error(problem: IdentificationProblem, q0: np.ndarray, theta: np.nd
     worst, scale = 0.0, 0.0
     for i, t in enumerate(problem.trials):
         for _ in range(ERROR_SAMPLES):
-            q = q0[i] + rng.uniform(-ERROR_PROBE, ERROR_PROBE, 5) / np.asarray(TO_USER)
+            q = q0[i] + coords_from_user(rng.uniform(-ERROR_PROBE, ERROR_PROBE, 5))
             a = np.asarray(model.residual(q, theta, t.load, t.flexion, ws[i])).ravel()
             b = np.asarray(exact(q, theta, t.load, t.flexion)).ravel()
             worst, scale = max(worst, float(np.abs(a - b).max())), max(scale, float(np.abs(b).max()))
@@ -205,7 +206,8 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
         files += [out / "kneenlp.nl", out / "kneenlp.row", out / "kneenlp.col"]
     elif fmt == "casadi":
         for fn in _derivative_functions(prob):
-            fn.save(str(out / f"{fn.name()}.casadi"))
+            with atomic_target(out / f"{fn.name()}.casadi") as tmp:
+                fn.save(str(tmp))
             files.append(out / f"{fn.name()}.casadi")
     else:
         cg = ca.CodeGenerator("kneenlp_nlp.c", {"with_header": True})
@@ -231,7 +233,7 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
         "files": [f.name for f in files],
         **({"nl": extra} if extra else {}),
     }
-    (out / "problem.json").write_text(json.dumps(sidecar, indent=1))
+    write_text_atomic(out / "problem.json", json.dumps(sidecar, indent=1))
     files.append(out / "problem.json")
     return files
 

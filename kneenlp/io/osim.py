@@ -41,6 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kneenlp.io.atomic import write_text_atomic
+
 __all__ = [
     "BLANKEVOORT_DEFAULTS",
     "JAM_ONLY_CLASSES",
@@ -1055,10 +1057,7 @@ def write_calibrated(src_osim: str | os.PathLike, out_path: str | os.PathLike,
                 changes.append((bundle, key, "", _fmt(v)))
         for s, e, new in sorted(edits, reverse=True):
             text = text[:s] + new + text[e:]
-    tmp = out + ".tmp"
-    with open(tmp, "wb") as fh:
-        fh.write(text.encode("utf-8"))
-    os.replace(tmp, out)
+    write_text_atomic(out, text)
     return changes
 
 
@@ -1078,6 +1077,5 @@ def write_opensim_loadable_copy(src_osim: str | os.PathLike, out_path: str | os.
         removed += [re.search(r'name="([^"]*)"', m.group(0)).group(1) if 'name="' in m.group(0) else cls
                     for m in pat.finditer(text)]
         text = pat.sub("", text)
-    with open(out_path, "wb") as fh:
-        fh.write(text.encode("utf-8"))
+    write_text_atomic(out_path, text)
     return removed

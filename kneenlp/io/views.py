@@ -29,6 +29,7 @@ from matplotlib.lines import Line2D
 
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.protocol import Protocol, Trial
+from kneenlp.io.atomic import save_figure_atomic
 from kneenlp.model.articular import Compartment
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
@@ -522,7 +523,7 @@ def _save(fig: Figure, path: str | Path) -> Path:
     """Write a figure (its layout is constrained, so no tight_layout)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure_atomic(fig, path, dpi=110)
     return path
 
 

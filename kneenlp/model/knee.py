@@ -65,7 +65,7 @@ from kneenlp.model.kinematics import tibial_pose
 from kneenlp.model.laws import DEFAULT_LAW, DEFAULT_PRESSURE_LAW, law_named
 from kneenlp.model.ligament import Bundle, Ligament
 from kneenlp.model.mesh_contact import MeshContact
-from kneenlp.model.parameters import ParameterSet, number, read_toml
+from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, UNIT_FACTORS, ParameterSet, number, read_toml
 
 #: Ligament names (prefixes, upper case) on the medial and the lateral side of the knee, the
 #: evidence :meth:`_KneeFile.check_side` weighs against the declared side.
@@ -234,8 +234,8 @@ class Knee:
         (builds the femoral distance field if it is not built yet)."""
         lines = [f"knee {self.name!r} ({self.source or 'in memory'})", *self.notes]
         if self.menisci is not None:
-            lines.append(f"menisci: transverse springs of {self.menisci * 1e-3:g} N/mm per compartment at the "
-                         "condyle centres (part of the base model)")
+            lines.append(f"menisci: transverse springs of {self.menisci * KINDS['spring'].to_user:g} N/mm per "
+                         "compartment at the condyle centres (part of the base model)")
         for c in self.compartments.values():
             what = (f"explicit sphere, radius {c.sphere_radius * 1e3:.1f} mm, centre "
                     f"({', '.join(f'{v * 1e3:.1f}' for v in c.centre)}) mm" if c.sphere else "femoral mesh surface")
@@ -602,7 +602,7 @@ class _KneeFile:
         k = number(doc["stiffness"], self.src, "menisci.stiffness")
         if k < 0:
             raise InputError("must be >= 0", source=self.src, field="menisci.stiffness")
-        return k * 1e3
+        return k * UNIT_FACTORS["spring"]["N/mm"]
 
     def contact(self, raw_landmarks: dict[str, np.ndarray]) -> dict:
         """Read the articular surfaces, build the femoral frame from them and map everything into it."""
@@ -858,9 +858,9 @@ class _KneeFile:
                     raise InputError("must be > 0", source=src, field=f"{f}.slack_length")
                 ref = length / slack - 1
             else:
-                ref = number(b["ref_strain"], src, f"{f}.ref_strain") / 100
+                ref = number(b["ref_strain"], src, f"{f}.ref_strain") / KINDS["ref_strain"].to_user
             if "lin_strain" in b:
-                lin = number(b["lin_strain"], src, f"{f}.lin_strain") / 100
+                lin = number(b["lin_strain"], src, f"{f}.lin_strain") / KINDS["lin_strain"].to_user
             else:
                 lin = number(b.get("transition_strain", 0.06), src, f"{f}.transition_strain") / 2
             if lin <= 0:
@@ -886,7 +886,7 @@ class _KneeFile:
             for i, (f, t) in enumerate(zip(fem, tib, strict=True)):
                 self.check_length(f, t, fld)
                 self.attach(f, t, f"{fld}.femur[{i}]", f"{fld}.tibia[{i}]")
-            ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / 100.0
+            ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / KINDS["ref_strain"].to_user
             out.append(Ligament(cname, [Bundle(f, t) for f, t in zip(fem, tib, strict=True)], candidate=True,
                                 defaults={"ref_strain": ref}, description=str(cdoc.get("description", "")),
                                 reference=self.reference))
@@ -928,7 +928,7 @@ def check_parameter_set(params: ParameterSet, ligaments: dict[str, Ligament], kn
         raise InputError(f"unknown ligament {extra[0]!r}; known: {', '.join(ligaments)} (the ligaments of "
                          f"{src})", source=params.source or src, field=f"ligaments.{extra[0]}")
     missing = [f"{n}.{k}" for n, lig in ligaments.items() if not lig.grouped
-               for k in ("k", "ref_strain", "lin_strain") if f"{n}.{k}" not in params]
+               for k in LIGAMENT_KINDS if f"{n}.{k}" not in params]
     if missing:
         raise InputError(f"parameter set {params.source or params.name} lacks {', '.join(missing)}",
                          source=knee_source, field="parameters")

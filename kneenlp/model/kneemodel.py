@@ -33,7 +33,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import LOAD_SIZE, TO_USER
+from kneenlp.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.model.effects import (
     Effect,
@@ -153,7 +153,7 @@ class KneeModel:
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 
         bias = [b for e in self.elements if (b := e.measurement_bias(values)) is not None]
-        y = q * ca.DM(TO_USER) + (sum(bias, ca.SX.zeros(5)) * ca.DM(TO_USER) if bias else 0)
+        y = coords_to_user(q) + (coords_to_user(sum(bias, ca.SX.zeros(5))) if bias else 0)
         self.observation = ca.Function("observation", [q, theta], [y], ["q", "theta"], ["y"])
 
         self.pose = ca.Function("pose", [q, flexion, theta], [R, p], ["q", "flexion", "theta"], ["R", "p"])

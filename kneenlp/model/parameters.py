@@ -252,6 +252,20 @@ class ParameterSet:
                    description=str(doc.get("description", "")), meta=named_units)
 
 
+#: The laxity-noise paper's elastic-foundation modulus (N/m^3): the parameter set of an imported knee.
+PAPER_MODULUS = 1e10
+
+
+def imported_parameter_set(program: str, carried: str) -> str:
+    """Parameter-file text of a knee imported from ``program`` whose bundles carry ``carried``
+    (e.g. "their own stiffness and slack length") in the knee file: the groups' stiffness scales (1)
+    and reference-strain offsets (0) are the defaults, the contact modulus the paper's."""
+    header = [f"Parameters of a knee imported from {program}: the bundles carry {carried} (knee.toml); the",
+              "groups' stiffness scales (1) and reference-strain offsets (0) are the defaults.  The",
+              "elastic-foundation modulus is the laxity-noise paper's."]
+    return ParameterSet({"contact.modulus": PAPER_MODULUS}, name="imported").to_toml({}, header)
+
+
 def _named_values(table: object, src: str) -> tuple[dict[str, float], dict[str, str]]:
     """``[values]``: any model parameter by its full name, ``"NAME" = {value = V, unit = "U"}`` (SI
     out); a calibration writes the parameters it fitted so (:meth:`ParameterSet.to_toml`)."""

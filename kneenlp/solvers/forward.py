@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from kneenlp.conventions import EQUILIBRIUM_TOL, POSE_ENVELOPE_USER, TO_USER, coords_to_user
+from kneenlp.conventions import EQUILIBRIUM_TOL, POSE_ENVELOPE_USER, coords_from_user, coords_to_user
 from kneenlp.experiment.protocol import Trial
 from kneenlp.model.elements import StagedElement
 from kneenlp.model.kneemodel import KneeModel
@@ -38,7 +38,7 @@ COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m from the reference
 #: Flexion step (deg) of the passive path from a knee's reference pose (:meth:`ForwardSolver.cold_start`).
 PASSIVE_STEP_DEG = 10.0
 #: Largest |coordinate| of a plausible knee pose from the knee's reference pose (rad, rad, m, m, m).
-ENVELOPE = POSE_ENVELOPE_USER / TO_USER
+ENVELOPE = coords_from_user(POSE_ENVELOPE_USER)
 
 
 @dataclass

@@ -32,7 +32,7 @@ import casadi as ca
 import numpy as np
 
 from kneenlp import interrupts
-from kneenlp.conventions import LOAD_SIZE, TO_USER, coords_from_user
+from kneenlp.conventions import LOAD_SIZE, coords_from_user
 from kneenlp.errors import InputError
 from kneenlp.solvers.forward import equilibrium_start
 
@@ -79,7 +79,7 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
     data = layout.split(par)
     loads, flex = data["loads"], data["flexions"]
     theta = problem.theta_of_scaled(xp, data["theta"])
-    q_si = xq / ca.DM(TO_USER)  # deg, mm -> rad, m
+    q_si = coords_from_user(xq)
     if parallel == "thread" and threads > 1:
         mapped = model.residual.map(T, "thread", threads)
     else:
@@ -235,7 +235,7 @@ def _trial_block_derivatives(problem: IdentificationProblem, e: NLPExpressions) 
     ws, meas, w = ca.SX.sym("ws", model.ws_size), ca.SX.sym("measured", 5), ca.SX.sym("weights", 5)
     lam_f, lam = ca.SX.sym("lam_f"), ca.SX.sym("lam", 5)
     theta = problem.theta_of_scaled(xp, theta_in)
-    q_si = q_user / ca.DM(TO_USER)
+    q_si = coords_from_user(q_user)
     r = residual(q_si, theta, load, flexion, ws)
     diff = model.observation(q_si, theta) - meas
     f_t = ca.sum1(w * diff * diff)
