@@ -255,8 +255,5 @@ def _unloaded(t: Trial) -> Trial:
 
 
 def forward_solver(model: KneeModel, tol: float = EQUILIBRIUM_TOL) -> ForwardSolver:
-    """The model's forward solver for ``tol``, built once per model (kept in ``model.solvers``)."""
-    key = ("forward", tol)
-    if key not in model.solvers:
-        model.solvers[key] = ForwardSolver(model, tol=tol)
-    return model.solvers[key]
+    """The model's forward solver for ``tol`` (N or N m), built once per model (``model.solvers``)."""
+    return model.solvers.get(("forward", tol), lambda: ForwardSolver(model, tol=tol))

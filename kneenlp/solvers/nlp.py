@@ -34,6 +34,7 @@ import numpy as np
 from kneenlp import interrupts
 from kneenlp.conventions import LOAD_SIZE, coords_from_user
 from kneenlp.errors import InputError
+from kneenlp.model.solvercache import frozen
 from kneenlp.solvers.forward import equilibrium_start
 
 if TYPE_CHECKING:
@@ -130,12 +131,10 @@ def build_nlp(problem: IdentificationProblem, solver: str = "ipopt", options: di
 
 
 def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, threads: int) -> IdentificationNLP:
-    """The NLP solver of ``problem``'s layout, built once per model (kept in ``model.solvers``)."""
-    key = ("nlp", problem.n_trials, tuple(problem.free), solver, repr(sorted((options or {}).items())), threads)
-    solvers = problem.model.solvers
-    if key not in solvers:
-        solvers[key] = build_nlp(problem, solver, options, threads)
-    return solvers[key]
+    """The NLP solver of ``problem``'s layout (number of trials, free parameters), ``solver`` (a CasADi
+    nlpsol plugin), its ``options`` and ``threads``, built once per model (``model.solvers``)."""
+    key = ("nlp", problem.n_trials, tuple(problem.free), solver, frozen(options), threads)
+    return problem.model.solvers.get(key, lambda: build_nlp(problem, solver, options, threads))
 
 
 @dataclass
