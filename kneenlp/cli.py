@@ -79,7 +79,7 @@ def _check_inputs(args) -> None:
         _check_out(args.out, args.out_kind)
     knee = getattr(args, "knee", None)
     if knee is not None:
-        from kneenlp.model.knee import available_knees, resolve_knee
+        from kneenlp.model.knee_file import available_knees, resolve_knee
 
         with _naming("--knee"):
             resolved = resolve_knee(knee)
@@ -145,7 +145,7 @@ def _knee(args):
 
 def _knee_reference(value: str | None) -> str | None:
     """A --knee value as study workers get it: a shipped knee's name, or an absolute path."""
-    from kneenlp.model.knee import available_knees, knee_file, resolve_knee
+    from kneenlp.model.knee_file import available_knees, knee_file, resolve_knee
 
     if value is None:
         return value
@@ -334,7 +334,7 @@ def _study_size(args) -> str:
     """The study's size in fits, time and disk (estimated from :data:`SECONDS_PER_FIT` and
     :data:`BYTES_PER_SAMPLE`); an input error naming ``--samples`` beyond :data:`MAX_STUDY_FITS`
     fits without ``--yes``, before any work (issue 24: ``--samples 1000000`` gave no early message)."""
-    from kneenlp.model.knee import resolve_knee
+    from kneenlp.model.knee_file import resolve_knee
     from kneenlp.model.parameters import read_toml
 
     fits = len(args.sets) * args.samples

@@ -191,11 +191,11 @@ def test_attachment_shift_equals_a_moved_attachment_in_the_knee_file(tmp_path):
 
 def moved_knee(tmp_path, old: str, new: str):
     """The synthetic knee with one line of its knee file replaced (e.g. an attachment moved)."""
-    text = kneenlp.model.knee.knee_file("synthetic").read_text()
+    text = kneenlp.model.knee_file.knee_file("synthetic").read_text()
     assert old in text
     text = text.replace(old, new)
     text = text.replace("../../parameters/table1.toml", str(kneenlp.io.resources.resource("parameters", "table1.toml")))
-    text = text.replace('"meshes/', f'"{kneenlp.model.knee.knee_file("synthetic").parent}/meshes/')
+    text = text.replace('"meshes/', f'"{kneenlp.model.knee_file.knee_file("synthetic").parent}/meshes/')
     (tmp_path / "moved.toml").write_text(text)
     return kneenlp.Knee.load(tmp_path / "moved.toml")
 

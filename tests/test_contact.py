@@ -139,7 +139,8 @@ def test_unknown_pressure_law_is_named(tmp_path, where, field):
 
     from kneenlp.errors import InputError
     from kneenlp.io.resources import resource
-    from kneenlp.model.knee import Knee, knee_file
+    from kneenlp.model.knee import Knee
+    from kneenlp.model.knee_file import knee_file
 
     shutil.copytree(knee_file("synthetic").parent, tmp_path / "k")
     toml = tmp_path / "k" / "knee.toml"

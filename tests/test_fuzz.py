@@ -41,7 +41,8 @@ from kneenlp.errors import InputError
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.protocol import Protocol
 from kneenlp.io.resources import resource
-from kneenlp.model.knee import Knee, knee_file
+from kneenlp.model.knee import Knee
+from kneenlp.model.knee_file import knee_file
 from kneenlp.model.parameters import ParameterSet
 
 #: Commands that take --json.

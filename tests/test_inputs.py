@@ -15,7 +15,8 @@ from kneenlp.cli import main
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.model.knee import Knee, knee_file
+from kneenlp.model.knee import Knee
+from kneenlp.model.knee_file import knee_file
 from kneenlp.model.parameters import ParameterSet
 
 
@@ -488,7 +489,7 @@ def test_fine_mesh_decimated_to_the_contact_resolution(tmp_path, monkeypatch):
     import trimesh
 
     import kneenlp.geometry.decimate as dec
-    import kneenlp.model.knee as knee_module
+    import kneenlp.model.knee_file as knee_module
     from kneenlp.geometry.distance import MeshDistance
 
     src = knee_file("implant").parent

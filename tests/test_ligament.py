@@ -78,7 +78,8 @@ def test_unknown_law_in_a_knee_file_is_named(tmp_path, law, needle):
 
     from kneenlp.errors import InputError
     from kneenlp.io.resources import resource
-    from kneenlp.model.knee import Knee, knee_file
+    from kneenlp.model.knee import Knee
+    from kneenlp.model.knee_file import knee_file
 
     shutil.copytree(knee_file("synthetic").parent, tmp_path / "k")
     toml = tmp_path / "k" / "knee.toml"

@@ -340,7 +340,7 @@ def test_protocol_files_take_joint_loads_and_the_extra_components():
 def test_knee_directories_and_shipped_names(tmp_path, monkeypatch, capsys):
     """An importer's output folder loads as a knee; a folder that happens to share a shipped knee's
     name (and holds no knee.toml) does not hide the shipped knee; an empty folder is named."""
-    from kneenlp.model.knee import knee_file, resolve_knee
+    from kneenlp.model.knee_file import knee_file, resolve_knee
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "s192803").mkdir()  # e.g. earlier outputs

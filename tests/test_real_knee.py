@@ -15,7 +15,7 @@ from kneenlp.conventions import TO_USER
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.inference.identify import identify
 from kneenlp.io.lenhart import knee_toml
-from kneenlp.model.knee import knee_file
+from kneenlp.model.knee_file import knee_file
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.testing.reference import compare_contact
 

@@ -30,7 +30,7 @@ import tomli_w
 from kneenlp.errors import InputError
 from kneenlp.io.atomic import write_text_atomic
 from kneenlp.io.osim import OsimError, knee_line_elements, ligament_groups, read_osim
-from kneenlp.model.knee import PLAUSIBLE_MM
+from kneenlp.model.knee_file import PLAUSIBLE_MM
 from kneenlp.model.laws import BlankevoortLaw
 from kneenlp.model.parameters import imported_parameter_set
 
