@@ -139,7 +139,7 @@ STRENGTH = {"k": 8000, "spring": 50, "angle": 2, "length": 3, "lin_strain": 6, "
 
 def test_every_effect_changes_simulated_data():
     """``simulate --with-effect NAME:PARAM=VALUE`` moves the data for every effect of the library."""
-    from kneenlp.cli import _effect_values
+    from kneenlp.cli.inputs import effect_values as _effect_values
 
     knee = kneenlp.Knee.named("synthetic")
     def measured(values=None):
@@ -170,7 +170,7 @@ def test_with_effect_that_would_change_nothing_is_rejected(tmp_path, capsys, spe
 
 
 def test_with_effect_accepts_short_names(tmp_path):
-    from kneenlp.cli import _effect_values
+    from kneenlp.cli.inputs import effect_values as _effect_values
 
     knee = kneenlp.Knee.named("synthetic")
     assert _effect_values(knee, ["contact_modulus:modulus=5"]) == {"contact.modulus": 5e9}

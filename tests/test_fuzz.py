@@ -36,7 +36,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import kneenlp
-from kneenlp.cli import build_parser, main
+from kneenlp.cli import main
+from kneenlp.cli.parser import build_parser
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.protocol import Protocol

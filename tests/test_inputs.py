@@ -463,7 +463,7 @@ def test_huge_study_refused_early(tmp_path, capsys):
     and disk, naming --samples and --yes; nothing written.  The estimate scales with the study."""
     import argparse
 
-    from kneenlp.cli import _study_size
+    from kneenlp.cli.inputs import study_size as _study_size
 
     out = tmp_path / "st"
     code, err = run_cli(capsys, "study", "--knee", "synthetic", "--samples", "1000000", "--workers", "2",

@@ -100,6 +100,10 @@ class Parameter:
     def scale(self) -> float:
         return self.meta.scale
 
+    def from_user(self, value: float) -> float:
+        """A value in the display unit (:attr:`unit`) in SI."""
+        return float(value) / self.meta.to_user
+
     @property
     def bounds(self) -> tuple[float, float]:
         """(lower, upper) in SI."""
