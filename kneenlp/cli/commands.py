@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from kneenlp.cli.inputs import MAX_STUDY_FITS, check_names, effect_values, knee_from_args, knee_reference, study_size
-from kneenlp.io.atomic import staged_directory, write_error
+from kneenlp.io.atomic import staged_directory, write_csv_atomic, write_error, write_text_atomic
 
 
 def cmd_diagnose(args) -> int:
@@ -46,16 +46,16 @@ def cmd_simulate(args) -> int:
     recruitment = result.recruitment() if any(t.direction == "none" for t in protocol.trials) else None
     with staged_directory(args.out) as stage:
         out = stage.path
-        table.to_csv(out / "kinematics.csv", index=False, float_format="%.10g")
-        (out / "knee_report.txt").write_text(result.knee.report() + "\n")  # how the files became the model
+        write_csv_atomic(table, out / "kinematics.csv", index=False, float_format="%.10g")
+        write_text_atomic(out / "knee_report.txt", result.knee.report() + "\n")  # how the files became the model
         written = [out / "kinematics.csv", out / "knee_report.txt"]
         if recruitment is not None:
-            recruitment.to_csv(out / "ligament_recruitment.csv", index=False, float_format="%.6g")
+            write_csv_atomic(recruitment, out / "ligament_recruitment.csv", index=False, float_format="%.6g")
             written.append(out / "ligament_recruitment.csv")
         biased = bool(np.any(result.model.bias_user(result.model.theta(result.parameters)) != 0))
         if (args.noise not in (None, "none") or biased) and not result.failed:  # a registration bias shows only there
             measured = result.measured(args.noise, args.seed)
-            measured.to_csv(out / "measured.csv", index=False, float_format="%.10g")
+            write_csv_atomic(measured, out / "measured.csv", index=False, float_format="%.10g")
             written.append(out / "measured.csv")
         if not args.no_plots:
             axes = "/".join(sorted({t.axes for t in protocol.trials}))
@@ -99,9 +99,9 @@ def cmd_identify(args) -> int:
         calibration = Calibration(fit, None, [])
     if args.out:
         with staged_directory(args.out) as stage:
-            fit.table().to_csv(stage.path / "fit_trials.csv", index=False, float_format="%.10g")
-            (stage.path / "fit.json").write_text(fit.to_json())
-            (stage.path / "calibrated.toml").write_text(calibration.to_toml())
+            write_csv_atomic(fit.table(), stage.path / "fit_trials.csv", index=False, float_format="%.10g")
+            write_text_atomic(stage.path / "fit.json", fit.to_json())
+            write_text_atomic(stage.path / "calibrated.toml", calibration.to_toml())
     if args.json:
         print(json.dumps(json.loads(fit.to_json()) | calibration.summary(), indent=2))
     else:
@@ -304,10 +304,11 @@ def cmd_cross_validate(args) -> int:
     written = []
     if args.out:
         with staged_directory(args.out) as stage:
-            table.to_csv(stage.path / "cross_validation.csv", index=False, float_format="%.6g")
+            write_csv_atomic(table, stage.path / "cross_validation.csv", index=False, float_format="%.6g")
             for r in results:
                 slug = r.name.replace(" ", "_")
-                r.prediction.table().to_csv(stage.path / f"predicted_{slug}.csv", index=False, float_format="%.10g")
+                write_csv_atomic(r.prediction.table(), stage.path / f"predicted_{slug}.csv", index=False,
+                                 float_format="%.10g")
         written = [str(stage.final(stage.path / "cross_validation.csv"))]
     if args.json:
         print(json.dumps({"units": "mm, deg", "hold_outs": table.to_dict(orient="records"), "outputs": written},
