@@ -54,6 +54,15 @@ def default_free(model: KneeModel) -> list[str]:
     return [n for lig in model.ligament_names for n in model.element(lig).main_parameters()]
 
 
+def free_names(model: KneeModel, free: Sequence[str] | None = None, with_effects: Sequence[str] = ()) -> list[str]:
+    """``free`` (default :func:`default_free`) and the parameters of the candidate effects
+    ``with_effects``, each once."""
+    out = list(free or default_free(model))
+    for name in with_effects:
+        out += [n for n in model.effect(name).free_names() if n not in out]
+    return out
+
+
 def check_free(model: KneeModel, free: Sequence[str]) -> list[str]:
     """The free parameter names, validated (known, not repeated, not empty)."""
     for name in free:
@@ -160,9 +169,7 @@ class IdentificationProblem:
         """The problem of identifying ``free`` (default: k and ref_strain of every ligament, plus
         the parameters of ``with_effects``) from measured ``data``."""
         model.knee.check_flexions(data.trials, data.source)
-        free = list(free or default_free(model))
-        for name in with_effects:
-            free += [n for n in model.effect(name).free_names() if n not in free]
+        free = free_names(model, free, with_effects)
         noise_model = NoiseModel.parse(noise) if noise is not None else None
         if weighted and (noise_model is None or noise_model.std == 0):
             raise InputError("weighted fit needs a noise model with non-zero level", field="noise")

@@ -39,15 +39,13 @@ def _write_parquet(df: pd.DataFrame, path: Path) -> bool:
 
 def predicted_std(study, set_name: str) -> dict[str, float]:
     """Linearised (Gauss-Newton) standard deviation of each free parameter at the true values (SI)."""
-    from kneenlp.experiment.problem import IdentificationProblem, default_free
+    from kneenlp.experiment.problem import IdentificationProblem, free_names
     from kneenlp.inference.statistics import gauss_newton_covariance
 
     spec = study.spec
     model = study_model(spec.knee, tuple(spec.elements))
     truth = study_truth(spec.knee, tuple(spec.elements), set_name)
-    free = list(spec.free) if spec.free else default_free(model)
-    for name in spec.with_effects:
-        free += [n for n in model.effect(name).free_names() if n not in free]
+    free = free_names(model, spec.free, spec.with_effects)
     problem = IdentificationProblem(model, [s.trial for s in truth.solutions], free)
     theta = problem.theta()
     cov = gauss_newton_covariance(problem.sensitivities(truth.q, theta), problem.weights,
