@@ -38,6 +38,7 @@ from kneenlp.inference.basefit import base_fit
 from kneenlp.inference.candidates import base_projection, effect_sensitivity
 from kneenlp.inference.detection import detection_limits, noncentrality_needed, simulated_limits
 from kneenlp.inference.verdict import ALPHA
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import SHIFT_AXES
 
 NOISE = "uniform:0.5"
@@ -51,7 +52,7 @@ HIDDEN = [("posterior_capsule", "posterior_capsule.k", 1), ("meniscus", "meniscu
 def hidden_effects(knee) -> list[tuple[str, str, int]]:
     """The :data:`HIDDEN` effects that are candidates of ``knee`` (the default knee's menisci are part
     of its base model; ``ALL`` is the synthetic knee's)."""
-    known = {e.name for e in knee.model.effects}
+    known = {e.name for e in KneeModel.of(knee).effects}
     return [h for h in HIDDEN if h[0] in known]
 
 
@@ -161,13 +162,13 @@ def cases(args, knee, out: Path):
             yield f"noise|{pname}|{i}", protocol, {}, "uniform:1.0", 2000 + i, "noise_larger"
         if args.hidden:
             limits = limits_for(knee, protocol, out)
-            theta = knee.model.theta()
+            theta = KneeModel.of(knee).theta()
             for effect, par, sign in hidden_effects(knee):
                 for factor in args.factors:
                     for i in range(args.hidden):
-                        base = theta[knee.model.index(par)]
+                        base = theta[KneeModel.of(knee).index(par)]
                         value = base + sign * factor * limits[par]
-                        lo, hi = knee.model.parameter(par).bounds
+                        lo, hi = KneeModel.of(knee).parameter(par).bounds
                         if not lo <= value <= hi or (par == "contact.modulus" and value < 0.2 * base):
                             print(f"skipped: {effect} at {factor:g} detection limits on {pname} is beyond its range")
                             break
@@ -175,7 +176,7 @@ def cases(args, knee, out: Path):
                                effect)
         if pname in ("set3", "set4"):
             for i in range(args.attachment):
-                lig = str(rng.choice(knee.model.ligament_names))
+                lig = str(rng.choice(KneeModel.of(knee).ligament_names))
                 side = str(rng.choice(["femur", "tibia"]))
                 direction = rng.normal(size=3)
                 shift = direction / np.linalg.norm(direction) * rng.uniform(3e-3, 5e-3)

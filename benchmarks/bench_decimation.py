@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from kneenlp.model.knee import knee_file
+from kneenlp.model.knee_file import knee_file
 
 DEFAULT = knee_file("default")
 LENHART = DEFAULT.parent.parent / "lenhart2015" / "opensim"

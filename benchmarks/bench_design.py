@@ -19,11 +19,11 @@ import pandas as pd
 
 from kneenlp import Knee, Protocol
 from kneenlp.inference.design import design, predicted_rse, write_protocol
-from kneenlp.simulation import model_for
+from kneenlp.model.kneemodel import KneeModel
 
 
 def main(mc: int = 0) -> None:
-    model = model_for(Knee.default())
+    model = KneeModel.of(Knee.default())
     rows = []
     for s in ("set1", "set2", "set3", "set4"):
         p = Protocol.load(s)

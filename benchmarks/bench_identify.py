@@ -14,7 +14,8 @@ import numpy as np
 
 import kneenlp
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.identify import get_nlp, identify
+from kneenlp.inference.identify import identify
+from kneenlp.solvers.nlp import get_nlp
 
 
 def bench(name: str, seeds: range) -> None:

@@ -18,15 +18,16 @@ import numpy as np
 
 import kneenlp
 from kneenlp.experiment.measured import read_measured
+from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.inference.calibrate import calibrate
 from kneenlp.inference.identify import reduced_fit
 from kneenlp.inference.predict import rms_by_coordinate
-from kneenlp.inference.problem import IdentificationProblem
 from kneenlp.io.resources import resource
+from kneenlp.model.kneemodel import KneeModel
 
 
 def main() -> None:
-    model = kneenlp.Knee.named("s192803").model
+    model = KneeModel.of(kneenlp.Knee.named("s192803"))
     data = read_measured(resource("datasets", "s192803_laxity.csv"))
     fit = calibrate(model, data).fit
     loaded = np.array([t.dominant != "none" for t in data.trials])

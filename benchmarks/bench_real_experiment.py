@@ -30,6 +30,7 @@ from kneenlp.inference import crossval
 from kneenlp.inference.calibrate import calibrate
 from kneenlp.inference.predict import predict, rms_by_coordinate
 from kneenlp.io.resources import resource
+from kneenlp.model.kneemodel import KneeModel
 
 DEPOSIT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "du-s192803"
 TABLE = Path(__file__).resolve().parents[1] / "docs" / "figures" / "s192803_cross_validation.csv"
@@ -51,7 +52,7 @@ def main() -> None:
         print(f"import-abaqus of the deposit: {t_import:.2f} s")
     t0 = time.perf_counter()
     knee = kneenlp.Knee.named("s192803")
-    model = knee.model
+    model = KneeModel.of(knee)
     t_load = time.perf_counter() - t0
     print(f"knee load + model build (distance field cached after the first run): {t_load:.2f} s")
     data = read_measured(resource("datasets", "s192803_laxity.csv"))

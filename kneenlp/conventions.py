@@ -62,6 +62,7 @@ and percent at the boundary; the contact pressure modulus is in N/m^3 inside and
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 
 #: The five free coordinates, in the order of the model's unknown vector ``q``.
@@ -110,6 +111,10 @@ RESIDUAL_NAMES: tuple[str, ...] = (
     "force_proximal",
 )
 RESIDUAL_UNITS: tuple[str, ...] = ("N m", "N m", "N", "N", "N")
+#: A pose is an equilibrium when no residual component exceeds this (N or N m): the forward
+#: solver's, the simulation's and every identification's one tolerance (the nested Complex method
+#: penalises only above the paper's looser 1e-3, :data:`kneenlp.solvers.nested.CONSTRAINT_TOL`).
+EQUILIBRIUM_TOL = 1e-6
 
 
 #: The physiological envelope of a knee pose in user units (deg, deg, mm, mm, mm): the largest
@@ -118,14 +123,28 @@ RESIDUAL_UNITS: tuple[str, ...] = ("N m", "N m", "N", "N", "N")
 POSE_ENVELOPE_USER = np.array([30.0, 60.0, 25.0, 25.0, 25.0])
 
 
-def coords_to_user(q: np.ndarray) -> np.ndarray:
-    """Convert free coordinates from SI (rad, m) to user units (deg, mm); last axis has length 5."""
+def coords_to_user(q):
+    """Free coordinates from SI (rad, m) to user units (deg, mm): a NumPy array whose last axis has
+    length 5, or a CasADi matrix of 5 rows (one column a pose).  Every conversion of poses and
+    measured data goes through this function or :func:`coords_from_user`."""
+    if isinstance(q, ca.SX | ca.MX | ca.DM):
+        return q * ca.DM(TO_USER)
     return np.asarray(q, dtype=float) * TO_USER
 
 
-def coords_from_user(q_user: np.ndarray) -> np.ndarray:
-    """Convert free coordinates from user units (deg, mm) to SI (rad, m); last axis length 5."""
+def coords_from_user(q_user):
+    """Free coordinates from user units (deg, mm) to SI (rad, m): a NumPy array whose last axis
+    has length 5, or a CasADi matrix of 5 rows (one column a pose)."""
+    if isinstance(q_user, ca.SX | ca.MX | ca.DM):
+        return q_user / ca.DM(TO_USER)
     return np.asarray(q_user, dtype=float) / TO_USER
+
+
+def pose_envelope_user(reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds (5, mm and deg) of a plausible pose: :data:`POSE_ENVELOPE_USER` about
+    the knee's ``reference`` pose (5, SI)."""
+    centre = coords_to_user(reference)
+    return centre - POSE_ENVELOPE_USER, centre + POSE_ENVELOPE_USER
 
 
 def coordinate_columns() -> list[str]:

@@ -10,19 +10,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import coords_to_user
+from kneenlp.conventions import EQUILIBRIUM_TOL, coords_to_user
 from kneenlp.experiment.measured import measured_frame
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Protocol
+from kneenlp.io.atomic import write_csv_atomic
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import TrialSolution, forward_solver
-
-
-def model_for(knee: Knee | KneeModel) -> KneeModel:
-    """The CasADi model of ``knee``, built once per knee object (:attr:`Knee.model`).  A
-    :class:`KneeModel` (e.g. one built with extra user elements) is returned as it is."""
-    return knee if isinstance(knee, KneeModel) else knee.model
 
 
 @dataclass
@@ -59,7 +54,7 @@ class SimulationResult:
         unit is in each column name), convergence."""
         trials = [s.trial for s in self.solutions]
         df = measured_frame(trials, coords_to_user(self.q), self.protocol.name)
-        model = self.model or model_for(self.knee)
+        model = self.model or KneeModel.of(self.knee)
         theta = model.theta(self.parameters)
         for element, out in model.outputs:
             if element.candidate and all(theta[model.index(n)] == model.parameter(n).neutral
@@ -101,15 +96,13 @@ class SimulationResult:
             raise ConvergenceError("cannot write measured data: trials did not converge: "
                                    + ", ".join(s.trial.id for s in self.failed), self)
         rng = np.random.default_rng(seed)
-        model = self.model or model_for(self.knee)
-        bias = model.bias_user(model.theta(self.parameters))
-        q_user = coords_to_user(self.q) + bias + noise.sample(rng, self.q.shape)
-        return measured_frame([s.trial for s in self.solutions], q_user, self.protocol.name)
+        model = self.model or KneeModel.of(self.knee)
+        y = model.observe(self.q, model.theta(self.parameters))  # what the instrument reads, biases included
+        return measured_frame([s.trial for s in self.solutions], y + noise.sample(rng, self.q.shape),
+                              self.protocol.name)
 
     def to_csv(self, path: str | Path) -> Path:
-        path = Path(path)
-        self.table().to_csv(path, index=False, float_format="%.10g")
-        return path
+        return write_csv_atomic(self.table(), path, index=False, float_format="%.10g")
 
     def summary(self) -> dict:
         return {
@@ -128,14 +121,14 @@ class SimulationResult:
 
 
 def simulate(knee: Knee | KneeModel | None = None, protocol: Protocol | str = "set3",
-             parameters: dict[str, float] | None = None, tol: float = 1e-6) -> SimulationResult:
+             parameters: dict[str, float] | None = None, tol: float = EQUILIBRIUM_TOL) -> SimulationResult:
     """Solve every trial of ``protocol`` on ``knee`` (default: the embedded knee).
 
     ``parameters`` overrides values of the knee's parameter set (SI, by name, e.g.
     ``{"ACL.k": 12000.0}``).  Returns a :class:`SimulationResult`; trials that do not converge are
     listed in ``result.failed`` (with their residual), never silently kept.
     """
-    model = model_for(knee or Knee.default())
+    model = KneeModel.of(knee or Knee.default())
     knee = model.knee
     protocol = protocol if isinstance(protocol, Protocol) else Protocol.load(protocol)
     knee.check_flexions(protocol.trials, protocol.source)

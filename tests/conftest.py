@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 
 import kneenlp
-from kneenlp.simulation import model_for
+from kneenlp.model.kneemodel import KneeModel
 
 
 @pytest.fixture(scope="session")
@@ -21,7 +21,7 @@ def knee():
 
 @pytest.fixture(scope="session")
 def model(knee):
-    return model_for(knee)
+    return KneeModel.of(knee)
 
 
 @pytest.fixture(scope="session")

@@ -17,6 +17,7 @@ from kneenlp.inference.detection import noncentrality_needed
 from kneenlp.inference.identify import identify
 from kneenlp.inference.patterns import failure_patterns
 from kneenlp.inference.verdict import holm
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import SHIFT_AXES
 
 NOISE = "uniform:0.5"
@@ -138,14 +139,14 @@ STRENGTH = {"k": 8000, "spring": 50, "angle": 2, "length": 3, "lin_strain": 6, "
 
 def test_every_effect_changes_simulated_data():
     """``simulate --with-effect NAME:PARAM=VALUE`` moves the data for every effect of the library."""
-    from kneenlp.cli import _effect_values
+    from kneenlp.cli.inputs import effect_values as _effect_values
 
     knee = kneenlp.Knee.named("synthetic")
     def measured(values=None):
         return kneenlp.simulate(knee, "set1", parameters=values).measured("none").iloc[:, -5:].to_numpy()
 
     clean = measured()
-    model = knee.model
+    model = KneeModel.of(knee)
     for effect in model.effects:
         name = effect.parameters[0]
         spec = f"{effect.name}:{name}={STRENGTH[model.parameter(name).kind]}"
@@ -169,7 +170,7 @@ def test_with_effect_that_would_change_nothing_is_rejected(tmp_path, capsys, spe
 
 
 def test_with_effect_accepts_short_names(tmp_path):
-    from kneenlp.cli import _effect_values
+    from kneenlp.cli.inputs import effect_values as _effect_values
 
     knee = kneenlp.Knee.named("synthetic")
     assert _effect_values(knee, ["contact_modulus:modulus=5"]) == {"contact.modulus": 5e9}
@@ -190,11 +191,11 @@ def test_attachment_shift_equals_a_moved_attachment_in_the_knee_file(tmp_path):
 
 def moved_knee(tmp_path, old: str, new: str):
     """The synthetic knee with one line of its knee file replaced (e.g. an attachment moved)."""
-    text = kneenlp.model.knee.knee_file("synthetic").read_text()
+    text = kneenlp.model.knee_file.knee_file("synthetic").read_text()
     assert old in text
     text = text.replace(old, new)
     text = text.replace("../../parameters/table1.toml", str(kneenlp.io.resources.resource("parameters", "table1.toml")))
-    text = text.replace('"meshes/', f'"{kneenlp.model.knee.knee_file("synthetic").parent}/meshes/')
+    text = text.replace('"meshes/', f'"{kneenlp.model.knee_file.knee_file("synthetic").parent}/meshes/')
     (tmp_path / "moved.toml").write_text(text)
     return kneenlp.Knee.load(tmp_path / "moved.toml")
 
@@ -264,7 +265,7 @@ def test_base_fit_restarts_out_of_a_wrong_basin(tmp_path):
     in a wrong basin (RMS 0.69 against 0.07).  The base fit restarts until the misfit is plausible
     or reproduced, so it ends in the best basin whatever the seed."""
     knee = kneenlp.Knee.named("synthetic")
-    values = {f"{lig}.lin_strain": 0.08 for lig in knee.model.ligament_names}
+    values = {f"{lig}.lin_strain": 0.08 for lig in KneeModel.of(knee).ligament_names}
     path = tmp_path / "m.csv"
     kneenlp.simulate(knee, "set4", parameters=values).measured("none").to_csv(path, index=False)
     rms = [base_fit(knee, path, NOISE, seed=s).rms for s in (1, 2)]

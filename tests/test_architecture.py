@@ -80,7 +80,7 @@ def test_objective_is_the_weighted_residual_sum(effect, method, tmp_path):
     """For every built-in effect and both methods, the reported objective equals the weighted sum of
     squared residuals of the returned fit (the nested objective once left out the registration bias)."""
     knee = kneenlp.Knee.named("synthetic")
-    model = knee.model
+    model = KneeModel.of(knee)
     eff = model.effect(effect)
     truth = {n: model.parameter(n).neutral if model.parameter(n).neutral is not None else model.theta()[
         model.index(n)] for n in eff.parameters}
@@ -112,8 +112,8 @@ def test_worked_law(example, monkeypatch):
     scope: dict = {}
     exec(compile(usage, str(DOC), "exec"), scope)
     knee, fit = scope["knee"], scope["fit"]
-    law = knee.model.element("ACL").law
-    assert law.name == "cubic_toe" and knee.model.element("PCL").law.name == "toe_linear"
+    law = KneeModel.of(knee).element("ACL").law
+    assert law.name == "cubic_toe" and KneeModel.of(knee).element("PCL").law.name == "toe_linear"
     eps = np.array([-0.01, 0.0, 0.02, 0.045, 0.08])
     assert np.allclose(law.tension(eps, 1000.0, 0.03, NUMPY), [0, 0, 1000 * 0.02**3 / (6.75 * 0.03**2), 15.0, 50.0])
     plain = kneenlp.simulate(kneenlp.Knee.named("synthetic"), "set3")

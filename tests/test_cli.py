@@ -36,7 +36,7 @@ def test_a_signal_inside_a_compiled_kernel_is_still_an_interrupt(monkeypatch, ca
     import signal
     import time
 
-    import kneenlp.cli as cli
+    from kneenlp.cli.commands import COMMANDS
 
     def command(args):
         try:
@@ -46,6 +46,6 @@ def test_a_signal_inside_a_compiled_kernel_is_still_an_interrupt(monkeypatch, ca
             raise SystemError("CPUDispatcher(contact_expansion) returned a result with an exception set") from None
         return 0
 
-    monkeypatch.setattr(cli, "cmd_simulate", command)
+    monkeypatch.setitem(COMMANDS, "simulate", command)
     code = main(["simulate", "--knee", "synthetic", "--no-plots", "--out", str(tmp_path / "o")])
     assert code == 143 and "terminated (SIGTERM)" in capsys.readouterr().err

@@ -6,6 +6,7 @@ import trimesh
 import kneenlp
 from kneenlp.conventions import LOAD_SIZE
 from kneenlp.model.contact import compartment_function, sphere_plane_force
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.laws import CASADI, NUMPY, ElasticFoundation, PowerFoundation, gate
 
 K = 10e9  # N/m^3
@@ -118,7 +119,7 @@ def test_left_out_batch_agrees_with_the_per_pose_check():
     points outside its grid) says what the per-pose check says, pose by pose: at equilibrium poses
     nothing penetrates unrepresented; pushed 3.5 mm into the femur, points beyond the field's depth do."""
     knee = kneenlp.Knee.named("default")
-    model = knee.model
+    model = KneeModel.of(knee)
     res = kneenlp.simulate(knee, "set1")
     q, theta = np.asarray(res.q), model.theta()
     flex = np.array([t.flexion for t in res.protocol.trials])
@@ -138,7 +139,8 @@ def test_unknown_pressure_law_is_named(tmp_path, where, field):
 
     from kneenlp.errors import InputError
     from kneenlp.io.resources import resource
-    from kneenlp.model.knee import Knee, knee_file
+    from kneenlp.model.knee import Knee
+    from kneenlp.model.knee_file import knee_file
 
     shutil.copytree(knee_file("synthetic").parent, tmp_path / "k")
     toml = tmp_path / "k" / "knee.toml"

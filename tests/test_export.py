@@ -32,7 +32,7 @@ def coarse_case(tmp_path_factory):
     for c in anatomy.DEFAULT_COMPARTMENTS:
         anatomy.condyle_mesh(c).export(d / "meshes" / f"femur_{c.name}.stl")
         anatomy.plateau_mesh(c, spacing=3.0).export(d / "meshes" / f"tibia_{c.name}.stl")
-    text = (kneenlp.model.knee.knee_file("synthetic")).read_text().replace(
+    text = (kneenlp.model.knee_file.knee_file("synthetic")).read_text().replace(
         "../../parameters/table1.toml", str(kneenlp.io.resources.resource("parameters", "table1.toml")))
     (d / "knee.toml").write_text(text)
     knee = kneenlp.Knee.load(d / "knee.toml")

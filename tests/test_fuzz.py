@@ -36,12 +36,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import kneenlp
-from kneenlp.cli import build_parser, main
+from kneenlp.cli import main
+from kneenlp.cli.parser import build_parser
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.protocol import Protocol
 from kneenlp.io.resources import resource
-from kneenlp.model.knee import Knee, knee_file
+from kneenlp.model.knee import Knee
+from kneenlp.model.knee_file import knee_file
 from kneenlp.model.parameters import ParameterSet
 
 #: Commands that take --json.

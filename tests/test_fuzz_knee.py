@@ -34,7 +34,8 @@ from hypothesis import strategies as st
 
 from kneenlp.cli import main
 from kneenlp.errors import InputError
-from kneenlp.model.knee import Knee, knee_file
+from kneenlp.model.knee import Knee
+from kneenlp.model.knee_file import knee_file
 
 SHIPPED = knee_file("default").parent.parent
 LENHART = SHIPPED / "lenhart2015" / "opensim"

@@ -15,7 +15,8 @@ from kneenlp.cli import main
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.model.knee import Knee, knee_file
+from kneenlp.model.knee import Knee
+from kneenlp.model.knee_file import knee_file
 from kneenlp.model.parameters import ParameterSet
 
 
@@ -142,7 +143,7 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     import numpy as np
     import trimesh
 
-    from kneenlp.simulation import model_for
+    from kneenlp.model.kneemodel import KneeModel
 
     rot = trimesh.transformations.rotation_matrix(0.4, [0.3, 1.0, 0.2])[:3, :3]
     shift = np.array([120.0, -35.0, 410.0])
@@ -170,7 +171,7 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     (tmp_path / "knee.toml").write_text(text)
     scan = Knee.load(tmp_path / "knee.toml")
     ref = Knee.named("synthetic")
-    m1, m2 = model_for(ref), model_for(scan)
+    m1, m2 = KneeModel.of(ref), KneeModel.of(scan)
     q = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
     load = np.r_[50.0, 0, 0, 2.0, 0.5, 0, np.zeros(5)]
     r1 = np.asarray(m1.evaluate(q, m1.theta(), load, 0.3)).ravel()
@@ -462,7 +463,7 @@ def test_huge_study_refused_early(tmp_path, capsys):
     and disk, naming --samples and --yes; nothing written.  The estimate scales with the study."""
     import argparse
 
-    from kneenlp.cli import _study_size
+    from kneenlp.cli.inputs import study_size as _study_size
 
     out = tmp_path / "st"
     code, err = run_cli(capsys, "study", "--knee", "synthetic", "--samples", "1000000", "--workers", "2",
@@ -488,7 +489,7 @@ def test_fine_mesh_decimated_to_the_contact_resolution(tmp_path, monkeypatch):
     import trimesh
 
     import kneenlp.geometry.decimate as dec
-    import kneenlp.model.knee as knee_module
+    import kneenlp.model.knee_file as knee_module
     from kneenlp.geometry.distance import MeshDistance
 
     src = knee_file("implant").parent

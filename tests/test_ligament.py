@@ -4,6 +4,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import force_strain, force_strain_numpy, slack_length
 
 K, EPS_L = 10000.0, 0.03
@@ -77,12 +78,13 @@ def test_unknown_law_in_a_knee_file_is_named(tmp_path, law, needle):
 
     from kneenlp.errors import InputError
     from kneenlp.io.resources import resource
-    from kneenlp.model.knee import Knee, knee_file
+    from kneenlp.model.knee import Knee
+    from kneenlp.model.knee_file import knee_file
 
     shutil.copytree(knee_file("synthetic").parent, tmp_path / "k")
     toml = tmp_path / "k" / "knee.toml"
     toml.write_text(toml.read_text().replace("../../parameters/table1.toml", str(resource("parameters", "table1.toml")))
                     .replace("[ligaments.MCL]", f'[ligaments.MCL]\nlaw = "{law}"'))
     with pytest.raises(InputError, match=r"ligaments\.MCL\.law") as err:
-        Knee.load(toml).model  # noqa: B018 - building the model is the point
+        KneeModel.of(Knee.load(toml))
     assert needle in str(err.value)

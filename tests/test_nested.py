@@ -30,7 +30,7 @@ def set1_fit(knee, tmp_path_factory):
 def test_nested_objective_equals_simultaneous_objective(set1_fit):
     fit = set1_fit
     obj = NestedObjective(fit.problem, fit.q_pred)
-    f, _, res = obj.evaluate(np.array([fit.params[n] for n in fit.free]) / obj.scales)
+    f, _, res = obj.evaluate(fit.problem.to_scaled(fit.params))
     assert f == pytest.approx(fit.objective, rel=1e-8)
     assert res.max() <= 1e-6
 
@@ -39,7 +39,7 @@ def test_nested_objective_equals_simultaneous_objective(set1_fit):
 def test_complex_finds_nothing_better_near_simultaneous_optimum(set1_fit):
     fit = set1_fit
     obj = NestedObjective(fit.problem, fit.q_pred)
-    x_opt = np.array([fit.params[n] for n in fit.free]) / obj.scales
+    x_opt = fit.problem.to_scaled(fit.params)
     # a small cloud: +-0.5 % of each (scaled) value around the optimum
     res = minimize_complex(obj, [(v - 0.05 * abs(v), v + 0.05 * abs(v)) for v in x_opt], x0=x_opt,
                            spread=0.005 * np.abs(x_opt), seed=2, max_evals=400)

@@ -18,6 +18,7 @@ from kneenlp.io import osim as O
 from kneenlp.io.export_osim import calibrated_values, export_osim
 from kneenlp.io.import_osim import import_osim
 from kneenlp.io.resources import resource
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import force_strain_numpy
 
 DATA = resource("knees", "lenhart2015", "opensim")
@@ -169,9 +170,9 @@ def test_zero_noise_recovery_of_the_grouped_parameters(imported, tmp_path):
     fit = identify(knee, path, seed=2)  # every group's scale and offset (12), from the paper's scatter
     assert fit.success, fit.report()
     assert len(fit.free) == 12
-    theta = knee.model.theta(truth)
+    theta = KneeModel.of(knee).theta(truth)
     for n in fit.free:
-        true = theta[knee.model.index(n)]
+        true = theta[KneeModel.of(knee).index(n)]
         if n.endswith("k_scale"):
             assert fit.params[n] == pytest.approx(true, rel=1e-6), n
         else:  # offsets are strains (true value may be 0): absolute
@@ -208,11 +209,12 @@ def test_command_line_round_trip(tmp_path, capsys):
 def test_bundle_groups_are_adequacy_candidates(imported):
     """Each bundle group is a candidate effect (its scale and offset), for fits that keep it fixed."""
     _, knee = imported
-    effects = {e.name: e.parameters for e in knee.model.effects}
+    effects = {e.name: e.parameters for e in KneeModel.of(knee).effects}
     for g in knee.ligaments:
         assert effects[f"{g}_bundles"] == (f"{g}.k_scale", f"{g}.ref_strain_offset")
         assert f"{g}_femoral_attachment" in effects and f"{g}_tibial_attachment" in effects
-    assert not any(n.endswith("_bundles") for n in (e.name for e in kneenlp.Knee.named("synthetic").model.effects))
+    synthetic = KneeModel.of(kneenlp.Knee.named("synthetic"))
+    assert not any(n.endswith("_bundles") for n in (e.name for e in synthetic.effects))
 
 
 @pytest.mark.slow

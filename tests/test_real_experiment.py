@@ -24,6 +24,7 @@ from kneenlp.io.import_abaqus import import_abaqus, law_force, read_abaqus_knee,
 from kneenlp.io.laxity_mat import entry_trial, laxity_frame, read_laxity_mat
 from kneenlp.io.resources import resource
 from kneenlp.model.kinematics import joint_coordinates, tibial_pose
+from kneenlp.model.kneemodel import KneeModel
 
 DEPOSIT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "du-s192803"
 needs_deposit = pytest.mark.skipif(not DEPOSIT.is_dir(), reason=f"the S192803 deposit is not at {DEPOSIT}")
@@ -275,12 +276,13 @@ def test_calibration_frees_what_the_trials_determine(s192803):
 
     data = read_measured(CSV)
     assert real_experiment(data)
-    free, fixed = calibration_free(s192803.model, data)
+    free, fixed = calibration_free(KneeModel.of(s192803), data)
     assert free[:5] == REGISTRATION
     for name in ("MCLa.k_scale", "MCLm.k_scale", "MCLp.k_scale", "PCLal.k_scale", "PCLpm.k_scale", "LCL.k_scale"):
         assert name in fixed and name not in free
     assert {"ACLam.k_scale", "dMCL.k_scale", "PFL.k_scale"} <= set(free)
-    assert set(free) | set(fixed) == set(REGISTRATION) | set(kneenlp.inference.problem.default_free(s192803.model))
+    base = kneenlp.experiment.problem.default_free(KneeModel.of(s192803))
+    assert set(free) | set(fixed) == set(REGISTRATION) | set(base)
 
 
 def test_calibrated_parameter_file_round_trips(s192803, tmp_path, capsys):
@@ -292,7 +294,7 @@ def test_calibrated_parameter_file_round_trips(s192803, tmp_path, capsys):
     values = {"ACLam.k_scale": 1.7, "ACLam.ref_strain_offset": 0.021, "registration.varus_rotation": np.radians(4.5),
               "registration.anterior_translation": 6e-3}
     pset = s192803.parameters.with_values(values, name="cal")
-    info = {p.name: p for p in s192803.model.parameters}
+    info = {p.name: p for p in KneeModel.of(s192803).parameters}
     path = tmp_path / "calibrated.toml"
     path.write_text(pset.to_toml(info, ["test"]))
     back = ParameterSet.load(path)
@@ -338,7 +340,7 @@ def test_protocol_files_take_joint_loads_and_the_extra_components():
 def test_knee_directories_and_shipped_names(tmp_path, monkeypatch, capsys):
     """An importer's output folder loads as a knee; a folder that happens to share a shipped knee's
     name (and holds no knee.toml) does not hide the shipped knee; an empty folder is named."""
-    from kneenlp.model.knee import knee_file, resolve_knee
+    from kneenlp.model.knee_file import knee_file, resolve_knee
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "s192803").mkdir()  # e.g. earlier outputs
@@ -365,8 +367,8 @@ def test_prediction_includes_the_registration(s192803):
     from kneenlp.inference.crossval import subset
 
     part = subset(data, np.isin(np.arange(len(data)), keep))
-    plain = predict(s192803.model, part)
-    shifted = predict(s192803.model, part, {"registration.varus_rotation": np.radians(2.0),
+    plain = predict(KneeModel.of(s192803), part)
+    shifted = predict(KneeModel.of(s192803), part, {"registration.varus_rotation": np.radians(2.0),
                                             "registration.anterior_translation": -3e-3})
     assert np.allclose(np.array([s.q for s in plain.solutions]), np.array([s.q for s in shifted.solutions]))
     assert np.allclose(shifted.predicted_user - plain.predicted_user, [2.0, 0, 0, -3.0, 0], atol=1e-9)
@@ -379,7 +381,7 @@ def test_probe_engages_the_groups_slack_in_every_trial(s192803):
     from kneenlp.inference.calibrate import ENGAGE_STRAIN, engaged_probe
     from kneenlp.solvers.forward import forward_solver
 
-    model = s192803.model
+    model = KneeModel.of(s192803)
     data = read_measured(CSV)
     theta = model.theta()
     probe, engaged = engaged_probe(model, data, theta)
@@ -437,8 +439,8 @@ def test_calibration_says_what_predict_reproduces(s192803):
     from kneenlp.inference.predict import predict
 
     data = read_measured(CSV)
-    cal = calibrate(s192803.model, data)
-    again = predict(s192803.model, data, cal.fit.params)
+    cal = calibrate(KneeModel.of(s192803), data)
+    again = predict(KneeModel.of(s192803), data, cal.fit.params)
     gap = np.abs(again.observed_user - cal.fit.predicted_user).max(axis=1)
     differs = {t.id for t, g, ok in zip(data.trials, gap, again.converged, strict=True) if not (ok and g <= SAME_POSE)}
     assert set(cal.elsewhere) == differs

@@ -15,7 +15,8 @@ from kneenlp.conventions import TO_USER
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.inference.identify import identify
 from kneenlp.io.lenhart import knee_toml
-from kneenlp.model.knee import knee_file
+from kneenlp.model.knee_file import knee_file
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.testing.reference import compare_contact
 
 
@@ -84,7 +85,7 @@ def test_knee_in_any_scan_pose_gives_the_same_knee(real_knee, set1, tmp_path):
 def test_set1_converges_and_contact_matches_the_brute_force_reference(real_knee, set1):
     assert not set1.failed and set1.max_residual <= 1e-6
     distance = MeshDistance(real_knee.femur.mesh)
-    theta = real_knee.model.theta()
+    theta = KneeModel.of(real_knee).theta()
     for sol in set1.solutions:
         for comp, c in compare_contact(real_knee, sol.q, theta, sol.trial.flexion, distance).items():
             assert c["force_error"] <= 0.02 and c["moment_error"] <= 0.02 and c["cop_error_mm"] <= 1.0, (
@@ -95,10 +96,10 @@ def test_zero_noise_recovery_set1(real_knee, set1, tmp_path):
     path = tmp_path / "exact.csv"
     set1.measured("none").to_csv(path, index=False)
     fit = identify(real_knee, path, seed=0)
-    truth = real_knee.model.theta()
+    truth = KneeModel.of(real_knee).theta()
     assert fit.success, fit.report()
     for n in fit.free:
-        assert fit.params[n] == pytest.approx(truth[real_knee.model.index(n)], rel=1e-6), n
+        assert fit.params[n] == pytest.approx(truth[KneeModel.of(real_knee).index(n)], rel=1e-6), n
 
 
 # ---------------------------------------------------------------------------------------- slow
@@ -136,7 +137,7 @@ def test_every_load_moves_the_tibia_its_own_way(real_knee):
 @pytest.mark.slow
 def test_contact_matches_the_brute_force_reference_at_every_set4_equilibrium(real_knee, paper_sets):
     distance = MeshDistance(real_knee.femur.mesh)
-    theta = real_knee.model.theta()
+    theta = KneeModel.of(real_knee).theta()
     worst = {"force_error": 0.0, "moment_error": 0.0, "cop_error_mm": 0.0}
     for sol in paper_sets["set4"].solutions:
         for comp, c in compare_contact(real_knee, sol.q, theta, sol.trial.flexion, distance).items():
@@ -153,9 +154,9 @@ def test_zero_noise_recovery_from_the_papers_scatter(real_knee, paper_sets, name
     path = tmp_path / "exact.csv"
     paper_sets[name].measured("none").to_csv(path, index=False)
     fit = identify(real_knee, path, seed=1)
-    truth = real_knee.model.theta()
+    truth = KneeModel.of(real_knee).theta()
     assert fit.success, fit.report()
-    errors = {n: abs(fit.params[n] / truth[real_knee.model.index(n)] - 1) for n in fit.free}
+    errors = {n: abs(fit.params[n] / truth[KneeModel.of(real_knee).index(n)] - 1) for n in fit.free}
     assert max(errors.values()) <= 1e-6, errors
 
 
@@ -188,13 +189,13 @@ def test_a_nonlinear_pressure_law_named_in_the_knee_file(real_knee, set1, tmp_pa
     path = tmp_path / "knee.toml"
     path.write_text(text)
     knee = kneenlp.Knee.load(path)
-    assert {e.compartment: e.law.name for e in knee.model.staged} == {"medial": "power_1.5",
+    assert {e.compartment: e.law.name for e in KneeModel.of(knee).staged} == {"medial": "power_1.5",
                                                                      "lateral": "elastic_foundation"}
     assert "pressure law power_1.5" in knee.report()
     res = kneenlp.simulate(knee, "set1")
     assert not res.failed and res.max_residual <= 1e-6
     assert np.abs(res.q - set1.q).max() > 1e-5  # m or rad: the law matters
-    distance, theta = MeshDistance(knee.femur.mesh), knee.model.theta()
+    distance, theta = MeshDistance(knee.femur.mesh), KneeModel.of(knee).theta()
     for sol in res.solutions[::3]:
         for comp, c in compare_contact(knee, sol.q, theta, sol.trial.flexion, distance).items():
             assert c["force_error"] <= 0.02 and c["moment_error"] <= 0.02, (sol.trial.id, comp, c)

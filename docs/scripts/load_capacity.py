@@ -14,6 +14,7 @@ import numpy as np
 
 import kneenlp
 from kneenlp.conventions import TO_USER
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import COLD_START, forward_solver
 
 #: (name, load component, sign, steps): internal/external moment is component 4 (N m about Y),
@@ -25,7 +26,7 @@ DIRECTIONS = [("internal", 4, 1.0, np.arange(0.1, 10.01, 0.1)), ("external", 4, 
 def capacity(knee: kneenlp.Knee, theta: np.ndarray, flexion_deg: float, component: int, sign: float,
              steps: np.ndarray) -> tuple[float, np.ndarray]:
     """Largest magnitude carried (N m) and the pose there (mm, deg)."""
-    newton = forward_solver(knee.model).newton
+    newton = forward_solver(KneeModel.of(knee)).newton
     flexion = np.array([np.radians(flexion_deg)])
     q = newton.solve(COLD_START[None, :], theta, np.zeros((1, 6)), flexion).q
     carried, pose = 0.0, q[0] * TO_USER
@@ -42,7 +43,7 @@ def capacity(knee: kneenlp.Knee, theta: np.ndarray, flexion_deg: float, componen
 if __name__ == "__main__":
     knee = kneenlp.Knee.load(sys.argv[1]) if len(sys.argv) > 1 else kneenlp.Knee.default()
     values = dict((k, float(v)) for k, v in (a.split("=") for a in sys.argv[2:]))
-    theta = knee.model.theta(values)
+    theta = KneeModel.of(knee).theta(values)
     print(f"{knee.name} knee {values or ''}: largest load carried (N m) and the internal rotation there (deg)")
     for flexion in (0.0, 30.0):
         for name, component, sign, steps in DIRECTIONS:

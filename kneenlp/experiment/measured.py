@@ -73,9 +73,9 @@ from kneenlp.conventions import (
     LOAD_AXES,
     LOAD_COMPONENTS,
     POSE_ENVELOPE_USER,
-    TO_USER,
     coordinate_columns,
     coords_from_user,
+    coords_to_user,
     load_columns,
 )
 from kneenlp.errors import InputError
@@ -111,10 +111,15 @@ class MeasuredData:
     def __len__(self) -> int:
         return len(self.trials)
 
+    @classmethod
+    def from_user(cls, trials: list[Trial], q_user: np.ndarray, protocol: str | None = None,
+                  source: str | None = None, side: str | None = None) -> MeasuredData:
+        """Measured data from poses in user units (T x 5, mm and deg)."""
+        return cls(list(trials), coords_from_user(q_user), protocol, source, side)
+
     @property
     def q_user(self) -> np.ndarray:
-        from kneenlp.conventions import coords_to_user
-
+        """The measured poses in user units (T x 5, mm and deg)."""
         return coords_to_user(self.q)
 
     def check_knee(self, knee) -> None:
@@ -126,7 +131,7 @@ class MeasuredData:
                              f"{knee.side} knee declared {self.side}? import the data again with --side {knee.side})",
                              source=self.source, field="side")
         knee.check_flexions(self.trials, self.source)
-        centre = knee.reference_pose[1] * TO_USER
+        centre = coords_to_user(knee.reference_pose[1])
         far = np.abs(self.q_user - centre) > POSE_ENVELOPE_USER
         if far.any():
             i, j = np.argwhere(far)[0]
@@ -252,7 +257,6 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
         direction, magnitude = _direction(loads)
         trials.append(Trial(str(row["trial"]), float(row["flexion_deg"]), loads, direction, magnitude,
                             str(axes.iloc[i])))
-    q = coords_from_user(df[coordinate_columns()].to_numpy(dtype=float))
     name = None
     if "protocol" in df.columns:
         names = {str(p) for p in df["protocol"].dropna().unique() if str(p).strip()}
@@ -260,7 +264,7 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
             raise InputError(f"several protocols in one file: {', '.join(sorted(names))}", source=src,
                              field="protocol")
         name = names.pop() if names else None
-    data = MeasuredData(trials, q, name, src, side)
+    data = MeasuredData.from_user(trials, df[coordinate_columns()].to_numpy(dtype=float), name, src, side)
     if name is not None and protocol is None:
         _check_protocol_name(data, path)
     return data

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -36,6 +35,7 @@ from scipy.spatial import cKDTree
 from kneenlp.geometry.cache import cache_dir
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.kernels import cell_minimum, field_values
+from kneenlp.io.atomic import atomic_target
 
 #: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
 FORMAT_VERSION = 4
@@ -234,14 +234,9 @@ class DistanceField:
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> None:
         """Write to a compressed ``.npz`` atomically (coefficients as float32: 1e-7 relative)."""
-        path = Path(path)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
-        try:
-            np.savez_compressed(tmp, origin=self.origin, spacing=self.spacing, coeffs=self.coeffs.astype(np.float32),
+        with atomic_target(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, origin=self.origin, spacing=self.spacing, coeffs=self.coeffs.astype(np.float32),
                                 band=self.band, depth=self.depth, info=json.dumps(self.info))
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
 
     @classmethod
     def load(cls, path: str | Path) -> DistanceField:

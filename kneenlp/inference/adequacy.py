@@ -41,7 +41,7 @@ from kneenlp.inference.fit import Fit
 from kneenlp.inference.patterns import Pattern, failure_patterns
 from kneenlp.inference.statistics import chi_square_test
 from kneenlp.inference.verdict import ALPHA, AMBIGUOUS_BIC, Verdict, decide
-from kneenlp.io.atomic import write_text_atomic
+from kneenlp.io.atomic import write_csv_atomic, write_text_atomic
 from kneenlp.model.ligament import SHIFT_AXES
 
 __all__ = ["Diagnosis", "EffectScore", "diagnose", "rank_effects", "refit_with"]
@@ -151,7 +151,7 @@ class Diagnosis:
         it (``parameters_before_after_<effect>.csv``, display units)."""
         out = Path(out)
         files = self.figures(out)
-        self.residual_map.to_csv(out / "residual_map.csv", float_format="%.6g")
+        write_csv_atomic(self.residual_map, out / "residual_map.csv", float_format="%.6g")
         files += [out / "residual_map.csv", write_text_atomic(out / "diagnosis.json", self.to_json())]
         rec = self.recommended
         if rec is not None:
@@ -164,7 +164,7 @@ class Diagnosis:
                              "before": self.fit.params[n] * par.to_user if n in self.fit.params else None,
                              "after": after.params[n] * par.to_user, "after_stderr": after.stderr[n] * par.to_user})
             path = out / f"parameters_before_after_{rec.effect}.csv"
-            pd.DataFrame(rows).to_csv(path, index=False, float_format="%.6g")
+            write_csv_atomic(pd.DataFrame(rows), path, index=False, float_format="%.6g")
             files.append(path)
         return files
 

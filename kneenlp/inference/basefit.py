@@ -17,6 +17,7 @@ from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.inference.fit import Fit
 from kneenlp.inference.identify import _implausible_misfit, identify
+from kneenlp.inference.starts import best_fit, run_starts
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 
@@ -33,17 +34,18 @@ def base_fit(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, noi
     """Fit the base model (k and reference strain of every ligament, or ``free``) to ``data`` with
     the noise model ``noise`` (mm, deg), restarting as the module docstring says; the best
     converged fit is returned, ``fit.extra["base_starts"]`` says how many starts it took."""
-    fits: list[Fit] = []
-    for i in range(max_starts):
-        fit = identify(knee, data, seed=seed + 7919 * i, noise=noise, restarts=0, free=free,
-                       solver_options={"ipopt": {"max_iter": MAX_ITER}})
-        fits.append(fit)
-        if fit.success and not _implausible_misfit(fit):
-            break
+    def solve(i: int) -> Fit:
+        return identify(knee, data, seed=seed + 7919 * i, noise=noise, restarts=0, free=free,
+                        solver_options={"ipopt": {"max_iter": MAX_ITER}})
+
+    def done(fits: list[Fit]) -> bool:
+        if fits[-1].success and not _implausible_misfit(fits[-1]):
+            return True
         ok = sorted((f for f in fits if f.success), key=lambda f: f.objective)
-        if len(ok) >= 2 and ok[1].objective - ok[0].objective <= agree * ok[0].objective:
-            break
-    converged = [f for f in fits if f.success]
-    best = min(converged or fits, key=lambda f: f.objective)
+        return len(ok) >= 2 and ok[1].objective - ok[0].objective <= agree * ok[0].objective
+
+    fits = run_starts(solve, at_least=1, at_most=max_starts, done=done)
+    converged = any(f.success for f in fits)
+    best = best_fit([f for f in fits if f.success or not converged], lambda f: -f.objective)
     best.extra["base_starts"] = len(fits)
     return best

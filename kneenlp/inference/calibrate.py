@@ -49,9 +49,9 @@ import scipy.linalg
 
 from kneenlp.conventions import COORDINATES
 from kneenlp.experiment.measured import MeasuredData
+from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.inference.fit import Fit
 from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
-from kneenlp.inference.problem import IdentificationProblem, default_free
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import ParameterSet
 from kneenlp.solvers.forward import forward_solver

@@ -28,6 +28,7 @@ import numpy as np
 from scipy import stats
 
 from kneenlp.inference.fit import Fit
+from kneenlp.inference.statistics import information_criteria
 
 #: IPOPT iterations allowed to finish a refit whose reduced-space solve failed.
 POLISH_ITERATIONS = 40
@@ -175,8 +176,10 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
     n_obs = fit.residuals.size
     k0, k1 = len(fit.free), len(new.free)
     rss0, rss1 = float(np.sum(fit.residuals**2)), float(np.sum(new.residuals**2))
+    wrss0, wrss1 = float(np.sum(fit.weights * fit.residuals**2)), float(np.sum(new.weights * new.residuals**2))
     if not new.success or rss1 > rss0:  # no improvement found: report the base fit's numbers
-        rss1 = rss0
+        rss1, wrss1 = rss0, wrss0
+    (aic0, bic0), (aic1, bic1) = information_criteria(wrss0, n_obs, k0), information_criteria(wrss1, n_obs, k1)
     drop = rss0 - rss1
     chi2_0 = rss0 / sigma**2
     excess = chi2_0 - (n_obs - k0)
@@ -186,7 +189,6 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
             "rms": float(np.sqrt(rss1 / n_obs)),
             "f_p_value": f_test(drop, rss0, n_obs, k0, k1 - k0),
             "lr_p_value": float(stats.chi2.sf(drop / sigma**2, k1 - k0)),
-            "delta_aic": n_obs * np.log(rss1 / rss0) + 2 * (k1 - k0),
-            "delta_bic": n_obs * np.log(rss1 / rss0) + (k1 - k0) * np.log(n_obs),
+            "delta_aic": aic1 - aic0, "delta_bic": bic1 - bic0,
             "p_value_after": float(stats.chi2.sf(rss1 / sigma**2, max(n_obs - k1, 1))),
             "params": {n: new.params[n] for n in new.free}, "stderr": new.stderr}, new

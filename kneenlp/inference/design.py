@@ -28,8 +28,8 @@ import numpy as np
 
 from kneenlp.errors import InputError
 from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.experiment.protocol import Protocol, Trial, trial_id
-from kneenlp.inference.problem import IdentificationProblem, default_free
 from kneenlp.inference.statistics import fisher_information
 from kneenlp.io.atomic import write_text_atomic
 from kneenlp.model.knee import Knee
@@ -163,14 +163,14 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
            robust: int = 3, seed: int = 0, name: str | None = None,
            reference: Protocol | str = "set4") -> DesignResult:
     """Choose at most ``max_cases`` trials of ``pool`` minimising ``criterion`` (see module doc)."""
-    from kneenlp.simulation import model_for
+    from kneenlp.model.kneemodel import KneeModel
 
     if criterion not in CRITERIA:
         raise InputError(f"unknown criterion {criterion!r}; known: {', '.join(CRITERIA)}", field="--criterion")
     if max_cases < 1:
         raise InputError(f"must be >= 1, got {max_cases}", field="--max-cases")
     knee = knee or Knee.default()
-    model = model_for(knee)
+    model = KneeModel.of(knee)
     pool = pool or candidate_pool(default_flexions(model))
     problem = IdentificationProblem(model, pool.trials, list(free or default_free(model)),
                                     noise=NoiseModel.parse(noise))

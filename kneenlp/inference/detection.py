@@ -22,7 +22,6 @@ from __future__ import annotations
 import numpy as np
 from scipy import optimize, stats
 
-from kneenlp.conventions import coords_from_user
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.inference.candidates import base_projection, effect_sensitivity
 from kneenlp.inference.fit import Fit
@@ -80,7 +79,7 @@ def exact_noncentrality(fit: Fit, name: str, shift: float, sigma: float) -> floa
     if not all(s.converged for s in sols):
         return float("nan")
     y = model.observe(np.array([s.q for s in sols]), theta)
-    data = MeasuredData(list(fit.data.trials), coords_from_user(y), fit.data.protocol, "noise-free simulation")
+    data = MeasuredData.from_user(fit.data.trials, y, fit.data.protocol, "noise-free simulation")
     refit = identify(model, data, free=list(fit.free), start=dict(fit.params), fixed=fit.problem.fixed,
                      noise=fit.problem.noise, restarts=0)
     if not refit.success:

@@ -10,8 +10,15 @@ import pandas as pd
 
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES, coordinate_columns
 from kneenlp.experiment.measured import MeasuredData
-from kneenlp.inference.problem import IdentificationProblem
-from kneenlp.inference.statistics import chi_square_test, gauss_newton_covariance, noise_variance, svd_rank
+from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.inference.statistics import (
+    chi_square_test,
+    gauss_newton_covariance,
+    information_criteria,
+    noise_variance,
+    svd_rank,
+    weighted_svd,
+)
 from kneenlp.model.kneemodel import KneeModel
 
 
@@ -110,15 +117,14 @@ class Fit:
 
     @property
     def aic(self) -> float:
-        """Akaike information criterion of the least-squares fit, ``N ln(RSS/N) + 2 p``."""
-        n = self.n_observations
-        return float(n * np.log(max(self.objective, 1e-300) / n) + 2 * len(self.free))
+        """Akaike information criterion of the (weighted) least-squares fit, ``N ln(WRSS/N) + 2 p``
+        (:func:`~kneenlp.inference.statistics.information_criteria`)."""
+        return information_criteria(self.objective, self.n_observations, len(self.free))[0]
 
     @property
     def bic(self) -> float:
-        """Bayesian information criterion, ``N ln(RSS/N) + p ln N``."""
-        n = self.n_observations
-        return float(n * np.log(max(self.objective, 1e-300) / n) + len(self.free) * np.log(n))
+        """Bayesian information criterion, ``N ln(WRSS/N) + p ln N``."""
+        return information_criteria(self.objective, self.n_observations, len(self.free))[1]
 
     @cached_property
     def _all_sensitivities(self) -> np.ndarray:
@@ -134,8 +140,7 @@ class Fit:
     @cached_property
     def _svd(self):
         """SVD of the weighted, scaled sensitivity matrix (computed once)."""
-        w = np.sqrt(self.weights.ravel())[:, None]
-        return np.linalg.svd(w * self.sensitivity * self.scales, full_matrices=True)
+        return weighted_svd(self.sensitivity, self.weights, self.scales)
 
     @property
     def rank(self) -> int:

@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.inference.problem import IdentificationProblem, default_free
-from kneenlp.inference.statistics import gauss_newton_covariance, svd_rank
+from kneenlp.inference.statistics import gauss_newton_covariance, svd_rank, weighted_svd
 
 
 @dataclass
@@ -82,9 +82,10 @@ def identifiability(knee, protocol: Protocol | str, free: list[str] | None = Non
     """Identifiability of ``free`` (default: each ligament's stiffness and reference strain, or
     each bundle group's scale and offset) from ``protocol`` at the knee's parameter values (or
     ``values``, SI), for measurement ``noise``."""
-    from kneenlp.simulation import model_for, simulate
+    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.simulation import simulate
 
-    model = model_for(knee)
+    model = KneeModel.of(knee)
     proto = protocol if isinstance(protocol, Protocol) else Protocol.load(protocol)
     result = simulate(model, proto, parameters=values)
     ok = [s for s in result.solutions if s.converged]
@@ -97,7 +98,7 @@ def identifiability(knee, protocol: Protocol | str, free: list[str] | None = Non
     nm = problem.noise
     variance = nm.std**2
     w = np.full(sens.shape[0], 1.0 / max(variance, 1e-300))
-    _, sv, vt = np.linalg.svd(np.sqrt(w)[:, None] * sens * problem.scales, full_matrices=True)
+    _, sv, vt = weighted_svd(sens, w, problem.scales)
     cov = gauss_newton_covariance(sens, w, np.full(sens.shape[0], variance), problem.scales, free)
     stderr = {n: float(np.sqrt(c)) for n, c in zip(free, np.diag(cov), strict=True)}
     units = {p.name: (p.unit, p.to_user) for p in problem.parameters}

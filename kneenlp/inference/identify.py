@@ -19,37 +19,25 @@ prototype), and, when the noise model is given, a solve whose misfit the noise c
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
 from scipy import stats
 
-from kneenlp import interrupts
-from kneenlp.conventions import TO_USER
 from kneenlp.errors import unknown_name
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import Protocol, available_protocols
 from kneenlp.inference.fit import Fit
-from kneenlp.inference.problem import IdentificationProblem
+from kneenlp.inference.starts import best_fit, run_starts
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
-from kneenlp.simulation import model_for
 from kneenlp.solvers.forward import forward_solver, rim_reason
-from kneenlp.solvers.nlp import IdentificationNLP, build_nlp
+from kneenlp.solvers.nlp import solve_nlp
 from kneenlp.solvers.reduced import reduced_least_squares
 
 METHODS = ("simultaneous", "nested")
-
-
-def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, threads: int) -> IdentificationNLP:
-    """The NLP solver of ``problem``'s layout, built once per model (kept in ``model.solvers``)."""
-    key = ("nlp", problem.n_trials, tuple(problem.free), solver, repr(sorted((options or {}).items())), threads)
-    solvers = problem.model.solvers
-    if key not in solvers:
-        solvers[key] = build_nlp(problem, solver, options, threads)
-    return solvers[key]
 
 
 def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: str = "simultaneous", *,
@@ -87,7 +75,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     """
     if method not in METHODS:
         raise unknown_name("method", method, METHODS)
-    model = model_for(knee or Knee.default())
+    model = KneeModel.of(knee or Knee.default())
     if not isinstance(data, MeasuredData):
         data = read_measured(data)
     proto = protocol if isinstance(protocol, Protocol) or protocol is None else Protocol.load(protocol)
@@ -101,24 +89,25 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     rng = np.random.default_rng(seed)
     if method == "nested":
         return _nested(problem, start, rng, seed, dict(nested_options or {}))
-    best: Fit | None = None
-    k = 0
 
-    def good(f: Fit | None) -> bool:
-        return f is not None and f.success and not _at_bounds(f) and not _implausible_misfit(f)
+    def good(f: Fit) -> bool:
+        return f.success and not _at_bounds(f) and not _implausible_misfit(f)
 
-    while k < max(1, multistart) or (not good(best) and k < max(1, multistart) + restarts):
+    def rank(f: Fit) -> tuple[bool, bool, float]:  # good first, then converged, then the lower objective
+        return good(f), f.success, -f.objective if f.success else 0.0
+
+    def solve(k: int) -> Fit:
         s = problem.scatter(rng)
         if k == 0 and start:
             s.update(start)
         fit = solve_simultaneous(problem, s, solver, solver_options, threads)
         if not fit.success and solver == "ipopt":
             fit = _rescued(problem, s, fit, solver_options, threads)
-        if best is None or (good(fit) and not good(best)) or \
-                (fit.success and good(fit) == good(best) and fit.objective < best.objective) or \
-                (fit.success and not best.success):
-            best = fit
-        k += 1
+        return fit
+
+    fits = run_starts(solve, at_least=multistart, at_most=max(1, multistart) + restarts,
+                      done=lambda fits: good(best_fit(fits, rank)))
+    best, k = best_fit(fits, rank), len(fits)
     if best.success and _at_bounds(best):
         note = "ligament parameters at their bounds: a poor local minimum or a model that cannot fit the data"
         best.message = f"{best.message}; {note}" if best.message else note
@@ -138,7 +127,8 @@ def reduced_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.
     theta = problem.theta(r.values)
     solver = forward_solver(problem.model)
     max_res = max(solver.residual_norm(qi, theta, t) for t, qi in zip(problem.trials, r.q, strict=True))
-    return Fit.build(problem, "reduced", theta, r.q, status=r.message, success=r.success and max_res <= 1e-6,
+    return Fit.build(problem, "reduced", theta, r.q, status=r.message,
+                     success=r.success and max_res <= problem.equilibrium_tol,
                      iterations=r.evaluations, seconds=r.seconds, max_residual=max_res, start=dict(start),
                      evaluations=r.evaluations, message="reduced-space Gauss-Newton", solver="reduced")
 
@@ -193,7 +183,8 @@ def _nested(problem: IdentificationProblem, start: dict, rng: np.random.Generato
     theta = problem.theta(out["values"])
     q, res = out["q"], out["result"]
     max_res = float(np.max(out["residual"]))
-    return Fit.build(problem, "nested", theta, q, status=res.message, success=bool(res.success) and max_res <= 1e-6,
+    return Fit.build(problem, "nested", theta, q, status=res.message,
+                     success=bool(res.success) and max_res <= problem.equilibrium_tol,
                      iterations=int(res.nit), seconds=out["seconds"], max_residual=max_res,
                      start=dict(zip(problem.free, cloud[0], strict=True)), evaluations=out["trial_solves"],
                      message=f"{res.nfev} objective evaluations", solver="complex",
@@ -202,63 +193,26 @@ def _nested(problem: IdentificationProblem, start: dict, rng: np.random.Generato
 
 def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
                        solver_options: dict | None = None, threads: int = 2) -> Fit:
-    """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter)."""
-    t0 = time.perf_counter()
-    nlp = get_nlp(problem, solver, solver_options, threads)
-    theta0 = problem.theta(start)
-    data = problem.data
-    # equilibrium-consistent start: Newton on all trials at once from the measured poses,
-    # per-trial ramping for the few that fail, then the forward solver's own start (unloaded pose
-    # first; measured poses far from the start's equilibrium, e.g. cartilage much softer than the
-    # model's, defeat Newton from them); a trial that still fails starts at its data
-    solver = forward_solver(problem.model)
-    q0, res0 = solver.solve_batch(data.trials, theta0, data.q, threads)
-    ok = res0 <= 1e-6
-    if not ok.all():
-        failed = np.flatnonzero(~ok)
-        for i, sol in zip(failed, solver.solve([data.trials[i] for i in failed], theta0), strict=True):
-            if sol.converged:
-                q0[i], ok[i] = sol.q, True
-    # a start pose outside the NLP's pose envelope would be moved onto its bound by IPOPT, far
-    # from equilibrium (a slack scattered start reached 36 deg varus): such a trial starts at its data
-    lo, hi = problem.pose_bounds_user
-    centre, half = (lo + hi) / 2, (hi - lo) / 2
-    ok &= np.all(np.abs(q0 * TO_USER - centre) < 0.99 * half, axis=1)
-    q0_user = np.where(ok[:, None], q0 * TO_USER, problem.measured)
-    n_fail_start = int(np.sum(~ok))
-    x0 = nlp.pack_x([start[n] for n in problem.free], q0_user)
-    t1 = time.perf_counter()
-    # contact working sets are taken at every pose IPOPT evaluates; after the solve no sample point left
-    # out of them may penetrate (too few working-set slots, or contact outside the represented surface)
-    with interrupts.deferred():  # Ctrl-C/SIGTERM: raised when the solve ends (CasADi would drop it)
-        sol = nlp.solver(x0=x0, p=problem.data_vector(), lbx=nlp.lbx, ubx=nlp.ubx, lbg=0, ubg=0)
-    st = nlp.solver.stats()
-    iterations = int(st.get("iter_count", 0))
-    values, q_user = nlp.unpack_x(sol["x"])
-    seconds = time.perf_counter() - t1
-    g = np.asarray(sol["g"]).ravel()
-    max_res = float(np.max(np.abs(g))) if g.size else 0.0
-    left_out = -np.inf
-    if problem.model.ws_size:
-        q_sol, theta_sol = q_user / TO_USER, problem.theta(values)
-        left_out = float(np.max(problem.model.left_out_batch(q_sol, theta_sol, problem.flexions, threads)))
-    rim = -np.inf
-    if problem.model.ws_size:
-        rim = float(np.max(problem.model.rim_batch(q_sol, theta_sol, problem.flexions)))
-    success = bool(st.get("success", False)) and max_res <= 1e-6 and left_out <= 0 and rim <= 0
-    msg = "" if n_fail_start == 0 else (f"{n_fail_start} trial(s) had no equilibrium inside the pose envelope at "
-                                        "the start; started at data")
-    if bool(st.get("success", False)) and max_res > 1e-6:
-        msg = (msg + "; " if msg else "") + f"equilibrium residual {max_res:.2e} above 1e-6"
-    if left_out > 0:
-        note = (f"a contact point outside the working sets penetrates {1e3 * left_out:.3f} mm: enlarge "
-                "contact.working_set in the knee file (or the contact left the represented femoral surface)")
-        msg = (msg + "; " if msg else "") + note
-    if rim > 0:
-        msg = (msg + "; " if msg else "") + rim_reason(rim)
-    return Fit.build(problem, "simultaneous", problem.theta(values), q_user / TO_USER,
-                     status=str(st.get("return_status", "unknown")), success=success,
-                     iterations=iterations, seconds=seconds, max_residual=max_res,
-                     start=dict(start), build_seconds=nlp.build_seconds, evaluations=iterations,
-                     message=msg, solver=nlp.solver_name,
-                     extra={"start_seconds": t1 - t0, "solver_objective": float(sol["f"])})
+    """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter)
+    (:func:`~kneenlp.solvers.nlp.solve_nlp`), judged: a success needs the solver's, every trial
+    at equilibrium (:attr:`~kneenlp.experiment.problem.IdentificationProblem.equilibrium_tol`), no
+    contact point left out of the working sets and none beyond the femoral surface's open edge."""
+    r = solve_nlp(problem, start, solver, solver_options, threads)
+    tol = problem.equilibrium_tol
+    success = r.solver_success and r.max_residual <= tol and r.left_out <= 0 and r.rim <= 0
+    notes = []
+    if r.started_at_data:
+        notes.append(f"{r.started_at_data} trial(s) had no equilibrium inside the pose envelope at the start; "
+                     "started at data")
+    if r.solver_success and r.max_residual > tol:
+        notes.append(f"equilibrium residual {r.max_residual:.2e} above {tol:g}")
+    if r.left_out > 0:
+        notes.append(f"a contact point outside the working sets penetrates {1e3 * r.left_out:.3f} mm: enlarge "
+                     "contact.working_set in the knee file (or the contact left the represented femoral surface)")
+    if r.rim > 0:
+        notes.append(rim_reason(r.rim))
+    return Fit.build(problem, "simultaneous", problem.theta(r.values), r.q, status=r.status, success=success,
+                     iterations=r.iterations, seconds=r.seconds, max_residual=r.max_residual,
+                     start=dict(start), build_seconds=r.build_seconds, evaluations=r.iterations,
+                     message="; ".join(notes), solver=r.solver_name,
+                     extra={"start_seconds": r.start_seconds, "solver_objective": r.objective})

@@ -19,6 +19,7 @@ import pandas as pd
 from kneenlp.conventions import coordinate_columns
 from kneenlp.experiment.measured import MeasuredData, measured_frame
 from kneenlp.experiment.protocol import Protocol
+from kneenlp.io.atomic import write_csv_atomic
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import TrialSolution, forward_solver
@@ -100,7 +101,7 @@ class Prediction:
 def predict(knee: Knee | KneeModel, data: MeasuredData, parameters: dict[str, float] | None = None) -> Prediction:
     """Every trial of ``data`` solved at its measured flexion and load on ``knee`` (its parameter set,
     ``parameters`` overriding by name, SI)."""
-    model = knee if isinstance(knee, KneeModel) else knee.model
+    model = KneeModel.of(knee)
     data.check_knee(model.knee)
     protocol = Protocol(data.protocol or "measured", tuple(data.trials), source=data.source)
     theta = model.theta(parameters)
@@ -114,7 +115,7 @@ def write_prediction(prediction: Prediction, out: Path) -> list[Path]:
     from kneenlp.io.plots import measured_vs_predicted
 
     table = prediction.table()
-    table.to_csv(out / "predicted.csv", index=False, float_format="%.10g")
+    write_csv_atomic(table, out / "predicted.csv", index=False, float_format="%.10g")
     fig = measured_vs_predicted(table, out / "predicted_laxity.png",
                                 f"{prediction.knee_name}: measured (filled) and predicted (open)")
     return [out / "predicted.csv", fig]

@@ -1,5 +1,5 @@
-"""Least-squares statistics, each computed in one place: noise variance, chi-square test, rank and
-Gauss-Newton covariance from sensitivities.
+"""Least-squares statistics, each computed in one place: noise variance, chi-square test, the
+weighted SVD and rank, Gauss-Newton covariance from sensitivities, and the information criteria.
 
 Units: residuals in mm and deg; sensitivities ``S`` in mm or deg per SI unit of each parameter
 (5T x n); ``scales`` the parameters' NLP scales (SI), used to compare directions of different units.
@@ -40,6 +40,30 @@ def chi_square_test(residuals: np.ndarray, weights: np.ndarray | None, variance:
     return chi2, dof, float(stats.chi2.sf(chi2, dof))
 
 
+def information_criteria(wrss: float, n_observations: int, n_free: int) -> tuple[float, float]:
+    """``(AIC, BIC)`` of a weighted least-squares fit: ``N ln(WRSS/N) + 2 p`` and
+    ``N ln(WRSS/N) + p ln N`` with ``WRSS = sum w r^2`` the fit's own objective (mm^2 + deg^2 times
+    the weights).  This is -2 times the Gaussian log-likelihood with the variances known up to one
+    common factor (``sigma_i^2 = s^2 / w_i``, ``s^2`` maximised out) plus the penalty; its constant
+    ``-sum ln w_i`` is the same for every model fitted to the same data and weights, so it is dropped
+    and only differences between such models mean anything.  With unit weights it is the ordinary
+    ``N ln(RSS/N)`` form; a weighted fit must use its weighted sum (the unweighted RSS of a weighted
+    fit is not what the fit minimised and ranks models differently when the weights differ)."""
+    n = n_observations
+    base = n * np.log(max(wrss, 1e-300) / n)
+    return float(base + 2 * n_free), float(base + n_free * np.log(n))
+
+
+def weighted_svd(sensitivity: np.ndarray, weights: np.ndarray,
+                 scales: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(U, singular values, V')`` of the weighted, scaled sensitivity matrix ``sqrt(W) S D``
+    (``S``: 5T x n, mm or deg per SI unit; ``weights``: one per row; ``D``: the parameters' scales):
+    its rank is how many parameter directions the data determine (:func:`svd_rank`) and the rows
+    of ``V'`` beyond it are the directions they do not."""
+    w = np.sqrt(np.asarray(weights, float).ravel())[:, None]
+    return np.linalg.svd(w * np.asarray(sensitivity, float) * np.asarray(scales, float), full_matrices=True)
+
+
 def svd_rank(singular_values: np.ndarray) -> int:
     """Numerical rank from singular values (relative threshold :data:`RANK_TOL`)."""
     sv = np.asarray(singular_values)
@@ -61,7 +85,7 @@ def gauss_newton_covariance(sensitivity: np.ndarray, weights: np.ndarray, varian
         np.asarray(variance, float).ravel()
     d = np.asarray(scales, float)
     ss = s * d
-    _, sv_w, vt_w = np.linalg.svd(np.sqrt(w)[:, None] * ss, full_matrices=True)
+    _, sv_w, vt_w = weighted_svd(s, w, d)
     rank = svd_rank(sv_w)
     a_s = ss.T @ (w[:, None] * ss)
     b_s = ss.T @ ((w * sig * w)[:, None] * ss)

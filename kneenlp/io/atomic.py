@@ -2,7 +2,9 @@
 
 A reader (or a resumed study) never sees a half-written file: either the old content or the new.
 
-* :func:`write_text_atomic`, :func:`write_bytes_atomic`: one file.
+* :func:`atomic_target`: the one temporary-file-and-rename, for any writer that takes a path
+  (NumPy, pandas, CasADi); :func:`write_text_atomic`, :func:`write_bytes_atomic`,
+  :func:`write_csv_atomic`, :func:`export_mesh_atomic` and :func:`save_figure_atomic` are built on it.
 * :func:`staged_directory`: the outputs of one command.  Everything is written into a hidden
   staging directory inside the output directory; only when all of it is written is each file
   renamed into place (``os.replace``, atomic per file).  A failure (an exception, a full disk, an
@@ -30,6 +32,19 @@ def _tmp_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}.tmp")
 
 
+@contextlib.contextmanager
+def atomic_target(path: str | Path) -> Iterator[Path]:
+    """A temporary path beside ``path`` to write to; renamed over ``path`` when the block ends
+    without an error, removed in every case otherwise."""
+    path = Path(path)
+    tmp = _tmp_name(path)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Write ``text`` to ``path`` atomically (temporary file in the same directory + rename)."""
     return write_bytes_atomic(path, text.encode())
@@ -37,28 +52,31 @@ def write_text_atomic(path: str | Path, text: str) -> Path:
 
 def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically (temporary file in the same directory + rename)."""
+    with atomic_target(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    return Path(path)
+
+
+def write_csv_atomic(table, path: str | Path, **kwargs) -> Path:
+    """``table.to_csv(path, **kwargs)`` (a pandas frame) atomically."""
+    return write_text_atomic(path, table.to_csv(**kwargs))
+
+
+def export_mesh_atomic(mesh, path: str | Path) -> Path:
+    """``mesh.export(path)`` (a trimesh mesh; format from the suffix of ``path``) atomically."""
     path = Path(path)
-    tmp = _tmp_name(path)
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_target(path) as tmp:
+        mesh.export(tmp, file_type=path.suffix.lstrip("."))
     return path
 
 
 def save_figure_atomic(fig, path: str | Path, **kwargs) -> Path:
     """``fig.savefig(path)`` through a temporary file (format from the suffix of ``path``)."""
     path = Path(path)
-    tmp = _tmp_name(path)
-    try:
+    with atomic_target(path) as tmp:
         fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", **kwargs)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

@@ -43,16 +43,15 @@ from kneenlp.conventions import (
     COORDINATES,
     RESIDUAL_NAMES,
     RESIDUAL_UNITS,
-    TO_USER,
-    coords_to_user,
+    coords_from_user,
 )
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import MeasuredData, read_measured
-from kneenlp.inference.problem import IdentificationProblem
+from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.io.atomic import atomic_target, write_text_atomic
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
-from kneenlp.simulation import model_for
-from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.forward import equilibrium_start
 from kneenlp.solvers.nlp import nlp_expressions
 
 FORMATS = ("nl", "casadi", "c")
@@ -87,6 +86,8 @@ class ExportProblem:
     contact: str = "exact"
     #: for "expansion" on a knee with working sets: its measured error (see :func:`expansion_error`)
     contact_error: dict | None = None
+    #: the data vector ``p``'s layout in words (:class:`~kneenlp.experiment.problem.DataLayout`)
+    p_layout: str = ""
 
     def function(self) -> ca.Function:
         return ca.Function("nlp", [self.x, self.p], [self.f, self.g], ["x", "p"], ["f", "g"])
@@ -101,7 +102,7 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     ``contact``: ``"exact"`` (CasADi, C) or ``"expansion"`` (what ``.nl`` can hold; module docstring)."""
     if contact not in CONTACT_FORMS:
         raise ValueError(f"contact must be one of {CONTACT_FORMS}, not {contact!r}")
-    model = model_for(knee or Knee.default())
+    model = KneeModel.of(knee or Knee.default())
     if not isinstance(data, MeasuredData):
         data = read_measured(data)
     problem = IdentificationProblem.from_data(model, data, free, fixed=fixed, with_effects=with_effects or ())
@@ -111,9 +112,9 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     e = nlp_expressions(problem, parallel="serial", working_sets="graph" if contact == "exact" else "data")
     values = problem.scatter(np.random.default_rng(seed))
     values.update(problem.check_start(start))
-    q0, res = forward_solver(model).solve_batch(data.trials, problem.theta(values), data.q)
-    q0_user = np.where((res <= 1e-6)[:, None], coords_to_user(q0), data.q_user)
-    x0 = np.concatenate([np.array([values[n] for n in free]) / problem.scales, q0_user.ravel()])
+    theta0 = problem.theta(values)
+    q0 = equilibrium_start(problem, theta0)
+    x0 = problem.to_x(values, q0.q_user)
     var_names = list(free) + [f"{t.id}.{c}" for t in data.trials for c in COORDINATES]
     var_units = [f"{p.unit} x {p.scale * p.to_user:g}" for p in problem.parameters]
     var_units += list(COORDINATE_UNITS) * T
@@ -123,13 +124,12 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
             "parameters": dict(zip(model.parameter_names, problem.theta().tolist(), strict=True)),
             "elements": [f"{type(el).__module__}.{type(el).__name__}:{el.name}" for el in model.elements],
             "start_seed": seed, "working_sets": bool(model.ws_size)}
-    theta0 = problem.theta(values)
-    ws = model.working_data_batch(q0, theta0, problem.flexions) if contact == "expansion" else None
-    error = expansion_error(problem, q0, theta0, ws, seed) if contact == "expansion" else None
+    ws = model.working_data_batch(q0.q, theta0, problem.flexions) if contact == "expansion" else None
+    error = expansion_error(problem, q0.q, theta0, ws, seed) if contact == "expansion" else None
     return ExportProblem(e.f, e.g, e.x, e.p, problem.data_vector(ws), x0, e.lbx, e.ubx, var_names, var_units,
                          con_names, list(RESIDUAL_UNITS) * T,
                          {n: float(s) for n, s in zip(free, problem.scales, strict=True)}, len(free), meta,
-                         contact, error)
+                         contact, error, problem.layout().describe())
 
 
 def expansion_error(problem: IdentificationProblem, q0: np.ndarray, theta: np.ndarray, ws: np.ndarray,
@@ -144,7 +144,7 @@ def expansion_error(problem: IdentificationProblem, q0: np.ndarray, theta: np.nd
     worst, scale = 0.0, 0.0
     for i, t in enumerate(problem.trials):
         for _ in range(ERROR_SAMPLES):
-            q = q0[i] + rng.uniform(-ERROR_PROBE, ERROR_PROBE, 5) / np.asarray(TO_USER)
+            q = q0[i] + coords_from_user(rng.uniform(-ERROR_PROBE, ERROR_PROBE, 5))
             a = np.asarray(model.residual(q, theta, t.load, t.flexion, ws[i])).ravel()
             b = np.asarray(exact(q, theta, t.load, t.flexion)).ravel()
             worst, scale = max(worst, float(np.abs(a - b).max())), max(scale, float(np.abs(b).max()))
@@ -206,7 +206,8 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
         files += [out / "kneenlp.nl", out / "kneenlp.row", out / "kneenlp.col"]
     elif fmt == "casadi":
         for fn in _derivative_functions(prob):
-            fn.save(str(out / f"{fn.name()}.casadi"))
+            with atomic_target(out / f"{fn.name()}.casadi") as tmp:
+                fn.save(str(tmp))
             files.append(out / f"{fn.name()}.casadi")
     else:
         cg = ca.CodeGenerator("kneenlp_nlp.c", {"with_header": True})
@@ -227,18 +228,12 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
         "contact": _contact_words(prob),
         **({"contact_error": prob.contact_error} if prob.contact_error else {}),
         "p": prob.p_value.tolist(),
-        "p_layout": "theta (all model parameters, SI, in 'parameters' order), measured coordinates (T x 5, "
-                    "mm/deg), weights (T x 5), loads (T x 11: force at the tuberosity and moment, femoral frame; "
-                    "generalised forces; N and N m), flexion (T, rad), "
-                    "then, only for contact='expansion', the contact working sets at the start poses (T x "
-                    "ws_size): per point x, y, z (m) and area (m^2) for sphere contact; for mesh contact the "
-                    "pose and the contact wrench's second-order expansion there "
-                    "(kneenlp.model.mesh_contact.WS_SIZE)",
+        "p_layout": prob.p_layout,
         "source": prob.meta,
         "files": [f.name for f in files],
         **({"nl": extra} if extra else {}),
     }
-    (out / "problem.json").write_text(json.dumps(sidecar, indent=1))
+    write_text_atomic(out / "problem.json", json.dumps(sidecar, indent=1))
     files.append(out / "problem.json")
     return files
 

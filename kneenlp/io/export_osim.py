@@ -21,6 +21,7 @@ from pathlib import Path
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.io.osim import OsimError, write_calibrated
 from kneenlp.model.knee import Knee
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import slack_length
 
 
@@ -62,7 +63,7 @@ def export_osim(fit_json: str | Path, knee: Knee | str | Path, model: str | Path
     if not Path(out).resolve().parent.is_dir():
         raise InputError(f"the directory {Path(out).resolve().parent} does not exist", source=str(out), field="--out")
     knee = knee if isinstance(knee, Knee) else Knee.load(knee)
-    known = set(knee.model.parameter_names)
+    known = set(KneeModel.of(knee).parameter_names)
     exported = [f"{g}.{k}" for g, lig in knee.ligaments.items() if lig.grouped
                 for k in ("k_scale", "ref_strain_offset")]
     for name, value in params.items():

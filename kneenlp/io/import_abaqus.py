@@ -50,8 +50,9 @@ import trimesh
 from kneenlp.conventions import COORDINATES, coords_to_user
 from kneenlp.errors import InputError
 from kneenlp.io.abaqus import evaluate_parameters, nodes, read_keywords, read_mesh, substitute, triangles
-from kneenlp.io.atomic import write_text_atomic
+from kneenlp.io.atomic import export_mesh_atomic, write_text_atomic
 from kneenlp.model.kinematics import joint_coordinates
+from kneenlp.model.parameters import KINDS, imported_parameter_set
 
 #: Reference nodes of the bones in ``LIGS-ATTACH.inp``.
 BONE_NODES = {1900000: "femur", 1200000: "tibia"}
@@ -62,18 +63,6 @@ TIBIAL_FACING_DEG = 70.0
 #: (mm) and within this distance of the sagittal plane (mm).
 TUBEROSITY_BAND_MM = (20.0, 45.0)
 TUBEROSITY_HALF_WIDTH_MM = 15.0
-
-PARAMETERS = '''# Parameters of a knee imported from an Abaqus model: every fibre carries its own stiffness,
-# slack length and linear strain limit (knee.toml); the groups' stiffness scales (1) and
-# reference-strain offsets (0) are the defaults.  The elastic-foundation modulus is the
-# laxity-noise paper's.
-name = "imported"
-[units]
-modulus = "GN/m^3"
-[contact]
-modulus = 10.0
-'''
-
 
 @dataclass(frozen=True)
 class FibreLaw:
@@ -335,11 +324,11 @@ def import_abaqus(folder: str | Path, out: str | Path, *, side: str = "left", na
 
     femur = model.femur_surface.copy()
     femur.vertices = fem(femur.vertices)
-    femur.export(out / "meshes" / "femur_cartilage.stl")
+    export_mesh_atomic(femur, out / "meshes" / "femur_cartilage.stl")
     for name_, surf in model.tibia_surfaces.items():
         s = surf.copy()
         s.vertices = tib(s.vertices)
-        s.export(out / "meshes" / f"tibia_{name_}.stl")
+        export_mesh_atomic(s, out / "meshes" / f"tibia_{name_}.stl")
     flexion, q = reference_pose(model, side)
     q_user = coords_to_user(q)
     doc: dict = {
@@ -362,14 +351,15 @@ def import_abaqus(folder: str | Path, out: str | Path, *, side: str = "left", na
         group["bundles"].append({
             "name": f.name, "femur": _round(fem(f.femur)), "tibia": _round(tib(f.tibia)),
             "stiffness": float(f.law.stiffness), "slack_length": float(f.law.slack_length * 1e3),
-            "lin_strain": float(f.law.lin_strain * 100)})
+            "lin_strain": float(f.law.lin_strain * KINDS["lin_strain"].to_user)})
     header = ["kneenlp knee description, written by `kneenlp import-abaqus` (kneenlp.io.import_abaqus).",
               "Femoral points in the model's femoral Grood-Suntay frame, tibial points in its tibial frame",
               "(X anterior, Y proximal, Z the medial-lateral axis as the frames give it); mm.",
               "Bundles: stiffness N per unit strain, slack_length mm, lin_strain %.", *model.notes]
     text = "".join(f"# {h}\n" for h in header) + tomli_w.dumps(doc)
     knee_file = out / "knee.toml"
-    write_text_atomic(out / "parameters.toml", PARAMETERS)
+    write_text_atomic(out / "parameters.toml", imported_parameter_set(
+        "an Abaqus model", "their own stiffness, slack length and linear strain limit"))
     write_text_atomic(knee_file, text)
     return knee_file
 

@@ -30,22 +30,13 @@ import tomli_w
 from kneenlp.errors import InputError
 from kneenlp.io.atomic import write_text_atomic
 from kneenlp.io.osim import OsimError, knee_line_elements, ligament_groups, read_osim
-from kneenlp.model.knee import PLAUSIBLE_MM
+from kneenlp.model.knee_file import PLAUSIBLE_MM
 from kneenlp.model.laws import BlankevoortLaw
+from kneenlp.model.parameters import imported_parameter_set
+
 
 #: Parameter set written with an imported knee: the paper's contact modulus (the bundles carry
 #: their own properties).
-PARAMETERS = '''# Parameters of a knee imported from OpenSim: the bundles carry their own stiffness and slack
-# length (knee.toml); the groups' stiffness scales (1) and reference-strain offsets (0) are the
-# defaults.  The elastic-foundation modulus is the laxity-noise paper's.
-name = "imported"
-[units]
-modulus = "GN/m^3"
-[contact]
-modulus = 10.0
-'''
-
-
 @dataclass
 class ImportReport:
     """What :func:`import_osim` did: the knee file, the groups and the skipped parts."""
@@ -155,7 +146,8 @@ def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | Non
               "# transition_strain as OpenSim's (the paper's linear strain limit is half of it); the law is\n"
               "# OpenSim's Blankevoort1991Ligament (law = \"blankevoort\", kneenlp.model.laws).\n")
     knee_file = write_text_atomic(out / "knee.toml", header + tomli_w.dumps(doc))
-    write_text_atomic(out / "parameters.toml", PARAMETERS)
+    write_text_atomic(out / "parameters.toml",
+                      imported_parameter_set("OpenSim", "their own stiffness and slack length"))
     return ImportReport(knee_file, grouped, skipped)
 
 

@@ -224,9 +224,9 @@ def _screw_home_note(df: pd.DataFrame, words: np.ndarray, src: str) -> None:
 
 def import_laxity(path: str | Path, out: str | Path, side: str) -> pd.DataFrame:
     """Write the measured-data CSV of a MATLAB laxity file (atomically); returns the table."""
-    from kneenlp.io.atomic import write_text_atomic
+    from kneenlp.io.atomic import write_csv_atomic
 
     df = laxity_frame(path, side)
-    write_text_atomic(out, df.to_csv(index=False, float_format="%.6g"))
+    write_csv_atomic(df, out, index=False, float_format="%.6g")
     return df
 

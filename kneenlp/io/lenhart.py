@@ -26,8 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
+from kneenlp.io.atomic import write_text_atomic
 from kneenlp.io.osim import knee_line_elements, ligament_groups, read_osim
 from kneenlp.io.resources import resource
+from kneenlp.model.parameters import KINDS
 
 #: Which OpenSim bundle groups make each of the paper's four single-bundle ligaments.
 BUNDLES = {"ACL": ("ACLam", "ACLpl"), "PCL": ("PCLal", "PCLpm"), "MCL": ("MCLs",), "LCL": ("LCL",)}
@@ -115,18 +117,20 @@ def knee_toml() -> str:
             "[candidates.posterior_capsule]", 'kind = "bundle"',
             'description = "posterior capsule: medial and lateral halves of the pCAP bundles"',
             f"femur = [{_fmt(fm)}, {_fmt(fl)}]", f"tibia = [{_fmt(tm)}, {_fmt(tl)}]",
-            f"ref_strain = {100 * strain(cap):.2f}   # %, OpenSim slack lengths at the reference pose", ""]
+            f"ref_strain = {KINDS['ref_strain'].to_user * strain(cap):.2f}   # %, OpenSim slack lengths at the "
+            "reference pose", ""]
     pfl = fine["PFL"]
     f, t = centroids(pfl)
     out += ["[candidates.popliteofibular]", 'kind = "bundle"',
             'description = "popliteofibular ligament (centroid of the PFL bundles)"',
             f"femur = [{_fmt(f)}]", f"tibia = [{_fmt(t)}]",
-            f"ref_strain = {100 * strain(pfl):.2f}   # %, OpenSim slack lengths at the reference pose", ""]
+            f"ref_strain = {KINDS['ref_strain'].to_user * strain(pfl):.2f}   # %, OpenSim slack lengths at the "
+            "reference pose", ""]
     return "\n".join(out)
 
 
 if __name__ == "__main__":  # pragma: no cover - maintenance script
     target = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("kneenlp/resources/knees/default")
     target.mkdir(parents=True, exist_ok=True)
-    (target / "knee.toml").write_text(knee_toml())
+    write_text_atomic(target / "knee.toml", knee_toml())
     print(target / "knee.toml")

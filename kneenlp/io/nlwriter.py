@@ -23,6 +23,8 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from kneenlp.io.atomic import atomic_target, write_text_atomic
+
 _BINARY = {ca.OP_ADD: "o0", ca.OP_SUB: "o1", ca.OP_MUL: "o2", ca.OP_DIV: "o3", ca.OP_POW: "o5",
            ca.OP_CONSTPOW: "o5", ca.OP_ATAN2: "o48"}
 _UNARY = {ca.OP_NEG: "o16", ca.OP_SQRT: "o39", ca.OP_EXP: "o44", ca.OP_LOG: "o43", ca.OP_SIN: "o41",
@@ -250,7 +252,7 @@ def write_nl(path: str | Path, fn: ca.Function, *, n_both: int, x0: Sequence[flo
         x_all = x0
         nlv = (n, n_both, n_both)
     path = Path(path)
-    with path.open("w") as fh:
+    with atomic_target(path) as tmp, tmp.open("w") as fh:
         w = fh.write
         w(f"g3 1 1 0\t# problem {title}\n")
         w(f" {n} {m} 1 0 {m} 0\t# vars, constraints, objectives, ranges, eqns, lcons\n")
@@ -282,8 +284,8 @@ def write_nl(path: str | Path, fn: ca.Function, *, n_both: int, x0: Sequence[flo
         for i, cols in enumerate(rows):
             w(f"J{i} {len(cols)}\n" + "".join(f"{c} 0\n" for c in cols))
         w(f"G0 {len(gcols)}\n" + "".join(f"{c} 0\n" for c in gcols))
-    path.with_suffix(".row").write_text("".join(f"{c}\n" for c in con_names) + f"{objective_name}\n")
-    path.with_suffix(".col").write_text("".join(f"{v}\n" for v in var_names))
+    write_text_atomic(path.with_suffix(".row"), "".join(f"{c}\n" for c in con_names) + f"{objective_name}\n")
+    write_text_atomic(path.with_suffix(".col"), "".join(f"{v}\n" for v in var_names))
     return {"variables": n, "constraints": m, "common": common, "shared_subexpressions": len(shared),
             "instructions": fn.n_instructions(), "jacobian_nonzeros": int(col_counts.sum())}
 

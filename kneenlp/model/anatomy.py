@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from kneenlp.io.atomic import export_mesh_atomic
+
 
 @dataclass(frozen=True)
 class Compartment:
@@ -86,7 +88,7 @@ def write_default_meshes(directory: Path) -> list[Path]:
     written = []
     for c in DEFAULT_COMPARTMENTS:
         path = directory / f"tibia_{c.name}.stl"
-        plateau_mesh(c).export(path)
+        export_mesh_atomic(plateau_mesh(c), path)
         written.append(path)
     return written
 

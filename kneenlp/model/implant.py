@@ -44,6 +44,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from kneenlp.io.atomic import export_mesh_atomic, write_text_atomic
+
 #: Medio-lateral positions of the medial and lateral condyle (mm, femoral frame).
 CONDYLE_Z = {"medial": -21.0, "lateral": 21.0}
 #: The knee whose landmarks, ligaments and candidates the implant knee reuses.
@@ -247,9 +249,9 @@ def write_implant_knee(directory: Path, femur: FemoralComponent = FemoralCompone
     meshes = directory / "meshes"
     meshes.mkdir(parents=True, exist_ok=True)
     written = [meshes / "femur_component.stl", meshes / "inlay.stl", directory / "knee.toml"]
-    femoral_component(femur).export(written[0])
-    inlay_surface(inlay, femur).export(written[1])
-    written[2].write_text(knee_toml(femur, inlay))
+    export_mesh_atomic(femoral_component(femur), written[0])
+    export_mesh_atomic(inlay_surface(inlay, femur), written[1])
+    write_text_atomic(written[2], knee_toml(femur, inlay))
     return written
 
 

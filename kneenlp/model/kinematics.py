@@ -83,3 +83,9 @@ def joint_coordinates(R, p) -> tuple[float, np.ndarray]:
     e2 = base[:, 0]
     lateral, anterior, proximal = np.linalg.solve(np.column_stack([e1, e2, e3]), p)
     return flexion, np.array([varus, internal, lateral, anterior, proximal])
+
+
+def reference_transform(flexion: float, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation (tibial -> femoral) and tibial origin (femoral frame, m) of a pose (rad, m)."""
+    R, p, _ = tibial_pose(flexion, np.asarray(q, float))
+    return np.asarray(R, float), np.asarray(p, float).ravel()

@@ -33,7 +33,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import LOAD_SIZE, TO_USER
+from kneenlp.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.model.effects import (
     Effect,
@@ -47,6 +47,7 @@ from kneenlp.model.elements import ForceElement, Output, Pose, StagedElement
 from kneenlp.model.kinematics import generalized_forces, tibial_pose
 from kneenlp.model.knee import Knee
 from kneenlp.model.parameters import Parameter
+from kneenlp.model.solvercache import SolverCache
 
 
 def check_set_names(params, info: dict[str, Parameter]) -> None:
@@ -98,10 +99,20 @@ class KneeModel:
         self.effects += builtin_groups([n for n in self.ligament_names if not knee.ligaments[n].grouped])
         self.effects += bundle_group_effects([n for n in self.ligament_names if knee.ligaments[n].grouped])
         self.effects += attachment_effects(self.ligament_names)
-        #: solvers built for this model (forward rootfinders, identification NLPs), keyed by their
-        #: layout; filled by :mod:`kneenlp.solvers`, so each is built once per model
-        self.solvers: dict[tuple, object] = {}
+        #: solvers built for this model (forward rootfinders, identification NLPs, working sets), each
+        #: built once and keyed by what changes it (:class:`~kneenlp.model.solvercache.SolverCache`)
+        self.solvers = SolverCache()
         self._build()
+
+    @classmethod
+    def of(cls, knee: Knee | KneeModel) -> KneeModel:
+        """The model of ``knee``, built once per knee object (kept on it); a :class:`KneeModel`
+        (e.g. one built with extra user elements) is returned as it is."""
+        if isinstance(knee, KneeModel):
+            return knee
+        if knee.built_model is None:
+            knee.built_model = cls(knee)
+        return knee.built_model
 
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
@@ -143,7 +154,7 @@ class KneeModel:
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 
         bias = [b for e in self.elements if (b := e.measurement_bias(values)) is not None]
-        y = q * ca.DM(TO_USER) + (sum(bias, ca.SX.zeros(5)) * ca.DM(TO_USER) if bias else 0)
+        y = coords_to_user(q) + (coords_to_user(sum(bias, ca.SX.zeros(5))) if bias else 0)
         self.observation = ca.Function("observation", [q, theta], [y], ["q", "theta"], ["y"])
 
         self.pose = ca.Function("pose", [q, flexion, theta], [R, p], ["q", "flexion", "theta"], ["R", "p"])
@@ -282,13 +293,10 @@ class KneeModel:
         """The working sets of ``n_trials`` poses as a CasADi function with zero derivative
         (:class:`~kneenlp.model.workingsets.WorkingSets`; ``full=False``: for function values only),
         built once per number of trials."""
-        key = ("working_sets", n_trials, full)
-        if key not in self.solvers:
-            from kneenlp.model.workingsets import WorkingSets
+        from kneenlp.model.workingsets import WorkingSets
 
-            self.solvers[key] = WorkingSets(self, n_trials, f"working_sets_{n_trials}{'' if full else '_value'}",
-                                            full=full)
-        return self.solvers[key]
+        return self.solvers.get(("working_sets", n_trials, full), lambda: WorkingSets(
+            self, n_trials, f"working_sets_{n_trials}{'' if full else '_value'}", full=full))
 
     def evaluate(self, q: np.ndarray, theta: np.ndarray, load: np.ndarray, flexion: float) -> np.ndarray:
         """The equilibrium residual (5) at a pose with the working sets of that pose (numeric)."""

@@ -100,6 +100,10 @@ class Parameter:
     def scale(self) -> float:
         return self.meta.scale
 
+    def from_user(self, value: float) -> float:
+        """A value in the display unit (:attr:`unit`) in SI."""
+        return float(value) / self.meta.to_user
+
     @property
     def bounds(self) -> tuple[float, float]:
         """(lower, upper) in SI."""
@@ -250,6 +254,20 @@ class ParameterSet:
                 raise InputError(f"expected a string, got {doc[key]!r}", source=src, field=key)
         return cls(values, name=str(doc.get("name", path.stem)), source=src,
                    description=str(doc.get("description", "")), meta=named_units)
+
+
+#: The laxity-noise paper's elastic-foundation modulus (N/m^3): the parameter set of an imported knee.
+PAPER_MODULUS = 1e10
+
+
+def imported_parameter_set(program: str, carried: str) -> str:
+    """Parameter-file text of a knee imported from ``program`` whose bundles carry ``carried``
+    (e.g. "their own stiffness and slack length") in the knee file: the groups' stiffness scales (1)
+    and reference-strain offsets (0) are the defaults, the contact modulus the paper's."""
+    header = [f"Parameters of a knee imported from {program}: the bundles carry {carried} (knee.toml); the",
+              "groups' stiffness scales (1) and reference-strain offsets (0) are the defaults.  The",
+              "elastic-foundation modulus is the laxity-noise paper's."]
+    return ParameterSet({"contact.modulus": PAPER_MODULUS}, name="imported").to_toml({}, header)
 
 
 def _named_values(table: object, src: str) -> tuple[dict[str, float], dict[str, str]]:

@@ -10,7 +10,8 @@ Strategy per trial (all with the model's one residual function):
 2. if that fails, load ramping (homotopy): the load is applied in fractions 1/4, 1/2, 3/4, 1 from
    the no-load pose, each step warm-started from the last, with steps halved on failure;
 3. a trial is *converged* only if the largest generalised force at the returned pose is below
-   ``tol`` (default 1e-6 N / N m; the paper's 1e-3 is the ceiling) AND the pose lies in the
+   ``tol`` (default :data:`~kneenlp.conventions.EQUILIBRIUM_TOL`, 1e-6 N / N m; the paper's 1e-3 is
+   the ceiling) AND the pose lies in the
    physiological envelope (:data:`ENVELOPE`: |varus| <= 30 deg, |internal| <= 60 deg,
    |translation| <= 25 mm, some cartilage contact).  An "equilibrium" outside it (e.g. a 100 kN
    drawer force "balanced" by a dislocated tibia) is reported as not converged.  Trials that fail
@@ -20,20 +21,24 @@ Strategy per trial (all with the model's one residual function):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from kneenlp.conventions import POSE_ENVELOPE_USER, TO_USER
+from kneenlp.conventions import EQUILIBRIUM_TOL, POSE_ENVELOPE_USER, coords_from_user, coords_to_user
 from kneenlp.experiment.protocol import Trial
 from kneenlp.model.elements import StagedElement
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.newton import EquilibriumNewton
 
+if TYPE_CHECKING:
+    from kneenlp.experiment.problem import IdentificationProblem
+
 COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m from the reference pose: slightly penetrated
 #: Flexion step (deg) of the passive path from a knee's reference pose (:meth:`ForwardSolver.cold_start`).
 PASSIVE_STEP_DEG = 10.0
 #: Largest |coordinate| of a plausible knee pose from the knee's reference pose (rad, rad, m, m, m).
-ENVELOPE = POSE_ENVELOPE_USER / TO_USER
+ENVELOPE = coords_from_user(POSE_ENVELOPE_USER)
 
 
 @dataclass
@@ -53,7 +58,7 @@ class TrialSolution:
 class ForwardSolver:
     """Per-trial equilibrium solver for one model; the rootfinder is built once."""
 
-    def __init__(self, model: KneeModel, tol: float = 1e-6, max_iter: int = 60):
+    def __init__(self, model: KneeModel, tol: float = EQUILIBRIUM_TOL, max_iter: int = 60):
         self.model = model
         #: the knee's reference pose: where cold starts begin and the envelope is centred (rad, m)
         self.reference = np.asarray(model.knee.reference_pose[1], float)
@@ -203,6 +208,38 @@ class ForwardSolver:
         return [out[i] for i in range(len(trials))]
 
 
+@dataclass
+class EquilibriumStart:
+    """Start poses of an identification: ``q`` (T x 5, SI) and ``q_user`` (mm and deg, the measured
+    values themselves where ``ok`` is false), and per trial whether it is an equilibrium inside the
+    pose envelope (``ok``)."""
+
+    q: np.ndarray
+    q_user: np.ndarray
+    ok: np.ndarray
+
+
+def equilibrium_start(problem: IdentificationProblem, theta: np.ndarray, threads: int = 2) -> EquilibriumStart:
+    """Start poses of an identification at parameters ``theta`` (SI).  Newton on all trials at once from the measured
+    poses, per-trial ramping for the few that fail, then the forward solver's own start (unloaded
+    pose first; measured poses far from the start's equilibrium, e.g. cartilage much softer than
+    the model's, defeat Newton from them).  A trial that still fails, or whose equilibrium lies
+    outside the NLP's pose envelope (IPOPT would move it onto its bound, far from equilibrium: a
+    slack scattered start reached 36 deg varus), starts at its data."""
+    data = problem.data
+    solver = forward_solver(problem.model, problem.equilibrium_tol)
+    q0, res0 = solver.solve_batch(data.trials, theta, data.q, threads)
+    ok = res0 <= problem.equilibrium_tol
+    if not ok.all():
+        failed = np.flatnonzero(~ok)
+        for i, sol in zip(failed, solver.solve([data.trials[i] for i in failed], theta), strict=True):
+            if sol.converged:
+                q0[i], ok[i] = sol.q, True
+    ok &= problem.inside_pose_bounds(q0)
+    return EquilibriumStart(np.where(ok[:, None], q0, data.q),
+                            np.where(ok[:, None], coords_to_user(q0), problem.measured), ok)
+
+
 def rim_reason(penetration: float) -> str:
     """Why a pose with contact at the femoral mesh's open edge is refused (``penetration`` m)."""
     return (f"contact beyond the femoral surface's open edge: a tibial point {1e3 * penetration:.2f} mm 'inside' where "
@@ -217,9 +254,6 @@ def _unloaded(t: Trial) -> Trial:
     return Trial(f"none_flex{t.flexion_deg:g}", t.flexion_deg, {}, "none", 0.0)
 
 
-def forward_solver(model: KneeModel, tol: float = 1e-6) -> ForwardSolver:
-    """The model's forward solver for ``tol``, built once per model (kept in ``model.solvers``)."""
-    key = ("forward", tol)
-    if key not in model.solvers:
-        model.solvers[key] = ForwardSolver(model, tol=tol)
-    return model.solvers[key]
+def forward_solver(model: KneeModel, tol: float = EQUILIBRIUM_TOL) -> ForwardSolver:
+    """The model's forward solver for ``tol`` (N or N m), built once per model (``model.solvers``)."""
+    return model.solvers.get(("forward", tol), lambda: ForwardSolver(model, tol=tol))

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import LOAD_SIZE, TO_USER
+from kneenlp.conventions import EQUILIBRIUM_TOL, LOAD_SIZE, TO_USER
 
 #: Largest Newton step (mm for translations, deg for rotations).
 MAX_STEP = 5.0
@@ -66,7 +66,7 @@ class EquilibriumNewton:
         return r, jac
 
     def solve(self, q0: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
-              tol: float = 1e-6, max_iter: int = 60, threads: int = 2) -> NewtonResult:
+              tol: float = EQUILIBRIUM_TOL, max_iter: int = 60, threads: int = 2) -> NewtonResult:
         """Solve ``r(q) = 0`` for every trial from ``q0`` (T x 5, SI); ``loads`` T x 6, ``flexions``
         (T,) rad; ``threads`` as in :meth:`evaluate`.  Converged trials have ``residual <= tol``."""
         q = np.array(q0, dtype=float).reshape(-1, 5)

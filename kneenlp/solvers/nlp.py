@@ -31,11 +31,14 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import LOAD_SIZE, TO_USER
+from kneenlp import interrupts
+from kneenlp.conventions import LOAD_SIZE, coords_from_user
 from kneenlp.errors import InputError
+from kneenlp.model.solvercache import frozen
+from kneenlp.solvers.forward import equilibrium_start
 
 if TYPE_CHECKING:
-    from kneenlp.inference.problem import IdentificationProblem
+    from kneenlp.experiment.problem import IdentificationProblem
 
 #: IPOPT options of the identification (tol 1e-10: same estimates as 1e-12, ~30 % fewer iterations).
 IPOPT_OPTIONS = {"tol": 1e-10, "acceptable_tol": 1e-9, "constr_viol_tol": 1e-9, "max_iter": 150,
@@ -69,27 +72,15 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
     and exact everywhere, for export); ``"pose"`` takes them at every pose evaluated
     (:class:`~kneenlp.model.workingsets.WorkingSets`; derivatives then pass through a callback,
     which is slow: :func:`build_nlp` instead supplies the derivative functions of the data form)."""
-    model, free, T = problem.model, problem.free, problem.n_trials
-    n_theta, nf = len(model.parameter_names), len(free)
-    scales = problem.scales
-    xp = ca.MX.sym("p_free", nf)
+    model, T = problem.model, problem.n_trials
+    xp = ca.MX.sym("p_free", problem.n_free)
     xq = ca.MX.sym("q_user", 5, T)
-    nw = model.ws_size if working_sets == "data" else 0
-    nl = LOAD_SIZE
-    par = ca.MX.sym("data", n_theta + 5 * T + 5 * T + nl * T + T + nw * T)
-    theta_in = par[:n_theta]
-    meas = ca.reshape(par[n_theta : n_theta + 5 * T], 5, T)
-    w = ca.reshape(par[n_theta + 5 * T : n_theta + 10 * T], 5, T)
-    loads = ca.reshape(par[n_theta + 10 * T : n_theta + (10 + nl) * T], nl, T)
-    flex = ca.reshape(par[n_theta + (10 + nl) * T : n_theta + (11 + nl) * T], 1, T)
-    ws_data = ca.reshape(par[n_theta + (11 + nl) * T :], nw, T)
-    # theta element by element, so that fixed parameters (e.g. the contact modulus) depend on no
-    # decision variable structurally: the Hessian then never seeds the contact with parameter
-    # directions (a dense selection matrix made it ~2x slower).
-    pos = {n: j for j, n in enumerate(free)}
-    theta = ca.vertcat(*[scales[pos[n]] * xp[pos[n]] if n in pos else theta_in[i]
-                         for i, n in enumerate(model.parameter_names)])
-    q_si = xq / ca.DM(TO_USER)  # deg, mm -> rad, m
+    layout = problem.layout(working_sets=working_sets == "data")
+    par = ca.MX.sym("data", layout.size)
+    data = layout.split(par)
+    loads, flex = data["loads"], data["flexions"]
+    theta = problem.theta_of_scaled(xp, data["theta"])
+    q_si = coords_from_user(xq)
     if parallel == "thread" and threads > 1:
         mapped = model.residual.map(T, "thread", threads)
     else:
@@ -99,13 +90,12 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
         mapped = exact.map(T, "thread", threads) if parallel == "thread" and threads > 1 else exact.map(T)
         g = ca.vec(mapped(q_si, theta, loads, flex))
     else:
-        ws = model.working_sets_function(T)(q_si, theta, flex) if working_sets == "pose" and model.ws_size else ws_data
+        ws = (model.working_sets_function(T)(q_si, theta, flex) if working_sets == "pose" and model.ws_size
+              else data["working_sets"])
         g = ca.vec(mapped(q_si, theta, loads, flex, ws))
-    diff = model.observation.map(T)(q_si, theta) - meas
-    f = ca.sum1(ca.sum2(w * diff * diff))
-    lo, hi = problem.pose_bounds_user
-    lbx = np.concatenate([problem.lower / scales, np.tile(lo, T)])
-    ubx = np.concatenate([problem.upper / scales, np.tile(hi, T)])
+    diff = model.observation.map(T)(q_si, theta) - data["measured"]
+    f = ca.sum1(ca.sum2(data["weights"] * diff * diff))
+    lbx, ubx = problem.x_bounds()
     return NLPExpressions(ca.vertcat(xp, ca.vec(xq)), par, f, g, lbx, ubx, q_si, theta, flex)
 
 
@@ -117,20 +107,7 @@ class IdentificationNLP:
     n_trials: int
     solver_name: str
     solver: ca.Function
-    scales: np.ndarray
-    lbx: np.ndarray
-    ubx: np.ndarray
     build_seconds: float
-
-    def pack_x(self, values: np.ndarray, q_user: np.ndarray) -> np.ndarray:
-        """Decision vector from free parameter values (SI) and poses (T x 5, mm/deg)."""
-        return np.concatenate([np.asarray(values) / self.scales, np.asarray(q_user).ravel()])
-
-    def unpack_x(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(free parameter values in SI, poses T x 5 in mm/deg)."""
-        x = np.asarray(x, dtype=float).ravel()
-        n = len(self.free)
-        return x[:n] * self.scales, x[n:].reshape(self.n_trials, 5)
 
 
 def build_nlp(problem: IdentificationProblem, solver: str = "ipopt", options: dict | None = None,
@@ -150,8 +127,64 @@ def build_nlp(problem: IdentificationProblem, solver: str = "ipopt", options: di
     except RuntimeError as exc:
         raise InputError(f"cannot create NLP solver {solver!r}: {str(exc).splitlines()[-1]}",
                          field="solver") from None
-    return IdentificationNLP(list(problem.free), problem.n_trials, solver, fn, problem.scales, e.lbx, e.ubx,
-                             time.perf_counter() - t0)
+    return IdentificationNLP(list(problem.free), problem.n_trials, solver, fn, time.perf_counter() - t0)
+
+
+def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, threads: int) -> IdentificationNLP:
+    """The NLP solver of ``problem``'s layout (number of trials, free parameters), ``solver`` (a CasADi
+    nlpsol plugin), its ``options`` and ``threads``, built once per model (``model.solvers``)."""
+    key = ("nlp", problem.n_trials, tuple(problem.free), solver, frozen(options), threads)
+    return problem.model.solvers.get(key, lambda: build_nlp(problem, solver, options, threads))
+
+
+@dataclass
+class NLPResult:
+    """One solve of the simultaneous NLP, as the solver left it (:mod:`kneenlp.inference` judges it)."""
+
+    values: dict[str, float]  # free parameters, SI
+    q: np.ndarray  # poses, T x 5, SI
+    status: str  # the solver's return status
+    solver_success: bool  # the solver's own verdict
+    iterations: int
+    seconds: float  # the solve itself
+    start_seconds: float  # the equilibrium start and the NLP's build
+    max_residual: float  # largest equilibrium residual, N or N m
+    left_out: float  # deepest penetration (m) of a contact point outside the working sets; -inf: none
+    rim: float  # deepest penetration (m) beyond the femoral surface's open edge; -inf: none
+    started_at_data: int  # trials with no equilibrium inside the pose envelope at the start
+    objective: float  # the solver's objective, mm^2 + deg^2 (weighted)
+    build_seconds: float
+    solver_name: str
+
+
+def solve_nlp(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
+              solver_options: dict | None = None, threads: int = 2) -> NLPResult:
+    """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter), poses
+    started at equilibrium (:func:`~kneenlp.solvers.forward.equilibrium_start`)."""
+    t0 = time.perf_counter()
+    nlp = get_nlp(problem, solver, solver_options, threads)
+    q0 = equilibrium_start(problem, problem.theta(start), threads)
+    x0 = problem.to_x(start, q0.q_user)
+    lbx, ubx = problem.x_bounds()
+    t1 = time.perf_counter()
+    # contact working sets are taken at every pose IPOPT evaluates; after the solve no sample point left
+    # out of them may penetrate (too few working-set slots, or contact outside the represented surface)
+    with interrupts.deferred():  # Ctrl-C/SIGTERM: raised when the solve ends (CasADi would drop it)
+        sol = nlp.solver(x0=x0, p=problem.data_vector(), lbx=lbx, ubx=ubx, lbg=0, ubg=0)
+    st = nlp.solver.stats()
+    values, q_user = problem.from_x(sol["x"])
+    seconds = time.perf_counter() - t1
+    g = np.asarray(sol["g"]).ravel()
+    q, theta = coords_from_user(q_user), problem.theta(values)
+    model = problem.model
+    left_out = rim = -np.inf
+    if model.ws_size:
+        left_out = float(np.max(model.left_out_batch(q, theta, problem.flexions, threads)))
+        rim = float(np.max(model.rim_batch(q, theta, problem.flexions)))
+    return NLPResult(dict(zip(problem.free, values, strict=True)), q, str(st.get("return_status", "unknown")),
+                     bool(st.get("success", False)), int(st.get("iter_count", 0)), seconds, t1 - t0,
+                     float(np.max(np.abs(g))) if g.size else 0.0, left_out, rim, int(np.sum(~q0.ok)), float(sol["f"]),
+                     nlp.build_seconds, nlp.solver_name)
 
 
 def _with_working_sets_of_the_pose(problem: IdentificationProblem, e: NLPExpressions) -> tuple[dict, dict]:
@@ -193,17 +226,15 @@ def _trial_block_derivatives(problem: IdentificationProblem, e: NLPExpressions) 
     working-set data), mapped over the trials on two threads; IPOPT's sparse matrices are assembled
     from them.  Differentiating the whole MX graph instead cost ~3x more per Hessian (its colouring
     seeds every trial with every parameter direction)."""
-    model, free, T = problem.model, problem.free, problem.n_trials
-    nf, n_theta, nl = len(free), len(model.parameter_names), LOAD_SIZE
+    model, T, nf = problem.model, problem.n_trials, problem.n_free
     residual = model.residual.expand()
     q_user, xp = ca.SX.sym("q_user", 5), ca.SX.sym("p_free", nf)
-    theta_in, load, flexion = ca.SX.sym("theta", n_theta), ca.SX.sym("load", nl), ca.SX.sym("flexion")
+    theta_in, load = ca.SX.sym("theta", len(model.parameter_names)), ca.SX.sym("load", LOAD_SIZE)
+    flexion = ca.SX.sym("flexion")
     ws, meas, w = ca.SX.sym("ws", model.ws_size), ca.SX.sym("measured", 5), ca.SX.sym("weights", 5)
     lam_f, lam = ca.SX.sym("lam_f"), ca.SX.sym("lam", 5)
-    pos, scales = {n: j for j, n in enumerate(free)}, problem.scales
-    theta = ca.vertcat(*[scales[pos[n]] * xp[pos[n]] if n in pos else theta_in[i]
-                         for i, n in enumerate(model.parameter_names)])
-    q_si = q_user / ca.DM(TO_USER)
+    theta = problem.theta_of_scaled(xp, theta_in)
+    q_si = coords_from_user(q_user)
     r = residual(q_si, theta, load, flexion, ws)
     diff = model.observation(q_si, theta) - meas
     f_t = ca.sum1(w * diff * diff)
@@ -216,11 +247,9 @@ def _trial_block_derivatives(problem: IdentificationProblem, e: NLPExpressions) 
     x, p = ca.MX.sym("x", e.x.numel()), ca.MX.sym("p", e.p.numel())
     lam_fm, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 5 * T)
     xp_m, xq = x[:nf], ca.reshape(x[nf:], 5, T)
-    cut = np.cumsum([0, n_theta, 5 * T, 5 * T, nl * T, T, model.ws_size * T])
-    parts = [p[cut[i]:cut[i + 1]] for i in range(6)]
-    args = [xq, ca.repmat(xp_m, 1, T), ca.repmat(parts[0], 1, T), ca.reshape(parts[3], nl, T),
-            ca.reshape(parts[4], 1, T), ca.reshape(parts[5], model.ws_size, T), ca.reshape(parts[1], 5, T),
-            ca.reshape(parts[2], 5, T)]
+    d = problem.layout(working_sets=True).split(p)
+    args = [xq, ca.repmat(xp_m, 1, T), ca.repmat(d["theta"], 1, T), d["loads"], d["flexions"], d["working_sets"],
+            d["measured"], d["weights"]]
     f_all, g_all, r_all, j_all = first_map(*args)
     n = 5 + nf
 

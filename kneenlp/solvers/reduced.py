@@ -6,9 +6,9 @@ model's equilibrium (cartilage four times softer than the model's: the measured 
 the stiff model's cartilage by millimetres) IPOPT can wander for its whole iteration budget.
 Here the poses are eliminated instead: for parameters ``p`` every trial is solved
 (:meth:`~kneenlp.solvers.forward.ForwardSolver.solve_batch`, warm-started from the last poses),
-the residuals are the problem's own (:meth:`~kneenlp.inference.problem.IdentificationProblem.residuals`)
+the residuals are the problem's own (:meth:`~kneenlp.experiment.problem.IdentificationProblem.residuals`)
 and their Jacobian the implicit-function sensitivities
-(:meth:`~kneenlp.inference.problem.IdentificationProblem.sensitivities`); scipy's trust-region
+(:meth:`~kneenlp.experiment.problem.IdentificationProblem.sensitivities`); scipy's trust-region
 reflective least squares takes the steps within the parameter bounds.  Every iterate is an
 equilibrium, so it cannot wander off.  Used to rescue a failed simultaneous solve
 (:func:`kneenlp.inference.identify.identify`) and to solve the refits of model adequacy
@@ -40,7 +40,7 @@ SMOOTH_TOLERANCE = 1e-8
 MESH_TOLERANCE = 1e-5
 
 if TYPE_CHECKING:
-    from kneenlp.inference.problem import IdentificationProblem
+    from kneenlp.experiment.problem import IdentificationProblem
 
 
 def tolerance(model) -> float:
@@ -72,7 +72,7 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
     tol = tolerance(problem.model) if tol is None else tol
     t0 = time.perf_counter()
     solver = forward_solver(problem.model)
-    scales = problem.scales
+    scales, tol_eq = problem.scales, problem.equilibrium_tol
     w = np.sqrt(problem.weights).ravel()
     trials = problem.trials
     # every trial is solved from the poses of the best point so far (trf's current iterate: its steps
@@ -81,15 +81,15 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
     state = {"best": (np.inf, np.asarray(problem.data.q if q0 is None else q0, float).copy()), "last": None}
 
     def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
-        theta = problem.theta(x * scales)
+        theta = problem.theta(problem.from_scaled(x))
         retries = None if state["best"][0] == np.inf else int(MAX_RETRIED_SHARE * len(trials))
         q, res = solver.solve_batch(trials, theta, state["best"][1], threads, max_retries=retries)
-        bad = np.flatnonzero(~(res <= 1e-6))
+        bad = np.flatnonzero(~(res <= tol_eq))
         if len(bad) and (retries is None or len(bad) <= retries):  # try from the forward solver's own start
             for i, sol in zip(bad, solver.solve([trials[i] for i in bad], theta), strict=True):
                 if sol.converged:
                     q[i], res[i] = sol.q, sol.max_residual
-        ok = bool(np.all(res <= 1e-6))
+        ok = bool(np.all(res <= tol_eq))
         r = problem.residuals(q, theta).ravel() * w
         state["last"] = (x.copy(), q, theta, ok)
         return r, q, theta, ok
@@ -106,10 +106,11 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
         _, q, theta, _ = state["last"]
         return problem.sensitivities(q, theta) * scales * w[:, None]
 
-    x0 = np.clip(np.array([start[n] for n in problem.free]) / scales, problem.lower / scales, problem.upper / scales)
-    out = optimize.least_squares(fun, x0, jac=jac, bounds=(problem.lower / scales, problem.upper / scales),
+    lower, upper = problem.scaled_bounds
+    x0 = np.clip(problem.to_scaled(start), lower, upper)
+    out = optimize.least_squares(fun, x0, jac=jac, bounds=(lower, upper),
                                  method="trf", x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations)
     _, q, theta, ok = evaluate(out.x)  # from the best point's poses: out.x's own branch
-    values = dict(zip(problem.free, out.x * scales, strict=True))
+    values = dict(zip(problem.free, problem.from_scaled(out.x), strict=True))
     return ReducedResult(values, q, problem.objective(q, theta), bool(out.status > 0 and ok), int(out.nfev),
                          time.perf_counter() - t0, str(out.message))

@@ -5,7 +5,6 @@ Units in every table and figure: stiffness k in kN (per unit strain), reference 
 
 from __future__ import annotations
 
-import io
 import tomllib
 from pathlib import Path
 
@@ -13,29 +12,26 @@ import numpy as np
 import pandas as pd
 
 from kneenlp.experiment.noise import NoiseModel
-from kneenlp.io.atomic import write_text_atomic
+from kneenlp.io.atomic import atomic_target, write_csv_atomic, write_text_atomic
 from kneenlp.io.resources import resource
+from kneenlp.model.parameters import KINDS
 from kneenlp.studies.truth import study_model, study_truth
 
-# Table 3 units by parameter kind: (unit, factor from SI).  Group stiffness scales are
-# dimensionless; reference strains and their group offsets are in %.
-_USER_UNITS = {"k": ("kN", 1e-3), "ref_strain": ("%", 100.0), "scale": ("-", 1.0)}
+# Table 3 units by parameter kind: (unit, factor from SI): the paper's kN for stiffnesses, the
+# display units of KINDS for the rest (reference strains and their group offsets in %; group
+# stiffness scales dimensionless).
+_USER_UNITS = {"k": ("kN", 1e-3), "ref_strain": (KINDS["ref_strain"].unit, KINDS["ref_strain"].to_user),
+               "scale": ("-", KINDS["scale"].to_user)}
 
 
 def _write_csv(df: pd.DataFrame, path: Path) -> None:
-
-    buf = io.StringIO()
-    df.to_csv(buf, index=False, float_format="%.10g")
-    write_text_atomic(path, buf.getvalue())
+    write_csv_atomic(df, path, index=False, float_format="%.10g")
 
 
 def _write_parquet(df: pd.DataFrame, path: Path) -> bool:
-    import os
-
     try:
-        tmp = path.with_name(f".{path.name}.tmp")
-        df.to_parquet(tmp, index=False)
-        os.replace(tmp, path)
+        with atomic_target(path) as tmp:
+            df.to_parquet(tmp, index=False)
         return True
     except ImportError:
         return False
@@ -43,15 +39,13 @@ def _write_parquet(df: pd.DataFrame, path: Path) -> bool:
 
 def predicted_std(study, set_name: str) -> dict[str, float]:
     """Linearised (Gauss-Newton) standard deviation of each free parameter at the true values (SI)."""
-    from kneenlp.inference.problem import IdentificationProblem, default_free
+    from kneenlp.experiment.problem import IdentificationProblem, free_names
     from kneenlp.inference.statistics import gauss_newton_covariance
 
     spec = study.spec
     model = study_model(spec.knee, tuple(spec.elements))
     truth = study_truth(spec.knee, tuple(spec.elements), set_name)
-    free = list(spec.free) if spec.free else default_free(model)
-    for name in spec.with_effects:
-        free += [n for n in model.effect(name).free_names() if n not in free]
+    free = free_names(model, spec.free, spec.with_effects)
     problem = IdentificationProblem(model, [s.trial for s in truth.solutions], free)
     theta = problem.theta()
     cov = gauss_newton_covariance(problem.sensitivities(truth.q, theta), problem.weights,

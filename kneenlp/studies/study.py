@@ -85,10 +85,10 @@ def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2) -> 
     """Simulate, add noise and identify one sample; returns one result row (never raises).
 
     ``threads`` of the NLP's trial map: 1 in worker processes (one process per core already)."""
-    from kneenlp.conventions import coordinate_columns, coords_from_user
+    from kneenlp.conventions import coordinate_columns
     from kneenlp.experiment.measured import MeasuredData
+    from kneenlp.experiment.problem import default_free
     from kneenlp.inference.identify import identify
-    from kneenlp.inference.problem import default_free
     from kneenlp.studies.truth import study_model, study_truth
 
     row: dict = {"set": set_name, "sample": index, "seed": -1}
@@ -99,9 +99,8 @@ def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2) -> 
         # the protocol's name, not the path it was given by: moving the file keeps the draws
         seed = row["seed"] = sample_seed(spec.seed, truth.protocol.name, index)
         df = truth.measured(spec.noise, seed)
-        data = MeasuredData([s.trial for s in truth.solutions],
-                            coords_from_user(df[coordinate_columns()].to_numpy()), set_name,
-                            f"{set_name} sample {index}")
+        data = MeasuredData.from_user([s.trial for s in truth.solutions], df[coordinate_columns()].to_numpy(),
+                                      set_name, f"{set_name} sample {index}")
         free = list(spec.free) if spec.free else None
         start = None
         if spec.start == "truth":

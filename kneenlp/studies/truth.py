@@ -20,7 +20,7 @@ def study_model(knee: str | None, elements: tuple[str, ...] = ()) -> KneeModel:
     from kneenlp.model.plugins import load_elements
 
     k = Knee.load(knee) if knee else Knee.default()
-    return KneeModel(k, load_elements(elements)) if elements else k.model
+    return KneeModel(k, load_elements(elements)) if elements else KneeModel.of(k)
 
 
 @lru_cache(maxsize=16)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kneenlp.geometry.distance import MeshDistance
+from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.laws import NUMPY, ElasticFoundation, PressureLaw
 
 
@@ -67,7 +68,7 @@ def compare_contact(knee, q: np.ndarray, theta: np.ndarray, flexion: float,
     pose ``q`` (SI) of ``knee`` (mesh compartments only), per compartment: both loads (N), the
     force and moment errors relative to the reference magnitudes, and the centre-of-pressure
     distance (mm)."""
-    model = knee.model
+    model = KneeModel.of(knee)
     R, p = (np.asarray(v) for v in model.pose(q, flexion, theta))
     modulus = float(theta[model.index("contact.modulus")])
     distance = distance or MeshDistance(knee.femur.mesh)

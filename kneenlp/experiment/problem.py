@@ -2,7 +2,18 @@
 
 An :class:`IdentificationProblem` holds the model, the trials (what was done), the measured
 coordinates (or none, for design), the noise model and weights, which parameters are free and the
-values of the fixed ones.  From it:
+values of the fixed ones.  It sits below the solvers (docs/architecture.md) and owns, once each:
+
+* the free-vector encoding: the scaled parameters (:meth:`to_scaled`, :meth:`from_scaled`,
+  :attr:`scaled_bounds`), the NLP's decision vector ``x = [p_free / scale, q (T x 5, mm and deg)]``
+  (:meth:`to_x`, :meth:`from_x`, :meth:`x_bounds`) and the full parameter vector of scaled
+  symbols (:meth:`theta_of_scaled`);
+* the data-vector layout (:class:`DataLayout`: :meth:`data_vector` packs it, the NLP and export
+  split it);
+* the one equilibrium tolerance (:attr:`equilibrium_tol`,
+  :data:`~kneenlp.conventions.EQUILIBRIUM_TOL`).
+
+From it:
 
 * the simultaneous NLP (:mod:`kneenlp.solvers.nlp`) takes its data vector, scales and bounds;
 * the nested objective (:mod:`kneenlp.solvers.nested`) evaluates :meth:`objective`;
@@ -20,9 +31,15 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
+import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import LOAD_SIZE, POSE_ENVELOPE_USER, TO_USER
+from kneenlp.conventions import (
+    EQUILIBRIUM_TOL,
+    LOAD_SIZE,
+    coords_to_user,
+    pose_envelope_user,
+)
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
@@ -37,6 +54,15 @@ def default_free(model: KneeModel) -> list[str]:
     return [n for lig in model.ligament_names for n in model.element(lig).main_parameters()]
 
 
+def free_names(model: KneeModel, free: Sequence[str] | None = None, with_effects: Sequence[str] = ()) -> list[str]:
+    """``free`` (default :func:`default_free`) and the parameters of the candidate effects
+    ``with_effects``, each once."""
+    out = list(free or default_free(model))
+    for name in with_effects:
+        out += [n for n in model.effect(name).free_names() if n not in out]
+    return out
+
+
 def check_free(model: KneeModel, free: Sequence[str]) -> list[str]:
     """The free parameter names, validated (known, not repeated, not empty)."""
     for name in free:
@@ -46,6 +72,66 @@ def check_free(model: KneeModel, free: Sequence[str]) -> list[str]:
     if not free:
         raise InputError("no free parameters", field="free")
     return list(free)
+
+
+@dataclass(frozen=True)
+class DataLayout:
+    """The NLP's data vector ``p``: the full parameter vector (SI), then per trial (trial-major)
+    the measured coordinates (5, mm and deg), the weights (5, per mm^2 or deg^2), the load vector
+    (:data:`~kneenlp.conventions.LOAD_SIZE`, N and N m), the flexion (rad) and, for a program
+    holding its contact working sets as data, the working sets (``n_ws``)."""
+
+    n_theta: int
+    n_trials: int
+    n_ws: int = 0
+
+    #: the parts in order, with the rows each trial has (``theta`` is one column of ``n_theta``)
+    PARTS = ("theta", "measured", "weights", "loads", "flexions", "working_sets")
+
+    def rows(self) -> dict[str, int]:
+        """Rows per trial of each part (``theta``: its length, once)."""
+        return {"theta": self.n_theta, "measured": 5, "weights": 5, "loads": LOAD_SIZE, "flexions": 1,
+                "working_sets": self.n_ws}
+
+    def slices(self) -> dict[str, slice]:
+        """Where each part sits in ``p``."""
+        out, start = {}, 0
+        for name, rows in self.rows().items():
+            size = rows if name == "theta" else rows * self.n_trials
+            out[name] = slice(start, start + size)
+            start += size
+        return out
+
+    @property
+    def size(self) -> int:
+        return self.slices()["working_sets"].stop
+
+    def split(self, p: ca.MX | ca.SX) -> dict[str, ca.MX | ca.SX]:
+        """The parts of a symbolic ``p``: ``theta`` a column, the others ``rows x T`` (one column a trial)."""
+        rows = self.rows()
+        return {name: p[sl] if name == "theta" else ca.reshape(p[sl], rows[name], self.n_trials)
+                for name, sl in self.slices().items()}
+
+    def pack(self, theta: np.ndarray, measured: np.ndarray, weights: np.ndarray, loads: np.ndarray,
+             flexions: np.ndarray, working_sets: np.ndarray | None = None) -> np.ndarray:
+        """``p`` from its parts (per-trial parts as ``T x rows`` arrays)."""
+        T = self.n_trials
+        ws = np.zeros((T, 0)) if working_sets is None else np.asarray(working_sets, float)
+        if ws.shape != (T, self.n_ws):
+            raise ValueError(f"working sets of shape {ws.shape}, expected ({T}, {self.n_ws})")
+        return np.concatenate([np.asarray(theta, float).ravel(), *(np.asarray(a, float).reshape(T, -1).ravel()
+                                                                   for a in (measured, weights, loads, flexions)),
+                               ws.ravel()])
+
+    def describe(self) -> str:
+        """The layout in words (units included), for export's sidecar."""
+        return ("theta (all model parameters, SI, in 'parameters' order), measured coordinates (T x 5, "
+                "mm/deg), weights (T x 5), loads (T x 11: force at the tuberosity and moment, femoral frame; "
+                "generalised forces; N and N m), flexion (T, rad), "
+                "then, only for contact='expansion', the contact working sets at the start poses (T x "
+                "ws_size): per point x, y, z (m) and area (m^2) for sphere contact; for mesh contact the "
+                "pose and the contact wrench's second-order expansion there "
+                "(kneenlp.model.mesh_contact.WS_SIZE)")
 
 
 @dataclass
@@ -83,9 +169,7 @@ class IdentificationProblem:
         """The problem of identifying ``free`` (default: k and ref_strain of every ligament, plus
         the parameters of ``with_effects``) from measured ``data``."""
         model.knee.check_flexions(data.trials, data.source)
-        free = list(free or default_free(model))
-        for name in with_effects:
-            free += [n for n in model.effect(name).free_names() if n not in free]
+        free = free_names(model, free, with_effects)
         noise_model = NoiseModel.parse(noise) if noise is not None else None
         if weighted and (noise_model is None or noise_model.std == 0):
             raise InputError("weighted fit needs a noise model with non-zero level", field="noise")
@@ -109,6 +193,7 @@ class IdentificationProblem:
 
     @property
     def scales(self) -> np.ndarray:
+        """Each free parameter's scale (SI): the encoding divides by it (order one)."""
         return np.array([p.scale for p in self.parameters])
 
     @property
@@ -120,11 +205,62 @@ class IdentificationProblem:
         return np.array([p.bounds[1] for p in self.parameters])
 
     @property
+    def equilibrium_tol(self) -> float:
+        """The largest equilibrium residual (N or N m) of a pose counted as an equilibrium."""
+        return EQUILIBRIUM_TOL
+
+    @property
     def pose_bounds_user(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds (5, mm and deg) of every trial's pose: the physiological envelope
         (:data:`~kneenlp.conventions.POSE_ENVELOPE_USER`) about the knee's reference pose."""
-        centre = self.model.knee.reference_pose[1] * TO_USER
-        return centre - POSE_ENVELOPE_USER, centre + POSE_ENVELOPE_USER
+        return pose_envelope_user(self.model.knee.reference_pose[1])
+
+    def inside_pose_bounds(self, q: np.ndarray, margin: float = 0.99) -> np.ndarray:
+        """Per trial: are the poses ``q`` (T x 5, SI) inside ``margin`` of the pose bounds?"""
+        lo, hi = self.pose_bounds_user
+        return np.all(np.abs(coords_to_user(q) - (lo + hi) / 2) < margin * (hi - lo) / 2, axis=1)
+
+    # ------------------------------------------------------------------ the free-vector encoding
+    def to_scaled(self, values: Mapping[str, float] | Sequence[float] | np.ndarray) -> np.ndarray:
+        """The free parameters (SI, by name or in order) divided by their scales."""
+        if isinstance(values, Mapping):
+            values = [values[n] for n in self.free]
+        return np.asarray(values, dtype=float) / self.scales
+
+    def from_scaled(self, x_scaled: np.ndarray) -> np.ndarray:
+        """The free parameters (SI, in order) of scaled values (one point, or one per row)."""
+        return np.asarray(x_scaled, dtype=float) * self.scales
+
+    @property
+    def scaled_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of the scaled free parameters."""
+        return self.lower / self.scales, self.upper / self.scales
+
+    def to_x(self, values: Mapping[str, float] | Sequence[float] | np.ndarray, q_user: np.ndarray) -> np.ndarray:
+        """The NLP's decision vector: the scaled free parameters (``values`` SI), then every
+        trial's pose (``q_user``, T x 5, mm and deg)."""
+        return np.concatenate([self.to_scaled(values), np.asarray(q_user, dtype=float).ravel()])
+
+    def from_x(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(free parameter values in SI, poses T x 5 in mm and deg) of a decision vector."""
+        x = np.asarray(x, dtype=float).ravel()
+        return self.from_scaled(x[:self.n_free]), x[self.n_free:].reshape(self.n_trials, 5)
+
+    def x_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of the decision vector: the parameters' bounds (scaled), then
+        the pose envelope of every trial (mm and deg)."""
+        (lo_p, hi_p), (lo_q, hi_q) = self.scaled_bounds, self.pose_bounds_user
+        return (np.concatenate([lo_p, np.tile(lo_q, self.n_trials)]),
+                np.concatenate([hi_p, np.tile(hi_q, self.n_trials)]))
+
+    def theta_of_scaled(self, x_scaled: ca.MX | ca.SX, theta: ca.MX | ca.SX) -> ca.MX | ca.SX:
+        """The full parameter vector (SI, symbolic): scale times ``x_scaled`` for the free
+        parameters, ``theta``'s entry for the others.  Element by element, so that fixed parameters
+        (e.g. the contact modulus) depend on no decision variable structurally: the Hessian then
+        never seeds the contact with parameter directions (a dense selection matrix made it ~2x slower)."""
+        pos, scales = {n: j for j, n in enumerate(self.free)}, self.scales
+        return ca.vertcat(*[scales[pos[n]] * x_scaled[pos[n]] if n in pos else theta[i]
+                            for i, n in enumerate(self.model.parameter_names)])
 
     @property
     def loads(self) -> np.ndarray:
@@ -139,7 +275,7 @@ class IdentificationProblem:
         """The measurements as :class:`MeasuredData` (SI poses)."""
         if self.measured is None:
             raise InputError("this problem has no measurements (a design problem)")
-        return MeasuredData(list(self.trials), self.measured / TO_USER, self.protocol, self.source)
+        return MeasuredData.from_user(list(self.trials), self.measured, self.protocol, self.source)
 
     def theta(self, values: Mapping[str, float] | Sequence[float] | np.ndarray | None = None) -> np.ndarray:
         """Full parameter vector (SI): fixed values, then the free ``values`` (dict or in order)."""
@@ -151,16 +287,19 @@ class IdentificationProblem:
         """The free parameters' values (SI) in a full parameter vector."""
         return {n: float(theta[self.model.index(n)]) for n in self.free}
 
+    def layout(self, working_sets: bool = False) -> DataLayout:
+        """The data vector's layout; ``working_sets``: with the contact working sets as data."""
+        return DataLayout(len(self.model.parameter_names), self.n_trials,
+                          self.model.ws_size if working_sets else 0)
+
     def data_vector(self, ws: np.ndarray | None = None) -> np.ndarray:
-        """The NLP's parameter vector: ``[theta (fixed values, SI), measured (T x 5), weights (T x 5),
-        loads (T x LOAD_SIZE), flexions (T)]`` and, for a program with its working sets as data (export),
-        ``ws`` (T x ws_size, from :meth:`working_sets`); refitting other data never rebuilds the NLP."""
+        """The NLP's parameter vector (:class:`DataLayout`): the full parameter vector (fixed
+        values, SI) and the trials' data; for a program with its working sets as data (export),
+        ``ws`` (T x ws_size, from :meth:`working_sets`).  Refitting other data never rebuilds the NLP."""
         meas = self.measured if self.measured is not None else np.zeros((self.n_trials, 5))
-        ws = np.zeros((self.n_trials, 0)) if ws is None else np.asarray(ws, float)
-        if ws.size and ws.shape != (self.n_trials, self.model.ws_size):
-            raise ValueError(f"working sets of shape {ws.shape}, expected ({self.n_trials}, {self.model.ws_size})")
-        return np.concatenate([self.theta(), meas.ravel(), self.weights.ravel(), self.loads.ravel(), self.flexions,
-                               ws.ravel()])
+        layout = self.layout(working_sets=ws is not None and np.size(ws) > 0)
+        return layout.pack(self.theta(), meas, self.weights, self.loads, self.flexions,
+                           None if ws is None or not np.size(ws) else ws)
 
     def working_sets(self, q: np.ndarray, theta: np.ndarray) -> tuple[list[list[np.ndarray]], np.ndarray]:
         """Each trial's contact working sets at poses ``q`` (T x 5, SI): indices and the packed

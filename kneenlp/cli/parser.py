@@ -1,0 +1,213 @@
+"""The argument parser of the command line: every subcommand, its options and their types
+(:mod:`kneenlp.options` checks values by type and range)."""
+
+from __future__ import annotations
+
+import argparse
+
+from kneenlp import options as opt
+from kneenlp.cli.inputs import MAX_STUDY_FITS, set_names
+
+
+def _knee_args(p: argparse.ArgumentParser, parameters: bool = True) -> None:
+    p.add_argument("--knee", help="knee description TOML, or the name of a shipped knee: default (Lenhart 2015, "
+                                  "the default), synthetic")
+    if parameters:
+        p.add_argument("--parameters", help="parameter set TOML (reference values and fixed parameters)")
+    p.add_argument("--element", action="append", default=[], metavar="MODULE:FACTORY",
+                   help="add user force elements made by this importable factory (repeatable)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = opt.OneLineParser(prog="kneenlp", description="Command-line interface: ``kneenlp <command> ...``.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("simulate", help="simulate a laxity protocol (forward problem)")
+    p.add_argument("--protocol", default="set3", help="protocol name (set1..set4) or TOML file")
+    _knee_args(p)
+    p.add_argument("--out", default="kneenlp-out", help="output directory")
+    p.add_argument("--noise", default=None, type=opt.noise,
+                   help="also write measured.csv with noise: uniform:B | gaussian:S")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the noise (default 0)")
+    p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument("--with-effect", action="append", default=[], metavar="NAME:PARAM=VALUE,...",
+                   help="switch a candidate effect on (display units), e.g. posterior_capsule:k=8000")
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.set_defaults(validate=True, out_kind="dir")
+
+    p = sub.add_parser("diagnose", help="model adequacy: where the fit fails and which effect is missing")
+    p.add_argument("data", help="measured-data CSV")
+    _knee_args(p)
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise_level,
+                   help="noise model of the data (default uniform:0.5)")
+    p.add_argument("--refit", type=opt.integer(0, opt.MAX_CASES), default=4,
+                   help="refit the best N candidates (default 4)")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the start scatter")
+    p.add_argument("--simulated-limits", action="store_true",
+                   help="detection limits from simulated noise-free data instead of the linearised test "
+                        "(a few seconds per candidate parameter; exact for nonlinear effects)")
+    p.add_argument("--out", help="write residual_map.png/.csv, laxity_fit.png and diagnosis.json here")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(validate=True, out_kind="dir")
+
+    p = sub.add_parser("identify", help="identify ligament parameters from measured data (simultaneous NLP)")
+    p.add_argument("data", help="measured-data CSV (as written by 'kneenlp simulate --noise')")
+    _knee_args(p)
+    p.add_argument("--free", type=opt.names,
+                   help="comma-separated parameters to identify (default: k and ref_strain of all)")
+    p.add_argument("--noise", type=opt.noise_level, help="noise model of the data for the covariance, e.g. uniform:0.5")
+    p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the paper's start scatter")
+    p.add_argument("--multistart", type=opt.integer(1, opt.MAX_STARTS), default=1,
+                   help="number of starts (best is kept)")
+    p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"],
+                   help="simultaneous NLP (default) or the paper's nested Complex method")
+    p.add_argument("--solver", default="ipopt", type=opt.solver, help="CasADi nlpsol plugin (default ipopt)")
+    p.add_argument("--protocol", help="protocol the data must match (default: the one named in the data)")
+    p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
+                   help="also identify this candidate effect's parameters (repeatable; see 'kneenlp diagnose')")
+    p.add_argument("--out", help="also write fit.json and fit_trials.csv here")
+    p.add_argument("--json", action="store_true", help="print JSON instead of the report")
+    p.set_defaults(validate=True, out_kind="dir")
+
+    p = sub.add_parser("compare-methods", help="simultaneous NLP vs the paper's nested Complex method")
+    p.add_argument("data", help="measured-data CSV")
+    _knee_args(p)
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the start scatter / Complex")
+    p.add_argument("--max-evals", type=opt.integer(1, opt.MAX_EVALS), default=5000,
+                   help="Complex evaluation budget")
+    p.add_argument("--max-seconds", type=opt.positive, default=None, help="Complex wall-time budget")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(validate=True)
+
+    p = sub.add_parser("study", help="noise study: the paper's Monte Carlo (Table 3, Fig. 3) at any scale")
+    p.add_argument("--sets", default="1,2,3,4", type=set_names,
+                   help="protocols: 1,2,3,4 or names/files (default 1,2,3,4)")
+    p.add_argument("--samples", type=opt.integer(1, opt.MAX_SAMPLES), default=20,
+                   help="noise samples per set (default 20)")
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise, help="uniform:B or gaussian:SIGMA (mm, deg)")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="study seed; each sample's seed derives from it")
+    p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"])
+    _knee_args(p, parameters=False)
+    p.add_argument("--free", type=opt.names, help="comma-separated parameters to identify")
+    p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
+                   help="also identify this candidate effect's parameters (repeatable)")
+    p.add_argument("--start", default="scatter", choices=["scatter", "truth"],
+                   help="fit starts: scattered like the paper (default) or at the true values")
+    p.add_argument("--out", default="kneenlp-study", help="study directory (resumable)")
+    p.add_argument("--workers", type=opt.integer(1, opt.MAX_WORKERS), default=None,
+                   help="local processes (default: all cores)")
+    p.add_argument("--scheduler", type=opt.scheduler, help="Dask scheduler address tcp://HOST:PORT")
+    p.add_argument("--dask", action="store_true", help="run on a local Dask cluster")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.add_argument("--yes", action="store_true",
+                   help=f"run a study of more than {MAX_STUDY_FITS:,} fits (sets x samples) after its estimate")
+    p.set_defaults(validate=True, out_kind="dir")
+
+    p = sub.add_parser("export", help="write the identification NLP for other solvers (.nl, CasADi, C)")
+    p.add_argument("data", help="measured-data CSV")
+    p.add_argument("--format", required=True, choices=["nl", "casadi", "c"], help="export format")
+    p.add_argument("--out", default="kneenlp-export", help="output directory")
+    _knee_args(p)
+    p.add_argument("--free", type=opt.names, help="comma-separated parameters to identify")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the start scatter")
+    p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
+                   help="also free this candidate effect's parameters (repeatable)")
+    p.add_argument("--nl-common", default="defined", choices=["defined", "lifted"],
+                   help="shared subexpressions as .nl defined variables (default) or lifted auxiliary variables")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(validate=True, out_kind="dir")
+
+    p = sub.add_parser("import-osim", help="turn an OpenSim knee model into a kneenlp knee (multi-bundle)")
+    p.add_argument("model", help="the .osim file")
+    p.add_argument("--out", required=True, help="directory for knee.toml, parameters.toml and meshes/")
+    p.add_argument("--geometry", help="folder of the model's meshes (default: beside the model)")
+    p.add_argument("--groups", default="fine", choices=["fine", "coarse"],
+                   help="bundle groups: fine (ACLam, ACLpl, ...) or coarse (ACL, PCL, MCL, ...)")
+    p.add_argument("--femur-mesh", help="femoral surface to use instead of the model's femoral contact mesh")
+    p.add_argument("--femur-offset", type=opt.finite, default=0.0,
+                   help="mm the articular surface lies outside --femur-mesh (cartilage thickness on bone)")
+    p.add_argument("--tuberosity", type=opt.point3, metavar="X,Y,Z",
+                   help="tibial tuberosity, mm in the tibia body's frame (default: the patellar-tendon insertions, "
+                        "else estimated from the tibial mesh)")
+    p.set_defaults(validate=True, out_kind="dir")
+
+    p = sub.add_parser("import-abaqus", help="turn an Abaqus FE knee model (cartilage, fibres, frames) into a knee")
+    p.add_argument("model", help="folder of the FE model: geometry/, ligaments/, frames/ (as the S192803 deposit)")
+    p.add_argument("--out", required=True, help="directory for knee.toml, parameters.toml and meshes/")
+    p.add_argument("--side", required=True, choices=["left", "right"], help="the knee's side")
+    p.add_argument("--name", help="the knee's name (default: the --out folder's name)")
+    p.set_defaults(validate=True, out_kind="dir")
+
+    p = sub.add_parser("import-laxity", help="robotic laxity measurements (MATLAB struct) -> measured-data CSV")
+    p.add_argument("mat", help="MATLAB file with a processed_laxity_trial struct array")
+    p.add_argument("--out", required=True, help="the measured-data CSV to write")
+    p.add_argument("--side", required=True, choices=["left", "right"],
+                   help="the knee's side (the file's signs are anatomical; the side is recorded and checked "
+                        "against the knee a fit uses)")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(validate=True, out_kind="file")
+
+    p = sub.add_parser("predict", help="simulate every measured trial at its measured load and flexion; compare")
+    p.add_argument("data", help="measured-data CSV (e.g. from import-laxity)")
+    _knee_args(p)
+    p.add_argument("--out", help="write predicted.csv and predicted_laxity.png here")
+    p.add_argument("--json", action="store_true", help="print JSON: rms (mm, deg by column), trials, converged")
+    p.set_defaults(validate=True, out_kind="dir")
+
+    p = sub.add_parser("cross-validate", help="calibrate without some trials and predict them (held-out errors)")
+    p.add_argument("data", help="measured-data CSV of a real experiment (e.g. from import-laxity)")
+    _knee_args(p)
+    p.add_argument("--hold-out", action="append", default=[], metavar="NAME",
+                   help="only this hold-out (repeatable): 'flexion <F> deg' (the highest flexion) or a load "
+                        "direction such as anterior or valgus; default: all of them")
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the calibrations (default 0)")
+    p.add_argument("--out", help="write cross_validation.csv and each hold-out's predicted_<name>.csv here")
+    p.add_argument("--json", action="store_true", help="print JSON: one row per hold-out (RMS in mm, deg)")
+    p.set_defaults(validate=True, out_kind="dir")
+
+    p = sub.add_parser("export-osim", help="write a fit of an imported knee into a copy of its OpenSim model")
+    p.add_argument("fit", help="the fit's JSON (kneenlp identify --json)")
+    p.add_argument("--knee", required=True, help="the imported knee's knee.toml")
+    p.add_argument("--model", required=True, help="the OpenSim model the knee was imported from")
+    p.add_argument("--out", required=True, help="the calibrated .osim to write")
+    p.set_defaults(validate=True, out_kind="file")
+
+    p = sub.add_parser("identifiability", help="which parameters a protocol can identify, before fitting")
+    p.add_argument("--protocol", default="set4", help="protocol name or TOML file")
+    p.add_argument("--free", type=opt.names,
+                   help="comma-separated parameters (default: stiffness and reference strain of each)")
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise_level, help="noise model (mm, deg)")
+    _knee_args(p)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(validate=True)
+
+    p = sub.add_parser("design", help="design a laxity protocol with few load cases and tight estimates")
+    p.add_argument("--max-cases", type=opt.integer(1, opt.MAX_CASES), default=22,
+                   help="largest number of load cases (default 22)")
+    p.add_argument("--criterion", default="A", choices=["A", "D", "W", "R"],
+                   help="A: sum of relative variances, D: log det, W: worst relative standard error, "
+                        "R: worst standard-error ratio to a reference protocol (--reference)")
+    p.add_argument("--reference", default="set4", help="reference protocol of criterion R (default set4)")
+    p.add_argument("--flexions", default=None, type=opt.flexions,
+                   help="candidate flexion angles, deg (default 0,15,...,60; to 90 for a multi-bundle knee)")
+    p.add_argument("--noise", default="uniform:0.5", type=opt.noise_level, help="noise model (mm, deg)")
+    p.add_argument("--robust", type=opt.integer(1, opt.MAX_ROBUST), default=3,
+                   help="parameter sets averaged over (knee's + scatter draws)")
+    p.add_argument("--free", type=opt.names, help="comma-separated parameters to identify")
+    _knee_args(p)
+    p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the robustness draws")
+    p.add_argument("--out", default="designed_protocol.toml", help="protocol TOML to write")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(validate=True, out_kind="file")
+
+    p = sub.add_parser("view", help="pictures of simulated trials: pressure maps and 3-D views (PNG, HTML)")
+    p.add_argument("--protocol", default="set3", help="protocol name (set1..set4) or TOML file")
+    p.add_argument("--trial", nargs="+", action="extend", metavar="ID",
+                   help="trials to draw (default: the unloaded trials and one loaded trial per direction at the "
+                        "first flexion)")
+    _knee_args(p)
+    p.add_argument("--out", default="kneenlp-view", help="output directory")
+    p.set_defaults(validate=True, out_kind="dir")
+    return parser

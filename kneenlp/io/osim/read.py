@@ -1,0 +1,464 @@
+"""Reading an .osim file (XML, standard library only) into an :class:`~kneenlp.io.osim.model.OsimModel`,
+its ligament groups by name, and the knee's ligaments as line elements in kneenlp's convention
+(femoral and tibial attachment points, m).  Conventions: :mod:`kneenlp.io.osim`."""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import xml.etree.ElementTree as ET
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from kneenlp.io.osim.kinematics import (
+    OsimError,
+    _apply,
+    _Constant,
+    _Function,
+    _Linear,
+    _Multiplier,
+    _PiecewiseLinear,
+    _SimmSpline,
+    _Unsupported,
+)
+from kneenlp.io.osim.model import (
+    _LIGAMENT_TAG,
+    _SUPPORTED_JOINTS,
+    BLANKEVOORT_DEFAULTS,
+    BodyInfo,
+    ContactMesh,
+    Coordinate,
+    Joint,
+    Ligament,
+    MeshGeometry,
+    OffsetFrame,
+    OsimModel,
+    PathPoint,
+    TransformAxis,
+    WrapObject,
+)
+
+_SKIPPED_POINT_TAGS = ("ConditionalPathPoint", "MovingPathPoint")
+_WRAP_TAGS = ("WrapEllipsoid", "WrapCylinder", "WrapSphere", "WrapTorus", "WrapCylinderObst",
+              "WrapDoubleCylinderObst", "WrapSphereObst")
+
+
+# --------------------------------------------------------------------------------------
+# parsing
+# --------------------------------------------------------------------------------------
+class _Ctx:
+    def __init__(self, path: str):
+        self.path = path
+
+    def err(self, what: str) -> OsimError:
+        return OsimError(f"{self.path}: {what}")
+
+    def text(self, el: ET.Element, tag: str, owner: str, required: bool = True) -> str | None:
+        sub = el.find(tag)
+        if sub is None or sub.text is None or not sub.text.strip():
+            if required:
+                raise self.err(f"{owner}: missing <{tag}>")
+            return None
+        return sub.text.strip()
+
+    def floats(self, el: ET.Element, tag: str, owner: str, n: int | None = None,
+               required: bool = True) -> np.ndarray | None:
+        t = self.text(el, tag, owner, required)
+        if t is None:
+            return None
+        try:
+            v = np.array([float(s) for s in t.split()], float)
+        except ValueError:
+            raise self.err(f"{owner} <{tag}>: cannot parse '{t}' as numbers") from None
+        if (n is not None and v.size != n) or not np.all(np.isfinite(v)):
+            raise self.err(f"{owner} <{tag}>: expected {n or 'finite'} finite numbers, got '{t}'")
+        return v
+
+    def float1(self, el: ET.Element, tag: str, owner: str, required: bool = True) -> float | None:
+        v = self.floats(el, tag, owner, 1, required)
+        return None if v is None else float(v[0])
+
+    def boolean(self, el: ET.Element, tag: str, owner: str, default: bool) -> bool:
+        t = self.text(el, tag, owner, required=False)
+        if t is None:
+            return default
+        if t.lower() not in ("true", "false"):
+            raise self.err(f"{owner} <{tag}>: expected true/false, got '{t}'")
+        return t.lower() == "true"
+
+
+def _resolve(owner_path: str, ref: str) -> str:
+    """Resolve an OpenSim socket path ``ref`` relative to the component at ``owner_path``."""
+    ref = ref.strip()
+    parts = [] if ref.startswith("/") else [p for p in owner_path.split("/") if p]
+    for seg in ref.split("/"):
+        if seg in ("", "."):
+            continue
+        if seg == "..":
+            if parts:
+                parts.pop()
+        else:
+            parts.append(seg)
+    return "/" + "/".join(parts)
+
+
+def _parse_function(ctx: _Ctx, el: ET.Element, owner: str) -> tuple[_Function, str]:
+    tag = el.tag
+    where = f"{owner} <{tag}>"
+    if tag == "Constant":
+        return _Constant(ctx.float1(el, "value", where)), tag
+    if tag == "LinearFunction":
+        c = ctx.floats(el, "coefficients", where, 2)
+        return _Linear(float(c[0]), float(c[1])), tag
+    if tag in ("SimmSpline", "PiecewiseLinearFunction"):
+        x = ctx.floats(el, "x", where)
+        y = ctx.floats(el, "y", where)
+        if x.size != y.size or x.size < 1 or np.any(np.diff(x) <= 0):
+            raise ctx.err(f"{where}: x must be strictly increasing and match y")
+        if x.size == 1:
+            return _Constant(float(y[0])), tag
+        return (_SimmSpline(x, y) if tag == "SimmSpline" else _PiecewiseLinear(x, y)), tag
+    if tag == "MultiplierFunction":
+        holder = el.find("function")
+        inner = list(holder) if holder is not None else []
+        if len(inner) != 1:
+            raise ctx.err(f"{where}: expected one function inside <function>")
+        f, t = _parse_function(ctx, inner[0], owner)
+        return _Multiplier(f, ctx.float1(el, "scale", where)), f"{tag}({t})"
+    return _Unsupported(f"{ctx.path}: {where}: function type not supported by this reader"), tag
+
+
+def _iter_components(el: ET.Element, path: str):
+    """Yield (element, absolute_component_path) for every named XML element under ``el``.
+
+    OpenSim component paths are formed from ``name`` attributes; unnamed containers such as
+    ``<objects>``, ``<frames>``, ``<components>`` do not add a path segment."""
+    for ch in el:
+        name = ch.get("name")
+        p = f"{path}/{name}" if name else path
+        if name:
+            yield ch, p
+        yield from _iter_components(ch, p)
+
+
+def read_osim(path: str | os.PathLike) -> OsimModel:
+    """Parse an .osim file (OpenSim 4.x XML, incl. OpenSim JAM components) without OpenSim.
+
+    Raises :class:`OsimError` with a one-line message naming the file and element for
+    malformed XML, missing/unparseable required values, unresolvable frames or unknown
+    path-point types inside a ligament."""
+    path = os.fspath(path)
+    ctx = _Ctx(path)
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as e:
+        raise OsimError(f"{path}: malformed XML ({e})") from None
+    except OSError as e:
+        raise OsimError(f"{path}: cannot read file ({e.strerror})") from None
+    if root.tag != "OpenSimDocument":
+        raise ctx.err(f"root element <{root.tag}> is not <OpenSimDocument>")
+    model_el = root.find("Model")
+    if model_el is None:
+        raise ctx.err("<OpenSimDocument> has no <Model> element")
+    skipped: list[str] = []
+
+    # --- pass 1: bodies, offset frames (anywhere), meshes, wraps ----------------------
+    bodies: dict[str, BodyInfo] = {}
+    frames: dict[str, OffsetFrame] = {}
+    bodies["ground"] = BodyInfo("ground", "/ground", 0.0, np.zeros(3))
+    bodyset = model_el.find("BodySet/objects")
+    for b in (bodyset if bodyset is not None else []):
+        if b.tag != "Body":
+            raise ctx.err(f"BodySet: unknown element <{b.tag}> '{b.get('name')}'")
+        nm = b.get("name")
+        if not nm:
+            raise ctx.err("BodySet: <Body> without a name")
+        where = f"Body '{nm}'"
+        bodies[nm] = BodyInfo(nm, f"/bodyset/{nm}", ctx.float1(b, "mass", where),
+                              ctx.floats(b, "mass_center", where, 3))
+    all_comps = list(_iter_components(model_el, ""))
+    for el, p in all_comps:
+        if el.tag == "PhysicalOffsetFrame":
+            where = f"PhysicalOffsetFrame '{p}'"
+            par = ctx.text(el, "socket_parent", where)
+            frames[p] = OffsetFrame(el.get("name"), p, _resolve(p, par),
+                                    ctx.floats(el, "translation", where, 3),
+                                    ctx.floats(el, "orientation", where, 3))
+
+    model = OsimModel(path, model_el.get("name", ""),
+                      (model_el.findtext("length_units") or "").strip(),
+                      (model_el.findtext("force_units") or "").strip(),
+                      bodies, frames, {}, {}, {}, {}, {}, skipped)
+
+    def owner_frame_of_geometry(comp_path: str) -> str:
+        # geometry path is <frame path>/<geom name>; socket '..' resolves to the frame.
+        return comp_path.rsplit("/", 1)[0]
+
+    for el, p in all_comps:
+        if el.tag == "Mesh":
+            where = f"Mesh '{p}'"
+            sock = el.findtext("socket_frame") or ".."
+            fr = _resolve(p, sock.strip())
+            if fr == "/":
+                fr = owner_frame_of_geometry(p)
+            body, _ = model.frame_in_body(fr)
+            sf = ctx.floats(el, "scale_factors", where, 3, required=False)
+            mg = MeshGeometry(el.get("name"), ctx.text(el, "mesh_file", where), fr, body,
+                              np.ones(3) if sf is None else sf)
+            bodies[body].meshes.append(mg)
+        elif el.tag in _WRAP_TAGS:
+            where = f"{el.tag} '{p}'"
+            seg = p.split("/")
+            body = "ground" if seg[1] == "ground" else seg[2]
+            dims = {}
+            for t in ("dimensions", "radius", "length", "inner_radius", "outer_radius"):
+                v = ctx.floats(el, t, where, required=False)
+                if v is not None:
+                    dims[t] = v
+            rot = ctx.floats(el, "xyz_body_rotation", where, 3, required=False)
+            tr = ctx.floats(el, "translation", where, 3, required=False)
+            model.wrap_objects[el.get("name")] = WrapObject(
+                el.get("name"), el.tag, body, np.zeros(3) if tr is None else tr,
+                np.zeros(3) if rot is None else rot, dims)
+
+    # --- joints & coordinates -----------------------------------------------------------
+    jointset = model_el.find("JointSet/objects")
+    for j in (jointset if jointset is not None else []):
+        nm = j.get("name")
+        jp = f"/jointset/{nm}"
+        where = f"{j.tag} '{nm}'"
+        pf = _resolve(jp, ctx.text(j, "socket_parent_frame", where))
+        cf = _resolve(jp, ctx.text(j, "socket_child_frame", where))
+        for fr in (pf, cf):
+            try:
+                model.frame_in_body(fr)
+            except OsimError:
+                raise ctx.err(f"{where}: frame '{fr}' not found") from None
+        coords: list[Coordinate] = []
+        for c in j.findall("coordinates/Coordinate"):
+            cw = f"{where} Coordinate '{c.get('name')}'"
+            rng = ctx.floats(c, "range", cw, 2, required=False)
+            dv = ctx.float1(c, "default_value", cw, required=False)
+            co = Coordinate(c.get("name"), nm, 0.0 if dv is None else dv,
+                            (-math.inf, math.inf) if rng is None else (float(rng[0]), float(rng[1])),
+                            ctx.boolean(c, "locked", cw, False), ctx.boolean(c, "clamped", cw, False))
+            coords.append(co)
+            model.coordinates[co.name] = co
+        axes: list[TransformAxis] = []
+        if j.tag == "CustomJoint":
+            st = j.find("SpatialTransform")
+            if st is None:
+                raise ctx.err(f"{where}: missing <SpatialTransform>")
+            for ta in st.findall("TransformAxis"):
+                tw = f"{where} TransformAxis '{ta.get('name')}'"
+                cn = tuple((ta.findtext("coordinates") or "").split())
+                fel = [ch for ch in ta if ch.tag not in ("coordinates", "axis")]
+                if len(fel) != 1:
+                    raise ctx.err(f"{tw}: expected exactly one function element")
+                fn, ftype = _parse_function(ctx, fel[0], tw)
+                if isinstance(fn, _Unsupported):
+                    skipped.append(fn.message)
+                if not cn and not isinstance(fn, (_Constant, _Multiplier, _Unsupported)):
+                    fn = _Constant(fn(0.0))
+                axes.append(TransformAxis(ta.get("name"), cn, ctx.floats(ta, "axis", tw, 3), fn, ftype))
+            if [a.name for a in axes] != ["rotation1", "rotation2", "rotation3",
+                                          "translation1", "translation2", "translation3"]:
+                raise ctx.err(f"{where}: SpatialTransform must have rotation1-3, translation1-3")
+        elif j.tag not in _SUPPORTED_JOINTS:
+            skipped.append(f"{path}: {where}: joint type not supported for kinematics "
+                           f"(parsed frames/coordinates only)")
+        model.joints[nm] = Joint(nm, j.tag, pf, cf, coords, axes)
+
+    # --- ligaments ----------------------------------------------------------------------
+    for el, p in all_comps:
+        if el.tag != _LIGAMENT_TAG:
+            continue
+        nm = el.get("name")
+        where = f"{_LIGAMENT_TAG} '{nm}'"
+        if nm in model.ligaments:
+            raise ctx.err(f"{where}: duplicate name")
+        props: dict[str, float] = {}
+        present = []
+        for key in ("linear_stiffness", "slack_length", "transition_strain", "damping_coefficient"):
+            v = ctx.float1(el, key, where, required=key in ("linear_stiffness", "slack_length"))
+            if v is None:
+                v = BLANKEVOORT_DEFAULTS[key]
+            else:
+                present.append(key)
+            props[key] = v
+        if props["slack_length"] <= 0 or props["linear_stiffness"] < 0 or props["transition_strain"] <= 0:
+            raise ctx.err(f"{where}: non-physical property values {props}")
+        gp = el.find("GeometryPath")
+        if gp is None:
+            raise ctx.err(f"{where}: missing <GeometryPath>")
+        gpp = f"{p}/{gp.get('name') or 'geometrypath'}"
+        objs = gp.find("PathPointSet/objects")
+        pts: list[PathPoint] = []
+        notes: list[str] = []
+        for pp in (objs if objs is not None else []):
+            pw = f"{where} <{pp.tag}> '{pp.get('name')}'"
+            if pp.tag in _SKIPPED_POINT_TAGS:
+                notes.append(f"{path}: {pw}: skipped ({pp.tag} is coordinate dependent; "
+                             f"only fixed PathPoints are used)")
+                continue
+            if pp.tag != "PathPoint":
+                raise ctx.err(f"{pw}: unknown path point type")
+            fr = _resolve(f"{gpp}/{pp.get('name')}", ctx.text(pp, "socket_parent_frame", pw))
+            try:
+                body, X = model.frame_in_body(fr)
+            except OsimError:
+                raise ctx.err(f"{pw}: parent frame '{fr}' not found") from None
+            loc = ctx.floats(pp, "location", pw, 3)
+            pts.append(PathPoint(pp.get("name"), fr, body, loc, _apply(X, loc)))
+        if len(pts) < 2:
+            raise ctx.err(f"{where}: fewer than 2 fixed path points")
+        wraps = [w.findtext("wrap_object", "").strip() for w in gp.findall("PathWrapSet/objects/PathWrap")]
+        for w in wraps:
+            wo = model.wrap_objects.get(w)
+            notes.append(f"{path}: {where}: PathWrap over '{w}'"
+                         f"{' (' + wo.type + ' on ' + wo.body + ')' if wo else ' (wrap object not found)'}"
+                         f" skipped: straight segments between fixed points are used")
+        lig = Ligament(nm, props["linear_stiffness"], props["slack_length"], props["transition_strain"],
+                       props["damping_coefficient"], ctx.boolean(el, "appliesForce", where, True),
+                       pts, wraps, notes, tuple(present))
+        model.ligaments[nm] = lig
+        skipped.extend(notes)
+
+    # --- contact meshes -------------------------------------------------------------------
+    for el, p in all_comps:
+        if el.tag != "Smith2018ContactMesh":
+            continue
+        nm = el.get("name")
+        where = f"Smith2018ContactMesh '{nm}'"
+        fr = _resolve(p, ctx.text(el, "socket_frame", where))
+        try:
+            body, _ = model.frame_in_body(fr)
+        except OsimError:
+            raise ctx.err(f"{where}: frame '{fr}' not found") from None
+        loc = ctx.floats(el, "location", where, 3, required=False)
+        ori = ctx.floats(el, "orientation", where, 3, required=False)
+        model.contact_meshes[nm] = ContactMesh(
+            nm, ctx.text(el, "mesh_file", where), ctx.text(el, "mesh_back_file", where, required=False),
+            fr, body, np.zeros(3) if loc is None else loc, np.zeros(3) if ori is None else ori,
+            ctx.float1(el, "thickness", where), ctx.float1(el, "elastic_modulus", where),
+            ctx.float1(el, "poissons_ratio", where),
+            ctx.boolean(el, "use_variable_thickness", where, False))
+    return model
+
+
+# --------------------------------------------------------------------------------------
+# ligament groups
+# --------------------------------------------------------------------------------------
+_ROOT_RE = re.compile(r"^(?P<root>[a-z]?[A-Z][A-Z0-9]*)(?P<sub>[a-z]*)$")
+
+
+def _split_name(name: str) -> tuple[str, str]:
+    """bundle name -> (fine group, coarse group); see :func:`ligament_groups`."""
+    fine = re.sub(r"[_\-]?\d+$", "", name) or name
+    m = _ROOT_RE.match(fine)
+    return fine, (m.group("root") if m else fine)
+
+
+def ligament_groups(names: Iterable[str] | OsimModel) -> dict[str, dict[str, list[str]]]:
+    """Group bundle names at two granularities.
+
+    Rule (document for users): a bundle name is ``<fine group><index>`` where the index is
+    the trailing run of digits (``ACLam3`` -> ``ACLam``, ``pCAP7`` -> ``pCAP``).  The fine
+    group is ``<root><sub-bundle>`` where ``root`` is an optional single lower-case side /
+    location letter followed by a run of capitals/digits (``ACL``, ``MCL``, ``pCAP``,
+    ``lPFL``, ``PT``, ``ITB``) and ``sub-bundle`` is the trailing lower-case letters
+    (``am``, ``pl``, ``al``, ``pm``, ``s``, ``d``, ``p``).  The coarse group is the root:
+    ACLam+ACLpl -> ACL, PCLal+PCLpm -> PCL, MCLs+MCLd+MCLp -> MCL; LCL, pCAP, PT, ITB,
+    lPFL, mPFL, PFL stay as they are (note PFL = popliteofibular, lPFL/mPFL =
+    lateral/medial patellofemoral: distinct roots, never merged).  Names not matching
+    the pattern use the name without trailing ``[_-]digits`` for both levels.
+
+    Returns ``{"fine": {group: [bundles...]}, "coarse": {group: [bundles...]}}`` in
+    first-appearance order.
+    """
+    if isinstance(names, OsimModel):
+        names = list(names.ligaments)
+    fine: dict[str, list[str]] = {}
+    coarse: dict[str, list[str]] = {}
+    for n in names:
+        f, c = _split_name(n)
+        fine.setdefault(f, []).append(n)
+        coarse.setdefault(c, []).append(n)
+    return {"fine": fine, "coarse": coarse}
+
+
+# --------------------------------------------------------------------------------------
+# knee line elements (kneenlp convention)
+# --------------------------------------------------------------------------------------
+@dataclass
+class LineElement:
+    """A ligament as a femur-tibia line element in kneenlp's convention.
+
+    ``femoral_point`` [m] in the femur frame, ``tibial_point`` [m] in the tibia frame
+    (the tibia frame coincides with the femur frame at the reference pose of the model,
+    see REPORT.md), ``ignored_points``: names of path points beyond the femoral/tibial
+    ones (e.g. the pelvis origin of ITB1) that were dropped; ``wraps``: PathWraps that the
+    straight line ignores.  ``extra_length`` [m]: length of the dropped path segments at the
+    model's default pose; the OpenSim strain of the bundle is
+    ``(|femoral - tibial| + extra_length) / slack_length - 1``.  ``extra_length_constant``
+    is False when a dropped segment crosses a non-weld joint (e.g. ITB1's pelvis-femur
+    segment depends on the hip angles), so ``extra_length`` is exact only at the default
+    pose of those other joints."""
+    name: str
+    femoral_point: np.ndarray
+    tibial_point: np.ndarray
+    linear_stiffness: float
+    slack_length: float
+    transition_strain: float
+    ignored_points: list[str]
+    wraps: list[str]
+    extra_length: float = 0.0
+    extra_length_constant: bool = True
+
+
+def knee_line_elements(model: OsimModel, femur_body: str = "femur_distal_r",
+                       tibia_body: str = "tibia_proximal_r") -> dict[str, LineElement]:
+    """Ligaments spanning femur -> tibia as straight line elements.
+
+    Points on bodies welded to ``femur_body`` (e.g. femur_r) are expressed in
+    ``femur_body``; likewise for the tibia.  The femoral point is the last path point on
+    the femur side, the tibial point the first point after it on the tibia side; bundles
+    without both (patellar, patellofemoral ones) are not returned."""
+    fem = model.welded_bodies(femur_body)
+    tib = model.welded_bodies(tibia_body)
+    out: dict[str, LineElement] = {}
+    for lig in model.ligaments.values():
+        idx_f = [i for i, p in enumerate(lig.points) if p.body in fem]
+        idx_t = [i for i, p in enumerate(lig.points) if p.body in tib]
+        if not idx_f or not idx_t:
+            continue
+        if idx_f[-1] < idx_t[0]:
+            i_f, i_t = idx_f[-1], idx_t[0]
+        elif idx_t[-1] < idx_f[0]:
+            i_f, i_t = idx_f[0], idx_t[-1]
+        else:
+            raise OsimError(f"{model.path}: {_LIGAMENT_TAG} '{lig.name}': femoral and tibial "
+                            f"path points interleave")
+        pf, pt = lig.points[i_f], lig.points[i_t]
+        ignored = [p.name for k, p in enumerate(lig.points) if k not in (i_f, i_t)]
+        extra, const = 0.0, True
+        if ignored:
+            T = model.body_transforms(bodies=sorted({p.body for p in lig.points}))
+            lo, hi = min(i_f, i_t), max(i_f, i_t)
+            for k in range(len(lig.points) - 1):
+                if lo <= k < hi:
+                    continue  # the kept femur-tibia segment
+                a, b = lig.points[k], lig.points[k + 1]
+                extra += float(np.linalg.norm(_apply(T[b.body], b.location_in_body)
+                                              - _apply(T[a.body], a.location_in_body)))
+                if b.body not in model.welded_bodies(a.body):
+                    const = False
+        out[lig.name] = LineElement(lig.name, model.point_in_body(pf, femur_body),
+                                    model.point_in_body(pt, tibia_body), lig.linear_stiffness,
+                                    lig.slack_length, lig.transition_strain, ignored,
+                                    list(lig.wraps), extra, const)
+    return out
+
