@@ -177,6 +177,10 @@ def cmd_export(args) -> int:
               + ", ".join(str(f) for f in files))
         if prob.contact_error:
             print(f"contact: {json.loads((files[-1]).read_text())['contact']}")
+    if args.format == "c" and prob.meta.get("working_sets"):
+        print("note: this C source holds the mesh knee's femoral distance field as one constant array; "
+              "compiling it is impractical (docs/solvers.md): use --format casadi for the same exact NLP",
+              file=sys.stderr)
     return 0
 
 

@@ -7,7 +7,9 @@ free parameters, with the data substituted (``.nl``) or supplied as the paramete
 * CasADi files and C code hold it exactly (``contact="exact"``): the femoral distance field is
   inside the graph (:mod:`kneenlp.geometry.graph_field`, its coefficients one constant array), so
   every constraint equals kneenlp's own at every point, and the optimum is ``identify``'s
-  (tests/test_export.py, on the default knee);
+  (tests/test_export.py, CasADi files on the default knee).  For a mesh knee the C source carries
+  the coefficient array as text (71 MB for the default knee), too large to compile in practice;
+  docs/solvers.md;
 * ``.nl`` holds only expressions AMPL knows, so for a mesh knee its contact is the second-order
   expansion of the contact wrench at the start poses (``contact="expansion"``): an approximation,
   exact at the start poses.  The file's header and ``problem.json`` say so and give its error,
