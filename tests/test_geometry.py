@@ -121,6 +121,55 @@ def test_cell_minimum_is_the_smallest_coefficient_of_each_cell():
         assert got[i, j, k] == block.min()  # at the border: the part of the block inside the grid
 
 
+def test_a_pressure_law_given_as_a_compiled_function_equals_the_built_in_family():
+    """A user's law as a compiled function (the pass compiled for it in the process) gives what the
+    built-in power family's exponent gives (the pass loaded from the machine's cache)."""
+    from numba import njit
+
+    from kneenlp.geometry import kernels
+    from kneenlp.geometry.ramp import gate_derivatives
+
+    @njit
+    def user_power(s, width):  # d_r (g / d_r)^1.5, written out as a user would
+        g, g1, g2 = gate_derivatives(s, width)
+        if g <= 0.0:
+            return 0.0, 0.0, 0.0
+        r = np.sqrt(g / kernels.REFERENCE_DEPTH)
+        return g * r, 1.5 * r * g1, 0.75 * g1 * g1 / (kernels.REFERENCE_DEPTH * r) + 1.5 * r * g2
+
+    for s in (-1e-6, 0.0, 3e-6, 1e-5, 2e-4, 1e-3, 2.5e-3):
+        assert np.allclose(kernels.pressure_at(user_power, s, 1e-5), kernels.pressure_at(1.5, s, 1e-5),
+                           rtol=1e-13, atol=0.0)
+        assert kernels.pressure_at(1.0, s, 1e-5) == pytest.approx(gate_derivatives(s, 1e-5), rel=0, abs=0)
+
+
+@pytest.mark.slow
+def test_the_contact_pass_of_a_built_in_law_is_compiled_once_per_machine(tmp_path):
+    """A second process loads the compiled contact pass from the cache (before the built-in laws
+    were exponents, every process compiled it again: ~15 s at the first contact evaluation)."""
+    import os
+    import subprocess
+    import sys
+
+    script = """
+import numpy as np
+from kneenlp.geometry import kernels
+from kneenlp.model.laws import ElasticFoundation
+c = np.zeros((6, 6, 6)); pts = np.zeros((1, 3)); R = np.eye(3)[None]; p = np.zeros((1, 3))
+out = np.empty((1, 271))
+kernels.contact_batch(c, c, np.zeros(3), 1e-3, np.zeros(3), np.ones(3) * 1e-3, 1e-3, pts, np.ones(1), R, p,
+                      ElasticFoundation().kernel, 1e-5, True, 0, 1, out)
+print(len(kernels.contact_batch.stats.cache_misses), len(kernels.contact_batch.stats.cache_hits))
+"""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    runs = [subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
+            for _ in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[-1].stderr[-2000:]
+    first, second = (tuple(map(int, r.stdout.split())) for r in runs)
+    assert first[0] == 1  # compiled in the first process ...
+    assert second == (0, 1)  # ... and loaded in the second
+
+
 @pytest.mark.parametrize("law", [ElasticFoundation(), PowerFoundation()], ids=lambda law: law.name)
 def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box, law):
     """The compiled pass over all poses (cell-minimum rejection, then the expansion) against the

@@ -216,7 +216,9 @@ def touchable_box(femur_vertices: np.ndarray, swept: np.ndarray, reach: float = 
     ``reach`` of the ``swept`` tibial points (:func:`sweep`; ``reach`` stands for the laxity
     translations and rotations around that path), padded by ``margin``."""
     # one vectorised query: every femoral vertex within reach of any swept tibial point
-    dist, _ = cKDTree(swept).query(np.asarray(femur_vertices), distance_upper_bound=reach)
+    # (an unbalanced tree builds ~8x faster here and answers the same query exactly)
+    tree = cKDTree(swept, balanced_tree=False, compact_nodes=False)
+    dist, _ = tree.query(np.asarray(femur_vertices), distance_upper_bound=reach, workers=-1)
     hit = np.isfinite(dist)
     if not np.any(hit):
         raise ValueError("no femoral surface within reach of the tibia between the given flexions")

@@ -8,6 +8,17 @@ per-point tensor is ever materialised: ~20x faster, which is what makes identifi
 knee take seconds.  Tests compare the two to 1e-12.  Compiled once per machine (``cache=True``:
 numba keeps the machine code in the user's cache, :mod:`kneenlp.geometry.cache`, or in
 ``$NUMBA_CACHE_DIR``; never in the package directory).
+
+The passes take the pressure law's ``kernel`` (:class:`kneenlp.model.laws.PressureLaw`) as an
+argument, in one of two forms (:func:`pressure`):
+
+* a number ``n``: the power family ``p / K = d_r (g(d) / d_r)^n`` (``g`` the gate of
+  :mod:`kneenlp.geometry.ramp`, ``d_r`` = :data:`REFERENCE_DEPTH`; ``n = 1`` is the paper's linear
+  law, exactly ``g``): the passes are compiled for a float once per machine and loaded from the cache;
+* a compiled function ``(depth, gate) -> (h, h', h'')`` (any law): numba cannot keep machine code
+  specialised on a function argument, so the passes are compiled for it again in every process
+  (~15 s on the default knee's first contact evaluation).  Before the number form, every command
+  paid that.
 """
 
 from __future__ import annotations
@@ -16,14 +27,50 @@ import os
 
 import numba
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import overload
 
 from kneenlp.geometry.cache import cache_dir
+from kneenlp.geometry.ramp import gate_derivatives
 
 # numba keeps compiled loops next to the module unless told otherwise: into the user's cache
 # instead (a user's own NUMBA_CACHE_DIR wins).  Set before the decorators below read it.
 if not os.environ.get("NUMBA_CACHE_DIR") and (_where := cache_dir("numba")) is not None:
     numba.config.CACHE_DIR = str(_where)
+
+#: Depth (m) at which every member of the power family equals the paper's linear law.
+REFERENCE_DEPTH = 1e-3
+
+
+@njit(cache=True, nogil=True)
+def power_pressure(s: float, width: float, n: float) -> tuple[float, float, float]:
+    """``d_r (g / d_r)^n`` per unit modulus and its first two depth derivatives at depth ``s`` (m),
+    ``g`` the gate of width ``width`` (m); ``n = 1``: the gate itself, the paper's law."""
+    g, g1, g2 = gate_derivatives(s, width)
+    if n == 1.0 or g <= 0.0:
+        return g, g1, g2
+    r = (g / REFERENCE_DEPTH) ** (n - 1.0)  # (g / d_r)^(n - 1)
+    return g * r, n * r * g1, n * (n - 1.0) * r * g1 * g1 / g + n * r * g2
+
+
+def pressure(law, s, width):
+    """The pressure law ``law`` (an exponent of the power family or a compiled function) at depth
+    ``s`` (m) per unit modulus, with its first two depth derivatives: inside compiled loops only
+    (module docstring); from Python use :func:`pressure_at`."""
+    raise NotImplementedError("kneenlp.geometry.kernels.pressure is for compiled loops: use pressure_at")
+
+
+@overload(pressure)
+def _pressure_overload(law, s, width):
+    if isinstance(law, (types.Float, types.Integer)):
+        return lambda law, s, width: power_pressure(s, width, float(law))
+    return lambda law, s, width: law(s, width)
+
+
+@njit(cache=True, nogil=True)
+def pressure_at(law, s: float, width: float) -> tuple[float, float, float]:
+    """:func:`pressure` callable from Python."""
+    return pressure(law, s, width)
 
 
 
@@ -148,7 +195,7 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
         s = -d[p]
         if s <= 0.0:
             continue
-        gam, gam1, gam2 = law(s, gate)  # the pressure law's value and depth derivatives, per unit modulus
+        gam, gam1, gam2 = pressure(law, s, gate)  # the pressure law's value and depth derivatives, per unit modulus
         gx, gy, gz = g[p, 0], g[p, 1], g[p, 2]
         rho = np.sqrt(gx * gx + gy * gy + gz * gz)
         nv[0], nv[1], nv[2] = gx / rho, gy / rho, gz / rho
@@ -286,8 +333,8 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
     ``lo..hi`` that penetrate by less than ``deepest`` (m) make the contact.  Writes each pose's
     working-set row (``out[t]``, the layout of :data:`kneenlp.model.mesh_contact.WS_SIZE`: the pose,
     then per unit modulus the wrench, its Jacobian and Hessian (:func:`wrench_expansion`), and the
-    largest penetration).  ``law`` is the pressure law's compiled ``(depth, gate) -> (h, h', h'')``
-    (:class:`kneenlp.model.laws.PressureLaw`), ``gate`` its gate width (m).  ``full=False`` writes
+    largest penetration).  ``law`` is the pressure law's kernel (an exponent or a compiled
+    function: module docstring), ``gate`` its gate width (m).  ``full=False`` writes
     the wrench only (Jacobian and Hessian zero): the residual's value at the pose itself, at a
     fraction of the cost."""
     n_pts = points.shape[0]
@@ -349,7 +396,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
                 v = _value_gradient(coeffs, origin, spacing, X[i], g1)
                 s = -v
                 depth = max(depth, s)
-                gam = law(s, gate)[0]
+                gam = pressure(law, s, gate)[0]
                 rho = np.sqrt(g1[0] * g1[0] + g1[1] * g1[1] + g1[2] * g1[2])
                 w = areas[keep[i]] * gam / rho
                 fx, fy, fz = w * g1[0], w * g1[1], w * g1[2]

@@ -35,3 +35,13 @@ def ramp_inner_curvature(t, delta):
     """``h''(t / delta) / delta``: the ramp's curvature for ``0 <= t <= delta`` (1/m)."""
     x = t / delta
     return x * (36.0 - 96.0 * x + 60.0 * x * x) / delta
+
+
+@register_jitable
+def gate_derivatives(s: float, delta: float) -> tuple[float, float, float]:
+    """The ramp ``g(s)`` (m) and its first two derivatives at one depth ``s`` (m), for compiled loops."""
+    if s <= 0.0:
+        return 0.0, 0.0, 0.0
+    if s < delta:
+        return ramp_inner(s, delta), ramp_inner_slope(s, delta), ramp_inner_curvature(s, delta)
+    return s, 1.0, 0.0

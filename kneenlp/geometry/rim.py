@@ -32,8 +32,12 @@ class OpenEdges:
     DistanceField`)."""
 
     def __init__(self, mesh: trimesh.Trimesh, offset: float = 0.0):
-        edges, counts = np.unique(np.asarray(mesh.edges_sorted), axis=0, return_counts=True)
-        rim = edges[counts == 1]
+        # an edge is the key a * n + b (a < b): a 1-D unique, ~10x faster than unique(axis=0), same order
+        n = len(mesh.vertices)
+        edges = np.asarray(mesh.edges_sorted, dtype=np.int64)
+        keys, counts = np.unique(edges[:, 0] * n + edges[:, 1], return_counts=True)
+        single = keys[counts == 1]
+        rim = np.column_stack([single // n, single % n])
         vertices = np.asarray(mesh.vertices, float) + offset * np.asarray(mesh.vertex_normals, float)
         #: rim segments (n x 2 x 3)
         self.segments = vertices[rim]

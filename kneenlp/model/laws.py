@@ -22,10 +22,11 @@ user's force element.  docs/architecture.md shows a new law in one file.
 A contact pressure law (:class:`PressureLaw`) gives the elastic foundation's pressure (Pa) from a
 tibial point's penetration depth (m), the modulus ``K`` (N/m^3, the parameter
 ``contact.modulus``) and the width of the C2 gate that starts contact smoothly (m): its
-``pressure`` for CasADi and NumPy, and ``kernel``, a compiled function ``(depth, gate) -> (h, h',
-h'')``, the pressure per unit modulus and its first two derivatives in depth, which the compiled
-contact passes call at every penetrating point (:mod:`kneenlp.geometry.kernels`: they hold no
-law of their own).  Built in (:data:`PRESSURE_LAWS`):
+``pressure`` for CasADi and NumPy, and ``kernel``, what the compiled contact passes evaluate at
+every penetrating point: an exponent of the power family the passes know (compiled once per
+machine), or a compiled function ``(depth, gate) -> (h, h', h'')``, the pressure per unit modulus
+and its first two derivatives in depth (any law; compiled into the passes in every process,
+:mod:`kneenlp.geometry.kernels`).  Built in (:data:`PRESSURE_LAWS`):
 
 * ``elastic_foundation``: the paper's, ``p = K g(d)`` with the gate ``g`` of
   :mod:`kneenlp.geometry.ramp` (exactly ``K d`` beyond the gate's width), the default;
@@ -47,10 +48,10 @@ from typing import Any, Protocol, runtime_checkable
 
 import casadi as ca
 import numpy as np
-from numba import njit
 
 from kneenlp.errors import InputError
-from kneenlp.geometry.ramp import ramp_inner, ramp_inner_curvature, ramp_inner_slope
+from kneenlp.geometry.kernels import REFERENCE_DEPTH
+from kneenlp.geometry.ramp import ramp_inner
 
 
 @dataclass(frozen=True)
@@ -113,10 +114,6 @@ DEFAULT_LAW = ToeLinearLaw.name
 
 
 # ------------------------------------------------------------------ contact pressure laws
-#: Depth (m) at which the power law equals the paper's linear law.
-REFERENCE_DEPTH = 1e-3
-
-
 def gate(depth, width, ops: Ops = CASADI):
     """C2-smooth ``max(depth, 0)`` (:mod:`kneenlp.geometry.ramp`): zero for ``depth <= 0``, exactly
     ``depth`` beyond ``width`` (m)."""
@@ -124,38 +121,15 @@ def gate(depth, width, ops: Ops = CASADI):
     return ramp_inner(t, width) + (ops.fmax(depth, width) - width)
 
 
-@njit(cache=True, nogil=True)
-def _gate_derivatives(s: float, width: float) -> tuple[float, float, float]:
-    """:func:`gate` and its first two derivatives at one depth ``s`` (m)."""
-    if s <= 0.0:
-        return 0.0, 0.0, 0.0
-    if s < width:
-        return ramp_inner(s, width), ramp_inner_slope(s, width), ramp_inner_curvature(s, width)
-    return s, 1.0, 0.0
-
-
-@njit(cache=True, nogil=True)
-def linear_pressure(s: float, width: float) -> tuple[float, float, float]:
-    """The paper's pressure per unit modulus and its depth derivatives: the gate itself."""
-    return _gate_derivatives(s, width)
-
-
-@njit(cache=True, nogil=True)
-def power_pressure(s: float, width: float) -> tuple[float, float, float]:
-    """``d_r (g / d_r)^1.5`` per unit modulus and its depth derivatives (``g`` the gate)."""
-    g, g1, g2 = _gate_derivatives(s, width)
-    if g <= 0.0:
-        return 0.0, 0.0, 0.0
-    r = np.sqrt(g / REFERENCE_DEPTH)
-    return g * r, 1.5 * r * g1, 0.75 * g1 * g1 / (REFERENCE_DEPTH * r) + 1.5 * r * g2
-
-
 @runtime_checkable
 class PressureLaw(Protocol):
     """The elastic foundation's pressure from penetration depth (module docstring)."""
 
     name: str
-    #: compiled ``(depth, gate) -> (h, h', h'')``: pressure per unit modulus and its depth derivatives
+    #: what the compiled contact passes evaluate (:mod:`kneenlp.geometry.kernels`): an exponent ``n``
+    #: of the power family ``d_r (g / d_r)^n`` (compiled once per machine), or a compiled function
+    #: ``(depth, gate) -> (h, h', h'')``, pressure per unit modulus and its depth derivatives
+    #: (any law; compiled in every process)
     kernel: Any
 
     def pressure(self, depth: Any, modulus: Any, width: float, ops: Ops = CASADI) -> Any:
@@ -168,7 +142,7 @@ class ElasticFoundation:
     """The paper's law: pressure = modulus x penetration, started by the C2 gate."""
 
     name = "elastic_foundation"
-    kernel = staticmethod(linear_pressure)
+    kernel = 1.0  # the power family's n = 1: the gate itself
 
     def pressure(self, depth, modulus, width, ops: Ops = CASADI):
         return modulus * gate(depth, width, ops)
@@ -178,7 +152,7 @@ class PowerFoundation:
     """Pressure ``K d_r (g(d) / d_r)^1.5``: stiffening with depth, the paper's at ``d_r`` = 1 mm."""
 
     name = "power_1.5"
-    kernel = staticmethod(power_pressure)
+    kernel = 1.5
 
     def pressure(self, depth, modulus, width, ops: Ops = CASADI):
         g = gate(depth, width, ops)

@@ -69,7 +69,7 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _pressure_derivatives(s: np.ndarray, law: PressureLaw, gate: float) -> tuple[np.ndarray, ...]:
     """The pressure law's value and first two depth derivatives per unit modulus at depths ``s`` (m)."""
-    out = np.array([law.kernel(float(v), gate) for v in np.ravel(s)]).reshape(-1, 3)
+    out = np.array([kernels.pressure_at(law.kernel, float(v), gate) for v in np.ravel(s)]).reshape(-1, 3)
     return out[:, 0], out[:, 1], out[:, 2]
 
 
