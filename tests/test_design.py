@@ -55,15 +55,16 @@ def test_cli_design_json(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_designed_protocol_monte_carlo(tmp_path):
-    """22 designed cases vs Set 4's 60, 200 Monte Carlo samples each (issue 8), which also checks
+    """22 designed cases vs Set 4's 60, 100 Monte Carlo samples each (issue 8), which also checks
     issue 5's requirement: Set 4's Monte Carlo standard deviations agree with the linearised
-    prediction within 25 %."""
+    prediction within 25 % (a sample standard deviation of 100 draws is within about 7 % of the
+    true one; the worst ratio measured is 1.18; 200 samples took 10 of CI's 20 slow minutes)."""
     from kneenlp.studies.study import StudySpec, run_study
 
     r = design(kneenlp.Knee.named("synthetic"), max_cases=22, criterion="A", robust=3)
     path = write_protocol(r, tmp_path / "designed.toml")
     # fits start at the truth: the spread is the noise's effect on the estimate, not the search's
-    spec = StudySpec(knee="synthetic", sets=(str(path), "set4"), samples=200, seed=5, start="truth")
+    spec = StudySpec(knee="synthetic", sets=(str(path), "set4"), samples=100, seed=5, start="truth")
     study = run_study(spec, tmp_path / "mc", progress=False)
     table = pd.read_csv(study.out / "table3.csv")
     d = table[table["set"] == str(path)].set_index(["ligament", "parameter"])
@@ -72,7 +73,7 @@ def test_designed_protocol_monte_carlo(tmp_path):
                         "designed_pred_std": d["predicted_std"]}).to_string())
     assert np.all(np.abs(d["mc_std"] / d["predicted_std"] - 1) <= 0.25)
     assert np.all(np.abs(s4["mc_std"] / s4["predicted_std"] - 1) <= 0.25)
-    assert (d["n"] == 200).all() and (s4["n"] == 200).all()
+    assert (d["n"] == 100).all() and (s4["n"] == 100).all()
     # the designed 22 cases are at least as tight as Set 4's 60 for most parameters (docs/design.md:
     # six of eight before session 9, five since the design leaves out cases that converged only
     # warm-started from the pool's previous trial)

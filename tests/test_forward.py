@@ -105,6 +105,46 @@ def test_warm_start_reproduces_cold_solution(model, set3):
     assert np.allclose([s.q for s in again], set3.q, atol=1e-10)
 
 
+def test_parameter_continuation_reaches_the_cold_solution(model):
+    """A trial's equilibrium at new parameters followed from its equilibrium at old ones (the retry
+    of an outer fit's batch solve) is the forward solver's own solution at the new parameters."""
+    solver = ForwardSolver(model)
+    trial = Trial("anterior_134N_flex30", 30.0, {"anterior_force": 134.0}, "anterior", 134.0)
+    theta0 = model.theta()
+    theta = theta0.copy()
+    for name, factor in (("ACL.k", 0.4), ("MCL.ref_strain", 3.0), ("PCL.k", 2.0)):
+        theta[model.index(name)] *= factor
+    q0 = solver.solve_trial(trial, theta0).q
+    q, res = solver.continue_parameters(trial, theta0, theta, q0)
+    cold = solver.solve_trial(trial, theta)
+    assert res <= solver.tol and cold.converged
+    assert np.allclose(q, cold.q, atol=1e-9)
+    # a batch solve's retry takes that path: 4 Newton iterations do not reach the new equilibrium
+    # from the old one, but do from the continuation's halfway pose
+    short = ForwardSolver(model, max_iter=4)
+    direct = short.newton.solve(q0[None, :], theta, trial.load[None, :], np.array([trial.flexion]), short.tol, 4)
+    assert not direct.residual[0] <= short.tol
+    q_batch, res_batch = short.solve_batch([trial], theta, q0[None, :], threads=1, theta0=theta0)
+    assert res_batch[0] <= short.tol and np.allclose(q_batch[0], cold.q, atol=1e-8)
+
+
+def test_cold_start_remembers_the_passive_path():
+    """A knee imaged at another pose walks from its reference flexion to each trial's; the walk of
+    the last parameters is remembered, and a flexion reached from a remembered one is the same
+    equilibrium as the walk from the reference pose."""
+    model = kneenlp.model.kneemodel.KneeModel.of(kneenlp.Knee.named("s192803"))
+    theta = model.theta()
+    fresh = ForwardSolver(model).cold_start(np.radians(60.0), theta)
+    solver = ForwardSolver(model)
+    solver.cold_start(np.radians(30.0), theta)
+    again = solver.cold_start(np.radians(60.0), theta)
+    assert np.allclose(again, fresh, atol=1e-8)
+    assert np.radians(30.0) in solver._passive[1] and np.radians(60.0) in solver._passive[1]
+    theta[model.index("ACLam.k_scale")] *= 2  # other parameters: a new path
+    solver.cold_start(np.radians(60.0), theta)
+    assert list(solver._passive[1]) == [np.radians(60.0)]
+
+
 def test_fig2_axes_scan_script_runs(capsys):
     """docs/scripts/fig2_axes_scan.py (the evidence in docs/model.md) stays runnable."""
     import runpy

@@ -47,7 +47,8 @@ def test_complex_finds_nothing_better_near_simultaneous_optimum(set1_fit):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("protocol,seed", [("set1", 1), ("set1", 2), ("set3", 1), ("set3", 2)])
+# two cases (each set once) keep CI's slow suite under 15 min; compare-methods runs more
+@pytest.mark.parametrize("protocol,seed", [("set1", 1), ("set3", 2)])
 def test_nested_converges_to_simultaneous_estimate(knee, tmp_path, protocol, seed):
     data = noisy(knee, protocol, seed, tmp_path)
     sim = identify(knee, data, seed=seed)

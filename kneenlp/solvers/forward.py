@@ -67,6 +67,8 @@ class ForwardSolver:
         self.newton = EquilibriumNewton(model)
         self._contact_columns = [o.column for e, o in model.outputs
                                  if isinstance(e, StagedElement) and o.name == "force"]
+        #: the passive path of :meth:`cold_start` at the last parameters: (theta's bytes, {flexion: pose})
+        self._passive: tuple[bytes | None, dict[float, np.ndarray]] = (None, {})
 
     def cold_start(self, flexion: float, theta: np.ndarray) -> np.ndarray:
         """Where a trial without a warm start begins (rad, m): 0.3 mm proximal of the reference
@@ -78,23 +80,39 @@ class ForwardSolver:
         f_ref = self.model.knee.reference_pose[0]
         if not np.any(self.reference) and f_ref == 0.0:
             return q
-        n = int(np.ceil(abs(np.degrees(flexion - f_ref)) / PASSIVE_STEP_DEG))
-        for f in np.linspace(f_ref, flexion, n + 1)[1:]:
+        # the path of the last parameters is remembered: a fit's trials at several flexions walk it once
+        key = np.asarray(theta, float).tobytes()
+        if self._passive[0] != key:
+            self._passive = (key, {})
+        path = self._passive[1]
+        if flexion in path:
+            return path[flexion].copy()
+        # start from the remembered pose nearest ``flexion`` on its side of the reference flexion
+        on_path = [f for f in path if (f - f_ref) * (flexion - f_ref) > 0 and abs(f - f_ref) < abs(flexion - f_ref)]
+        f0 = max(on_path, key=lambda f: abs(f - f_ref), default=f_ref)
+        if f0 != f_ref:
+            q = path[f0].copy()
+        n = int(np.ceil(abs(np.degrees(flexion - f0)) / PASSIVE_STEP_DEG))
+        for f in np.linspace(f0, flexion, n + 1)[1:]:
             q_new, res = self._newton(q, theta, Trial("passive", float(np.degrees(f)), {}))
             if not res <= self.tol:
-                break
+                return q
             q = q_new
+        path[flexion] = q.copy()
         return q
 
-    def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray,
-                    threads: int = 2, max_retries: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray, threads: int = 2,
+                    max_retries: int | None = None, theta0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Newton on all trials at once (one mapped CasADi call per iteration over ``threads``
         threads; the fast path for repeated solves).
 
         Returns poses (T x 5, SI) and each trial's largest residual; trials above ``tol`` are
-        retried one by one with :meth:`solve_trial` (load ramping) before being returned, unless
-        more than ``max_retries`` failed (then they are returned as they are: a caller probing a
-        step, such as a trust-region method, learns cheaply that it went too far).
+        retried one by one before being returned, unless more than ``max_retries`` failed (then
+        they are returned as they are: a caller probing a step, such as a trust-region method,
+        learns cheaply that it went too far).  A retry first follows the parameters from
+        ``theta0`` to ``theta`` (:meth:`continue_parameters`) when ``q0`` are equilibria at
+        ``theta0`` (an outer fit's previous iterate: the same branch of equilibria, a few close
+        Newton solves), then ramps the load from the cold start.
         """
         q0 = np.asarray(q0, dtype=float)
         out = self.newton.solve(q0, theta, np.array([t.load for t in trials]), np.array([t.flexion for t in trials]),
@@ -106,9 +124,31 @@ class ForwardSolver:
             res = np.where(left_out > 0, np.inf, res)
         failed = np.flatnonzero(~(res <= self.tol))
         for i in failed if max_retries is None or len(failed) <= max_retries else ():
-            sol = self.solve_trial(trials[i], theta, q0[i], None)
-            if sol.max_residual < res[i]:
-                q[i], res[i] = sol.q, sol.max_residual
+            q_i, res_i = q0[i], np.inf
+            if theta0 is not None:
+                q_i, res_i = self.continue_parameters(trials[i], theta0, theta, q0[i])
+            if not res_i <= self.tol:  # Newton from q0[i] is what the batch just did: ramp the load
+                q_i, res_i = self._ramp(trials[i], theta, self.cold_start(trials[i].flexion, theta))
+            if res_i < res[i]:
+                q[i], res[i] = q_i, res_i
+        return q, res
+
+    def continue_parameters(self, trial: Trial, theta0: np.ndarray, theta: np.ndarray, q0: np.ndarray,
+                            min_step: float = 1 / 16) -> tuple[np.ndarray, float]:
+        """Equilibrium of ``trial`` at ``theta`` followed from ``q0``, its equilibrium at ``theta0``
+        (SI), through parameters ``theta0 + s (theta - theta0)``, s in steps of at most 1/2 halved
+        on failure down to ``min_step``: the pose and its residual."""
+        q, done, step, res = np.asarray(q0, float), 0.0, 0.5, np.inf
+        while done < 1.0:
+            target = min(1.0, done + step)
+            q_try, res = self._newton(q, theta0 + target * (theta - theta0), trial)
+            if res <= self.tol:
+                q, done = q_try, target
+                step = min(2 * step, 0.5)
+            else:
+                step /= 2
+                if step < min_step:
+                    return q_try, res
         return q, res
 
     def residual_norm(self, q: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0) -> float:

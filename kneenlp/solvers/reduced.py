@@ -78,12 +78,13 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
     # every trial is solved from the poses of the best point so far (trf's current iterate: its steps
     # only ever lower the cost), never from a rejected trial point: a knee can have two equilibria,
     # and a warm start from far away switched branches (objective 25 -> 3221 at the same parameters)
-    state = {"best": (np.inf, np.asarray(problem.data.q if q0 is None else q0, float).copy()), "last": None}
+    state = {"best": (np.inf, np.asarray(problem.data.q if q0 is None else q0, float).copy(), None), "last": None}
 
     def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
         theta = problem.theta(problem.from_scaled(x))
         retries = None if state["best"][0] == np.inf else int(MAX_RETRIED_SHARE * len(trials))
-        q, res = solver.solve_batch(trials, theta, state["best"][1], threads, max_retries=retries)
+        q, res = solver.solve_batch(trials, theta, state["best"][1], threads, max_retries=retries,
+                                    theta0=state["best"][2])
         bad = np.flatnonzero(~(res <= tol_eq))
         if len(bad) and (retries is None or len(bad) <= retries):  # try from the forward solver's own start
             for i, sol in zip(bad, solver.solve([trials[i] for i in bad], theta), strict=True):
@@ -95,9 +96,9 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
         return r, q, theta, ok
 
     def fun(x: np.ndarray) -> np.ndarray:
-        r, q, _, ok = evaluate(x)
+        r, q, theta, ok = evaluate(x)
         if ok and r @ r < state["best"][0]:
-            state["best"] = (float(r @ r), q.copy())
+            state["best"] = (float(r @ r), q.copy(), theta)
         return r if ok else r + 1e3  # no equilibrium: a large residual turns the step back
 
     def jac(x: np.ndarray) -> np.ndarray:
