@@ -73,7 +73,6 @@ def pressure_at(law, s: float, width: float) -> tuple[float, float, float]:
     return pressure(law, s, width)
 
 
-
 @njit(cache=True, inline="always")
 def _basis(t: float, out: np.ndarray) -> None:
     """Cubic B-spline weights and their first three derivatives at fraction ``t``: out[k, i]."""

@@ -34,6 +34,8 @@ from kneenlp.inference.statistics import information_criteria
 POLISH_ITERATIONS = 40
 #: IPOPT iterations of a refit from the base fit (effect neutral) when the reduced solve failed.
 WARM_ITERATIONS = 200
+#: Relative cost change at which a refit's reduced-space Gauss-Newton stops (see :func:`refit_with`).
+REFIT_TOL = 1e-3
 
 
 @dataclass
@@ -154,7 +156,7 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
     # robust and about as fast as IPOPT from a good start (IPOPT from the one-step estimate wandered
     # for 150 iterations on cartilage 4x softer); the simultaneous NLP takes over where it fails
     problem = replace(fit.problem, free=free)
-    new = reduced_fit(problem, problem.values(fit.theta), q0=fit.q_pred)
+    new = reduced_fit(problem, problem.values(fit.theta), q0=fit.q_pred, tol=REFIT_TOL)
     if not new.success:
         polished = solve_simultaneous(problem, dict(new.params),
                                       solver_options={"ipopt": {"max_iter": POLISH_ITERATIONS}})
