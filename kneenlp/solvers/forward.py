@@ -136,19 +136,27 @@ class ForwardSolver:
     def continue_parameters(self, trial: Trial, theta0: np.ndarray, theta: np.ndarray, q0: np.ndarray,
                             min_step: float = 1 / 16) -> tuple[np.ndarray, float]:
         """Equilibrium of ``trial`` at ``theta`` followed from ``q0``, its equilibrium at ``theta0``
-        (SI), through parameters ``theta0 + s (theta - theta0)``, s in steps of at most 1/2 halved
-        on failure down to ``min_step``: the pose and its residual."""
-        q, done, step, res = np.asarray(q0, float), 0.0, 0.5, np.inf
+        (SI), through parameters ``theta0 + s (theta - theta0)`` (:meth:`_follow`, steps of at most
+        1/2 down to ``min_step``): the pose and its residual at ``theta``."""
+        return self._follow(lambda s, q: self._newton(q, theta0 + s * (theta - theta0), trial),
+                            np.asarray(q0, float), 0.5, min_step, theta, trial)
+
+    def _follow(self, newton_at, q: np.ndarray, step: float, min_step: float, theta: np.ndarray,
+                trial: Trial) -> tuple[np.ndarray, float]:
+        """A homotopy from s = 0 (``q`` solves it) to s = 1: ``newton_at(s, q)`` (pose, residual) from
+        the last solved pose, the step doubled after a success (at most 1/2), halved after a failure;
+        below ``min_step`` it stops with the last try and its residual for ``trial`` at ``theta``."""
+        done, res = 0.0, np.inf
         while done < 1.0:
             target = min(1.0, done + step)
-            q_try, res = self._newton(q, theta0 + target * (theta - theta0), trial)
+            q_try, res = newton_at(target, q)
             if res <= self.tol:
                 q, done = q_try, target
                 step = min(2 * step, 0.5)
             else:
                 step /= 2
                 if step < min_step:
-                    return q_try, res
+                    return q_try, self.residual_norm(q_try, theta, trial)
         return q, res
 
     def residual_norm(self, q: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0) -> float:
@@ -200,18 +208,7 @@ class ForwardSolver:
         q, res = self._newton(q_start, theta, trial, 0.0)
         if not res <= self.tol:
             return q, res
-        done, step = 0.0, 0.25
-        while done < 1.0:
-            target = min(1.0, done + step)
-            q_try, res = self._newton(q, theta, trial, target)
-            if res <= self.tol:
-                q, done = q_try, target
-                step = min(2 * step, 0.5)
-            else:
-                step /= 2
-                if step < min_step:
-                    return q_try, self.residual_norm(q_try, theta, trial)
-        return q, res
+        return self._follow(lambda s, q: self._newton(q, theta, trial, s), q, 0.25, min_step, theta, trial)
 
     def _solution(self, trial, theta, q, converged, res, strategy) -> TrialSolution:
         ws = self.model.working_data(q, theta, trial.flexion)
