@@ -158,7 +158,7 @@ from kneenlp.model.laws import ElasticFoundation
 c = np.zeros((6, 6, 6)); pts = np.zeros((1, 3)); R = np.eye(3)[None]; p = np.zeros((1, 3))
 out = np.empty((1, 271))
 kernels.contact_batch(c, c, np.zeros(3), 1e-3, np.zeros(3), np.ones(3) * 1e-3, 1e-3, pts, np.ones(1), R, p,
-                      ElasticFoundation().kernel, 1e-5, True, 0, 1, out)
+                      ElasticFoundation().kernel, 1e-5, 2, 0, 1, out)
 print(len(kernels.contact_batch.stats.cache_misses), len(kernels.contact_batch.stats.cache_hits))
 """
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
@@ -173,8 +173,8 @@ print(len(kernels.contact_batch.stats.cache_misses), len(kernels.contact_batch.s
 @pytest.mark.parametrize("law", [ElasticFoundation(), PowerFoundation()], ids=lambda law: law.name)
 def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box, law):
     """The compiled pass over all poses (cell-minimum rejection, then the expansion) against the
-    NumPy reference summed over every penetrating point, for each pressure law; the value-only
-    pass gives the same wrench."""
+    NumPy reference summed over every penetrating point, for each pressure law; the passes of
+    order 0 (value) and 1 (Jacobian) give the same wrench (and Jacobian), zeros beyond."""
     from kneenlp.geometry import kernels
     from kneenlp.model.kinematics import rot_x, rot_y
     from kneenlp.model.mesh_contact import WS_SIZE, wrench_expansion
@@ -189,24 +189,26 @@ def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box, l
     p = np.array([[0.0, half[1] - 0.3e-3 * (t + 1), 0.1e-3 * t] for t in range(T)])  # 0.3 .. 1.2 mm into the top
     lo, hi = fld.bounds
     rows = {}
-    for full in (True, False):
+    for order in (2, 1, 0):
         out = np.empty((T, WS_SIZE))
         kernels.contact_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                              points, areas, R, p, law.kernel, 1e-5, full, 0, T, out)
-        rows[full] = out
+                              points, areas, R, p, law.kernel, 1e-5, order, 0, T, out)
+        rows[order] = out
     for t in range(T):
         X = points @ R[t].T + p[t]
         d = fld.evaluate(X)[0]
         sel = (d < 0) & (d > -0.99 * fld.depth)
         d, g, h, t3 = fld.evaluate(X[sel], order=3)
         W, J, H = wrench_expansion(d, g, h, t3, X[sel], X[sel] - p[t], areas[sel], 1e-5, law)
-        row = rows[True][t]
+        row = rows[2][t]
         assert np.allclose(row[:9].reshape(3, 3, order="F"), R[t]) and np.allclose(row[9:12], p[t])
         for got, ref in ((row[12:18], W), (row[18:54].reshape(6, 6, order="F"), J),
                          (row[54:-1].reshape(6, 6, 6).transpose(0, 2, 1), H)):
             assert np.allclose(got, ref, rtol=1e-10, atol=1e-10 * max(np.abs(ref).max(), 1e-30))
         assert row[-1] == pytest.approx(max(-d.min(), 0.0) if len(d) else 0.0, abs=1e-15)
-        value = rows[False][t]
+        value, first = rows[0][t], rows[1][t]
         assert np.allclose(value[12:18], W, rtol=1e-10, atol=1e-10 * max(np.abs(W).max(), 1e-30))
         assert not np.any(value[18:-1]) and value[-1] == pytest.approx(row[-1], abs=1e-15)
-    assert np.any(rows[True][:, 12:18])  # the poses do touch
+        assert np.array_equal(first[:54], row[:54]) and first[-1] == row[-1]  # order 1: the same wrench, Jacobian
+        assert not np.any(first[54:-1])
+    assert np.any(rows[2][:, 12:18]) and np.any(rows[2][:, 54:-1])  # the poses do touch

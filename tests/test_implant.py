@@ -83,7 +83,11 @@ def test_open_edges_distance_is_the_distance_to_the_border():
     inside = (ax <= 1) & (ay <= 1)
     planar = np.where(inside, np.minimum(1 - ax, 1 - ay),
                       np.hypot(np.maximum(ax - 1, 0), np.maximum(ay - 1, 0)))
-    np.testing.assert_allclose(rim.distance(pts), np.hypot(planar, pts[:, 2]), atol=1e-12)
+    exact = np.hypot(planar, pts[:, 2])
+    np.testing.assert_allclose(rim.distance(pts), exact, atol=1e-12)
+    # with an upper bound: the same distances where within it, inf beyond (the midpoint prefilter)
+    np.testing.assert_array_equal(rim.distance(pts, upper=0.3), np.where(exact <= 0.3, rim.distance(pts), np.inf))
+    assert 0 < np.sum(exact <= 0.3) < len(pts)
     assert OpenEdges(trimesh.creation.icosphere()).closed
 
 

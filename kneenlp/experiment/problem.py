@@ -331,7 +331,7 @@ class IdentificationProblem:
         idx = [model.index(n) for n in (self.free if names is None else names)]
         q = np.asarray(q, dtype=float).reshape(-1, 5)
         T = len(q)
-        ws = model.working_data_batch(q, theta, self.flexions, threads=2)
+        ws = model.working_data_batch(q, theta, self.flexions, threads=2, order=1)
         dq, dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
                    for v in model.jacobians.map(T)(q.T, theta, self.loads.T, self.flexions[None, :], ws.T))
         dy_dq, dy_dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)

@@ -171,9 +171,10 @@ def field_derivatives(coeffs: np.ndarray, origin: np.ndarray, spacing: float, X:
 
 @njit(cache=True, nogil=True)
 def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray, r: np.ndarray,
-                     areas: np.ndarray, law, gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     areas: np.ndarray, law, gate: float, order: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """See :func:`kneenlp.model.mesh_contact.wrench_expansion` (same arguments but ``X``, same
-    results): wrench (6), Jacobian (6 x 6), Hessian (6 x 6 x 6) per unit modulus."""
+    results): wrench (6), Jacobian (6 x 6), Hessian (6 x 6 x 6) per unit modulus.  ``order=1``:
+    the Hessian is left zero (``t3`` is not read), at about half the cost."""
     W = np.zeros(6)
     J = np.zeros((6, 6))
     H = np.zeros((6, 6, 6))
@@ -210,7 +211,7 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
                 NtH[l_, k] = N[0, l_] * h[p, 0, k] + N[1, l_] * h[p, 1, k] + N[2, l_] * h[p, 2, k]
         for j in range(3):
             for k in range(3):
-                for l_ in range(3):
+                for l_ in range(3 if order >= 2 else 0):
                     pt = t3[p, j, k, l_] - nv[j] * (nv[0] * t3[p, 0, k, l_] + nv[1] * t3[p, 1, k, l_]
                                                     + nv[2] * t3[p, 2, k, l_])
                     dN[j, k, l_] = (pt - N[j, l_] * Hn[k] - nv[j] * NtH[l_, k] - N[j, k] * Hn[l_]) / rho
@@ -218,7 +219,7 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
             f[j] = a * gam * nv[j]
             for k in range(3):
                 Df[j, k] = a * (gam * N[j, k] - gam1 * nv[j] * g[p, k])
-                for l_ in range(3):
+                for l_ in range(3 if order >= 2 else 0):
                     D2f[j, k, l_] = a * (gam2 * nv[j] * g[p, k] * g[p, l_]
                                          - gam1 * (nv[j] * h[p, k, l_] + g[p, k] * N[j, l_] + g[p, l_] * N[j, k])
                                          + gam * dN[j, k, l_])
@@ -229,15 +230,31 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
         B[0, 4], B[0, 5] = rz, -ry
         B[1, 3], B[1, 5] = -rz, rx
         B[2, 3], B[2, 4] = ry, -rx
+        for j in range(3):
+            for c in range(6):
+                f1[j, c] = Df[j, 0] * B[0, c] + Df[j, 1] * B[1, c] + Df[j, 2] * B[2, c]
+        # force and moment (m = r x f, Br = the rotation columns of B) and their first derivatives
+        W[0] += f[0]
+        W[1] += f[1]
+        W[2] += f[2]
+        W[3] += ry * f[2] - rz * f[1]
+        W[4] += rz * f[0] - rx * f[2]
+        W[5] += rx * f[1] - ry * f[0]
+        for c in range(6):
+            b0, b1, b2 = (B[0, c], B[1, c], B[2, c]) if c >= 3 else (0.0, 0.0, 0.0)
+            for j in range(3):
+                J[j, c] += f1[j, c]
+            J[3, c] += b1 * f[2] - b2 * f[1] + ry * f1[2, c] - rz * f1[1, c]
+            J[4, c] += b2 * f[0] - b0 * f[2] + rz * f1[0, c] - rx * f1[2, c]
+            J[5, c] += b0 * f[1] - b1 * f[0] + rx * f1[1, c] - ry * f1[0, c]
+        if order < 2:
+            continue
         rv = (rx, ry, rz)
         for j in range(3):
             for u in range(3):
                 for v in range(3):
                     Xw[j, u, v] = 0.5 * ((1.0 if j == u else 0.0) * rv[v] + (1.0 if j == v else 0.0) * rv[u]
                                          - 2.0 * rv[j] * (1.0 if u == v else 0.0))
-        for j in range(3):
-            for c in range(6):
-                f1[j, c] = Df[j, 0] * B[0, c] + Df[j, 1] * B[1, c] + Df[j, 2] * B[2, c]
         for j in range(3):
             for l_ in range(3):
                 for c in range(6):
@@ -249,23 +266,11 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
             for u in range(3):
                 for v in range(3):
                     f2[j, 3 + u, 3 + v] += Df[j, 0] * Xw[0, u, v] + Df[j, 1] * Xw[1, u, v] + Df[j, 2] * Xw[2, u, v]
-        # force part
-        for j in range(3):
-            W[j] += f[j]
-            for c in range(6):
-                J[j, c] += f1[j, c]
-                for e in range(6):
-                    H[j, c, e] += f2[j, c, e]
-        # moment part: m = r x f (Br = rotation columns of B)
-        W[3] += ry * f[2] - rz * f[1]
-        W[4] += rz * f[0] - rx * f[2]
-        W[5] += rx * f[1] - ry * f[0]
         for c in range(6):
             b0, b1, b2 = (B[0, c], B[1, c], B[2, c]) if c >= 3 else (0.0, 0.0, 0.0)
-            J[3, c] += b1 * f[2] - b2 * f[1] + ry * f1[2, c] - rz * f1[1, c]
-            J[4, c] += b2 * f[0] - b0 * f[2] + rz * f1[0, c] - rx * f1[2, c]
-            J[5, c] += b0 * f[1] - b1 * f[0] + rx * f1[1, c] - ry * f1[0, c]
             for e in range(6):
+                for j in range(3):
+                    H[j, c, e] += f2[j, c, e]
                 c0, c1, c2 = (B[0, e], B[1, e], B[2, e]) if e >= 3 else (0.0, 0.0, 0.0)
                 H[3, c, e] += (b1 * f1[2, e] - b2 * f1[1, e] + c1 * f1[2, c] - c2 * f1[1, c]
                                + ry * f2[2, c, e] - rz * f2[1, c, e])
@@ -325,7 +330,7 @@ def _value_gradient(coeffs: np.ndarray, origin: np.ndarray, spacing: float, x: n
 @njit(cache=True, nogil=True)
 def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spacing: float, lo: np.ndarray,
                   hi: np.ndarray, deepest: float, points: np.ndarray, areas: np.ndarray, R: np.ndarray,
-                  p: np.ndarray, law, gate: float, full: bool, first: int, last: int, out: np.ndarray) -> None:
+                  p: np.ndarray, law, gate: float, order: int, first: int, last: int, out: np.ndarray) -> None:
     """One compartment at the poses ``first..last-1`` of ``R`` (T x 3 x 3) and ``p`` (T x 3), fused:
     every tibial point (tibial frame) mapped to the femoral frame, passed over where the cell's
     :func:`cell_minimum` says it cannot penetrate, else its field value; the points inside the box
@@ -333,9 +338,10 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
     working-set row (``out[t]``, the layout of :data:`kneenlp.model.mesh_contact.WS_SIZE`: the pose,
     then per unit modulus the wrench, its Jacobian and Hessian (:func:`wrench_expansion`), and the
     largest penetration).  ``law`` is the pressure law's kernel (an exponent or a compiled
-    function: module docstring), ``gate`` its gate width (m).  ``full=False`` writes
-    the wrench only (Jacobian and Hessian zero): the residual's value at the pose itself, at a
-    fraction of the cost."""
+    function: module docstring), ``gate`` its gate width (m).  ``order``: the wrench's derivatives
+    written (0: none, the residual's value at the pose itself, at a fraction of the cost; 1: the
+    Jacobian, what Newton and first-order sensitivities need; 2: the Hessian too; the parts not
+    written are zero)."""
     n_pts = points.shape[0]
     X = np.empty((n_pts, 3))
     keep = np.empty(n_pts, dtype=np.int64)
@@ -373,7 +379,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
                 row[3 * b + a] = Rt[a, b]
             row[9 + a] = pt[a]
         depth = 0.0
-        if full:
+        if order >= 1:
             dd, g, h, t3 = np.empty(m), np.empty((m, 3)), np.empty((m, 3, 3)), np.empty((m, 3, 3, 3))
             field_derivatives(coeffs, origin, spacing, X[:m], dd, g, h, t3)
             r = np.empty((m, 3))
@@ -383,7 +389,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
                     r[i, a] = X[i, a] - pt[a]
                 a_[i] = areas[keep[i]]
                 depth = max(depth, -dd[i])
-            W, J, H = wrench_expansion(dd, g, h, t3, r, a_, law, gate)
+            W, J, H = wrench_expansion(dd, g, h, t3, r, a_, law, gate, order)
             for a in range(6):
                 row[12 + a] = W[a]
                 for b in range(6):
@@ -407,6 +413,34 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
                 row[16] += rz * fx - rx * fz
                 row[17] += rx * fy - ry * fx
         row[out.shape[1] - 1] = depth
+
+
+@njit(cache=True, nogil=True)
+def counted_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spacing: float, lo: np.ndarray,
+                  hi: np.ndarray, deepest: float, points: np.ndarray, R: np.ndarray, p: np.ndarray, first: int,
+                  last: int, counted: np.ndarray) -> None:
+    """Which points :func:`contact_batch` counts at the poses ``first..last-1``: ``counted[t, i]``
+    is true where point ``i`` lies inside the box ``lo..hi`` and penetrates by less than
+    ``deepest`` (m), with the same cell-minimum rejection."""
+    n_pts = points.shape[0]
+    x = np.empty(3)
+    one = np.empty(1)
+    for t in range(first, last):
+        Rt, pt = R[t], p[t]
+        for i in range(n_pts):
+            counted[t, i] = False
+            inside = True
+            for a in range(3):
+                x[a] = Rt[a, 0] * points[i, 0] + Rt[a, 1] * points[i, 1] + Rt[a, 2] * points[i, 2] + pt[a]
+                if x[a] < lo[a] or x[a] > hi[a]:
+                    inside = False
+            if not inside:
+                continue
+            if cmin[int(np.floor((x[0] - origin[0]) / spacing)), int(np.floor((x[1] - origin[1]) / spacing)),
+                    int(np.floor((x[2] - origin[2]) / spacing))] >= 0.0:
+                continue
+            field_values(coeffs, origin, spacing, x.reshape(1, 3), one)
+            counted[t, i] = one[0] < 0.0 and one[0] > -deepest
 
 
 @njit(cache=True, nogil=True)

@@ -42,6 +42,9 @@ class OpenEdges:
         #: rim segments (n x 2 x 3)
         self.segments = vertices[rim]
         self._tree = cKDTree(self.segments.mean(axis=1)) if len(rim) else None
+        #: half the longest segment (a point within ``r`` of a segment is within ``r + reach`` of its midpoint)
+        lengths = np.linalg.norm(self.segments[:, 1] - self.segments[:, 0], axis=1)
+        self.reach = 0.5 * float(lengths.max()) if len(rim) else 0.0
 
     @property
     def closed(self) -> bool:
@@ -51,11 +54,19 @@ class OpenEdges:
     def __len__(self) -> int:
         return len(self.segments)
 
-    def distance(self, points: np.ndarray) -> np.ndarray:
-        """Distance (N,) from every point (N x 3) to the nearest rim segment (inf without a rim)."""
+    def distance(self, points: np.ndarray, upper: float = np.inf) -> np.ndarray:
+        """Distance (N,) from every point (N x 3) to the nearest rim segment (inf without a rim);
+        with ``upper``, inf for points farther than ``upper`` from every segment (one cheap nearest
+        midpoint query passes them over)."""
         x = np.asarray(points, float).reshape(-1, 3)
+        out = np.full(len(x), np.inf)
         if self._tree is None or not len(x):
-            return np.full(len(x), np.inf)
+            return out
+        if np.isfinite(upper):
+            near, _ = self._tree.query(x, 1, distance_upper_bound=upper + self.reach)
+            close = np.isfinite(near)
+            out[close] = self.distance(x[close])
+            return np.where(out <= upper, out, np.inf)
         k = min(NEAREST_SEGMENTS, len(self.segments))
         _, idx = self._tree.query(x, k)
         idx = np.reshape(idx, (len(x), k))
@@ -77,4 +88,5 @@ def at_open_edge(field: DistanceField, rim: OpenEdges, points: np.ndarray) -> tu
         return d, np.zeros(len(x), dtype=bool)
     norm = np.linalg.norm(g, axis=1)
     n = np.divide(g, norm[:, None], out=np.zeros_like(g), where=norm[:, None] > 0)
-    return d, (norm > 0) & (rim.distance(x - d[:, None] * n) <= RIM_SPACINGS * field.spacing)
+    reach = RIM_SPACINGS * field.spacing
+    return d, (norm > 0) & (rim.distance(x - d[:, None] * n, upper=reach) <= reach)

@@ -208,9 +208,10 @@ class StagedElement(ForceElement, ABC):
         return self.pack(self.select(R, p, values), R, p, values)
 
     def working_data_batch(self, R: np.ndarray, p: np.ndarray, values: dict[str, float], threads: int = 1,
-                           full: bool = True) -> np.ndarray:
-        """:meth:`working_data` at the poses ``R`` (T x 3 x 3), ``p`` (T x 3), one row each.  ``full``:
-        the data for the residual's derivatives too (an element may skip them when ``False``)."""
+                           order: int = 2) -> np.ndarray:
+        """:meth:`working_data` at the poses ``R`` (T x 3 x 3), ``p`` (T x 3), one row each.  ``order``:
+        the residual's derivatives the data must serve (0: its value only, 1: first derivatives,
+        2: second; an element may skip what is not asked for)."""
         R, p = np.asarray(R, float).reshape(-1, 3, 3), np.asarray(p, float).reshape(-1, 3)
         return np.array([self.working_data(R[t], p[t], values) for t in range(len(R))]).reshape(len(R), -1)
 

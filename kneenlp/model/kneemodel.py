@@ -215,24 +215,25 @@ class KneeModel:
         return np.asarray(R).reshape(3, n, 3).transpose(1, 0, 2), np.asarray(p).T
 
     def working_data_batch(self, q: np.ndarray, theta: np.ndarray, flexions: np.ndarray, threads: int = 1,
-                           full: bool = True) -> np.ndarray:
+                           order: int = 2) -> np.ndarray:
         """The packed ``ws`` inputs (T x :attr:`ws_size`) at the poses ``q`` (T x 5, SI) and
         ``flexions`` (T, rad): every staged element's compiled pass over all poses at once, on
-        ``threads`` threads.  ``full=False``: only what the residual's value needs (its derivatives
-        then are wrong; for function values alone, such as a line search's)."""
+        ``threads`` threads.  ``order``: the residual's derivatives the data serve exactly (0: its
+        value only, e.g. a line search's; 1: first derivatives, Newton's; 2: second, IPOPT's
+        Hessian); higher derivatives are wrong."""
         q = np.asarray(q, float).reshape(-1, 5)
         if not self.ws_size:
             return np.zeros((len(q), 0))
         R, p = self.poses(q, theta, flexions)
         values = dict(zip(self.parameter_names, np.asarray(theta, float).ravel(), strict=True))
-        return np.hstack([e.working_data_batch(R, p, values, threads, full) for e in self.staged if e.n_working])
+        return np.hstack([e.working_data_batch(R, p, values, threads, order) for e in self.staged if e.n_working])
 
-    def working_data(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> np.ndarray:
+    def working_data(self, q: np.ndarray, theta: np.ndarray, flexion: float, order: int = 2) -> np.ndarray:
         """The packed ``ws`` input of the model's functions at a pose (:meth:`working_set` without
-        the indices: :meth:`working_data_batch` of one pose)."""
+        the indices: :meth:`working_data_batch` of one pose, ``order`` as there)."""
         if not self.ws_size:
             return np.zeros(0)
-        return self.working_data_batch(np.asarray(q, float)[None], theta, np.array([flexion]))[0]
+        return self.working_data_batch(np.asarray(q, float)[None], theta, np.array([flexion]), order=order)[0]
 
     def left_out_penetration(self, q: np.ndarray, theta: np.ndarray, flexion: float,
                              indices: list[np.ndarray] | None = None) -> float:
@@ -289,18 +290,17 @@ class KneeModel:
         (:meth:`~kneenlp.model.mesh_contact.MeshContact.rim_batch`)."""
         return float(self.rim_batch(np.asarray(q, float)[None], theta, np.array([flexion]))[0])
 
-    def working_sets_function(self, n_trials: int, full: bool = True) -> ca.Function:
+    def working_sets_function(self, n_trials: int) -> ca.Function:
         """The working sets of ``n_trials`` poses as a CasADi function with zero derivative
-        (:class:`~kneenlp.model.workingsets.WorkingSets`; ``full=False``: for function values only),
-        built once per number of trials."""
+        (:class:`~kneenlp.model.workingsets.WorkingSets`), built once per number of trials."""
         from kneenlp.model.workingsets import WorkingSets
 
-        return self.solvers.get(("working_sets", n_trials, full), lambda: WorkingSets(
-            self, n_trials, f"working_sets_{n_trials}{'' if full else '_value'}", full=full))
+        return self.solvers.get(("working_sets", n_trials),
+                                lambda: WorkingSets(self, n_trials, f"working_sets_{n_trials}"))
 
     def evaluate(self, q: np.ndarray, theta: np.ndarray, load: np.ndarray, flexion: float) -> np.ndarray:
         """The equilibrium residual (5) at a pose with the working sets of that pose (numeric)."""
-        return np.asarray(self.residual(q, theta, load, flexion, self.working_data(q, theta, flexion))).ravel()
+        return np.asarray(self.residual(q, theta, load, flexion, self.working_data(q, theta, flexion, order=0))).ravel()
 
     # ------------------------------------------------------------------ helpers
     @property

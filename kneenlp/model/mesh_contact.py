@@ -247,11 +247,12 @@ class MeshContact(StagedElement):
         return float(self.rim_batch(R, p)[0])
 
     def working_data_batch(self, R: np.ndarray, p: np.ndarray, values: dict, threads: int = 1,
-                           full: bool = True) -> np.ndarray:
+                           order: int = 2) -> np.ndarray:
         """The working-set rows (T x :data:`WS_SIZE`) at the poses ``R`` (T x 3 x 3), ``p`` (T x 3):
         the contact's expansion over every penetrating point inside the field, one compiled pass per
-        share of the poses (``threads`` shares run at once; the kernel releases the GIL).  ``full=False``:
-        the wrench only (the residual's value at the pose; no derivatives)."""
+        share of the poses (``threads`` shares run at once; the kernel releases the GIL).  ``order``: the
+        wrench's derivatives included (0: the wrench only, the residual's value at the pose; 1: its
+        Jacobian too; 2: its Hessian too)."""
         R = np.ascontiguousarray(R, dtype=float).reshape(-1, 3, 3)
         p = np.ascontiguousarray(p, dtype=float).reshape(-1, 3)
         fld = self.field
@@ -260,7 +261,7 @@ class MeshContact(StagedElement):
 
         def run(first: int, last: int) -> None:
             kernels.contact_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                                  self.points, self.areas, R, p, self.law.kernel, self.gate, full, first, last, out)
+                                  self.points, self.areas, R, p, self.law.kernel, self.gate, order, first, last, out)
 
         share_out(run, len(R), threads)
         return out
@@ -294,15 +295,16 @@ class MeshContact(StagedElement):
         worst = np.full(len(R), -np.inf)
         if self.rim is None or self.rim.closed:
             return worst
-        X = np.einsum("tij,nj->tni", R, self.points) + p[:, None, :]
-        inside = np.all((X >= self.field.bounds[0]) & (X <= self.field.bounds[1]), axis=2)
-        trial, point = np.nonzero(inside)
-        d = self.field.evaluate(X[trial, point])[0]
-        pen = (d < 0) & (d > -0.99 * self.field.depth)  # the points the contact counts (select)
-        if not np.any(pen):
+        fld = self.field
+        lo, hi = fld.bounds
+        counted = np.empty((len(R), len(self.points)), dtype=np.bool_)  # the points the contact counts
+        kernels.counted_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
+                              self.points, np.ascontiguousarray(R), np.ascontiguousarray(p), 0, len(R), counted)
+        trial, point = np.nonzero(counted)
+        if not len(trial):
             return worst
-        trial, X = trial[pen], X[trial[pen], point[pen]]
-        d, at_rim = at_open_edge(self.field, self.rim, X)
+        X = np.einsum("nij,nj->ni", R[trial], self.points[point]) + p[trial]
+        d, at_rim = at_open_edge(fld, self.rim, X)
         np.maximum.at(worst, trial[at_rim], -d[at_rim])
         return worst
 

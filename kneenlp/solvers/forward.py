@@ -211,7 +211,7 @@ class ForwardSolver:
         return self._follow(lambda s, q: self._newton(q, theta, trial, s), q, 0.25, min_step, theta, trial)
 
     def _solution(self, trial, theta, q, converged, res, strategy) -> TrialSolution:
-        ws = self.model.working_data(q, theta, trial.flexion)
+        ws = self.model.working_data(q, theta, trial.flexion, order=0)
         values = np.asarray(self.model.details(q, theta, trial.load, trial.flexion, ws)[1]).ravel()
         columns = [o.column for _, o in self.model.outputs]
         return TrialSolution(trial, q, converged, res, strategy, outputs=dict(zip(columns, values, strict=True)))

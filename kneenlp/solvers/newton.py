@@ -59,7 +59,7 @@ class EquilibriumNewton:
         if (n, threads) not in self._maps:
             self._maps[n, threads] = self._fn.map(n, "thread", threads) if threads > 1 else self._fn.map(n)
         model = self.model
-        ws = model.working_data_batch(q, theta, flexions, threads).T
+        ws = model.working_data_batch(q, theta, flexions, threads, order=1).T  # r and dr/dq: no Hessian
         r, jac = self._maps[n, threads](q.T, theta, loads.T, flexions[None, :], ws)
         r = np.asarray(r).T
         jac = np.asarray(jac).reshape(5, n, 5).transpose(1, 0, 2)

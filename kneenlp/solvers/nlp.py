@@ -213,8 +213,6 @@ def _with_working_sets_of_the_pose(problem: IdentificationProblem, e: NLPExpress
     no_ws = ca.DM.zeros(T * model.ws_size)
     where = ca.Function("poses", [e.x, e.p], [e.q_si, e.theta, e.flexion])(x, ca.vertcat(p, no_ws))
     p_full = ca.vertcat(p, ca.vec(model.working_sets_function(T)(*where)))
-    # values (a line search's trial points) need the contact's wrench only, not its expansion
-    p_value = ca.vertcat(p, ca.vec(model.working_sets_function(T, full=False)(*where)))
     lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", e.g.numel())
     f_of, g_of = ca.Function("f", [e.x, e.p], [e.f]), ca.Function("g", [e.x, e.p], [e.g])
     grad_f, jac_g, hess = _trial_block_derivatives(problem, e)
@@ -224,7 +222,7 @@ def _with_working_sets_of_the_pose(problem: IdentificationProblem, e: NLPExpress
         "hess_lag": ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], hess.call([x, p_full, lam_f, lam_g]),
                                 ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"]),
     }
-    return {"x": x, "p": p, "f": f_of(x, p_value), "g": g_of(x, p_value)}, derivatives
+    return {"x": x, "p": p, "f": f_of(x, p_full), "g": g_of(x, p_full)}, derivatives
 
 
 def _trial_block_derivatives(problem: IdentificationProblem, e: NLPExpressions) -> tuple[ca.Function, ...]:
@@ -252,9 +250,12 @@ def _trial_block_derivatives(problem: IdentificationProblem, e: NLPExpressions) 
     f_t = ca.sum1(w * diff * diff)
     z = ca.vertcat(q_user, xp)
     ins = [q_user, xp, theta_in, load, flexion, ws, meas, w]
-    first = ca.Function("trial_first", ins, [f_t, ca.gradient(f_t, z), r, ca.jacobian(r, z)])
+    # the objective's and the residual's first derivatives apart: grad_f and jac_g each evaluate their own
+    objective = ca.Function("trial_objective", ins, [f_t, ca.gradient(f_t, z)])
+    constraint = ca.Function("trial_constraint", ins, [r, ca.jacobian(r, z)])
     second = ca.Function("trial_hessian", [*ins, lam_f, lam], [ca.hessian(lam_f * f_t + ca.dot(lam, r), z)[0]])
-    first_map, second_map = first.map(T, "thread", 2), second.map(T, "thread", 2)
+    objective_map, constraint_map = objective.map(T, "thread", 2), constraint.map(T, "thread", 2)
+    second_map = second.map(T, "thread", 2)
 
     x, p = ca.MX.sym("x", e.x.numel()), ca.MX.sym("p", e.p.numel())
     lam_fm, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 5 * T)
@@ -262,7 +263,8 @@ def _trial_block_derivatives(problem: IdentificationProblem, e: NLPExpressions) 
     d = problem.layout(working_sets=True).split(p)
     args = [xq, ca.repmat(xp_m, 1, T), ca.repmat(d["theta"], 1, T), d["loads"], d["flexions"], d["working_sets"],
             d["measured"], d["weights"]]
-    f_all, g_all, r_all, j_all = first_map(*args)
+    f_all, g_all = objective_map(*args)
+    r_all, j_all = constraint_map(*args)
     n = 5 + nf
 
     def block(m: ca.MX, t: int, rows: slice, cols: slice) -> ca.MX:
