@@ -107,21 +107,45 @@ def _cell(origin: np.ndarray, spacing: float, x: np.ndarray, wx: np.ndarray, wy:
     return ix, iy, iz
 
 
+@njit(cache=True, inline="always")
+def _weights(u: float, w: np.ndarray) -> int:
+    """The value weights of the cubic B-spline (:func:`_basis` row 0) at grid coordinate ``u``,
+    into ``w`` (4); returns the cell's lower node index."""
+    i = int(np.floor(u))
+    t = u - i
+    s = 1.0 - t
+    t2 = t * t
+    t3 = t2 * t
+    w[0] = s * s * s / 6.0
+    w[1] = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0
+    w[2] = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0
+    w[3] = t3 / 6.0
+    return i
+
+
+@njit(cache=True, inline="always")
+def _value(coeffs: np.ndarray, origin: np.ndarray, spacing: float, x0: float, x1: float, x2: float,
+           wx: np.ndarray, wy: np.ndarray, wz: np.ndarray) -> float:
+    """The tricubic B-spline's value at ``(x0, x1, x2)`` (inside the grid); ``w*`` are scratch (4)."""
+    ix = _weights((x0 - origin[0]) / spacing, wx)
+    iy = _weights((x1 - origin[1]) / spacing, wy)
+    iz = _weights((x2 - origin[2]) / spacing, wz)
+    v = 0.0
+    for a in range(4):
+        va = 0.0
+        for b in range(4):
+            col = coeffs[ix - 1 + a, iy - 1 + b]
+            va += wy[b] * (col[iz - 1] * wz[0] + col[iz] * wz[1] + col[iz + 1] * wz[2] + col[iz + 2] * wz[3])
+        v += wx[a] * va
+    return v
+
+
 @njit(cache=True, nogil=True)
 def field_values(coeffs: np.ndarray, origin: np.ndarray, spacing: float, X: np.ndarray, d: np.ndarray) -> None:
     """Values of the tricubic B-spline ``coeffs`` at the points ``X`` (all inside the grid), into ``d``."""
-    wx = np.empty((4, 4))
-    wy = np.empty((4, 4))
-    wz = np.empty((4, 4))
+    wx, wy, wz = np.empty(4), np.empty(4), np.empty(4)
     for n in range(X.shape[0]):
-        ix, iy, iz = _cell(origin, spacing, X[n], wx, wy, wz)
-        v = 0.0
-        for a in range(4):
-            for b in range(4):
-                wab = wx[0, a] * wy[0, b]
-                for c in range(4):
-                    v += coeffs[ix - 1 + a, iy - 1 + b, iz - 1 + c] * wab * wz[0, c]
-        d[n] = v
+        d[n] = _value(coeffs, origin, spacing, X[n, 0], X[n, 1], X[n, 2], wx, wy, wz)
 
 
 @njit(cache=True, nogil=True)

@@ -107,23 +107,28 @@ class ForwardSolver:
         threads; the fast path for repeated solves).
 
         Returns poses (T x 5, SI) and each trial's largest residual; trials above ``tol`` are
-        retried one by one before being returned, unless more than ``max_retries`` failed (then
-        they are returned as they are: a caller probing a step, such as a trust-region method,
-        learns cheaply that it went too far).  A retry first follows the parameters from
+        retried before being returned, unless more than ``max_retries`` failed (then they are
+        returned as they are: a caller probing a step, such as a trust-region method, learns
+        cheaply that it went too far).  The retries, one by one: following the parameters from
         ``theta0`` to ``theta`` (:meth:`continue_parameters`) when ``q0`` are equilibria at
         ``theta0`` (an outer fit's previous iterate: the same branch of equilibria, a few close
-        Newton solves), then ramps the load from the cold start.
+        Newton solves), then ramping the load from the cold start.  Without ``theta0`` they are
+        first tried all at once from the equilibrium of the converged trial nearest in load at the
+        same flexion (the forward solver's own warm start; a measured pose a few tenths of a
+        millimetre into stiff cartilage can defeat Newton).
         """
         q0 = np.asarray(q0, dtype=float)
-        out = self.newton.solve(q0, theta, np.array([t.load for t in trials]), np.array([t.flexion for t in trials]),
-                                self.tol, self.max_iter, threads)
-        q = out.q
-        res = out.residual  # at each pose with its own working sets; a point they leave out must not penetrate
-        if self.model.ws_size:
-            left_out = self.model.left_out_batch(q, theta, np.array([t.flexion for t in trials]), threads)
-            res = np.where(left_out > 0, np.inf, res)
+        loads, flexions = np.array([t.load for t in trials]), np.array([t.flexion for t in trials])
+        q, res = self._batch(q0, theta, loads, flexions, threads)
         failed = np.flatnonzero(~(res <= self.tol))
-        for i in failed if max_retries is None or len(failed) <= max_retries else ():
+        retry = max_retries is None or len(failed) <= max_retries
+        near = _nearest_converged(loads, flexions, res <= self.tol, failed) if retry and theta0 is None else None
+        if near is not None and len(near):
+            q_n, res_n = self._batch(q[near], theta, loads[failed], flexions[failed], threads)
+            better = res_n < res[failed]
+            q[failed[better]], res[failed[better]] = q_n[better], res_n[better]
+            failed = np.flatnonzero(~(res <= self.tol))
+        for i in failed if retry else ():
             q_i, res_i = q0[i], np.inf
             if theta0 is not None:
                 q_i, res_i = self.continue_parameters(trials[i], theta0, theta, q0[i])
@@ -132,6 +137,16 @@ class ForwardSolver:
             if res_i < res[i]:
                 q[i], res[i] = q_i, res_i
         return q, res
+
+    def _batch(self, q0: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
+               threads: int) -> tuple[np.ndarray, np.ndarray]:
+        """Newton on the trials of ``loads`` (T x LOAD_SIZE) at ``flexions`` (T, rad) from ``q0``:
+        poses and residuals, inf where a contact point their working sets leave out penetrates."""
+        out = self.newton.solve(q0, theta, loads, flexions, self.tol, self.max_iter, threads)
+        res = out.residual
+        if self.model.ws_size:
+            res = np.where(self.model.left_out_batch(out.q, theta, flexions, threads) > 0, np.inf, res)
+        return out.q, res
 
     def continue_parameters(self, trial: Trial, theta0: np.ndarray, theta: np.ndarray, q0: np.ndarray,
                             min_step: float = 1 / 16) -> tuple[np.ndarray, float]:
@@ -281,6 +296,24 @@ def rim_reason(penetration: float) -> str:
     """Why a pose with contact at the femoral mesh's open edge is refused (``penetration`` m)."""
     return (f"contact beyond the femoral surface's open edge: a tibial point {1e3 * penetration:.2f} mm 'inside' where "
             "the femoral mesh ends (a cropped or partial surface; the knee report says where it is open)")
+
+
+def _nearest_converged(loads: np.ndarray, flexions: np.ndarray, converged: np.ndarray,
+                       failed: np.ndarray) -> np.ndarray | None:
+    """For each ``failed`` trial, the converged trial at the nearest flexion, nearest in load among
+    those (each load component scaled by its largest magnitude over the trials); None when no
+    trial converged."""
+    done = np.flatnonzero(converged)
+    if not len(done) or not len(failed):
+        return None
+    scale = np.max(np.abs(loads), axis=0)
+    scaled = np.divide(loads, scale, out=np.zeros_like(loads), where=scale > 0)
+    near = np.empty(len(failed), dtype=np.intp)
+    for k, i in enumerate(failed):
+        flex_gap = np.abs(flexions[done] - flexions[i])
+        same = done[flex_gap <= flex_gap.min() + 1e-9]
+        near[k] = same[np.argmin(np.linalg.norm(scaled[same] - scaled[i], axis=1))]
+    return near
 
 
 def _is_unloaded(t: Trial) -> bool:
