@@ -323,17 +323,18 @@ class IdentificationProblem:
         r = self.residuals(q, theta)
         return float(np.sum(self.weights * r**2)) if np.all(np.isfinite(r)) else np.inf
 
-    def sensitivities(self, q: np.ndarray, theta: np.ndarray, names: Sequence[str] | None = None) -> np.ndarray:
+    def sensitivities(self, q: np.ndarray, theta: np.ndarray, names: Sequence[str] | None = None,
+                      with_poses: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """``d y / d p`` (5T x n; mm or deg per SI unit of each parameter ``names``, default the free
         ones) at equilibrium poses ``q`` (T x 5, SI): the implicit-function theorem through every
-        trial's equilibrium, ``dq/dp = -(dr/dq)^-1 dr/dp``, then the observation's chain rule."""
+        trial's equilibrium, ``dq/dp = -(dr/dq)^-1 dr/dp``, then the observation's chain rule.
+        ``with_poses``: ``dq/dp`` (T x 5 x n, SI) too (a first-order prediction of the poses)."""
         model = self.model
         idx = [model.index(n) for n in (self.free if names is None else names)]
         q = np.asarray(q, dtype=float).reshape(-1, 5)
         T = len(q)
-        ws = model.working_data_batch(q, theta, self.flexions, threads=2, order=1)
-        dq, dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
-                   for v in model.jacobians.map(T)(q.T, theta, self.loads.T, self.flexions[None, :], ws.T))
+        dq, dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2) for v in
+                   model.pose_derivatives(T, wrt_theta=True)(q.T, theta, self.loads.T, self.flexions[None, :]))
         dy_dq, dy_dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
                          for v in model.observation_jacobians.map(T)(q.T, theta))
         dr_dp = dth[:, :, idx]
@@ -341,7 +342,8 @@ class IdentificationProblem:
             dq_dp = -np.linalg.solve(dq, dr_dp)
         except np.linalg.LinAlgError:  # a singular equilibrium (e.g. a failed solve): least squares there
             dq_dp = -np.stack([np.linalg.pinv(a) @ b for a, b in zip(dq, dr_dp, strict=True)])
-        return (dy_dq @ dq_dp + dy_dth[:, :, idx]).reshape(5 * T, len(idx))
+        dy_dp = (dy_dq @ dq_dp + dy_dth[:, :, idx]).reshape(5 * T, len(idx))
+        return (dy_dp, dq_dp) if with_poses else dy_dp
 
     # ------------------------------------------------------------------ starts
     def scatter(self, rng: np.random.Generator, reference: Mapping[str, float] | None = None, *,

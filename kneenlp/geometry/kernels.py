@@ -470,10 +470,11 @@ def counted_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
 @njit(cache=True, nogil=True)
 def left_out_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spacing: float, lo: np.ndarray,
                    hi: np.ndarray, deepest: float, points: np.ndarray, R: np.ndarray, p: np.ndarray, first: int,
-                   last: int, deep: np.ndarray, outside: np.ndarray) -> None:
+                   last: int, near_lo: np.ndarray, near_hi: np.ndarray, deep: np.ndarray, outside: np.ndarray) -> None:
     """What :func:`contact_batch` leaves out at the poses ``first..last-1``: into ``deep[t]`` the
     largest penetration (m) of a point deeper than ``deepest`` (-inf if none), into ``outside[t, i]``
-    whether point ``i`` lies outside the field's box (the caller measures those otherwise)."""
+    whether point ``i`` lies outside the field's box but inside the box ``near_lo..near_hi`` (the
+    caller measures those otherwise; beyond that box a point cannot touch)."""
     n_pts = points.shape[0]
     x = np.empty(3)
     one = np.empty(1)
@@ -482,11 +483,14 @@ def left_out_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spa
         worst = -np.inf
         for i in range(n_pts):
             inside = True
+            near = True
             for a in range(3):
                 x[a] = Rt[a, 0] * points[i, 0] + Rt[a, 1] * points[i, 1] + Rt[a, 2] * points[i, 2] + pt[a]
                 if x[a] < lo[a] or x[a] > hi[a]:
                     inside = False
-            outside[t, i] = not inside
+                if x[a] < near_lo[a] or x[a] > near_hi[a]:
+                    near = False
+            outside[t, i] = near and not inside
             if not inside:
                 continue
             if cmin[int(np.floor((x[0] - origin[0]) / spacing)), int(np.floor((x[1] - origin[1]) / spacing)),

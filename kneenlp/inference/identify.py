@@ -137,7 +137,7 @@ def reduced_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.
     r = reduced_least_squares(problem, start, q0=q0, **options)
     theta = problem.theta(r.values)
     solver = forward_solver(problem.model)
-    max_res = max(solver.residual_norm(qi, theta, t) for t, qi in zip(problem.trials, r.q, strict=True))
+    max_res = float(np.max(solver.residual_norms(r.q, theta, problem.trials)))
     return Fit.build(problem, "reduced", theta, r.q, status=r.message,
                      success=r.success and max_res <= problem.equilibrium_tol,
                      iterations=r.evaluations, seconds=r.seconds, max_residual=max_res, start=dict(start),

@@ -290,13 +290,43 @@ class KneeModel:
         (:meth:`~kneenlp.model.mesh_contact.MeshContact.rim_batch`)."""
         return float(self.rim_batch(np.asarray(q, float)[None], theta, np.array([flexion]))[0])
 
-    def working_sets_function(self, n_trials: int) -> ca.Function:
+    def working_sets_function(self, n_trials: int, order: int = 2, threads: int = 2) -> ca.Function:
         """The working sets of ``n_trials`` poses as a CasADi function with zero derivative
-        (:class:`~kneenlp.model.workingsets.WorkingSets`), built once per number of trials."""
+        (:class:`~kneenlp.model.workingsets.WorkingSets`; ``order`` as in :meth:`working_data_batch`),
+        built once per number of trials, order and threads."""
         from kneenlp.model.workingsets import WorkingSets
 
-        return self.solvers.get(("working_sets", n_trials),
-                                lambda: WorkingSets(self, n_trials, f"working_sets_{n_trials}"))
+        return self.solvers.get(("working_sets", n_trials, order, threads), lambda: WorkingSets(
+            self, n_trials, f"working_sets_{n_trials}_order{order}_{threads}", threads=threads, order=order))
+
+    def pose_derivatives(self, n_trials: int, threads: int = 2, wrt_theta: bool = False) -> ca.Function:
+        """``(q 5 x T, theta, loads LOAD_SIZE x T, flexions 1 x T) -> (r 5 x T, dr/dq 5 x 5T)``, or with
+        ``wrt_theta`` ``-> (dr/dq, dr/dtheta 5 x (n_theta T))``: the residual and its first derivatives at
+        ``T = n_trials`` poses (SI), each with the working sets of its own pose (taken inside the call,
+        zero-copy), per trial and mapped over ``threads`` threads.  What Newton's iteration and the
+        implicit-function sensitivities evaluate; built once per size.  With working sets the residual
+        is expanded to SX (its contact is a few operations on their data: ~1.5x faster than MX); without
+        them it stays MX (contact over every surface point as constants: expanded, 474k operations a
+        trial on the synthetic knee, 5x slower)."""
+        def per_trial() -> ca.Function:
+            sym = ca.SX.sym if self.ws_size else ca.MX.sym
+            residual = self.residual.expand() if self.ws_size else self.residual
+            q, theta = sym("q", 5), sym("theta", len(self.parameter_names))
+            load, flexion, ws = sym("load", LOAD_SIZE), sym("flexion"), sym("ws", self.ws_size)
+            r = residual(q, theta, load, flexion, ws)
+            outs = [ca.jacobian(r, q), ca.jacobian(r, theta)] if wrt_theta else [r, ca.jacobian(r, q)]
+            return ca.Function("pose_derivatives", [q, theta, load, flexion, ws], outs)
+
+        def build() -> ca.Function:
+            one = self.solvers.get(("pose_derivatives", wrt_theta), per_trial)
+            mapped = one.map(n_trials, "thread", threads) if threads > 1 else one.map(n_trials)
+            Q, TH = ca.MX.sym("q", 5, n_trials), ca.MX.sym("theta", len(self.parameter_names))
+            L, F = ca.MX.sym("loads", LOAD_SIZE, n_trials), ca.MX.sym("flexions", 1, n_trials)
+            W = (self.working_sets_function(n_trials, order=1, threads=threads)(Q, TH, F) if self.ws_size
+                 else ca.MX(0, n_trials))
+            return ca.Function(f"pose_derivatives_{n_trials}", [Q, TH, L, F], mapped(Q, TH, L, F, W))
+
+        return self.solvers.get(("pose_derivatives", n_trials, threads, wrt_theta), build)
 
     def evaluate(self, q: np.ndarray, theta: np.ndarray, load: np.ndarray, flexion: float) -> np.ndarray:
         """The equilibrium residual (5) at a pose with the working sets of that pose (numeric)."""

@@ -152,6 +152,10 @@ class MeshContact(StagedElement):
         self.gate = float(gate)
         self.description = f"{compartment} compartment: femoral surface (distance field) vs tibial cartilage"
         self._outside = (cKDTree(np.asarray(femur_vertices)), float(offset)) if femur_vertices is not None else None
+        #: where a point outside the field's grid can be within reach of a femoral vertex (an empty box without them)
+        reach = float(offset) + self.field.spacing + self.field.band
+        self._near = ((np.min(femur_vertices, axis=0) - reach, np.max(femur_vertices, axis=0) + reach)
+                      if femur_vertices is not None else (np.full(3, np.inf), np.full(3, -np.inf)))
         self.rim = rim
 
     def parameters(self) -> list[Parameter]:
@@ -278,7 +282,7 @@ class MeshContact(StagedElement):
 
         def run(first: int, last: int) -> None:
             kernels.left_out_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                                   self.points, R, p, first, last, deep, outside)
+                                   self.points, R, p, first, last, *self._near, deep, outside)
 
         share_out(run, len(R), threads)
         trial, point = np.nonzero(outside)

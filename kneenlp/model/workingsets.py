@@ -10,8 +10,11 @@ to first order at the point where they are taken), and the second derivatives om
 third derivatives of the femoral distance field (piecewise constant in a cubic spline).  So the
 forward Newton iteration and IPOPT work on the exact contact model without re-solves.
 
+``order`` (:meth:`KneeModel.working_data_batch`): the derivatives the data serve, 1 for Newton's
+iteration and the sensitivities (:meth:`KneeModel.pose_derivatives`), 2 for IPOPT.
+
 The last evaluation is memoised: a solver evaluates value, Jacobian and Hessian at the same point,
-so the data are taken with the Hessian's expansion (``order=2``) even for a value: IPOPT evaluates
+so IPOPT's data are taken with the Hessian's expansion (``order=2``) even for a value: IPOPT evaluates
 its derivatives at almost every point whose value it evaluates, and one pass of order 2 (~19 ms
 for Set 4 on the default knee) costs less than a value pass (~10 ms) followed by it.  Set 4, 5
 seeds: IPOPT 0.82 -> 0.68 s median.
@@ -26,10 +29,11 @@ import numpy as np
 class WorkingSets(ca.Callback):
     """``(q, theta, flexion) -> ws`` for ``n_trials`` trials of ``model`` (see module docstring)."""
 
-    def __init__(self, model, n_trials: int, name: str = "working_sets", threads: int = 2):
+    def __init__(self, model, n_trials: int, name: str = "working_sets", threads: int = 2, order: int = 2):
         ca.Callback.__init__(self)
         self.model, self.n_trials = model, int(n_trials)
         self.threads = max(1, int(threads))
+        self.order = int(order)
         self.n_theta = len(model.parameter_names)
         self._key: bytes | None = None
         self._value: np.ndarray | None = None
@@ -63,7 +67,7 @@ class WorkingSets(ca.Callback):
         flexion = np.frombuffer(arg[2], dtype=np.float64)
         key = q.tobytes() + theta.tobytes() + flexion.tobytes()
         if key != self._key:
-            self._value = self.model.working_data_batch(q, theta, flexion, self.threads).ravel()
+            self._value = self.model.working_data_batch(q, theta, flexion, self.threads, self.order).ravel()
             self._key = key
         np.frombuffer(res[0], dtype=np.float64)[:] = self._value
         return 0

@@ -102,7 +102,8 @@ class ForwardSolver:
         return q
 
     def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray, threads: int = 2,
-                    max_retries: int | None = None, theta0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    max_retries: int | None = None, theta0: np.ndarray | None = None,
+                    guess: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Newton on all trials at once (one mapped CasADi call per iteration over ``threads``
         threads; the fast path for repeated solves).
 
@@ -115,19 +116,28 @@ class ForwardSolver:
         Newton solves), then ramping the load from the cold start.  Without ``theta0`` they are
         first tried all at once from the equilibrium of the converged trial nearest in load at the
         same flexion (the forward solver's own warm start; a measured pose a few tenths of a
-        millimetre into stiff cartilage can defeat Newton).
+        millimetre into stiff cartilage can defeat Newton).  ``guess`` (T x 5, SI): where Newton
+        starts instead of ``q0`` (a prediction of the poses at ``theta``); the trials it fails are
+        started again from ``q0`` first.
         """
         q0 = np.asarray(q0, dtype=float)
         loads, flexions = np.array([t.load for t in trials]), np.array([t.flexion for t in trials])
-        q, res = self._batch(q0, theta, loads, flexions, threads)
+        q, res = self._batch(q0 if guess is None else np.asarray(guess, float), theta, loads, flexions, threads)
+
+        def again(failed: np.ndarray, starts: np.ndarray) -> np.ndarray:
+            """Newton on the ``failed`` trials from ``starts``, kept where better; those still failing."""
+            q_f, res_f = self._batch(starts, theta, loads[failed], flexions[failed], threads)
+            better = res_f < res[failed]
+            q[failed[better]], res[failed[better]] = q_f[better], res_f[better]
+            return np.flatnonzero(~(res <= self.tol))
+
         failed = np.flatnonzero(~(res <= self.tol))
+        if guess is not None and len(failed):
+            failed = again(failed, q0[failed])
         retry = max_retries is None or len(failed) <= max_retries
         near = _nearest_converged(loads, flexions, res <= self.tol, failed) if retry and theta0 is None else None
-        if near is not None and len(near):
-            q_n, res_n = self._batch(q[near], theta, loads[failed], flexions[failed], threads)
-            better = res_n < res[failed]
-            q[failed[better]], res[failed[better]] = q_n[better], res_n[better]
-            failed = np.flatnonzero(~(res <= self.tol))
+        if near is not None:
+            failed = again(failed, q[near])
         for i in failed if retry else ():
             q_i, res_i = q0[i], np.inf
             if theta0 is not None:
@@ -174,17 +184,23 @@ class ForwardSolver:
                     return q_try, self.residual_norm(q_try, theta, trial)
         return q, res
 
-    def residual_norm(self, q: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0) -> float:
+    def residual_norm(self, q: np.ndarray, theta: np.ndarray, trial: Trial) -> float:
         """Largest equilibrium residual at pose ``q`` (N or N m), with the working sets of ``q``
         itself; inf if a contact point left out of them penetrates (too few working-set slots, or
         contact outside the represented femoral surface)."""
-        if not np.all(np.isfinite(q)):
-            return np.inf
-        if self.model.left_out_penetration(q, theta, trial.flexion) > 0:
-            return np.inf
-        r = self.model.evaluate(q, theta, scale * trial.load, trial.flexion)
-        val = float(np.max(np.abs(r)))
-        return val if np.isfinite(val) else np.inf
+        return float(self.residual_norms(np.asarray(q, float)[None], theta, [trial], threads=1)[0])
+
+    def residual_norms(self, q: np.ndarray, theta: np.ndarray, trials, threads: int = 2) -> np.ndarray:
+        """:meth:`residual_norm` of every trial of ``trials`` at its pose ``q`` (T x 5, SI), all at once."""
+        q = np.asarray(q, float).reshape(-1, 5)
+        flexions = np.array([t.flexion for t in trials])
+        finite = np.all(np.isfinite(q), axis=1)
+        q_eval = np.where(finite[:, None], q, self.reference)
+        r = self.newton.evaluate(q_eval, theta, np.array([t.load for t in trials]), flexions, threads)[0]
+        out = np.max(np.abs(r), axis=1)
+        if self.model.ws_size:
+            out = np.where(self.model.left_out_batch(q_eval, theta, flexions, threads) > 0, np.inf, out)
+        return np.where(finite & np.isfinite(out), out, np.inf)
 
     def _newton(self, q0: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0):
         """Newton from ``q0``: the pose and its residual (:meth:`residual_norm`)."""

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import casadi as ca
 import numpy as np
 
 from kneenlp.conventions import EQUILIBRIUM_TOL, LOAD_SIZE, TO_USER
@@ -42,25 +41,15 @@ class EquilibriumNewton:
 
     def __init__(self, model):
         self.model = model
-        q = ca.MX.sym("q", 5)
-        theta = ca.MX.sym("theta", len(model.parameter_names))
-        load, flexion, ws = ca.MX.sym("load", LOAD_SIZE), ca.MX.sym("flexion"), ca.MX.sym("ws", model.ws_size)
-        r = model.residual(q, theta, load, flexion, ws)
-        self._fn = ca.Function("residual_and_jacobian", [q, theta, load, flexion, ws], [r, ca.jacobian(r, q)])
-        self._maps: dict[tuple[int, int], ca.Function] = {}
 
     def evaluate(self, q: np.ndarray, theta: np.ndarray, loads: np.ndarray,
                  flexions: np.ndarray, threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
         """Residuals (T x 5) and Jacobians dr/dq (T x 5 x 5) at poses ``q`` (T x 5, SI); the
         trials are mapped over ``threads`` threads (CasADi ``thread`` map; 1 in study workers,
-        which run one process per core)."""
+        which run one process per core), each with the working sets of its own pose
+        (:meth:`KneeModel.pose_derivatives`)."""
         n = len(q)
-        threads = min(threads, n)
-        if (n, threads) not in self._maps:
-            self._maps[n, threads] = self._fn.map(n, "thread", threads) if threads > 1 else self._fn.map(n)
-        model = self.model
-        ws = model.working_data_batch(q, theta, flexions, threads, order=1).T  # r and dr/dq: no Hessian
-        r, jac = self._maps[n, threads](q.T, theta, loads.T, flexions[None, :], ws)
+        r, jac = self.model.pose_derivatives(n, min(threads, n))(q.T, theta, loads.T, flexions[None, :])
         r = np.asarray(r).T
         jac = np.asarray(jac).reshape(5, n, 5).transpose(1, 0, 2)
         return r, jac

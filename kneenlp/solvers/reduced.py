@@ -75,16 +75,23 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
     scales, tol_eq = problem.scales, problem.equilibrium_tol
     w = np.sqrt(problem.weights).ravel()
     trials = problem.trials
+    free_index = [problem.model.index(n) for n in problem.free]
     # every trial is solved from the poses of the best point so far (trf's current iterate: its steps
     # only ever lower the cost), never from a rejected trial point: a knee can have two equilibria,
     # and a warm start from far away switched branches (objective 25 -> 3221 at the same parameters)
-    state = {"best": (np.inf, np.asarray(problem.data.q if q0 is None else q0, float).copy(), None), "last": None}
+    state = {"best": (np.inf, np.asarray(problem.data.q if q0 is None else q0, float).copy(), None), "last": None,
+             "slope": None}
 
     def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
         theta = problem.theta(problem.from_scaled(x))
         retries = None if state["best"][0] == np.inf else int(MAX_RETRIED_SHARE * len(trials))
-        q, res = solver.solve_batch(trials, theta, state["best"][1], threads, max_retries=retries,
-                                    theta0=state["best"][2])
+        _, q_best, theta_best = state["best"]
+        guess = None
+        if state["slope"] is not None and theta_best is not None and np.array_equal(state["slope"][0], theta_best):
+            # Newton from the first-order prediction of the poses at theta (the best point's dq/dp)
+            step = np.array([theta[i] - theta_best[i] for i in free_index])  # SI
+            guess = q_best + state["slope"][1] @ step
+        q, res = solver.solve_batch(trials, theta, q_best, threads, max_retries=retries, theta0=theta_best, guess=guess)
         bad = np.flatnonzero(~(res <= tol_eq))
         if len(bad) and (retries is None or len(bad) <= retries):  # try from the forward solver's own start
             for i, sol in zip(bad, solver.solve([trials[i] for i in bad], theta), strict=True):
@@ -105,7 +112,10 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
         if state["last"] is None or not np.array_equal(x, state["last"][0]):
             fun(x)
         _, q, theta, _ = state["last"]
-        return problem.sensitivities(q, theta) * scales * w[:, None]
+        dy_dp, dq_dp = problem.sensitivities(q, theta, with_poses=True)
+        if state["best"][2] is not None and np.array_equal(theta, state["best"][2]):
+            state["slope"] = (theta, dq_dp)
+        return dy_dp * scales * w[:, None]
 
     lower, upper = problem.scaled_bounds
     x0 = np.clip(problem.to_scaled(start), lower, upper)
