@@ -9,7 +9,11 @@ Strategy per trial (all with the model's one residual function):
    stiffness from the first iteration);
 2. if that fails, load ramping (homotopy): the load is applied in fractions 1/4, 1/2, 3/4, 1 from
    the no-load pose, each step warm-started from the last, with steps halved on failure;
-3. a trial is *converged* only if the largest generalised force at the returned pose is below
+3. if that fails too, at parameters other than the knee's own: the trial solved at the knee's own
+   parameter set and followed from there to the parameters asked for (parameter homotopy,
+   :meth:`ForwardSolver.continue_parameters`; strategy ``continuation``): a load path can pass a
+   fold that no load ramp crosses while the equilibrium at the end exists;
+4. a trial is *converged* only if the largest generalised force at the returned pose is below
    ``tol`` (default :data:`~kneenlp.conventions.EQUILIBRIUM_TOL`, 1e-6 N / N m; the paper's 1e-3 is
    the ceiling) AND the pose lies in the
    physiological envelope (:data:`ENVELOPE`: |varus| <= 30 deg, |internal| <= 60 deg,
@@ -223,6 +227,14 @@ class ForwardSolver:
             start = self.cold_start(trial.flexion, theta) if q_unloaded is None else q_unloaded
             q, res = self._ramp(trial, theta, start)
             strategy = "ramp"
+        if not res <= self.tol and not np.array_equal(own := self.model.theta(), theta):
+            # the equilibrium at the knee's own parameters, followed to theta: a calibrated S192803 knee had
+            # equilibria for held-out trials that no load ramp reached (a fold on the load path)
+            at_own = self.solve_trial(trial, own)
+            if at_own.converged:
+                q_c, res_c = self.continue_parameters(trial, own, theta, at_own.q, min_step=1 / 64)
+                if res_c < res:
+                    q, res, strategy = q_c, res_c, "continuation"
         sol = self._solution(trial, theta, q, bool(res <= self.tol), res, strategy)
         if not sol.converged:
             sol.strategy, sol.reason = "failed", f"residual {res:.3g} > tolerance {self.tol:g}"
