@@ -351,6 +351,25 @@ def _value_gradient(coeffs: np.ndarray, origin: np.ndarray, spacing: float, x: n
     return v
 
 
+@njit(cache=True, inline="always")
+def _placed(Rt: np.ndarray, pt: np.ndarray, point: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """The tibial ``point`` placed by the pose ``(Rt, pt)`` into ``x`` (femoral frame); whether it
+    lies in the box ``lo..hi``."""
+    inside = True
+    for a in range(3):
+        x[a] = Rt[a, 0] * point[0] + Rt[a, 1] * point[1] + Rt[a, 2] * point[2] + pt[a]
+        if x[a] < lo[a] or x[a] > hi[a]:
+            inside = False
+    return inside
+
+
+@njit(cache=True, inline="always")
+def _cell_min_at(cmin: np.ndarray, origin: np.ndarray, spacing: float, x: np.ndarray) -> float:
+    """:func:`cell_minimum` of the cell holding ``x`` (inside the grid)."""
+    return cmin[int(np.floor((x[0] - origin[0]) / spacing)), int(np.floor((x[1] - origin[1]) / spacing)),
+                int(np.floor((x[2] - origin[2]) / spacing))]
+
+
 @njit(cache=True, nogil=True)
 def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spacing: float, lo: np.ndarray,
                   hi: np.ndarray, deepest: float, points: np.ndarray, areas: np.ndarray, R: np.ndarray,
@@ -374,17 +393,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
         Rt, pt = R[t], p[t]
         k = 0
         for i in range(n_pts):
-            inside = True
-            for a in range(3):
-                X[k, a] = Rt[a, 0] * points[i, 0] + Rt[a, 1] * points[i, 1] + Rt[a, 2] * points[i, 2] + pt[a]
-                if X[k, a] < lo[a] or X[k, a] > hi[a]:
-                    inside = False
-            if not inside:
-                continue
-            ix = int(np.floor((X[k, 0] - origin[0]) / spacing))
-            iy = int(np.floor((X[k, 1] - origin[1]) / spacing))
-            iz = int(np.floor((X[k, 2] - origin[2]) / spacing))
-            if cmin[ix, iy, iz] >= 0.0:
+            if not _placed(Rt, pt, points[i], X[k], lo, hi) or _cell_min_at(cmin, origin, spacing, X[k]) >= 0.0:
                 continue
             keep[k] = i
             k += 1
@@ -446,25 +455,15 @@ def counted_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
     """Which points :func:`contact_batch` counts at the poses ``first..last-1``: ``counted[t, i]``
     is true where point ``i`` lies inside the box ``lo..hi`` and penetrates by less than
     ``deepest`` (m), with the same cell-minimum rejection."""
-    n_pts = points.shape[0]
-    x = np.empty(3)
-    one = np.empty(1)
+    x, wx, wy, wz = np.empty(3), np.empty(4), np.empty(4), np.empty(4)
     for t in range(first, last):
         Rt, pt = R[t], p[t]
-        for i in range(n_pts):
+        for i in range(points.shape[0]):
             counted[t, i] = False
-            inside = True
-            for a in range(3):
-                x[a] = Rt[a, 0] * points[i, 0] + Rt[a, 1] * points[i, 1] + Rt[a, 2] * points[i, 2] + pt[a]
-                if x[a] < lo[a] or x[a] > hi[a]:
-                    inside = False
-            if not inside:
+            if not _placed(Rt, pt, points[i], x, lo, hi) or _cell_min_at(cmin, origin, spacing, x) >= 0.0:
                 continue
-            if cmin[int(np.floor((x[0] - origin[0]) / spacing)), int(np.floor((x[1] - origin[1]) / spacing)),
-                    int(np.floor((x[2] - origin[2]) / spacing))] >= 0.0:
-                continue
-            field_values(coeffs, origin, spacing, x.reshape(1, 3), one)
-            counted[t, i] = one[0] < 0.0 and one[0] > -deepest
+            d = _value(coeffs, origin, spacing, x[0], x[1], x[2], wx, wy, wz)
+            counted[t, i] = d < 0.0 and d > -deepest
 
 
 @njit(cache=True, nogil=True)
@@ -475,28 +474,20 @@ def left_out_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spa
     largest penetration (m) of a point deeper than ``deepest`` (-inf if none), into ``outside[t, i]``
     whether point ``i`` lies outside the field's box but inside the box ``near_lo..near_hi`` (the
     caller measures those otherwise; beyond that box a point cannot touch)."""
-    n_pts = points.shape[0]
-    x = np.empty(3)
-    one = np.empty(1)
+    x, wx, wy, wz = np.empty(3), np.empty(4), np.empty(4), np.empty(4)
     for t in range(first, last):
         Rt, pt = R[t], p[t]
         worst = -np.inf
-        for i in range(n_pts):
-            inside = True
-            near = True
-            for a in range(3):
-                x[a] = Rt[a, 0] * points[i, 0] + Rt[a, 1] * points[i, 1] + Rt[a, 2] * points[i, 2] + pt[a]
-                if x[a] < lo[a] or x[a] > hi[a]:
-                    inside = False
-                if x[a] < near_lo[a] or x[a] > near_hi[a]:
-                    near = False
-            outside[t, i] = near and not inside
+        for i in range(points.shape[0]):
+            inside = _placed(Rt, pt, points[i], x, lo, hi)
             if not inside:
+                outside[t, i] = (near_lo[0] <= x[0] <= near_hi[0] and near_lo[1] <= x[1] <= near_hi[1]
+                                 and near_lo[2] <= x[2] <= near_hi[2])
                 continue
-            if cmin[int(np.floor((x[0] - origin[0]) / spacing)), int(np.floor((x[1] - origin[1]) / spacing)),
-                    int(np.floor((x[2] - origin[2]) / spacing))] > -deepest:
+            outside[t, i] = False
+            if _cell_min_at(cmin, origin, spacing, x) > -deepest:
                 continue
-            field_values(coeffs, origin, spacing, x.reshape(1, 3), one)
-            if one[0] <= -deepest:
-                worst = max(worst, -one[0])
+            d = _value(coeffs, origin, spacing, x[0], x[1], x[2], wx, wy, wz)
+            if d <= -deepest:
+                worst = max(worst, -d)
         deep[t] = worst
