@@ -303,22 +303,10 @@ class KneeModel:
         """``(q 5 x T, theta, loads LOAD_SIZE x T, flexions 1 x T) -> (r 5 x T, dr/dq 5 x 5T)``, or with
         ``wrt_theta`` ``-> (dr/dq, dr/dtheta 5 x (n_theta T))``: the residual and its first derivatives at
         ``T = n_trials`` poses (SI), each with the working sets of its own pose (taken inside the call,
-        zero-copy), per trial and mapped over ``threads`` threads.  What Newton's iteration and the
-        implicit-function sensitivities evaluate; built once per size.  With working sets the residual
-        is expanded to SX (its contact is a few operations on their data: ~1.5x faster than MX); without
-        them it stays MX (contact over every surface point as constants: expanded, 474k operations a
-        trial on the synthetic knee, 5x slower)."""
-        def per_trial() -> ca.Function:
-            sym = ca.SX.sym if self.ws_size else ca.MX.sym
-            residual = self.residual.expand() if self.ws_size else self.residual
-            q, theta = sym("q", 5), sym("theta", len(self.parameter_names))
-            load, flexion, ws = sym("load", LOAD_SIZE), sym("flexion"), sym("ws", self.ws_size)
-            r = residual(q, theta, load, flexion, ws)
-            outs = [ca.jacobian(r, q), ca.jacobian(r, theta)] if wrt_theta else [r, ca.jacobian(r, q)]
-            return ca.Function("pose_derivatives", [q, theta, load, flexion, ws], outs)
-
+        zero-copy), :attr:`jacobians` (or its ``(r, dr/dq)`` twin) mapped over ``threads`` threads.
+        What Newton's iteration and the implicit-function sensitivities evaluate; built once per size."""
         def build() -> ca.Function:
-            one = self.solvers.get(("pose_derivatives", wrt_theta), per_trial)
+            one = self.jacobians if wrt_theta else self._residual_and_jacobian
             mapped = one.map(n_trials, "thread", threads) if threads > 1 else one.map(n_trials)
             Q, TH = ca.MX.sym("q", 5, n_trials), ca.MX.sym("theta", len(self.parameter_names))
             L, F = ca.MX.sym("loads", LOAD_SIZE, n_trials), ca.MX.sym("flexions", 1, n_trials)
@@ -400,9 +388,27 @@ class KneeModel:
     @cached_property
     def jacobians(self) -> ca.Function:
         """``(q, theta, load, flexion, ws) -> (dr/dq, dr/dtheta)`` with the working sets ``ws`` of
-        the pose ``q`` (:meth:`working_set`): the implicit-function sensitivities."""
-        return self.residual.factory("jac_q_theta", ["q", "theta", "load", "flexion", "ws"],
-                                     ["jac:r:q", "jac:r:theta"])
+        the pose ``q`` (:meth:`working_set`): the implicit-function sensitivities of one trial
+        (:meth:`pose_derivatives` maps it)."""
+        return self._trial_derivatives("jac_q_theta", wrt_theta=True)
+
+    @cached_property
+    def _residual_and_jacobian(self) -> ca.Function:
+        """``(q, theta, load, flexion, ws) -> (r, dr/dq)`` of one trial: Newton's (:meth:`pose_derivatives`)."""
+        return self._trial_derivatives("residual_and_jacobian", wrt_theta=False)
+
+    def _trial_derivatives(self, name: str, wrt_theta: bool) -> ca.Function:
+        """One trial's ``(dr/dq, dr/dtheta)`` or ``(r, dr/dq)``: SX where contact uses working sets
+        (a few operations on their data: ~1.5x faster than MX), MX without them (contact over every
+        surface point as constants: expanded, 474k operations a trial on the synthetic knee, 5x slower)."""
+        sym = ca.SX.sym if self.ws_size else ca.MX.sym
+        residual = self.residual.expand() if self.ws_size else self.residual
+        q, theta = sym("q", 5), sym("theta", len(self.parameter_names))
+        load, flexion, ws = sym("load", LOAD_SIZE), sym("flexion"), sym("ws", self.ws_size)
+        r = residual(q, theta, load, flexion, ws)
+        outs = [ca.jacobian(r, q), ca.jacobian(r, theta)] if wrt_theta else [r, ca.jacobian(r, q)]
+        return ca.Function(name, [q, theta, load, flexion, ws], outs, ["q", "theta", "load", "flexion", "ws"],
+                           ["jac_r_q", "jac_r_theta"] if wrt_theta else ["r", "jac_r_q"])
 
     @cached_property
     def exact_residual(self) -> ca.Function:
