@@ -164,7 +164,8 @@ def cmd_export(args) -> int:
     knee = knee_from_args(args)
     check_names(knee, args)
     prob = export_problem(knee, args.measured, free=args.free, seed=args.seed, with_effects=args.with_effect,
-                          contact="expansion" if args.format == "nl" else "exact")
+                          contact="expansion" if args.format == "nl" else "exact",
+                          layout="loop" if args.format == "c" else "vector")
     with staged_directory(args.out) as stage:
         files = write_export(prob, args.format, stage.path, nl_common=args.nl_common)
     files = [stage.final(f) for f in files]
@@ -179,7 +180,7 @@ def cmd_export(args) -> int:
             print(f"contact: {json.loads((files[-1]).read_text())['contact']}")
     if args.format == "c" and prob.meta.get("working_sets"):
         print("note: this C source holds the mesh knee's femoral distance field as one constant array; "
-              "compiling it is impractical (docs/solvers.md): use --format casadi for the same exact NLP",
+              "gcc -shared -fPIC -O0 compiles the default knee's in ~10 s, -O1 in ~70 s (docs/solvers.md)",
               file=sys.stderr)
     return 0
 

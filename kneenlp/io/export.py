@@ -7,8 +7,9 @@ free parameters, with the data substituted (``.nl``) or supplied as the paramete
 * CasADi files and C code hold it exactly (``contact="exact"``): the femoral distance field is
   inside the graph (:mod:`kneenlp.geometry.graph_field`, its coefficients one constant array), so
   every constraint equals kneenlp's own at every point, and the optimum is ``identify``'s
-  (tests/test_export.py, CasADi files on the default knee).  For a mesh knee the C source carries
-  the coefficient array as text (71 MB for the default knee), too large to compile in practice;
+  (tests/test_export.py, CasADi files and compiled C on the default knee).  The C of a mesh knee
+  lays the field out as one point's function in a loop (``layout="loop"``,
+  :data:`kneenlp.geometry.graph_field.LAYOUTS`: the default knee's compiles in ~10 s at ``-O0``);
   docs/solvers.md;
 * ``.nl`` holds only expressions AMPL knows, so for a mesh knee its contact is the second-order
   expansion of the contact wrench at the start poses (``contact="expansion"``): an approximation,
@@ -27,7 +28,8 @@ Objective: the sum of squared model-minus-measured coordinates (mm^2 + deg^2).
   (``nlp_hess_l``: ``(x, p, lam_f, lam_g)``, the full symmetric Hessian of
   ``lam_f f + lam_g' g``);
 * ``c``: the same functions as C code (``kneenlp_nlp.c`` and ``kneenlp_nlp.h``, CasADi's
-  calling convention), compile with ``gcc -shared -fPIC -O1``;
+  calling convention), compile with ``gcc -shared -fPIC -O1`` (a mesh knee: ``-O0`` compiles ~6x
+  faster, its functions run ~3x slower);
 * always ``problem.json``: names, units, scaling, bounds, start, ``p`` and the data's origin.
 """
 
@@ -50,6 +52,7 @@ from kneenlp.conventions import (
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.geometry.graph_field import LAYOUTS
 from kneenlp.io.atomic import atomic_target, write_text_atomic
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
@@ -90,6 +93,9 @@ class ExportProblem:
     contact_error: dict | None = None
     #: the data vector ``p``'s layout in words (:class:`~kneenlp.experiment.problem.DataLayout`)
     p_layout: str = ""
+    #: the graph's shape for "exact" mesh contact (:data:`kneenlp.geometry.graph_field.LAYOUTS`):
+    #: "vector" for CasADi files, "loop" for C
+    layout: str = "vector"
 
     def function(self) -> ca.Function:
         return ca.Function("nlp", [self.x, self.p], [self.f, self.g], ["x", "p"], ["f", "g"])
@@ -98,12 +104,15 @@ class ExportProblem:
 def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, *,
                    free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
                    with_effects: list[str] | None = None, fixed: dict[str, float] | None = None,
-                   contact: str = "exact") -> ExportProblem:
+                   contact: str = "exact", layout: str = "vector") -> ExportProblem:
     """Build the identification NLP of ``data`` with a start like
     :func:`kneenlp.inference.identify.identify`'s (``knee`` may be a model with user elements);
-    ``contact``: ``"exact"`` (CasADi, C) or ``"expansion"`` (what ``.nl`` can hold; module docstring)."""
+    ``contact``: ``"exact"`` (CasADi, C) or ``"expansion"`` (what ``.nl`` can hold; module docstring);
+    ``layout``: the exact contact's graph shape (``"vector"`` for CasADi files, ``"loop"`` for C)."""
     if contact not in CONTACT_FORMS:
         raise ValueError(f"contact must be one of {CONTACT_FORMS}, not {contact!r}")
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, not {layout!r}")
     model = KneeModel.of(knee or Knee.default())
     if not isinstance(data, MeasuredData):
         data = read_measured(data)
@@ -111,7 +120,8 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     free = problem.free
     T = problem.n_trials
     contact = contact if model.ws_size else "exact"  # no working sets: the one form is exact
-    e = nlp_expressions(problem, parallel="serial", working_sets="graph" if contact == "exact" else "data")
+    e = nlp_expressions(problem, parallel="serial", working_sets="graph" if contact == "exact" else "data",
+                        layout=layout)
     values = problem.scatter(np.random.default_rng(seed))
     values.update(problem.check_start(start))
     theta0 = problem.theta(values)
@@ -131,7 +141,7 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     return ExportProblem(e.f, e.g, e.x, e.p, problem.data_vector(ws), x0, e.lbx, e.ubx, var_names, var_units,
                          con_names, list(RESIDUAL_UNITS) * T,
                          {n: float(s) for n, s in zip(free, problem.scales, strict=True)}, len(free), meta,
-                         contact, error, problem.layout().describe())
+                         contact, error, problem.layout().describe(), layout)
 
 
 def expansion_error(problem: IdentificationProblem, q0: np.ndarray, theta: np.ndarray, ws: np.ndarray,
@@ -212,6 +222,10 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
                 fn.save(str(tmp))
             files.append(out / f"{fn.name()}.casadi")
     else:
+        if prob.meta.get("working_sets") and prob.contact == "exact" and prob.layout != "loop":
+            raise InputError("C code of a mesh knee's exact contact needs the loop layout (the vector one does not "
+                             "compile in practice): build the problem with layout='loop' (what `kneenlp export "
+                             "--format c` does)", field="--format")
         cg = ca.CodeGenerator("kneenlp_nlp.c", {"with_header": True})
         for fn in _derivative_functions(prob):
             cg.add(fn)

@@ -231,10 +231,11 @@ class StagedElement(ForceElement, ABC):
         outs = [force, moment, *(self.report(probe, data, force) if with_report else [])]
         return ca.Function(f"surface_{self.name}", [probe, ws], outs)
 
-    def exact_wrench(self, probe: ca.MX) -> tuple[ca.MX, ca.MX]:
+    def exact_wrench(self, probe: ca.MX, layout: str = "vector") -> tuple[ca.MX, ca.MX]:
         """Force and moment (:attr:`wrench_frame`) from the probe alone, every point counted: what
-        the working sets stand for, as one self-contained graph (export).  Default: the surface
-        wrench of every point as constants (:meth:`constant_data`)."""
+        the working sets stand for, as one self-contained graph (export); ``layout`` is the graph's
+        shape where an element has a choice (:data:`kneenlp.geometry.graph_field.LAYOUTS`).
+        Default: the surface wrench of every point as constants (:meth:`constant_data`)."""
         return self.surface_wrench(probe, ca.DM(self.constant_data()))
 
     def report(self, probe: ca.MX, data: ca.MX | ca.DM, force: ca.MX) -> list[ca.MX]:

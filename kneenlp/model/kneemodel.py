@@ -417,11 +417,20 @@ class KneeModel:
         <kneenlp.model.elements.StagedElement.exact_wrench>`: for mesh contact the distance field
         itself, :mod:`kneenlp.geometry.graph_field`) instead of from working sets taken outside it.
         The same function at every pose; slower to evaluate, but self-contained (export)."""
+        return self._exact_residual("vector")
+
+    @cached_property
+    def exact_residual_loop(self) -> ca.Function:
+        """:attr:`exact_residual` with the field's spline as one point's function mapped over the
+        points (:data:`kneenlp.geometry.graph_field.LAYOUTS`): the same values, C that compiles."""
+        return self._exact_residual("loop")
+
+    def _exact_residual(self, layout: str) -> ca.Function:
         q, flexion = ca.MX.sym("q", 5), ca.MX.sym("flexion")
         theta, load = ca.MX.sym("theta", len(self.parameter_names)), ca.MX.sym("load", LOAD_SIZE)
         pr = self._probes(q, flexion, theta) if self.staged else []
         pr = [pr] if isinstance(pr, ca.MX) else list(pr)
-        wrenches = [e.exact_wrench(pr[j]) for j, e in enumerate(self.staged)]
+        wrenches = [e.exact_wrench(pr[j], layout) for j, e in enumerate(self.staged)]
         r, _ = self._balance(q, flexion, theta, load, *[w[0] for w in wrenches], *[w[1] for w in wrenches])
         return ca.Function("exact_residual", [q, theta, load, flexion], [r], ["q", "theta", "load", "flexion"], ["r"])
 

@@ -177,7 +177,7 @@ class MeshContact(StagedElement):
         w = K * (W0 + J0 @ xi + 0.5 * quad)
         return w[0:3], w[3:6]
 
-    def exact_wrench(self, probe):
+    def exact_wrench(self, probe, layout="vector"):
         """The contact's force and moment (femoral frame, about the tibial origin) summed over every
         tibial point in the graph, with the field evaluated there (:func:`~kneenlp.geometry.graph_field.
         field_in_graph`): a point counts where :meth:`select` takes it (inside the field's box,
@@ -185,7 +185,7 @@ class MeshContact(StagedElement):
         working sets of that pose."""
         R, p, K = ca.reshape(probe[0:9], 3, 3), probe[9:12], probe[12]
         X = R @ ca.DM(self.points.T) + ca.repmat(p, 1, len(self.points))
-        d, g = field_in_graph(self.field, X)
+        d, g = field_in_graph(self.field, X, layout)
         lo, hi = self.field.bounds
         inside = ca.DM.ones(1, len(self.points))
         for a in range(3):

@@ -72,21 +72,22 @@ class NLPExpressions:
 
 
 def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", threads: int = 1,
-                    working_sets: str = "data") -> NLPExpressions:
+                    working_sets: str = "data", layout: str = "vector") -> NLPExpressions:
     """The NLP's expressions (see module docstring); ``parallel``/``threads`` set the trial map.
 
     ``working_sets``: ``"data"`` makes the contact working sets the last part of the data vector
     (T x ws_size: a self-contained program, exact where they were taken); ``"graph"`` computes
     the contact inside the graph from the pose (:attr:`KneeModel.exact_residual`: self-contained
-    and exact everywhere, for export); ``"pose"`` takes them at every pose evaluated
+    and exact everywhere, for export; ``layout`` the graph's shape,
+    :data:`kneenlp.geometry.graph_field.LAYOUTS`); ``"pose"`` takes them at every pose evaluated
     (:class:`~kneenlp.model.workingsets.WorkingSets`; derivatives then pass through a callback,
     which is slow: :func:`build_nlp` instead supplies the derivative functions of the data form)."""
     model, T = problem.model, problem.n_trials
     xp = ca.MX.sym("p_free", problem.n_free)
     xq = ca.MX.sym("q_user", 5, T)
-    layout = problem.layout(working_sets=working_sets == "data")
-    par = ca.MX.sym("data", layout.size)
-    data = layout.split(par)
+    data_layout = problem.layout(working_sets=working_sets == "data")
+    par = ca.MX.sym("data", data_layout.size)
+    data = data_layout.split(par)
     loads, flex = data["loads"], data["flexions"]
     theta = problem.theta_of_scaled(xp, data["theta"])
     q_si = coords_from_user(xq)
@@ -95,7 +96,7 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
     else:
         mapped = model.residual.map(T, "serial" if parallel == "thread" else parallel)
     if working_sets == "graph":
-        exact = model.exact_residual
+        exact = model.exact_residual_loop if layout == "loop" else model.exact_residual
         mapped = exact.map(T, "thread", threads) if parallel == "thread" and threads > 1 else exact.map(T)
         g = ca.vec(mapped(q_si, theta, loads, flex))
     else:
