@@ -17,8 +17,8 @@ Two layouts of the same spline (:data:`LAYOUTS`), which differ only in the graph
   practice (default knee: not within 15 min);
 * ``"loop"``: the spline of one point as an SX function (:func:`spline_function`, its
   coefficients a non-differentiated input) mapped over the points.  Its C is a loop around
-  straight-line code (the default knee's NLP compiles in about a minute at ``-O0``); about 6x
-  slower in the virtual machine.
+  straight-line code (the default knee's NLP compiles in 11-21 s at ``-O0``); 3-9x slower in
+  the virtual machine (``benchmarks/bench_export.py``).
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ Objective: the sum of squared model-minus-measured coordinates (mm^2 + deg^2).
   (``nlp_hess_l``: ``(x, p, lam_f, lam_g)``, the full symmetric Hessian of
   ``lam_f f + lam_g' g``);
 * ``c``: the same functions as C code (``kneenlp_nlp.c`` and ``kneenlp_nlp.h``, CasADi's
-  calling convention), compile with ``gcc -shared -fPIC -O1`` (a mesh knee: ``-O0`` compiles ~6x
+  calling convention), compile with ``gcc -shared -fPIC -O1`` (a mesh knee: ``-O0`` compiles 3-6x
   faster, its functions run ~3x slower);
 * always ``problem.json``: names, units, scaling, bounds, start, ``p`` and the data's origin.
 """
