@@ -312,7 +312,7 @@ def test_c_export_of_a_mesh_knee_compiles_and_has_identifys_optimum(mesh_case, t
     subprocess.run(["gcc", "-shared", "-fPIC", "-O0", str(tmp_path / "kneenlp_nlp.c"), "-o", str(lib), "-lm"],
                    check=True, timeout=900)
     side = json.loads((tmp_path / "problem.json").read_text())
-    assert side["contact"].startswith("exact")
+    assert side["contact"].startswith("exact") and side["c"]["compile"].startswith("gcc")
     p = np.array(side["p"])
     fns = {n: ca.external(n, str(lib)) for n in ("nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g", "nlp_hess_l")}
     prob = export_problem(knee, data, seed=2)  # the CasADi-file form (vector layout) as the reference

@@ -231,6 +231,9 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
             cg.add(fn)
         cg.generate(str(out) + "/")
         files += [out / "kneenlp_nlp.c", out / "kneenlp_nlp.h"]
+        extra = {"compile": "gcc -shared -fPIC -O1 kneenlp_nlp.c -o libkneenlp_nlp.so -lm",
+                 "load": "casadi.external('nlp_hess_l', './libkneenlp_nlp.so') (or dlopen; CasADi's calling "
+                         "convention, see kneenlp_nlp.h)"}
     sidecar = {
         "format": fmt,
         "description": "kneenlp identification NLP: min sum of squared coordinate residuals s.t. equilibrium",
@@ -247,7 +250,7 @@ def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: s
         "p_layout": prob.p_layout,
         "source": prob.meta,
         "files": [f.name for f in files],
-        **({"nl": extra} if extra else {}),
+        **({fmt: extra} if extra else {}),
     }
     write_text_atomic(out / "problem.json", json.dumps(sidecar, indent=1))
     files.append(out / "problem.json")
