@@ -4,7 +4,10 @@ Two measurements from the calibration (docs/real-experiment.md, "Session 15"):
 
 1. the lateral and anterior translation residuals regressed on the internal rotation (a rotation
    axis shifted by ``a`` moves the tibial origin by ``a`` per radian): the slope and the RMS left;
-2. meniscus springs per compartment (a medial pivot: the medial meniscus held, the lateral one
+2. the tibial and femoral origins shifted (6 parameters, linear least squares on the calibrated
+   poses, beside the calibration's constant registration of the translations): where the robot's
+   translations would be measured from if the bones' origins were registered a few mm off;
+3. meniscus springs per compartment (a medial pivot: the medial meniscus held, the lateral one
    mobile), transverse or anterior-posterior only, as user elements, each refitted with the
    calibration's parameters from the calibrated values (as ``benchmarks/bench_real_candidates.py``).
 
@@ -26,6 +29,7 @@ from kneenlp.inference.identify import reduced_fit
 from kneenlp.inference.predict import rms_by_coordinate
 from kneenlp.io.resources import resource
 from kneenlp.model.effects import Meniscus
+from kneenlp.model.kinematics import reference_transform
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import Parameter
 
@@ -73,6 +77,19 @@ def main() -> None:
         print(f"{name} residual vs internal rotation: slope {coef[0]:+.1f} mm/rad, r = "
               f"{np.corrcoef(internal, r[:, j])[0, 1]:+.2f}, RMS {np.sqrt(np.mean(r[:, j] ** 2)):.2f} -> "
               f"{np.sqrt(np.mean(left ** 2)):.2f} mm")
+    # 2. origin shifts: translations = A p with p' = p + R s_t - s_f, A the inverse of [e1 e2 e3]
+    rows = []
+    for t, q in zip(data.trials, fit.q_pred, strict=True):
+        R, _ = reference_transform(t.flexion, q)
+        e2 = np.array([np.cos(t.flexion), -np.sin(t.flexion), 0.0])  # rot_z(-flexion) @ rot_x(varus), column 0
+        A = np.linalg.inv(np.column_stack([[0.0, 0.0, 1.0], e2, R[:, 1]]))
+        rows.append(np.hstack([A @ R, -A, np.eye(3)]))  # mm per mm; the last three: the constant registration
+    M, b = np.vstack(rows), r[:, 2:5].ravel()
+    shift = np.linalg.lstsq(M, b, rcond=None)[0]
+    left = (b - M @ shift).reshape(-1, 3)
+    left_rms = ", ".join(f"{v:.2f}" for v in np.sqrt(np.mean(left[loaded] ** 2, axis=0)))
+    print(f"origins shifted by {np.round(shift[:3], 2)} mm (tibial frame) and {np.round(shift[3:6], 2)} mm "
+          f"(femoral frame): loaded translation RMS {left_rms} mm")
     for effects in (["meniscus"], ["meniscus_medial"], ["meniscus_lateral"], ["meniscus_medial", "meniscus_lateral"],
                     ["meniscus_medial_ap"], ["meniscus_lateral_ap"]):
         t0 = time.perf_counter()
