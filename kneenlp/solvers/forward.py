@@ -77,33 +77,33 @@ class ForwardSolver:
     def cold_start(self, flexion: float, theta: np.ndarray) -> np.ndarray:
         """Where a trial without a warm start begins (rad, m): 0.3 mm proximal of the reference
         pose (slightly penetrated); for a knee imaged at another pose than its frames' coincidence
-        ([reference_pose]) the unloaded equilibrium at ``flexion`` reached from the reference pose in
-        flexion steps of at most :data:`PASSIVE_STEP_DEG` (the GS translations of such a knee change
-        by millimetres with flexion), or where that path stopped."""
+        ([reference_pose]) the unloaded equilibrium at ``flexion`` reached from the reference pose
+        through the flexions ``f_ref +- k`` :data:`PASSIVE_STEP_DEG` before it, one Newton solve
+        each (the GS translations of such a knee change by millimetres with flexion), or where that
+        walk stopped.  The walk of the last parameters is remembered (a fit's trials at several
+        flexions walk it once); every pose on it is computed from the one before on the same grid,
+        so the result does not depend on which flexions were asked for before."""
         q = self.reference + COLD_START
         f_ref = self.model.knee.reference_pose[0]
         if not np.any(self.reference) and f_ref == 0.0:
             return q
-        # the path of the last parameters is remembered: a fit's trials at several flexions walk it once
         key = np.asarray(theta, float).tobytes()
         if self._passive[0] != key:
             self._passive = (key, {})
         path = self._passive[1]
         if flexion in path:
             return path[flexion].copy()
-        # start from the remembered pose nearest ``flexion`` on its side of the reference flexion
-        on_path = [f for f in path if (f - f_ref) * (flexion - f_ref) > 0 and abs(f - f_ref) < abs(flexion - f_ref)]
-        f0 = max(on_path, key=lambda f: abs(f - f_ref), default=f_ref)
-        if f0 != f_ref:
-            q = path[f0].copy()
-        n = int(np.ceil(abs(np.degrees(flexion - f0)) / PASSIVE_STEP_DEG))
-        for f in np.linspace(f0, flexion, n + 1)[1:]:
+        step, side = np.radians(PASSIVE_STEP_DEG), np.sign(flexion - f_ref)
+        grid = [f_ref + side * k * step for k in range(1, int(np.ceil(abs(flexion - f_ref) / step)))]
+        for f in [*grid, flexion]:
+            if f in path:
+                q = path[f]
+                continue
             q_new, res = self._newton(q, theta, Trial("passive", float(np.degrees(f)), {}))
             if not res <= self.tol:
-                return q
-            q = q_new
-        path[flexion] = q.copy()
-        return q
+                return q.copy()
+            q = path[f] = q_new
+        return q.copy()
 
     def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray, threads: int = 2,
                     max_retries: int | None = None, theta0: np.ndarray | None = None,
