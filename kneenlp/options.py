@@ -63,6 +63,14 @@ def positive(text: str) -> float:
     return value
 
 
+def fraction(text: str) -> float:
+    """An argparse type: a finite number with 0 < value < 1."""
+    value = finite(text)
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 1 (exclusive), got {text!r}")
+    return value
+
+
 def names(text: str) -> list[str]:
     """An argparse type: a comma-separated list of names (at least one, no repeats)."""
     items = [n.strip() for n in text.split(",")]

@@ -285,6 +285,29 @@ def test_calibration_frees_what_the_trials_determine(s192803):
     assert set(free) | set(fixed) == set(REGISTRATION) | set(base)
 
 
+def test_a_larger_pivot_tolerance_fits_a_subset(s192803):
+    """``pivot_tolerance`` chooses how weakly determined a fitted parameter may be: a larger one
+    fits a strict subset of the default's ligament parameters (the registration always)."""
+    from kneenlp.inference.calibrate import PIVOT_TOLERANCE, REGISTRATION, calibration_free
+
+    data, model = read_measured(CSV), KneeModel.of(s192803)
+    default, _ = calibration_free(model, data)
+    fewer, fixed = calibration_free(model, data, pivot_tolerance=5 * PIVOT_TOLERANCE)
+    assert fewer[:5] == REGISTRATION and set(fewer) < set(default)
+    assert set(default) - set(fewer) <= set(fixed)
+
+
+def test_pivot_tolerance_is_refused_where_nothing_is_calibrated(tmp_path, capsys):
+    """Synthetic data (no side, no joint loads) is identified, not calibrated: the option would do
+    nothing, so it is refused in one line; out-of-range values are refused by the parser."""
+    kneenlp.simulate(kneenlp.Knee.named("synthetic"), "set1").measured("uniform:0.5", 1).to_csv(
+        tmp_path / "m.csv", index=False)
+    assert main(["identify", str(tmp_path / "m.csv"), "--knee", "synthetic", "--pivot-tolerance", "0.1"]) == 2
+    assert "--pivot-tolerance" in capsys.readouterr().err
+    assert main(["cross-validate", str(CSV), "--knee", "s192803", "--pivot-tolerance", "1.5"]) == 2
+    assert "between 0 and 1" in capsys.readouterr().err
+
+
 def test_calibrated_parameter_file_round_trips(s192803, tmp_path, capsys):
     """A calibration's parameter file (group scales and offsets, the registration: [values] with
     units) is what --parameters reads back: the same values, a model that uses them."""

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from kneenlp.cli.inputs import MAX_STUDY_FITS, check_names, effect_values, knee_from_args, knee_reference, study_size
+from kneenlp.errors import InputError
 from kneenlp.io.atomic import staged_directory, write_csv_atomic, write_error, write_text_atomic
 
 
@@ -92,9 +93,13 @@ def cmd_identify(args) -> int:
     calibration = None
     if real_experiment(args.measured) and args.method == "simultaneous":
         calibration = calibrate(KneeModel.of(knee), args.measured, args.free, seed=args.seed, noise=args.noise,
-                                **options)
+                                pivot_tolerance=args.pivot_tolerance, **options)
         fit = calibration.fit
     else:
+        if args.pivot_tolerance is not None:
+            raise InputError("--pivot-tolerance chooses what a real experiment's calibration fits; this data is "
+                             "not one (no declared side, no joint loads) or --method nested was asked",
+                             field="--pivot-tolerance")
         fit = identify(knee, args.measured, args.method, free=args.free, seed=args.seed, noise=args.noise, **options)
         calibration = Calibration(fit, None, [])
     if args.out:
@@ -304,7 +309,8 @@ def cmd_cross_validate(args) -> int:
     from kneenlp.model.kneemodel import KneeModel
 
     model = KneeModel.of(knee_from_args(args))
-    results = crossval.cross_validate(model, args.measured, args.hold_out or None, seed=args.seed)
+    results = crossval.cross_validate(model, args.measured, args.hold_out or None, seed=args.seed,
+                                      pivot_tolerance=args.pivot_tolerance)
     table = crossval.table(results)
     written = []
     if args.out:

@@ -66,6 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--protocol", help="protocol the data must match (default: the one named in the data)")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
                    help="also identify this candidate effect's parameters (repeatable; see 'kneenlp diagnose')")
+    p.add_argument("--pivot-tolerance", type=opt.fraction, default=None, metavar="F",
+                   help="real experiments: fit the ligament parameters whose pivot is at least F of the largest "
+                        "(default 0.02; larger fits fewer: worse on these trials, often better on others)")
     p.add_argument("--out", help="also write fit.json and fit_trials.csv here")
     p.add_argument("--json", action="store_true", help="print JSON instead of the report")
     p.set_defaults(validate=True, out_kind="dir")
@@ -163,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="only this hold-out (repeatable): 'flexion <F> deg' (the highest flexion) or a load "
                         "direction such as anterior or valgus; default: all of them")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the calibrations (default 0)")
+    p.add_argument("--pivot-tolerance", type=opt.fraction, default=None, metavar="F",
+                   help="the calibrations fit the ligament parameters whose pivot is at least F of the largest "
+                        "(default 0.02, see 'kneenlp identify')")
     p.add_argument("--out", help="write cross_validation.csv and each hold-out's predicted_<name>.csv here")
     p.add_argument("--json", action="store_true", help="print JSON: one row per hold-out (RMS in mm, deg)")
     p.set_defaults(validate=True, out_kind="dir")

@@ -102,11 +102,11 @@ def engaged_probe(model: KneeModel, data: MeasuredData, theta: np.ndarray) -> tu
     return probe, engaged
 
 
-def calibration_free(model: KneeModel, data: MeasuredData,
-                     theta: np.ndarray | None = None) -> tuple[list[str], list[str]]:
+def calibration_free(model: KneeModel, data: MeasuredData, theta: np.ndarray | None = None,
+                     pivot_tolerance: float = PIVOT_TOLERANCE) -> tuple[list[str], list[str]]:
     """(parameters to fit, ligament parameters left fixed): the registration and the ligament
     parameters the trials determine at ``theta`` (default: the knee's values; see
-    :func:`engaged_probe`)."""
+    :func:`engaged_probe`): those whose pivot is at least ``pivot_tolerance`` of the largest."""
     candidates = default_free(model)
     names = [*REGISTRATION, *candidates]
     problem = IdentificationProblem.from_data(model, data, names)
@@ -119,7 +119,7 @@ def calibration_free(model: KneeModel, data: MeasuredData,
     scaled = S[rows] * np.array([model.parameter(n).scale for n in names])
     _, R, piv = scipy.linalg.qr(scaled, mode="economic", pivoting=True)
     diag = np.abs(np.diag(R))
-    keep = {names[piv[i]] for i in range(len(diag)) if diag[i] >= PIVOT_TOLERANCE * diag[0]}
+    keep = {names[piv[i]] for i in range(len(diag)) if diag[i] >= pivot_tolerance * diag[0]}
     free = [*REGISTRATION, *[n for n in candidates if n in keep]]
     return free, [n for n in candidates if n not in keep]
 
@@ -212,11 +212,16 @@ class Calibration:
 
 
 def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
-              noise=None, load_point: bool = True, **identify_options) -> Calibration:
+              noise=None, load_point: bool = True, pivot_tolerance: float | None = None,
+              **identify_options) -> Calibration:
     """Fit ``free`` (default :func:`calibration_free`) to the real experiment ``data`` by
     reduced-space Gauss-Newton from the knee's values (or the probe), the simultaneous NLP if that
     fails; for a robot's joint loads and the default ``free``, ``load_point`` frees the lateral
-    shift of the point the robot's force acts at too.  ``identify_options`` as
+    shift of the point the robot's force acts at too; ``pivot_tolerance``: how weakly determined a
+    ligament parameter may be and still be fitted (:func:`calibration_free`, default
+    :data:`PIVOT_TOLERANCE`; larger fits fewer,
+    which trades the fit on the calibration's trials for predictions of others, docs/real-experiment.md).
+    ``identify_options`` as
     :func:`~kneenlp.inference.identify.identify`'s (``weighted``, ``with_effects``, ``start``; the
     rest serve the fallback)."""
     from kneenlp.inference.identify import identify, reduced_fit
@@ -226,7 +231,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     theta, engaged = engaged_probe(model, data, model.theta())
     chosen = free is None  # the calibration chooses what to fit (a user's --free is kept as given)
     if chosen:
-        free, fixed = calibration_free(model, data, theta)
+        free, fixed = calibration_free(model, data, theta,
+                                       PIVOT_TOLERANCE if pivot_tolerance is None else pivot_tolerance)
         # an engaged group's offset is always fitted: the data, not the probe, decide how taut it is
         offsets = [f"{g}.ref_strain_offset" for g in engaged]
         free += [n for n in offsets if n not in free]
