@@ -306,6 +306,8 @@ def test_pivot_tolerance_is_refused_where_nothing_is_calibrated(tmp_path, capsys
     assert "--pivot-tolerance" in capsys.readouterr().err
     assert main(["cross-validate", str(CSV), "--knee", "s192803", "--pivot-tolerance", "1.5"]) == 2
     assert "between 0 and 1" in capsys.readouterr().err
+    assert main(["identify", str(CSV), "--knee", "s192803", "--free", "ACLam.k_scale", "--pivot-tolerance", "0.1"]) == 2
+    assert "give one" in capsys.readouterr().err
 
 
 def test_calibrated_parameter_file_round_trips(s192803, tmp_path, capsys):

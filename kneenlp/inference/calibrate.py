@@ -218,10 +218,9 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     reduced-space Gauss-Newton from the knee's values (or the probe), the simultaneous NLP if that
     fails; for a robot's joint loads and the default ``free``, ``load_point`` frees the lateral
     shift of the point the robot's force acts at too; ``pivot_tolerance``: how weakly determined a
-    ligament parameter may be and still be fitted (:func:`calibration_free`, default
-    :data:`PIVOT_TOLERANCE`; larger fits fewer,
-    which trades the fit on the calibration's trials for predictions of others, docs/real-experiment.md).
-    ``identify_options`` as
+    ligament parameter may be and still be fitted, for the default ``free`` (:func:`calibration_free`,
+    default :data:`PIVOT_TOLERANCE`; larger fits fewer, which trades the fit on the calibration's
+    trials for predictions of others, docs/real-experiment.md).  ``identify_options`` as
     :func:`~kneenlp.inference.identify.identify`'s (``weighted``, ``with_effects``, ``start``; the
     rest serve the fallback)."""
     from kneenlp.inference.identify import identify, reduced_fit
@@ -230,6 +229,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     fixed: list[str] = []
     theta, engaged = engaged_probe(model, data, model.theta())
     chosen = free is None  # the calibration chooses what to fit (a user's --free is kept as given)
+    if not chosen and pivot_tolerance is not None:
+        raise ValueError("pivot_tolerance chooses the free parameters; it cannot apply to a given `free`")
     if chosen:
         free, fixed = calibration_free(model, data, theta,
                                        PIVOT_TOLERANCE if pivot_tolerance is None else pivot_tolerance)
