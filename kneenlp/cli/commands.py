@@ -92,9 +92,6 @@ def cmd_identify(args) -> int:
                "protocol": args.protocol, "with_effects": args.with_effect}
     calibration = None
     if real_experiment(args.measured) and args.method == "simultaneous":
-        if args.free and args.pivot_tolerance is not None:
-            raise InputError("--pivot-tolerance chooses what the calibration fits, --free names it: give one",
-                             field="--pivot-tolerance")
         calibration = calibrate(KneeModel.of(knee), args.measured, args.free, seed=args.seed, noise=args.noise,
                                 pivot_tolerance=args.pivot_tolerance, **options)
         fit = calibration.fit

@@ -48,6 +48,7 @@ import numpy as np
 import scipy.linalg
 
 from kneenlp.conventions import COORDINATES
+from kneenlp.errors import InputError
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.inference.fit import Fit
@@ -103,10 +104,12 @@ def engaged_probe(model: KneeModel, data: MeasuredData, theta: np.ndarray) -> tu
 
 
 def calibration_free(model: KneeModel, data: MeasuredData, theta: np.ndarray | None = None,
-                     pivot_tolerance: float = PIVOT_TOLERANCE) -> tuple[list[str], list[str]]:
+                     pivot_tolerance: float | None = None) -> tuple[list[str], list[str]]:
     """(parameters to fit, ligament parameters left fixed): the registration and the ligament
     parameters the trials determine at ``theta`` (default: the knee's values; see
-    :func:`engaged_probe`): those whose pivot is at least ``pivot_tolerance`` of the largest."""
+    :func:`engaged_probe`): those whose pivot is at least ``pivot_tolerance`` (default
+    :data:`PIVOT_TOLERANCE`) of the largest."""
+    pivot_tolerance = PIVOT_TOLERANCE if pivot_tolerance is None else pivot_tolerance
     candidates = default_free(model)
     names = [*REGISTRATION, *candidates]
     problem = IdentificationProblem.from_data(model, data, names)
@@ -218,22 +221,21 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     reduced-space Gauss-Newton from the knee's values (or the probe), the simultaneous NLP if that
     fails; for a robot's joint loads and the default ``free``, ``load_point`` frees the lateral
     shift of the point the robot's force acts at too; ``pivot_tolerance``: how weakly determined a
-    ligament parameter may be and still be fitted, for the default ``free`` (:func:`calibration_free`,
-    default :data:`PIVOT_TOLERANCE`; larger fits fewer, which trades the fit on the calibration's
+    ligament parameter may be and still be fitted, for the default ``free`` only
+    (:func:`calibration_free`; larger fits fewer, which trades the fit on the calibration's
     trials for predictions of others, docs/real-experiment.md).  ``identify_options`` as
     :func:`~kneenlp.inference.identify.identify`'s (``weighted``, ``with_effects``, ``start``; the
     rest serve the fallback)."""
     from kneenlp.inference.identify import identify, reduced_fit
 
+    if free is not None and pivot_tolerance is not None:
+        raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
     before = predict(model, data)
     fixed: list[str] = []
     theta, engaged = engaged_probe(model, data, model.theta())
     chosen = free is None  # the calibration chooses what to fit (a user's --free is kept as given)
-    if not chosen and pivot_tolerance is not None:
-        raise ValueError("pivot_tolerance chooses the free parameters; it cannot apply to a given `free`")
     if chosen:
-        free, fixed = calibration_free(model, data, theta,
-                                       PIVOT_TOLERANCE if pivot_tolerance is None else pivot_tolerance)
+        free, fixed = calibration_free(model, data, theta, pivot_tolerance)
         # an engaged group's offset is always fitted: the data, not the probe, decide how taut it is
         offsets = [f"{g}.ref_strain_offset" for g in engaged]
         free += [n for n in offsets if n not in free]
