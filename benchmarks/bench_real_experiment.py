@@ -13,8 +13,11 @@ Prints (2 cores; seconds, mm, deg):
   without each load direction in turn, the held-out trials predicted (target <= 2 mm, <= 5 deg);
   the table is written to docs/figures/s192803_cross_validation.csv (what notebook 03 shows).
 With ``--pivot-tolerance F`` the calibrations fit only the ligament parameters whose pivot is at
-least F of the largest (``calibrate(pivot_tolerance=F)``; default 0.02) and the table is not written.
-Run: python benchmarks/bench_real_experiment.py [--no-cross-validation] [--pivot-tolerance F]
+least F of the largest (``calibrate(pivot_tolerance=F)``; default 0.02); with ``--also-free NAMES``
+they fit these parameters or effects as well (``calibrate(also_free=...)``, e.g.
+``PCLal_femoral_attachment,ACLam_femoral_attachment,PCLal_bundles``); with either the table is not
+written.  The laxity per flexion (measured, calibrated) is printed too.
+Run: python benchmarks/bench_real_experiment.py [--no-cross-validation] [--pivot-tolerance F] [--also-free NAMES]
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import kneenlp
 from kneenlp.experiment.measured import read_measured
 from kneenlp.inference import crossval
 from kneenlp.inference.calibrate import calibrate
+from kneenlp.inference.laxity import laxity_lines
 from kneenlp.inference.predict import predict, rms_by_coordinate
 from kneenlp.io.resources import resource
 from kneenlp.model.kneemodel import KneeModel
@@ -44,8 +48,11 @@ def row(rms: dict[str, float]) -> str:
 
 def main() -> None:
     tolerance = float(sys.argv[sys.argv.index("--pivot-tolerance") + 1]) if "--pivot-tolerance" in sys.argv else None
-    if tolerance is not None:
-        print(f"pivot tolerance {tolerance:g}")
+    also = sys.argv[sys.argv.index("--also-free") + 1].split(",") if "--also-free" in sys.argv else None
+    options = {"pivot_tolerance": tolerance, "also_free": also}
+    for name, value in options.items():
+        if value is not None:
+            print(f"{name.replace('_', ' ')}: {value}")
     t_import = 0.0
     if DEPOSIT.is_dir():
         from kneenlp.io.import_abaqus import import_abaqus
@@ -66,7 +73,7 @@ def main() -> None:
     print(f"predict 25 trials with the FE parameters: {time.perf_counter() - t0:.2f} s, "
           f"{int(before.converged.sum())}/25 at equilibrium; RMS {row(before.rms())}")
     t0 = time.perf_counter()
-    cal = calibrate(model, data, pivot_tolerance=tolerance)
+    cal = calibrate(model, data, **options)
     t_cal = time.perf_counter() - t0
     fit = cal.fit
     loaded = np.array([t.dominant != "none" for t in data.trials])
@@ -87,14 +94,15 @@ def main() -> None:
     outlier = np.array([t.id == "valgus_flex60" for t in data.trials])
     rms_clean = rms_by_coordinate((data.q_user - fit.predicted_user)[loaded & ~outlier])
     print(f"  RMS after, loaded trials without valgus_flex60: {row(rms_clean)}")
+    print("\n".join(laxity_lines(cal.laxity(), "  laxity after calibration (mm, deg):")))
     if "--no-cross-validation" in sys.argv:
         return
     t0 = time.perf_counter()
-    results = crossval.cross_validate(model, data, pivot_tolerance=tolerance)
+    results = crossval.cross_validate(model, data, **options)
     print(f"cross-validation, {len(results)} hold-outs: {time.perf_counter() - t0:.0f} s")
     print(crossval.report(results))
     print("  targets: <= 2 mm and <= 5 deg on held-out trials")
-    if tolerance is not None:
+    if tolerance is not None or also is not None:
         return
     TABLE.parent.mkdir(parents=True, exist_ok=True)
     crossval.table(results).to_csv(TABLE, index=False, float_format="%.4g")

@@ -175,6 +175,15 @@ def test_predict_reports_every_trial(tmp_path, capsys):
     assert np.allclose(err, table["error_internal_rotation_deg"])
     assert summary["rms"]["internal_rotation_deg"] == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-6)
     assert (out / "predicted_laxity.png").stat().st_size > 10_000
+    # laxity: anterior minus posterior trial per flexion, measured and predicted, from the tables above
+    laxity = pd.read_csv(out / "laxity.csv")
+    assert len(laxity) == len(summary["laxity"]) == 12  # 4 flexions x 3 load pairs
+    ap = laxity[laxity["laxity"] == "anterior-posterior"].iloc[0]
+    by_id = table.set_index("trial")
+    for column, source in (("measured", "measured_anterior_translation_mm"), ("predicted", "anterior_translation_mm")):
+        expected = by_id.loc["anterior_flex0", source] - by_id.loc["posterior_flex0", source]
+        assert ap[column] == pytest.approx(expected, abs=1e-8)
+    assert ap["measured"] == pytest.approx(10.48, abs=0.01) and ap["unit"] == "mm"
 
 
 # ------------------------------------------------------------------ bad input: one line, exit 2
@@ -308,6 +317,28 @@ def test_pivot_tolerance_is_refused_where_nothing_is_calibrated(tmp_path, capsys
     assert "between 0 and 1" in capsys.readouterr().err
     assert main(["identify", str(CSV), "--knee", "s192803", "--free", "ACLam.k_scale", "--pivot-tolerance", "0.1"]) == 2
     assert "give one" in capsys.readouterr().err
+
+
+def test_also_free_names_parameters_or_effects(s192803, tmp_path, capsys):
+    """``--also-free`` takes parameter names and effect names (an effect is all its parameters);
+    an unknown name, a given --free and data that is not a real experiment are refused in one line."""
+    from kneenlp.inference.calibrate import also_free_names
+
+    model = KneeModel.of(s192803)
+    assert also_free_names(model, ["PCLal_femoral_attachment", "ACLam.femur_anterior", "PCLal.femur_lateral"]) == [
+        "PCLal.femur_anterior", "PCLal.femur_proximal", "PCLal.femur_lateral", "ACLam.femur_anterior"]
+    assert main(["identify", str(CSV), "--knee", "s192803", "--also-free", "PCLx_femoral_attachment"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--also-free" in err
+    assert "unknown parameter or effect 'PCLx_femoral_attachment'" in err
+    assert "PCLal_femoral_attachment" in err  # the known effects are listed
+    assert main(["identify", str(CSV), "--knee", "s192803", "--free", "ACLam.k_scale",
+                 "--also-free", "ACLam.femur_anterior"]) == 2
+    assert "give one" in capsys.readouterr().err
+    kneenlp.simulate(kneenlp.Knee.named("synthetic"), "set1").measured("uniform:0.5", 1).to_csv(
+        tmp_path / "m.csv", index=False)
+    assert main(["identify", str(tmp_path / "m.csv"), "--knee", "synthetic", "--also-free", "ACL.femur_anterior"]) == 2
+    assert "not one" in capsys.readouterr().err
 
 
 def test_calibrated_parameter_file_round_trips(s192803, tmp_path, capsys):
@@ -473,3 +504,23 @@ def test_calibration_says_what_predict_reproduces(s192803):
     summary = cal.summary()
     assert summary["equilibrium_elsewhere"] == cal.elsewhere and summary["predicted_converged"] == again.converged.sum()
     assert ("only by the fit's continuation" in cal.report()) == bool(differs)
+    laxity = summary["laxity_after"]
+    assert len(laxity) == 12 and "laxity after calibration" in cal.report()
+    ap = next(r for r in laxity if r["laxity"] == "anterior-posterior")  # the lowest flexion's
+    fitted = dict(zip((t.id for t in data.trials), cal.fit.predicted_user[:, 3], strict=True))
+    assert ap["predicted"] == pytest.approx(fitted["anterior_flex0"] - fitted["posterior_flex0"], abs=1e-9)
+
+
+@pytest.mark.slow
+def test_also_free_joins_from_the_calibration(s192803):
+    """``also_free`` fits the named effect's parameters beside the calibration's own choice,
+    starting from the calibration without them: never a larger sum of squares than that."""
+    from kneenlp.inference.calibrate import calibrate
+
+    data, model = read_measured(CSV), KneeModel.of(s192803)
+    base = calibrate(model, data)
+    cal = calibrate(model, data, also_free=["PCLal_femoral_attachment"])
+    names = ["PCLal.femur_anterior", "PCLal.femur_proximal", "PCLal.femur_lateral"]
+    assert set(names) <= set(cal.fit.free) and set(base.fit.free) < set(cal.fit.free)
+    assert cal.fit.objective <= base.fit.objective
+    assert any(abs(cal.fit.params[n]) > 1e-4 for n in names)  # moved by more than 0.1 mm

@@ -93,13 +93,13 @@ def cmd_identify(args) -> int:
     calibration = None
     if real_experiment(args.measured) and args.method == "simultaneous":
         calibration = calibrate(KneeModel.of(knee), args.measured, args.free, seed=args.seed, noise=args.noise,
-                                pivot_tolerance=args.pivot_tolerance, **options)
+                                pivot_tolerance=args.pivot_tolerance, also_free=args.also_free, **options)
         fit = calibration.fit
     else:
-        if args.pivot_tolerance is not None:
-            raise InputError("--pivot-tolerance chooses what a real experiment's calibration fits; this data is "
-                             "not one (no declared side, no joint loads) or --method nested was asked",
-                             field="--pivot-tolerance")
+        for given, flag in ((args.pivot_tolerance, "--pivot-tolerance"), (args.also_free, "--also-free")):
+            if given is not None:
+                raise InputError(f"{flag} changes what a real experiment's calibration fits; this data is not one "
+                                 "(no declared side, no joint loads) or --method nested was asked", field=flag)
         fit = identify(knee, args.measured, args.method, free=args.free, seed=args.seed, noise=args.noise, **options)
         calibration = Calibration(fit, None, [])
     if args.out:
@@ -310,7 +310,7 @@ def cmd_cross_validate(args) -> int:
 
     model = KneeModel.of(knee_from_args(args))
     results = crossval.cross_validate(model, args.measured, args.hold_out or None, seed=args.seed,
-                                      pivot_tolerance=args.pivot_tolerance)
+                                      pivot_tolerance=args.pivot_tolerance, also_free=args.also_free)
     table = crossval.table(results)
     written = []
     if args.out:

@@ -65,6 +65,18 @@ class Trial:
         """The direction of the trial's largest load (:func:`dominant_direction`), e.g. ``anterior``."""
         return self.direction if self.direction != "combined" else dominant_direction(self.loads)
 
+    @property
+    def dominant_component(self) -> str | None:
+        """The load component of :attr:`dominant` (e.g. ``anterior_force``); None without a load."""
+        word = self.dominant
+        return None if word == "none" else next(c for (c, _), w in DIRECTION_WORDS.items() if w == word)
+
+    @property
+    def dominant_size(self) -> float:
+        """The size of the trial's dominant load component (N or N m; 0 without a load)."""
+        comp = self.dominant_component
+        return 0.0 if comp is None else abs(float(self.loads.get(comp, 0.0)))
+
     def describe(self) -> str:
         """Words for reports, e.g. 'anterior 134 N at 30 deg flexion'."""
         if self.direction == "none":
@@ -74,9 +86,8 @@ class Trial:
             if word == "none":
                 what = "measured near-zero load"
             else:
-                comp = next(c for (c, _), w in DIRECTION_WORDS.items() if w == word)
-                unit = "N" if comp.endswith("force") else "N m"
-                what = f"{word} {abs(self.loads[comp]):.3g} {unit} (measured load)"
+                unit = "N" if self.dominant_component.endswith("force") else "N m"
+                what = f"{word} {self.dominant_size:.3g} {unit} (measured load)"
         else:
             unit = "N" if self.direction in ("anterior", "posterior") else "N m"
             what = f"{self.direction} {self.magnitude:g} {unit}"
@@ -88,6 +99,12 @@ DIRECTION_WORDS = {("anterior_force", 1): "anterior", ("anterior_force", -1): "p
                    ("varus_moment", 1): "varus", ("varus_moment", -1): "valgus",
                    ("internal_moment", 1): "internal", ("internal_moment", -1): "external",
                    ("lateral_force", 1): "lateral", ("lateral_force", -1): "medial"}
+#: The laxity a pair of opposite loads measures: the coordinate column (mm or deg) and the two
+#: direction words, positive first (anterior-posterior laxity is the anterior translation under the
+#: anterior load minus that under the posterior load).
+LAXITY_PAIRS = {"anterior_translation_mm": ("anterior", "posterior"),
+                "internal_rotation_deg": ("internal", "external"),
+                "varus_rotation_deg": ("varus", "valgus")}
 #: Typical magnitude of each load component of a laxity test (N, N m): a trial's direction is its
 #: largest component relative to these.
 TYPICAL = {"anterior_force": 100.0, "varus_moment": 5.0, "internal_moment": 5.0, "lateral_force": 100.0}

@@ -45,13 +45,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import pandas as pd
 import scipy.linalg
 
 from kneenlp.conventions import COORDINATES
-from kneenlp.errors import InputError
+from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.inference.fit import Fit
+from kneenlp.inference.laxity import laxity_lines, laxity_records, laxity_table
 from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import ParameterSet
@@ -174,8 +176,12 @@ class Calibration:
             f"RMS of measured minus fitted after calibration: {rms} (mm, deg).",
             "Values in [values] carry their units; the rest are the knee's own parameter set."])
 
+    def laxity(self) -> pd.DataFrame:
+        """Measured and fitted laxity per flexion and load pair (mm, deg; :mod:`~kneenlp.inference.laxity`)."""
+        return laxity_table(self.fit.data.trials, self.fit.data.q_user, self.fit.predicted_user)
+
     def summary(self) -> dict:
-        out = {"rms_after": self.rms_after}
+        out = {"rms_after": self.rms_after, "laxity_after": laxity_records(self.laxity())}
         if self.check is not None:
             out |= {"rms_predicted": self.check.rms(), "predicted_converged": int(self.check.converged.sum()),
                     "equilibrium_elsewhere": self.elsewhere}
@@ -196,6 +202,7 @@ class Calibration:
                  f"{len(self.before.solutions)} trials at equilibrium): {row(self.rms_before)}",
                  f"    RMS after: {row(self.rms_after)}",
                  *self._check_lines(row),
+                 *laxity_lines(self.laxity(), "    laxity after calibration (mm, deg):"),
                  f"    left at the knee's values (the trials do not determine them): {', '.join(self.fixed) or 'none'}",
                  "    slack in every trial at the knee's values, engaged at the start: "
                  f"{', '.join(self.engaged) or 'none'}"]
@@ -214,22 +221,46 @@ class Calibration:
         return lines
 
 
+def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
+    """Model parameters named by ``names``: parameter names, or effect names for all of an effect's
+    parameters (``PCLal_femoral_attachment`` is ``PCLal.femur_anterior``, ``.femur_proximal``,
+    ``.femur_lateral``); an unknown name is an :class:`InputError` listing the effects."""
+    out: list[str] = []
+    for name in names:
+        if name in model.parameter_names:
+            found = [name]
+        else:
+            try:
+                found = model.effect(name).free_names()
+            except InputError:
+                known = unknown_name("parameter or effect", name, [e.name for e in model.effects])
+                raise InputError(known.message, field="--also-free") from None
+        out += [n for n in found if n not in out]
+    return out
+
+
 def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
               noise=None, load_point: bool = True, pivot_tolerance: float | None = None,
-              **identify_options) -> Calibration:
+              also_free: list[str] | None = None, **identify_options) -> Calibration:
     """Fit ``free`` (default :func:`calibration_free`) to the real experiment ``data`` by
     reduced-space Gauss-Newton from the knee's values (or the probe), the simultaneous NLP if that
     fails; for a robot's joint loads and the default ``free``, ``load_point`` frees the lateral
     shift of the point the robot's force acts at too; ``pivot_tolerance``: how weakly determined a
     ligament parameter may be and still be fitted, for the default ``free`` only
     (:func:`calibration_free`; larger fits fewer, which trades the fit on the calibration's
-    trials for predictions of others, docs/real-experiment.md).  ``identify_options`` as
+    trials for predictions of others, docs/real-experiment.md); ``also_free``: parameters or
+    effects (:func:`also_free_names`) fitted beside the default ``free``, e.g. attachments a
+    segmentation may have misplaced (S192803: the cruciates' femoral attachments, docs/real-experiment.md
+    "Session 16").  ``identify_options`` as
     :func:`~kneenlp.inference.identify.identify`'s (``weighted``, ``with_effects``, ``start``; the
     rest serve the fallback)."""
     from kneenlp.inference.identify import identify, reduced_fit
 
     if free is not None and pivot_tolerance is not None:
         raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
+    if free is not None and also_free:
+        raise InputError("adds to what the calibration chooses, --free names it all: give one", field="--also-free")
+    extra = also_free_names(model, also_free or [])
     before = predict(model, data)
     fixed: list[str] = []
     theta, engaged = engaged_probe(model, data, model.theta())
@@ -242,11 +273,13 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         fixed = [n for n in fixed if n not in offsets]
     if chosen and load_point and any(t.axes == "jcs" for t in data.trials):
         free = [*free, LOAD_POINT]
+    extra = [n for n in extra if n not in free]
+    fixed = [n for n in fixed if n not in extra]
     # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
     # docstring: IPOPT wandered on this problem, and from a good point made it worse)
-    problem = IdentificationProblem.from_data(model, data, free, noise=noise,
-                                              weighted=identify_options.get("weighted", False),
-                                              with_effects=identify_options.get("with_effects") or ())
+    options = {"noise": noise, "weighted": identify_options.get("weighted", False),
+               "with_effects": identify_options.get("with_effects") or ()}
+    problem = IdentificationProblem.from_data(model, data, free, **options)
     start = ({n: float(theta[model.index(n)]) for n in problem.free}
              | problem.check_start(identify_options.pop("start", {})))
     fit = reduced_fit(problem, start, max_evaluations=MAX_EVALUATIONS)
@@ -259,4 +292,16 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         fallback.message = f"{fallback.message}; {note}" if fallback.message else note
         if fallback.success or fallback.objective < fit.objective:
             fit = fallback
+    if extra:
+        # the extra parameters join from this fit, at their neutral values: from the probe, with the
+        # ligaments not yet placed, S192803's cruciate attachments ran 8-11 mm to another minimum
+        # (sum of squares 344; from the fit 296, docs/real-experiment.md "Session 16")
+        problem = IdentificationProblem.from_data(model, data, [*problem.free, *extra], **options)
+        start = fit.params | {n: float(theta[model.index(n)]) for n in extra}
+        refit = reduced_fit(problem, start, q0=fit.q_pred, max_evaluations=MAX_EVALUATIONS)
+        if refit.objective <= fit.objective:
+            fit = refit
+        else:
+            fit.message = "; ".join(filter(None, [fit.message, f"fitting {', '.join(extra)} as well did not lower "
+                                                  "the sum of squares: they stay at the knee's values"]))
     return Calibration(fit, before, fixed, engaged, predict(model, data, fit.params))

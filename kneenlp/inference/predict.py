@@ -19,6 +19,7 @@ import pandas as pd
 from kneenlp.conventions import coordinate_columns
 from kneenlp.experiment.measured import MeasuredData, measured_frame
 from kneenlp.experiment.protocol import Protocol
+from kneenlp.inference.laxity import laxity_lines, laxity_records, laxity_table
 from kneenlp.io.atomic import write_csv_atomic
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
@@ -76,10 +77,15 @@ class Prediction:
         df["reason"] = [s.reason for s in self.solutions]
         return df
 
+    def laxity(self) -> pd.DataFrame:
+        """Measured and predicted laxity per flexion and load pair (mm, deg; :mod:`~kneenlp.inference.laxity`)."""
+        return laxity_table(self.data.trials, self.data.q_user, self.predicted_user)
+
     def summary(self) -> dict:
         return {"knee": self.knee_name, "trials": len(self.solutions), "converged": int(self.converged.sum()),
                 "rms": self.rms(), "rms_units": {c: c.rsplit("_", 1)[1] for c in coordinate_columns()},
-                "failed": [{"trial": s.trial.id, "reason": s.reason} for s in self.solutions if not s.converged]}
+                "failed": [{"trial": s.trial.id, "reason": s.reason} for s in self.solutions if not s.converged],
+                "laxity": laxity_records(self.laxity())}
 
     def to_json(self) -> str:
         return json.dumps(self.summary(), indent=2)
@@ -95,6 +101,7 @@ class Prediction:
         for s, e in zip(self.solutions, self.errors_user, strict=True):
             cells = "  ".join(f"{v:14.2f}" for v in e) if s.converged else f"NO EQUILIBRIUM: {s.reason}"
             lines.append(f"{s.trial.id:<{width}}  {s.trial.flexion_deg:7.1f}  {cells}")
+        lines += laxity_lines(self.laxity(), "Laxity (positive minus negative load, largest loads; mm and deg):")
         return "\n".join(lines)
 
 
@@ -111,11 +118,12 @@ def predict(knee: Knee | KneeModel, data: MeasuredData, parameters: dict[str, fl
 
 
 def write_prediction(prediction: Prediction, out: Path) -> list[Path]:
-    """``predicted.csv`` and ``predicted_laxity.png`` in ``out``; the paths written."""
+    """``predicted.csv``, ``laxity.csv`` and ``predicted_laxity.png`` in ``out``; the paths written."""
     from kneenlp.io.plots import measured_vs_predicted
 
     table = prediction.table()
     write_csv_atomic(table, out / "predicted.csv", index=False, float_format="%.10g")
+    write_csv_atomic(prediction.laxity(), out / "laxity.csv", index=False, float_format="%.10g")
     fig = measured_vs_predicted(table, out / "predicted_laxity.png",
                                 f"{prediction.knee_name}: measured (filled) and predicted (open)")
-    return [out / "predicted.csv", fig]
+    return [out / "predicted.csv", out / "laxity.csv", fig]

@@ -12,6 +12,8 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from kneenlp.experiment.protocol import LAXITY_PAIRS
+
 PANELS = (
     ("anterior_force_N", "anterior_translation_mm", "anterior (+) / posterior (-) force [N]",
      "anterior translation [mm]"),
@@ -157,9 +159,8 @@ def residual_map(rmap: pd.DataFrame, path: str | Path, title: str = "") -> Path:
 
 
 #: Panels of measured against predicted laxity: the direction pair and the coordinate it moves.
-PAIR_PANELS = ((("anterior", "posterior"), "anterior_translation_mm", "anterior translation [mm]"),
-               (("internal", "external"), "internal_rotation_deg", "internal rotation [deg]"),
-               (("varus", "valgus"), "varus_rotation_deg", "varus rotation [deg]"))
+PAIR_PANELS = tuple((pair, col, f"{col.rsplit('_', 1)[0].replace('_', ' ')} [{col.rsplit('_', 1)[1]}]")
+                    for col, pair in LAXITY_PAIRS.items())
 
 
 def measured_vs_predicted(table: pd.DataFrame, path: str | Path, title: str = "",
