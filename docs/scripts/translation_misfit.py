@@ -15,7 +15,7 @@ Measurements (docs/real-experiment.md, "Session 16"), each from the default cali
    the tibial eminence), refitted from the calibration;
 7. the cruciates' femoral attachments fitted beside the calibration (``calibrate(also_free=...)``).
 
-3-5 need the deposit at ../shared/data/du-s192803 (skipped without it).  ~4 min on 2 cores.
+3-5 need the deposit at ../shared/data/du-s192803 (skipped without it).  ~5 min on 2 cores.
 
     python docs/scripts/translation_misfit.py
 """
@@ -98,8 +98,10 @@ class WrappedGroup(Ligament):
 
 
 def bones():
-    """The deposit's femoral and tibial bone surfaces in kneenlp's femoral and tibial frames (m)."""
+    """The deposit's femoral and tibial bone surfaces in kneenlp's femoral and tibial frames (m),
+    simplified to 5000 faces each (the winding numbers below cost points x faces)."""
     import trimesh
+    from fast_simplification import simplify
 
     from kneenlp.io.abaqus import read_mesh
     from kneenlp.io.import_abaqus import read_abaqus_knee
@@ -108,8 +110,9 @@ def bones():
     out = []
     for (rot, origin), name in ((fe.femur_frame, "BONE1-FEMUR"), (fe.tibia_frame, "BONE2-TIBFIB")):
         mesh = read_mesh(next((DEPOSIT / "geometry").glob(f"{name}*.inp")))
-        tri = trimesh.Trimesh(mesh.points, np.vstack(mesh.cells["triangle"]), process=True)
-        tri.vertices = (tri.vertices - origin) @ rot.T @ MIRROR * 1e-3
+        faces = np.vstack(mesh.cells["triangle"]).astype(np.int64)
+        vertices, faces = simplify(np.asarray(mesh.points, np.float64), faces, target_count=5000)
+        tri = trimesh.Trimesh((vertices - origin) @ rot.T @ MIRROR * 1e-3, faces, process=True)
         out.append(tri)
     return out
 
