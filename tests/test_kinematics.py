@@ -91,3 +91,27 @@ def test_jcs_loads_are_the_generalised_forces_and_femoral_ones_their_virtual_wor
     r0 = np.asarray(model.evaluate(q0, theta, np.zeros(LOAD_SIZE), 0.0)).ravel()
     r1 = np.asarray(model.evaluate(q0, theta, load_vector(moments, axes="femoral"), 0.0)).ravel()
     assert np.allclose(r1 - r0, [2.0, -1.5, 0, 0, 0], atol=1e-12)
+
+
+def test_tibial_origin_reads_the_translations_of_the_moved_point():
+    """``TibialOrigin``: the observed translations are the Grood-Suntay translations of the tibial
+    point ``s`` (tibial frame), whatever the flexion: oracle ``joint_coordinates`` of ``p + R s``."""
+    import kneenlp
+    from kneenlp.conventions import coords_to_user
+    from kneenlp.model.kinematics import joint_coordinates, reference_transform
+    from kneenlp.model.kneemodel import KneeModel
+
+    model = KneeModel.of(kneenlp.Knee.named("synthetic"))
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        shift = rng.uniform(-0.01, 0.01, 3)
+        theta = model.theta({f"tibial_origin.{a}": v for a, v in zip(("anterior", "proximal", "lateral"), shift,
+                                                                      strict=True)})
+        q = np.r_[rng.uniform(-0.4, 0.4, 2), rng.uniform(-0.01, 0.01, 2), rng.uniform(-0.03, -0.01)]
+        seen = model.observe(q, theta)[0]
+        for flexion in rng.uniform(-0.1, 1.7, 3):
+            R, p = reference_transform(flexion, q)
+            f_back, q_moved = joint_coordinates(R, p + R @ shift)
+            assert f_back == pytest.approx(flexion, abs=1e-12)
+            assert np.allclose(seen, coords_to_user(q_moved), atol=1e-9)
+    assert not np.allclose(seen, coords_to_user(q))  # the shift is seen

@@ -327,6 +327,8 @@ def test_also_free_names_parameters_or_effects(s192803, tmp_path, capsys):
     model = KneeModel.of(s192803)
     assert also_free_names(model, ["PCLal_femoral_attachment", "ACLam.femur_anterior", "PCLal.femur_lateral"]) == [
         "PCLal.femur_anterior", "PCLal.femur_proximal", "PCLal.femur_lateral", "ACLam.femur_anterior"]
+    assert also_free_names(model, ["tibial_origin"]) == [  # an element's parameters
+        "tibial_origin.anterior", "tibial_origin.proximal", "tibial_origin.lateral"]
     assert main(["identify", str(CSV), "--knee", "s192803", "--also-free", "PCLx_femoral_attachment"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--also-free" in err

@@ -13,7 +13,8 @@ Measurements (docs/real-experiment.md, "Session 16"), each from the default cali
    calibration repeated (the robot's loads act at, and its translations are read at, that origin);
 6. transverse springs about the passive path (menisci that follow the condyles; a central one,
    the tibial eminence), refitted from the calibration;
-7. the cruciates' femoral attachments fitted beside the calibration (``calibrate(also_free=...)``).
+7. the cruciates' femoral attachments fitted beside the calibration (``calibrate(also_free=...)``);
+8. those and the tibial origin (``TibialOrigin``: where the experiment reads its translations).
 
 3-5 need the deposit at ../shared/data/du-s192803 (skipped without it).  ~5 min on 2 cores.
 
@@ -266,6 +267,11 @@ def main() -> None:
     moved = ", ".join(f"{n} {1e3 * wider.fit.params[n]:+.1f}" for n in wider.fit.free if ".femur_" in n)
     print(f"  {', '.join(also)}: {summary(data, wider.fit, loaded)}\n  shifts (mm): {moved}")
     lax["attachments"] = wider.laxity()["predicted"]
+    print("8. and the tibial origin as a fitted registration (TibialOrigin)")
+    both = calibrate(model, data, also_free=["tibial_origin", *also])
+    moved = ", ".join(f"{n} {1e3 * both.fit.params[n]:+.1f}" for n in both.fit.free if n.startswith("tibial_origin"))
+    print(f"  {summary(data, both.fit, loaded)}\n  shifts (mm): {moved}")
+    lax["both"] = both.laxity()["predicted"]
     print(lax[lax["laxity"] == "anterior-posterior"].round(2).to_string(index=False))
 
 

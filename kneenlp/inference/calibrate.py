@@ -222,19 +222,18 @@ class Calibration:
 
 
 def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
-    """Model parameters named by ``names``: parameter names, or effect names for all of an effect's
+    """Model parameters named by ``names``: parameter names, effect names for all of an effect's
     parameters (``PCLal_femoral_attachment`` is ``PCLal.femur_anterior``, ``.femur_proximal``,
-    ``.femur_lateral``); an unknown name is an :class:`InputError` listing the effects."""
+    ``.femur_lateral``) or element names for all of an element's (``tibial_origin``); an unknown
+    name is an :class:`InputError` listing the effects."""
+    effects = {e.name: e.free_names() for e in model.effects}
+    elements = {e.name: [p.name for p in e.parameters()] for e in model.elements}
     out: list[str] = []
     for name in names:
-        if name in model.parameter_names:
-            found = [name]
-        else:
-            try:
-                found = model.effect(name).free_names()
-            except InputError:
-                known = unknown_name("parameter or effect", name, [e.name for e in model.effects])
-                raise InputError(known.message, field="--also-free") from None
+        found = [name] if name in model.parameter_names else effects.get(name) or elements.get(name)
+        if not found:
+            known = unknown_name("parameter or effect", name, [*effects, "tibial_origin"])
+            raise InputError(known.message, field="--also-free")
         out += [n for n in found if n not in out]
     return out
 

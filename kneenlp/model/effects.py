@@ -7,7 +7,8 @@ An *effect* is something the model adequacy check can add (:mod:`kneenlp.inferen
   base fit is the extended fit with those parameters fixed.  Built in: bundles named in the knee
   file's ``[candidates.<name>]`` (e.g. ``posterior_capsule``, ``ALL``: :class:`Ligament` elements
   with stiffness 0), :class:`Meniscus`, :class:`FlexionOffset`, :class:`LoadPoint` and :class:`Registration` (all five
-  coordinates; :func:`registration_effects` adds one candidate per coordinate);
+  coordinates; :func:`registration_effects` adds one candidate per coordinate); every model also carries
+  :class:`TibialOrigin`, neutral and fitted only where named (not scored by the adequacy check);
 * a parameter group of the base model (:func:`parameter_group`): ``lin_strain`` (the linear
   strain limits) and ``contact_modulus``;
 * a geometry candidate (:func:`attachment_effects`): the position of one ligament's (or bundle
@@ -30,6 +31,7 @@ import numpy as np
 
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.model.elements import ForceElement, Pose
+from kneenlp.model.kinematics import tibial_pose
 from kneenlp.model.parameters import Parameter
 
 #: Axes of :class:`LoadPoint`'s shift, in the order of the tibial frame's X, Y, Z.
@@ -123,8 +125,36 @@ class Registration(ForceElement):
                           f"constant bias of the measured {c.replace('_', ' ')}", 0.0, 0.0)
                 for c, u in zip(COORDINATES, COORDINATE_UNITS, strict=True)]
 
-    def measurement_bias(self, values: dict) -> ca.SX:
+    def measurement_bias(self, q, values: dict) -> ca.SX:
         return ca.vertcat(*[values[f"registration.{c}"] for c in COORDINATES])
+
+
+class TibialOrigin(ForceElement):
+    """The experiment reads its translations at a tibial point other than the model's tibial
+    origin, moved by ``tibial_origin.<anterior|proximal|lateral>`` (mm, tibial frame X, Y, Z): a
+    robot's tibial frame registered a few millimetres off the knee's.  Its Grood-Suntay
+    translations are the model's plus ``[e1 e2 e3]^-1 R s``; with ``R = Rz(-flexion) B`` and the
+    axes ``Rz(-flexion)`` times flexion-free vectors (:func:`~kneenlp.model.kinematics.tibial_pose`),
+    this depends on the varus and internal rotations alone.  Unlike a constant registration it
+    moves with the tibia: a point ``a`` mm anterior of the origin moves ``a`` mm laterally per
+    radian of external rotation.  (Where a robot applies its joint loads is
+    :class:`LoadPoint`.)"""
+
+    name = "tibial_origin"
+    description = "the experiment reads its translations at another tibial point"
+    #: not scored by ``diagnose`` (near small rotations it is the constant registration of the three
+    #: translations, which the adequacy check already tests); fitted where named, e.g. ``calibrate``'s
+    #: ``also_free`` (S192803, docs/real-experiment.md "Session 16")
+    candidate = False
+
+    def parameters(self) -> list[Parameter]:
+        return [Parameter(f"tibial_origin.{a}", "length", f"{a} shift of the tibial point the translations are read at",
+                          0.0, 0.0) for a in LOAD_POINT_AXES]
+
+    def measurement_bias(self, q, values: dict) -> ca.SX:
+        shift = ca.vertcat(*[values[f"tibial_origin.{a}"] for a in LOAD_POINT_AXES])
+        R, _, axes = tibial_pose(0.0, q)  # any flexion gives the same (docstring)
+        return ca.vertcat(0.0, 0.0, ca.solve(ca.horzcat(*axes), R @ shift))
 
 
 class LoadPoint(ForceElement):
@@ -167,7 +197,8 @@ def builtin_elements(centres: list[np.ndarray], meniscus: bool = True,
     """The candidate elements every knee model carries (neutral until freed); ``meniscus=False``
     for a knee whose menisci are part of its base model; ``rest``: the condyle centres' rest
     positions over the plateaus (:class:`Meniscus`)."""
-    return [*([Meniscus(centres, rest=rest)] if meniscus else []), FlexionOffset(), Registration(), LoadPoint()]
+    return [*([Meniscus(centres, rest=rest)] if meniscus else []), FlexionOffset(), Registration(), LoadPoint(),
+            TibialOrigin()]
 
 
 def builtin_groups(ligaments: list[str]) -> list[Effect]:

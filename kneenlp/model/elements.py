@@ -13,7 +13,7 @@ Conventions of every method (SI units, CasADi SX expressions):
 
 Three optional hooks let an element change what is *not* a force: :meth:`ForceElement.flexion_offset`
 (the true flexion differs from the prescribed one), :meth:`ForceElement.measurement_bias` (a
-bias of the measured coordinates, e.g. a registration offset) and
+bias of the measured coordinates, e.g. a registration offset, possibly depending on the pose) and
 :meth:`ForceElement.load_point_offset` (the applied force acts elsewhere than its nominal point).
 
 Elements whose force needs an expensive computation over many surface points (contact) split it
@@ -101,8 +101,9 @@ class ForceElement:
         """True minus prescribed flexion (rad)."""
         return 0.0
 
-    def measurement_bias(self, values: dict[str, ca.SX]) -> ca.SX | None:
-        """Added to the model's five coordinates before comparison with measurements (rad, m)."""
+    def measurement_bias(self, q: ca.SX, values: dict[str, ca.SX]) -> ca.SX | None:
+        """Added to the model's five coordinates ``q`` before comparison with measurements (rad, m);
+        it may depend on the pose (not on the flexion)."""
         return None
 
     def load_point_offset(self, values: dict[str, ca.SX]) -> ca.SX | None:

@@ -153,7 +153,7 @@ class KneeModel:
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 
-        bias = [b for e in self.elements if (b := e.measurement_bias(values)) is not None]
+        bias = [b for e in self.elements if (b := e.measurement_bias(q, values)) is not None]
         y = coords_to_user(q) + (coords_to_user(sum(bias, ca.SX.zeros(5))) if bias else 0)
         self.observation = ca.Function("observation", [q, theta], [y], ["q", "theta"], ["y"])
 
