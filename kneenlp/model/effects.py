@@ -153,8 +153,12 @@ class TibialOrigin(ForceElement):
 
     def measurement_bias(self, q, values: dict) -> ca.SX:
         shift = ca.vertcat(*[values[f"tibial_origin.{a}"] for a in LOAD_POINT_AXES])
-        R, _, axes = tibial_pose(0.0, q)  # any flexion gives the same (docstring)
-        return ca.vertcat(0.0, 0.0, ca.solve(ca.horzcat(*axes), R @ shift))
+        R, _, _ = tibial_pose(0.0, q)  # any flexion gives the same (docstring)
+        w = R @ shift
+        # at zero flexion the axes are e1 = Z, e2 = X, e3 = (0, cos v, sin v): [e1 e2 e3] d = w solved
+        # by hand (no symbolic solve in the exported graphs)
+        proximal = w[1] / ca.cos(q[0])
+        return ca.vertcat(0.0, 0.0, w[2] - ca.sin(q[0]) * proximal, w[0], proximal)
 
 
 class LoadPoint(ForceElement):
