@@ -332,7 +332,7 @@ def test_also_free_names_parameters_or_effects(s192803, tmp_path, capsys):
     assert main(["identify", str(CSV), "--knee", "s192803", "--also-free", "PCLx_femoral_attachment"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--also-free" in err
-    assert "unknown parameter or effect 'PCLx_femoral_attachment'" in err
+    assert "unknown parameter, effect or element 'PCLx_femoral_attachment'" in err
     assert "PCLal_femoral_attachment" in err  # the known effects are listed
     assert main(["identify", str(CSV), "--knee", "s192803", "--free", "ACLam.k_scale",
                  "--also-free", "ACLam.femur_anterior"]) == 2

@@ -225,14 +225,14 @@ def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
     """Model parameters named by ``names``: parameter names, effect names for all of an effect's
     parameters (``PCLal_femoral_attachment`` is ``PCLal.femur_anterior``, ``.femur_proximal``,
     ``.femur_lateral``) or element names for all of an element's (``tibial_origin``); an unknown
-    name is an :class:`InputError` listing the effects."""
-    effects = {e.name: e.free_names() for e in model.effects}
-    elements = {e.name: [p.name for p in e.parameters()] for e in model.elements}
+    name is an :class:`InputError` listing the effects and elements."""
+    groups = {e.name: [p.name for p in e.parameters()] for e in model.elements} | {
+        e.name: e.free_names() for e in model.effects}
     out: list[str] = []
     for name in names:
-        found = [name] if name in model.parameter_names else effects.get(name) or elements.get(name)
+        found = [name] if name in model.parameter_names else groups.get(name)
         if not found:
-            known = unknown_name("parameter or effect", name, [*effects, "tibial_origin"])
+            known = unknown_name("parameter, effect or element", name, [n for n, ps in groups.items() if ps])
             raise InputError(known.message, field="--also-free")
         out += [n for n in found if n not in out]
     return out
