@@ -489,10 +489,12 @@ def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_calibration_says_what_predict_reproduces(s192803):
+def test_calibration_says_what_predict_reproduces(s192803, tmp_path):
     """The calibration's report is checked against what a user gets from ``predict`` with the
     calibrated values: the trials it names as reached only by the fit's continuation are exactly
-    those whose poses predict does not reproduce; every other trial's prediction is the fit's."""
+    those whose poses predict does not reproduce; every other trial's prediction is the fit's.
+    Read back from ``calibrated.toml`` (a new knee whose own parameters are the fitted ones),
+    predict reaches the same poses: hard trials are followed from the knee file's own set."""
     from kneenlp.inference.calibrate import SAME_POSE, calibrate
     from kneenlp.inference.predict import predict
 
@@ -511,6 +513,11 @@ def test_calibration_says_what_predict_reproduces(s192803):
     ap = next(r for r in laxity if r["laxity"] == "anterior-posterior")  # the lowest flexion's
     fitted = dict(zip((t.id for t in data.trials), cal.fit.predicted_user[:, 3], strict=True))
     assert ap["predicted"] == pytest.approx(fitted["anterior_flex0"] - fitted["posterior_flex0"], abs=1e-9)
+    (tmp_path / "calibrated.toml").write_text(cal.to_toml())
+    model = KneeModel.of(s192803.with_parameters(tmp_path / "calibrated.toml"))
+    read_back = predict(model, data, dict(zip(model.parameter_names, model.theta(), strict=True)))
+    assert np.array_equal(read_back.converged, again.converged)
+    assert np.abs(read_back.observed_user - again.observed_user)[again.converged].max() <= SAME_POSE
 
 
 @pytest.mark.slow

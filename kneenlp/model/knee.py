@@ -69,6 +69,9 @@ class Knee:
     #: coordinates (rad, m); reference strains refer to it, solvers start from it
     reference_pose: tuple[float, np.ndarray] = (0.0, np.zeros(5))
     side: str = "right"  # the side of the knee file (the model is always a right knee)
+    #: the knee file's own parameter set once :meth:`with_parameters` replaced it (e.g. by a
+    #: calibration's file); the forward solver follows hard trials from it
+    source_parameters: ParameterSet | None = None
     #: the knee's CasADi model once built (:meth:`kneenlp.model.kneemodel.KneeModel.of` builds and keeps it)
     built_model: object = field(default=None, init=False, repr=False, compare=False)
 
@@ -125,7 +128,8 @@ class Knee:
     def with_parameters(self, parameters: ParameterSet | str | Path) -> Knee:
         """The same geometry with another parameter set."""
         params = parameters if isinstance(parameters, ParameterSet) else ParameterSet.load(parameters)
-        return dataclasses.replace(self, parameters=check_parameter_set(params, self.ligaments, self.source))
+        return dataclasses.replace(self, parameters=check_parameter_set(params, self.ligaments, self.source),
+                                   source_parameters=self.source_parameters or self.parameters)
 
     def report(self) -> str:
         """How the knee file became this model: frames, splits, fits and surface representations

@@ -46,7 +46,7 @@ from kneenlp.model.effects import (
 from kneenlp.model.elements import ForceElement, Output, Pose, StagedElement
 from kneenlp.model.kinematics import generalized_forces, tibial_pose
 from kneenlp.model.knee import Knee
-from kneenlp.model.parameters import Parameter
+from kneenlp.model.parameters import Parameter, ParameterSet
 from kneenlp.model.solvercache import SolverCache
 
 
@@ -338,6 +338,14 @@ class KneeModel:
     def theta(self, values: dict[str, float] | None = None) -> np.ndarray:
         """Full parameter vector (SI): the knee's parameter set, candidate parameters at neutral,
         other defaults of the elements, ``values`` (by name) overriding."""
+        return self._theta_of(self.knee.parameters, values)
+
+    def source_theta(self) -> np.ndarray:
+        """:meth:`theta` of the knee file's own parameter set (SI), also when another set replaced it
+        (:meth:`Knee.with_parameters`); candidate parameters at neutral."""
+        return self._theta_of(self.knee.source_parameters or self.knee.parameters)
+
+    def _theta_of(self, params: ParameterSet, values: dict[str, float] | None = None) -> np.ndarray:
         values = dict(values or {})
         for n in values:
             self.index(n)
@@ -345,15 +353,15 @@ class KneeModel:
         for p in self.parameters:
             if p.name in values:
                 out.append(float(values[p.name]))
-            elif p.name in self.knee.parameters:  # a calibration may set a candidate (e.g. the registration)
-                out.append(self.knee.parameters[p.name])
+            elif p.name in params:  # a calibration may set a candidate (e.g. the registration)
+                out.append(params[p.name])
             elif p.neutral is not None:
                 out.append(p.neutral)
             elif p.default is not None:
                 out.append(p.default)
             else:
-                raise InputError(f"parameter set {self.knee.parameters.name} lacks {p.name}",
-                                 source=self.knee.parameters.source, field=p.name)
+                raise InputError(f"parameter set {params.name} lacks {p.name}", source=params.source,
+                                 field=p.name)
         return np.array(out, dtype=float)
 
     def observe(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:

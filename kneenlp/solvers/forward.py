@@ -227,9 +227,10 @@ class ForwardSolver:
             start = self.cold_start(trial.flexion, theta) if q_unloaded is None else q_unloaded
             q, res = self._ramp(trial, theta, start)
             strategy = "ramp"
-        if not res <= self.tol and not np.array_equal(own := self.model.theta(), theta):
-            # the equilibrium at the knee's own parameters, followed to theta: a calibrated S192803 knee had
-            # equilibria for held-out trials that no load ramp reached (a fold on the load path)
+        if not res <= self.tol and not np.array_equal(own := self.model.source_theta(), theta):
+            # the equilibrium at the knee file's own parameters, followed to theta: a calibrated S192803 knee
+            # had equilibria for held-out trials that no load ramp reached (a fold on the load path); read
+            # back from its file, the calibrated set replaces the knee's own, hence its source's
             at_own = self.solve_trial(trial, own)
             if at_own.converged:
                 q_c, res_c = self.continue_parameters(trial, own, theta, at_own.q, min_step=1 / 64)
