@@ -341,6 +341,8 @@ def test_also_free_names_parameters_or_effects(s192803, tmp_path, capsys):
         tmp_path / "m.csv", index=False)
     assert main(["identify", str(tmp_path / "m.csv"), "--knee", "synthetic", "--also-free", "ACL.femur_anterior"]) == 2
     assert "not one" in capsys.readouterr().err
+    assert main(["identify", str(tmp_path / "m.csv"), "--knee", "synthetic", "--keep-outliers"]) == 2
+    assert "--keep-outliers" in capsys.readouterr().err
 
 
 def test_calibrated_parameter_file_round_trips(s192803, tmp_path, capsys):
@@ -421,10 +423,7 @@ def test_prediction_includes_the_registration(s192803):
     from kneenlp.inference.predict import predict
 
     data = read_measured(CSV)
-    keep = [0, 8, 24]
-    from kneenlp.inference.crossval import subset
-
-    part = subset(data, np.isin(np.arange(len(data)), keep))
+    part = data.subset(np.isin(np.arange(len(data)), [0, 8, 24]))
     plain = predict(KneeModel.of(s192803), part)
     shifted = predict(KneeModel.of(s192803), part, {"registration.varus_rotation": np.radians(2.0),
                                             "registration.anterior_translation": -3e-3})
@@ -494,12 +493,15 @@ def test_calibration_says_what_predict_reproduces(s192803, tmp_path):
     calibrated values: the trials it names as reached only by the fit's continuation are exactly
     those whose poses predict does not reproduce; every other trial's prediction is the fit's.
     Read back from ``calibrated.toml`` (a new knee whose own parameters are the fitted ones),
-    predict reaches the same poses: hard trials are followed from the knee file's own set."""
+    predict reaches the same poses: hard trials are followed from the knee file's own set.  The
+    outlier test sets aside the one trial no passive knee produces (valgus_flex60)."""
     from kneenlp.inference.calibrate import SAME_POSE, calibrate
     from kneenlp.inference.predict import predict
 
-    data = read_measured(CSV)
-    cal = calibrate(KneeModel.of(s192803), data)
+    cal = calibrate(KneeModel.of(s192803), read_measured(CSV))
+    data = cal.fit.data  # the fitted trials
+    assert [o.trial for o in cal.outliers] == ["valgus_flex60"]  # 5.9 deg varus under a valgus moment
+    assert len(data) == 24 and cal.set_aside.data.trials[0].id == "valgus_flex60"
     again = predict(KneeModel.of(s192803), data, cal.fit.params)
     gap = np.abs(again.observed_user - cal.fit.predicted_user).max(axis=1)
     differs = {t.id for t, g, ok in zip(data.trials, gap, again.converged, strict=True) if not (ok and g <= SAME_POSE)}
@@ -508,8 +510,11 @@ def test_calibration_says_what_predict_reproduces(s192803, tmp_path):
     summary = cal.summary()
     assert summary["equilibrium_elsewhere"] == cal.elsewhere and summary["predicted_converged"] == again.converged.sum()
     assert ("only by the fit's continuation" in cal.report()) == bool(differs)
+    assert summary["outliers"][0]["trial"] == "valgus_flex60" and "set aside by the outlier test" in cal.report()
+    errors = np.vstack([data.q_user - cal.fit.predicted_user, cal.set_aside.errors_user])
+    assert list(summary["rms_with_outliers"].values()) == pytest.approx(np.sqrt(np.mean(errors**2, axis=0)))
     laxity = summary["laxity_after"]
-    assert len(laxity) == 12 and "laxity after calibration" in cal.report()
+    assert len(laxity) == 11 and "laxity after calibration" in cal.report()  # no valgus at 57 deg
     ap = next(r for r in laxity if r["laxity"] == "anterior-posterior")  # the lowest flexion's
     fitted = dict(zip((t.id for t in data.trials), cal.fit.predicted_user[:, 3], strict=True))
     assert ap["predicted"] == pytest.approx(fitted["anterior_flex0"] - fitted["posterior_flex0"], abs=1e-9)
@@ -527,8 +532,8 @@ def test_also_free_joins_from_the_calibration(s192803):
     from kneenlp.inference.calibrate import calibrate
 
     data, model = read_measured(CSV), KneeModel.of(s192803)
-    base = calibrate(model, data)
-    cal = calibrate(model, data, also_free=["PCLal_femoral_attachment"])
+    base = calibrate(model, data, keep_outliers=True)  # the same trials in both
+    cal = calibrate(model, data, also_free=["PCLal_femoral_attachment"], keep_outliers=True)
     names = ["PCLal.femur_anterior", "PCLal.femur_proximal", "PCLal.femur_lateral"]
     assert set(names) <= set(cal.fit.free) and set(base.fit.free) < set(cal.fit.free)
     assert cal.fit.objective <= base.fit.objective

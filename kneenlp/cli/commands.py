@@ -93,10 +93,12 @@ def cmd_identify(args) -> int:
     calibration = None
     if real_experiment(args.measured) and args.method == "simultaneous":
         calibration = calibrate(KneeModel.of(knee), args.measured, args.free, seed=args.seed, noise=args.noise,
-                                pivot_tolerance=args.pivot_tolerance, also_free=args.also_free, **options)
+                                pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
+                                keep_outliers=args.keep_outliers, **options)
         fit = calibration.fit
     else:
-        for given, flag in ((args.pivot_tolerance, "--pivot-tolerance"), (args.also_free, "--also-free")):
+        for given, flag in ((args.pivot_tolerance, "--pivot-tolerance"), (args.also_free, "--also-free"),
+                            (args.keep_outliers or None, "--keep-outliers")):
             if given is not None:
                 raise InputError(f"{flag} changes what a real experiment's calibration fits; this data is not one "
                                  "(no declared side, no joint loads) or --method nested was asked", field=flag)
@@ -310,7 +312,8 @@ def cmd_cross_validate(args) -> int:
 
     model = KneeModel.of(knee_from_args(args))
     results = crossval.cross_validate(model, args.measured, args.hold_out or None, seed=args.seed,
-                                      pivot_tolerance=args.pivot_tolerance, also_free=args.also_free)
+                                      pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
+                                      keep_outliers=args.keep_outliers)
     table = crossval.table(results)
     written = []
     if args.out:

@@ -72,6 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--also-free", type=opt.names, default=None, metavar="NAMES",
                    help="real experiments: also fit these comma-separated parameters or effects, e.g. "
                         "PCLal_femoral_attachment,ACLam_femoral_attachment (see 'kneenlp diagnose')")
+    p.add_argument("--keep-outliers", action="store_true",
+                   help="real experiments: fit every trial (default: trials the outlier test flags are set aside "
+                        "and reported, docs/real-experiment.md)")
     p.add_argument("--out", help="also write fit.json and fit_trials.csv here")
     p.add_argument("--json", action="store_true", help="print JSON instead of the report")
     p.set_defaults(validate=True, out_kind="dir")
@@ -174,6 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 0.02, see 'kneenlp identify')")
     p.add_argument("--also-free", type=opt.names, default=None, metavar="NAMES",
                    help="the calibrations also fit these parameters or effects (see 'kneenlp identify')")
+    p.add_argument("--keep-outliers", action="store_true",
+                   help="the calibrations fit every trial they keep (see 'kneenlp identify'); the held-out "
+                        "trials are always predicted")
     p.add_argument("--out", help="write cross_validation.csv and each hold-out's predicted_<name>.csv here")
     p.add_argument("--json", action="store_true", help="print JSON: one row per hold-out (RMS in mm, deg)")
     p.set_defaults(validate=True, out_kind="dir")

@@ -122,6 +122,12 @@ class MeasuredData:
         """The measured poses in user units (T x 5, mm and deg)."""
         return coords_to_user(self.q)
 
+    def subset(self, keep: np.ndarray) -> MeasuredData:
+        """The trials where the boolean mask ``keep`` is true, in order."""
+        keep = np.asarray(keep, bool)
+        return MeasuredData([t for t, k in zip(self.trials, keep, strict=True) if k], self.q[keep],
+                            self.protocol, self.source, self.side)
+
     def check_knee(self, knee) -> None:
         """The data fit ``knee`` (a :class:`~kneenlp.model.knee.Knee`): the same side, if the data
         say theirs, and every measured pose within the knee's reach (the physiological envelope

@@ -51,9 +51,19 @@ import scipy.linalg
 from kneenlp.conventions import COORDINATES
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.measured import MeasuredData
+from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.inference.fit import Fit
 from kneenlp.inference.laxity import laxity_lines, laxity_records, laxity_table
+from kneenlp.inference.outliers import (
+    MAX_OUTLIER_SHARE,
+    SCREEN_ALPHA,
+    Outlier,
+    deletion_test,
+    prediction_variance,
+    residual_factors,
+    screen,
+)
 from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import ParameterSet
@@ -141,6 +151,10 @@ class Calibration:
     #: ``predict`` at the calibrated values: each trial solved from the knee's unloaded state, as a
     #: user's ``predict --parameters calibrated.toml`` solves it (None: not checked)
     check: Prediction | None = None
+    #: trials the outlier test set aside (:mod:`~kneenlp.inference.outliers`), in the order found
+    outliers: list[Outlier] = field(default_factory=list)
+    #: ``predict`` of the set-aside trials at the calibrated values (None: none set aside)
+    set_aside: Prediction | None = None
 
     @property
     def elsewhere(self) -> list[str]:
@@ -159,7 +173,17 @@ class Calibration:
 
     @property
     def rms_after(self) -> dict[str, float]:
+        """RMS of measured minus fitted per coordinate column (mm, deg) over the fitted trials."""
         return rms_by_coordinate(self.fit.data.q_user - self.fit.predicted_user)
+
+    @property
+    def rms_with_outliers(self) -> dict[str, float] | None:
+        """:attr:`rms_after` with the set-aside trials' predictions at the calibrated values (None:
+        none set aside)."""
+        if self.set_aside is None:
+            return None
+        return rms_by_coordinate(np.vstack([self.fit.data.q_user - self.fit.predicted_user,
+                                            self.set_aside.errors_user[self.set_aside.converged]]))
 
     def parameter_set(self) -> ParameterSet:
         """The knee's parameter set with the fitted values: ``--parameters`` of later commands."""
@@ -185,6 +209,9 @@ class Calibration:
         if self.check is not None:
             out |= {"rms_predicted": self.check.rms(), "predicted_converged": int(self.check.converged.sum()),
                     "equilibrium_elsewhere": self.elsewhere}
+        if self.set_aside is not None:
+            out |= {"outliers": [o.record() for o in self.outliers], "rms_with_outliers": self.rms_with_outliers,
+                    "outliers_converged": int(self.set_aside.converged.sum())}
         if self.before is not None:
             out |= {"rms_before": self.rms_before, "fixed": self.fixed, "engaged": self.engaged,
                     "converged_before": int(self.before.converged.sum())}
@@ -200,7 +227,8 @@ class Calibration:
         lines = [self.fit.report(), "[[Calibration]]",
                  f"    RMS before (the knee's parameters, {int(self.before.converged.sum())}/"
                  f"{len(self.before.solutions)} trials at equilibrium): {row(self.rms_before)}",
-                 f"    RMS after: {row(self.rms_after)}",
+                 f"    RMS after ({len(self.fit.data)} trials fitted): {row(self.rms_after)}",
+                 *self._outlier_lines(row),
                  *self._check_lines(row),
                  *laxity_lines(self.laxity(), "    laxity after calibration (mm, deg):"),
                  f"    left at the knee's values (the trials do not determine them): {', '.join(self.fixed) or 'none'}",
@@ -208,6 +236,17 @@ class Calibration:
                  f"{', '.join(self.engaged) or 'none'}"]
         return "\n".join(lines)
 
+
+    def _outlier_lines(self, row) -> list[str]:
+        if self.set_aside is None:
+            return []
+        lines = ["    set aside by the outlier test (fitted without them; --keep-outliers fits every trial):",
+                 *(f"      {o.line()}" for o in self.outliers)]
+        failed = [s.trial.id for s in self.set_aside.solutions if not s.converged]
+        if failed:
+            lines.append(f"      no equilibrium at the calibrated values: {', '.join(failed)}")
+        lines.append(f"    RMS after, with them predicted at the calibrated values: {row(self.rms_with_outliers)}")
+        return lines
 
     def _check_lines(self, row) -> list[str]:
         if self.check is None:
@@ -240,7 +279,7 @@ def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
 
 def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
               noise=None, load_point: bool = True, pivot_tolerance: float | None = None,
-              also_free: list[str] | None = None, **identify_options) -> Calibration:
+              also_free: list[str] | None = None, keep_outliers: bool = False, **identify_options) -> Calibration:
     """Fit ``free`` (default :func:`calibration_free`) to the real experiment ``data`` by
     reduced-space Gauss-Newton from the knee's values (or the probe), the simultaneous NLP if that
     fails; for a robot's joint loads and the default ``free``, ``load_point`` frees the lateral
@@ -250,7 +289,9 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     trials for predictions of others, docs/real-experiment.md); ``also_free``: parameters or
     effects (:func:`also_free_names`) fitted beside the default ``free``, e.g. attachments a
     segmentation may have misplaced (S192803: the cruciates' femoral attachments, docs/real-experiment.md
-    "Session 16").  ``identify_options`` as
+    "Session 16"); unless ``keep_outliers``, trials the outlier test flags
+    (:mod:`~kneenlp.inference.outliers`) are set aside one at a time and the fit repeated without
+    them.  ``identify_options`` as
     :func:`~kneenlp.inference.identify.identify`'s (``weighted``, ``with_effects``, ``start``; the
     rest serve the fallback)."""
     from kneenlp.inference.identify import identify, reduced_fit
@@ -303,4 +344,61 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         else:
             fit.message = "; ".join(filter(None, [fit.message, f"fitting {', '.join(extra)} as well did not lower "
                                                   "the sum of squares: they stay at the knee's values"]))
-    return Calibration(fit, before, fixed, engaged, predict(model, data, fit.params))
+    outliers: list[Outlier] = []
+    if not keep_outliers:
+        fit, outliers = without_outliers(fit, options)
+    aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
+    return Calibration(fit, before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
+                       predict(model, data.subset(aside), fit.params) if outliers else None)
+
+
+def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
+    """``fit`` refitted without the trials the outlier test sets aside (:mod:`~kneenlp.inference.outliers`:
+    the screen's worst trial, refitted without and predicted; at most :data:`MAX_OUTLIER_SHARE` of
+    the trials, one at a time), and those trials; ``options`` those of the fit's problem (noise,
+    weights, effects).  A refit that loses a trial's equilibrium, or a candidate predict cannot
+    solve, keeps the trial (the fit's message says so)."""
+    from kneenlp.inference.identify import reduced_fit
+
+    noise = NoiseModel.parse(options.get("noise"))
+    declared = noise.std**2 if noise.std > 0 else None
+    model, found = fit.problem.model, []
+    limit = int(MAX_OUTLIER_SHARE * len(fit.data))
+    while len(found) < limit:
+        ids = [t.id for t in fit.data.trials]
+        residuals = fit.data.q_user - fit.predicted_user
+        chi2, p = screen(residuals, len(fit.free), declared,
+                         residual_factors(fit.sensitivity, fit.problem.weights, noise_per_observation(fit, declared)))
+        worst = int(np.argmax(chi2))
+        if not p[worst] < SCREEN_ALPHA:
+            break
+        keep = np.arange(len(ids)) != worst
+        problem = IdentificationProblem.from_data(model, fit.data.subset(keep), fit.free, **options)
+        refit = reduced_fit(problem, fit.params, q0=fit.q_pred[keep], max_evaluations=MAX_EVALUATIONS)
+        held = fit.data.subset(~keep)
+        alone = predict(model, held, refit.params)
+        why = ("the fit without it lost a trial's equilibrium" if not refit.max_residual <= problem.equilibrium_tol
+               else "predict finds no equilibrium for it without it" if not alone.converged[0] else "")
+        if why:
+            fit.message = "; ".join(filter(None, [fit.message, f"{ids[worst]} not tested as an outlier: {why}"]))
+            break
+        q_held = np.array([alone.solutions[0].q])
+        sens = IdentificationProblem.from_data(model, held, fit.free, **options).sensitivities(q_held, refit.theta)
+        noise_var = noise_per_observation(refit, declared)
+        outlier = deletion_test(ids[worst], alone.errors_user[0], noise_var[0],
+                                prediction_variance(sens, refit.sensitivity, refit.problem.weights, noise_var),
+                                None if declared else max(len(refit.data) - len(fit.free) / 5, 1.0), len(ids))
+        if outlier is None:
+            break
+        fit, found = refit, [*found, outlier]
+    return fit, found
+
+
+def noise_per_observation(fit: Fit, declared: float | None) -> np.ndarray:
+    """The noise variance of each observation of ``fit`` (T x 5, mm^2 or deg^2): ``declared``, else
+    per coordinate from the fit's residuals (sum of squares over ``T - p / 5``)."""
+    residuals = fit.data.q_user - fit.predicted_user
+    if declared is not None:
+        return np.full(residuals.shape, declared)
+    dof = max(len(residuals) - len(fit.free) / 5, 1.0)
+    return np.broadcast_to(np.sum(residuals**2, axis=0) / dof, residuals.shape).copy()

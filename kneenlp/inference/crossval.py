@@ -30,13 +30,6 @@ from kneenlp.inference.predict import Prediction, predict
 from kneenlp.model.kneemodel import KneeModel
 
 
-def subset(data: MeasuredData, keep: np.ndarray) -> MeasuredData:
-    """The trials of ``data`` where the boolean mask ``keep`` is true, in order."""
-    keep = np.asarray(keep, bool)
-    return MeasuredData([t for t, k in zip(data.trials, keep, strict=True) if k], data.q[keep],
-                        data.protocol, data.source, data.side)
-
-
 def folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
     """(name, held-out mask) of the highest-flexion hold-out and of every loaded direction."""
     nominal = flexion_groups(data.trials)
@@ -76,8 +69,8 @@ def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str =
     held = np.asarray(held, bool)
     if held.all() or not held.any():
         raise ValueError(f"hold-out {name!r} must keep some trials and hold out some")
-    cal = calibrate(model, subset(data, ~held), **calibrate_options)
-    pred = predict(model, subset(data, held), cal.fit.params)
+    cal = calibrate(model, data.subset(~held), **calibrate_options)
+    pred = predict(model, data.subset(held), cal.fit.params)
     return HeldOut(name, held, cal, pred)
 
 
