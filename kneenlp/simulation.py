@@ -97,7 +97,8 @@ class SimulationResult:
                                    + ", ".join(s.trial.id for s in self.failed), self)
         rng = np.random.default_rng(seed)
         model = self.model or KneeModel.of(self.knee)
-        y = model.observe(self.q, model.theta(self.parameters))  # what the instrument reads, biases included
+        # what the instrument reads, biases included
+        y = model.observe(self.q, model.theta(self.parameters), [s.trial.flexion for s in self.solutions])
         return measured_frame([s.trial for s in self.solutions], y + noise.sample(rng, self.q.shape),
                               self.protocol.name)
 

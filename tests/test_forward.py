@@ -190,3 +190,15 @@ def test_load_point_shift_adds_the_virtual_work_of_the_moved_force(model):
                        for i in range(5)])
     assert np.allclose(extra, oracle, atol=1e-6 * np.abs(oracle).max())
     assert np.abs(oracle[:2]).max() > 0.1  # the shift matters (N m)
+    # the experiment's tibial origin moved by d (TibialOrigin) moves the joint loads' point the same
+    # way, and adds to a LoadPoint shift
+    axes = ("anterior", "proximal", "lateral")
+    moved = model.theta({f"tibial_origin.{a}": v for a, v in zip(axes, d, strict=True)})
+    both = model.theta({f"{e}.{a}": v / 2 for e in ("tibial_origin", "load_point")
+                        for a, v in zip(axes, d, strict=True)})
+    plain = np.asarray(model.residual(q, theta0, load, flexion, ws)).ravel()
+    for theta in (moved, both):
+        assert np.allclose(np.asarray(model.residual(q, theta, load, flexion, ws)).ravel() - plain, extra, atol=1e-12)
+    femoral = load_vector({"anterior_force": 150.0, "internal_moment": 1.0}, axes="femoral")
+    assert np.allclose(np.asarray(model.residual(q, moved, femoral, flexion, ws)).ravel(),
+                       np.asarray(model.residual(q, theta0, femoral, flexion, ws)).ravel(), atol=1e-12)

@@ -108,10 +108,35 @@ def test_tibial_origin_reads_the_translations_of_the_moved_point():
         theta = model.theta({f"tibial_origin.{a}": v for a, v in zip(("anterior", "proximal", "lateral"), shift,
                                                                       strict=True)})
         q = np.r_[rng.uniform(-0.4, 0.4, 2), rng.uniform(-0.01, 0.01, 2), rng.uniform(-0.03, -0.01)]
-        seen = model.observe(q, theta)[0]
         for flexion in rng.uniform(-0.1, 1.7, 3):
+            seen = model.observe(q, theta, flexion)[0]
             R, p = reference_transform(flexion, q)
             f_back, q_moved = joint_coordinates(R, p + R @ shift)
             assert f_back == pytest.approx(flexion, abs=1e-12)
             assert np.allclose(seen, coords_to_user(q_moved), atol=1e-9)
     assert not np.allclose(seen, coords_to_user(q))  # the shift is seen
+
+
+def test_femoral_origin_reads_the_translations_from_the_moved_point():
+    """``FemoralOrigin``: the observed translations are the Grood-Suntay translations of the tibial
+    origin from the femoral point ``s`` (femoral frame), at every flexion: oracle
+    ``joint_coordinates`` of ``p - s``; they depend on the flexion (unlike a constant registration)."""
+    import kneenlp
+    from kneenlp.conventions import coords_to_user
+    from kneenlp.model.kinematics import joint_coordinates, reference_transform
+    from kneenlp.model.kneemodel import KneeModel
+
+    model = KneeModel.of(kneenlp.Knee.named("synthetic"))
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        shift = rng.uniform(-0.01, 0.01, 3)
+        theta = model.theta({f"femoral_origin.{a}": v for a, v in zip(("anterior", "proximal", "lateral"), shift,
+                                                                       strict=True)})
+        q = np.r_[rng.uniform(-0.4, 0.4, 2), rng.uniform(-0.01, 0.01, 2), rng.uniform(-0.03, -0.01)]
+        flexions = rng.uniform(-0.1, 1.7, 3)
+        seen = model.observe(np.tile(q, (3, 1)), theta, flexions)
+        for flexion, y in zip(flexions, seen, strict=True):
+            R, p = reference_transform(flexion, q)
+            _, q_moved = joint_coordinates(R, p - shift)
+            assert np.allclose(y, coords_to_user(q_moved), atol=1e-9)
+        assert np.ptp(seen[:, 2:], axis=0).max() > 0.1  # mm: the bias turns with the flexion

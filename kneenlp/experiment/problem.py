@@ -310,7 +310,7 @@ class IdentificationProblem:
     # ------------------------------------------------------------------ the one comparison
     def observe(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Predicted measurements (T x 5, mm and deg) of poses ``q`` (T x 5, SI)."""
-        return self.model.observe(q, theta)
+        return self.model.observe(q, theta, self.flexions)
 
     def residuals(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Model minus measured coordinates (T x 5, mm and deg)."""
@@ -336,7 +336,7 @@ class IdentificationProblem:
         dq, dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2) for v in
                    model.pose_derivatives(T, wrt_theta=True)(q.T, theta, self.loads.T, self.flexions[None, :]))
         dy_dq, dy_dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
-                         for v in model.observation_jacobians.map(T)(q.T, theta))
+                         for v in model.observation_jacobians.map(T)(q.T, theta, self.flexions[None, :]))
         dr_dp = dth[:, :, idx]
         try:
             dq_dp = -np.linalg.solve(dq, dr_dp)

@@ -236,7 +236,6 @@ class Calibration:
                  f"{', '.join(self.engaged) or 'none'}"]
         return "\n".join(lines)
 
-
     def _outlier_lines(self, row) -> list[str]:
         if self.set_aside is None:
             return []

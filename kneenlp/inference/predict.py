@@ -113,7 +113,7 @@ def predict(knee: Knee | KneeModel, data: MeasuredData, parameters: dict[str, fl
     protocol = Protocol(data.protocol or "measured", tuple(data.trials), source=data.source)
     theta = model.theta(parameters)
     solutions = forward_solver(model).solve(protocol.trials, theta)
-    observed = model.observe(np.array([s.q for s in solutions]), theta)
+    observed = model.observe(np.array([s.q for s in solutions]), theta, [s.trial.flexion for s in solutions])
     return Prediction(data, solutions, model.knee.name, observed)
 
 

@@ -8,7 +8,8 @@ An *effect* is something the model adequacy check can add (:mod:`kneenlp.inferen
   file's ``[candidates.<name>]`` (e.g. ``posterior_capsule``, ``ALL``: :class:`Ligament` elements
   with stiffness 0), :class:`Meniscus`, :class:`FlexionOffset`, :class:`LoadPoint` and :class:`Registration` (all five
   coordinates; :func:`registration_effects` adds one candidate per coordinate); every model also carries
-  :class:`TibialOrigin`, neutral and fitted only where named (not scored by the adequacy check);
+  :class:`TibialOrigin` and :class:`FemoralOrigin`, neutral and fitted only where named (not scored
+  by the adequacy check);
 * a parameter group of the base model (:func:`parameter_group`): ``lin_strain`` (the linear
   strain limits) and ``contact_modulus``;
 * a geometry candidate (:func:`attachment_effects`): the position of one ligament's (or bundle
@@ -125,7 +126,7 @@ class Registration(ForceElement):
                           f"constant bias of the measured {c.replace('_', ' ')}", 0.0, 0.0)
                 for c, u in zip(COORDINATES, COORDINATE_UNITS, strict=True)]
 
-    def measurement_bias(self, q, values: dict) -> ca.SX:
+    def measurement_bias(self, pose, values: dict) -> ca.SX:
         return ca.vertcat(*[values[f"registration.{c}"] for c in COORDINATES])
 
 
@@ -137,8 +138,9 @@ class TibialOrigin(ForceElement):
     axes ``Rz(-flexion)`` times flexion-free vectors (:func:`~kneenlp.model.kinematics.tibial_pose`),
     this depends on the varus and internal rotations alone.  Unlike a constant registration it
     moves with the tibia: a point ``a`` mm anterior of the origin moves ``a`` mm laterally per
-    radian of external rotation.  (Where a robot applies its joint loads is
-    :class:`LoadPoint`.)"""
+    radian of external rotation.  A robot applies its joint loads at the same origin (the
+    Grood-Suntay origin of kinematics and kinetics), so the joint loads' force acts there too
+    (:meth:`joint_origin_offset`); :class:`LoadPoint` shifts it further."""
 
     name = "tibial_origin"
     description = "the experiment reads its translations at another tibial point"
@@ -151,14 +153,47 @@ class TibialOrigin(ForceElement):
         return [Parameter(f"tibial_origin.{a}", "length", f"{a} shift of the tibial point the translations are read at",
                           0.0, 0.0) for a in LOAD_POINT_AXES]
 
-    def measurement_bias(self, q, values: dict) -> ca.SX:
-        shift = ca.vertcat(*[values[f"tibial_origin.{a}"] for a in LOAD_POINT_AXES])
+    def joint_origin_offset(self, values: dict) -> ca.SX:
+        return ca.vertcat(*[values[f"tibial_origin.{a}"] for a in LOAD_POINT_AXES])
+
+    def measurement_bias(self, pose, values: dict) -> ca.SX:
+        q = pose.q
+        shift = self.joint_origin_offset(values)
         R, _, _ = tibial_pose(0.0, q)  # any flexion gives the same (docstring)
         w = R @ shift
         # at zero flexion the axes are e1 = Z, e2 = X, e3 = (0, cos v, sin v): [e1 e2 e3] d = w solved
         # by hand (no symbolic solve in the exported graphs)
         proximal = w[1] / ca.cos(q[0])
         return ca.vertcat(0.0, 0.0, w[2] - ca.sin(q[0]) * proximal, w[0], proximal)
+
+
+class FemoralOrigin(ForceElement):
+    """The experiment's femoral origin is elsewhere than the model's: moved by
+    ``femoral_origin.<anterior|proximal|lateral>`` (mm, femoral frame X, Y, Z).  Its Grood-Suntay
+    translations are those of the tibial origin from that point, the model's minus
+    ``[e1 e2 e3]^-1 s``; as the tibial axis ``e3`` turns with the flexion, so does the bias: a point
+    1 mm posterior of the model's origin adds 1 mm to the anterior translation in extension and to
+    the proximal translation at 90 deg.  With :class:`TibialOrigin` and the constant rotations of
+    :class:`Registration` it places the experiment's frames on the model's, up to the directions
+    of the axes.  The joint loads act at the tibial origin and do not move."""
+
+    name = "femoral_origin"
+    description = "the experiment reads its translations from another femoral point"
+    #: fitted where named, like :class:`TibialOrigin` (S192803, docs/real-experiment.md "Session 17")
+    candidate = False
+
+    def parameters(self) -> list[Parameter]:
+        return [Parameter(f"femoral_origin.{a}", "length", f"{a} shift of the femoral point the translations are "
+                          "read from", 0.0, 0.0) for a in LOAD_POINT_AXES]
+
+    def measurement_bias(self, pose, values: dict) -> ca.SX:
+        s = ca.vertcat(*[values[f"femoral_origin.{a}"] for a in LOAD_POINT_AXES])
+        sf, cf, v = ca.sin(pose.flexion), ca.cos(pose.flexion), pose.q[0]
+        # -s = lateral e1 + anterior e2 + proximal e3 with e1 = Z, e2 = (cos f, -sin f, 0) and
+        # e3 = (cos v sin f, cos v cos f, sin v) (tibial_pose), solved by hand
+        proximal = -(s[0] * sf + s[1] * cf) / ca.cos(v)
+        anterior = -(s[0] * cf - s[1] * sf)
+        return ca.vertcat(0.0, 0.0, -s[2] - ca.sin(v) * proximal, anterior, proximal)
 
 
 class LoadPoint(ForceElement):
@@ -202,7 +237,7 @@ def builtin_elements(centres: list[np.ndarray], meniscus: bool = True,
     for a knee whose menisci are part of its base model; ``rest``: the condyle centres' rest
     positions over the plateaus (:class:`Meniscus`)."""
     return [*([Meniscus(centres, rest=rest)] if meniscus else []), FlexionOffset(), Registration(), LoadPoint(),
-            TibialOrigin()]
+            TibialOrigin(), FemoralOrigin()]
 
 
 def builtin_groups(ligaments: list[str]) -> list[Effect]:

@@ -101,14 +101,20 @@ class ForceElement:
         """True minus prescribed flexion (rad)."""
         return 0.0
 
-    def measurement_bias(self, q: ca.SX, values: dict[str, ca.SX]) -> ca.SX | None:
-        """Added to the model's five coordinates ``q`` before comparison with measurements (rad, m);
-        it may depend on the pose (not on the flexion)."""
+    def measurement_bias(self, pose: Pose, values: dict[str, ca.SX]) -> ca.SX | None:
+        """Added to the model's five coordinates ``pose.q`` before comparison with measurements
+        (rad, m); it may depend on the pose, flexion included."""
         return None
 
     def load_point_offset(self, values: dict[str, ca.SX]) -> ca.SX | None:
         """Shift (tibial frame, m) of the point where the applied force acts, from its nominal point
         (the tuberosity for femoral or joint axes, the tibial origin for a robot's joint loads)."""
+        return None
+
+    def joint_origin_offset(self, values: dict[str, ca.SX]) -> ca.SX | None:
+        """Shift (tibial frame, m) of the experiment's tibial origin from the model's: where a
+        robot reads its translations *and* applies its joint loads (the Grood-Suntay origin of
+        both kinematics and kinetics).  The joint loads' force acts there too."""
         return None
 
 

@@ -15,8 +15,9 @@
 * ``r`` (5): generalised forces of all elements + load for the five free coordinates (N m for the
   rotations, N for the translations); equilibrium is ``r = 0``.  The flexion moment is reacted.
 
-``KneeModel.observation`` is THE map from a pose to what is measured, ``(q, theta) -> y`` with
-``y`` the five coordinates in mm and deg plus any measurement bias of the elements.
+``KneeModel.observation`` is THE map from a pose to what is measured, ``(q, theta, flexion) -> y``
+with ``y`` the five coordinates in mm and deg plus any measurement bias of the elements (which may
+depend on the prescribed flexion: :class:`~kneenlp.model.effects.FemoralOrigin`).
 
 The forward Newton solver, the simultaneous NLP, the nested objective, sensitivities and export all
 call these functions.  They are built once per model with the parameters as symbols, so changing
@@ -140,22 +141,23 @@ class KneeModel:
             force += f_e
             moment += m_e
         # the applied force acts at the tuberosity (femoral or joint axes) or, for a robot's joint
-        # loads, at the tibial origin; an element may shift that point (LoadPoint): the joint loads'
-        # force (the vector whose projections on e1, e2, e3 are the joint forces) then adds the
-        # couple of the shift
+        # loads, at the tibial origin; an element may shift that point (LoadPoint), and the
+        # experiment's tibial origin may be elsewhere (TibialOrigin): the joint loads' force (the
+        # vector whose projections on e1, e2, e3 are the joint forces) then adds the couple of the shift
         shift = sum((s for e in self.elements if (s := e.load_point_offset(values)) is not None), ca.SX.zeros(3))
+        origin = sum((s for e in self.elements if (s := e.joint_origin_offset(values)) is not None), ca.SX.zeros(3))
         e1, e2, e3 = axes
         joint_force = ca.solve(ca.horzcat(e1, e2, e3).T, load[8:11])
         force += load[0:3]
         moment += ca.cross(R @ (ca.DM(self.knee.tuberosity) + shift), load[0:3]) + load[3:6]
-        moment += ca.cross(R @ shift, joint_force)
+        moment += ca.cross(R @ (shift + origin), joint_force)
         residual = generalized_forces(q, p, axes, force, moment) + load[6:LOAD_SIZE]
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 
-        bias = [b for e in self.elements if (b := e.measurement_bias(q, values)) is not None]
+        bias = [b for e in self.elements if (b := e.measurement_bias(pose, values)) is not None]
         y = coords_to_user(q) + (coords_to_user(sum(bias, ca.SX.zeros(5))) if bias else 0)
-        self.observation = ca.Function("observation", [q, theta], [y], ["q", "theta"], ["y"])
+        self.observation = ca.Function("observation", [q, theta, flexion], [y], ["q", "theta", "flexion"], ["y"])
 
         self.pose = ca.Function("pose", [q, flexion, theta], [R, p], ["q", "flexion", "theta"], ["R", "p"])
         self.staged = staged
@@ -364,14 +366,17 @@ class KneeModel:
                                  field=p.name)
         return np.array(out, dtype=float)
 
-    def observe(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """Measured coordinates (T x 5, mm and deg) of poses ``q`` (T x 5, SI) at ``theta``."""
+    def observe(self, q: np.ndarray, theta: np.ndarray, flexions) -> np.ndarray:
+        """Measured coordinates (T x 5, mm and deg) of poses ``q`` (T x 5, SI) at their prescribed
+        ``flexions`` (T, rad) and ``theta``."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
-        return np.asarray(self.observation.map(len(q))(q.T, theta)).T
+        flexions = np.broadcast_to(np.asarray(flexions, float), (len(q),))
+        return np.asarray(self.observation.map(len(q))(q.T, theta, flexions[None, :])).T
 
-    def bias_user(self, theta: np.ndarray) -> np.ndarray:
-        """Measurement bias (mm, deg) that the elements add to the model's coordinates."""
-        return self.observe(np.zeros(5), theta)[0]
+    def bias_user(self, theta: np.ndarray, flexion: float = 0.0) -> np.ndarray:
+        """Measurement bias (mm, deg) that the elements add to the model's coordinates at the
+        neutral pose and ``flexion`` (rad)."""
+        return self.observe(np.zeros(5), theta, flexion)[0]
 
     def effect(self, name: str) -> Effect:
         """The candidate effect called ``name``."""
@@ -444,5 +449,5 @@ class KneeModel:
 
     @cached_property
     def observation_jacobians(self) -> ca.Function:
-        """``(q, theta) -> (dy/dq, dy/dtheta)`` of :attr:`observation`."""
-        return self.observation.factory("observation_jac", ["q", "theta"], ["jac:y:q", "jac:y:theta"])
+        """``(q, theta, flexion) -> (dy/dq, dy/dtheta)`` of :attr:`observation`."""
+        return self.observation.factory("observation_jac", ["q", "theta", "flexion"], ["jac:y:q", "jac:y:theta"])
