@@ -29,7 +29,7 @@ from kneenlp.model.kneemodel import KneeModel
 def main() -> None:
     model = KneeModel.of(kneenlp.Knee.named("s192803"))
     data = read_measured(resource("datasets", "s192803_laxity.csv"))
-    fit = calibrate(model, data).fit
+    fit = calibrate(model, data, keep_outliers=True).fit
     loaded = np.array([t.dominant != "none" for t in data.trials])
     base = float(np.sum(fit.residuals**2))
     print(f"calibration: {len(fit.free)} free, sum of squares {base:.1f}")

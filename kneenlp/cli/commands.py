@@ -21,8 +21,9 @@ def cmd_diagnose(args) -> int:
 
     knee = knee_from_args(args)
     data = args.measured  # read and checked by the options layer
-    if real_experiment(data):  # the base model of a real experiment is its calibration (registration included)
-        fit = calibrate(KneeModel.of(knee), data, noise=args.noise, seed=args.seed).fit
+    if real_experiment(data):  # the base model of a real experiment is its calibration (registration included);
+        # every trial: the residual map shows a trial identify would set aside
+        fit = calibrate(KneeModel.of(knee), data, noise=args.noise, seed=args.seed, keep_outliers=True).fit
     else:
         fit = base_fit(knee, data, args.noise, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear")

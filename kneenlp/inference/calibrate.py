@@ -5,7 +5,10 @@ writes them) differs from data the model produced in two ways the fit must take 
 
 * the experiment's frames are not the model's: the registration (a constant offset of the five
   measured coordinates, :class:`~kneenlp.model.effects.Registration`) is fitted with the ligaments;
-* nobody declares the noise: its level is estimated from the fit (the residual variance).
+* nobody declares the noise: its level is estimated from the fit (the residual variance);
+* a trial can be one no passive knee produces: the outlier test (:mod:`~kneenlp.inference.outliers`)
+  sets it aside, the fit is repeated without it, and the report names it (S192803:
+  ``valgus_flex60``, docs/real-experiment.md "Session 17").
 
 Which ligament parameters the trials can determine is decided before the fit
 (:func:`calibration_free`): the sensitivities of the measured coordinates to every ligament
@@ -51,7 +54,6 @@ import scipy.linalg
 from kneenlp.conventions import COORDINATES
 from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.measured import MeasuredData
-from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.inference.fit import Fit
 from kneenlp.inference.laxity import laxity_lines, laxity_records, laxity_table
@@ -355,19 +357,20 @@ def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
     """``fit`` refitted without the trials the outlier test sets aside (:mod:`~kneenlp.inference.outliers`:
     the screen's worst trial, refitted without and predicted; at most :data:`MAX_OUTLIER_SHARE` of
     the trials, one at a time), and those trials; ``options`` those of the fit's problem (noise,
-    weights, effects).  A refit that loses a trial's equilibrium, or a candidate predict cannot
-    solve, keeps the trial (the fit's message says so)."""
+    weights, effects).  The noise is always estimated from the other trials, never a declared
+    level: a trial is an outlier against the rest of its experiment (a declared level below the
+    fit's residuals is the adequacy check's finding, not every trial's fault).  A refit that loses
+    a trial's equilibrium, or a candidate predict cannot solve, keeps the trial (the fit's message
+    says so)."""
     from kneenlp.inference.identify import reduced_fit
 
-    noise = NoiseModel.parse(options.get("noise"))
-    declared = noise.std**2 if noise.std > 0 else None
     model, found = fit.problem.model, []
     limit = int(MAX_OUTLIER_SHARE * len(fit.data))
     while len(found) < limit:
         ids = [t.id for t in fit.data.trials]
         residuals = fit.data.q_user - fit.predicted_user
-        chi2, p = screen(residuals, len(fit.free), declared,
-                         residual_factors(fit.sensitivity, fit.problem.weights, noise_per_observation(fit, declared)))
+        chi2, p = screen(residuals, len(fit.free),
+                         factors=residual_factors(fit.sensitivity, fit.problem.weights, noise_per_observation(fit)))
         worst = int(np.argmax(chi2))
         if not p[worst] < SCREEN_ALPHA:
             break
@@ -383,21 +386,19 @@ def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
             break
         q_held = np.array([alone.solutions[0].q])
         sens = IdentificationProblem.from_data(model, held, fit.free, **options).sensitivities(q_held, refit.theta)
-        noise_var = noise_per_observation(refit, declared)
+        noise_var = noise_per_observation(refit)
         outlier = deletion_test(ids[worst], alone.errors_user[0], noise_var[0],
                                 prediction_variance(sens, refit.sensitivity, refit.problem.weights, noise_var),
-                                None if declared else max(len(refit.data) - len(fit.free) / 5, 1.0), len(ids))
+                                max(len(refit.data) - len(fit.free) / 5, 1.0), len(ids))
         if outlier is None:
             break
         fit, found = refit, [*found, outlier]
     return fit, found
 
 
-def noise_per_observation(fit: Fit, declared: float | None) -> np.ndarray:
-    """The noise variance of each observation of ``fit`` (T x 5, mm^2 or deg^2): ``declared``, else
-    per coordinate from the fit's residuals (sum of squares over ``T - p / 5``)."""
+def noise_per_observation(fit: Fit) -> np.ndarray:
+    """The noise variance of each observation of ``fit`` (T x 5, mm^2 or deg^2), per coordinate
+    from the fit's residuals (sum of squares over ``T - p / 5``)."""
     residuals = fit.data.q_user - fit.predicted_user
-    if declared is not None:
-        return np.full(residuals.shape, declared)
     dof = max(len(residuals) - len(fit.free) / 5, 1.0)
     return np.broadcast_to(np.sum(residuals**2, axis=0) / dof, residuals.shape).copy()
