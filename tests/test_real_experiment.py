@@ -526,6 +526,23 @@ def test_calibration_says_what_predict_reproduces(s192803, tmp_path):
 
 
 @pytest.mark.slow
+def test_identify_writes_the_set_aside_trials(tmp_path, capsys):
+    """``kneenlp identify --out DIR`` on the real experiment: fit.json holds the calibration's
+    summary (the set-aside trial with its statistic), set_aside.csv its prediction at the
+    calibrated values, and predict with calibrated.toml reaches every trial, the set-aside one too."""
+    out = tmp_path / "cal"
+    assert main(["identify", str(CSV), "--knee", "s192803", "--out", str(out)]) == 0
+    capsys.readouterr()
+    saved = json.loads((out / "fit.json").read_text())
+    assert [o["trial"] for o in saved["outliers"]] == ["valgus_flex60"] and saved["outliers"][0]["p_adjusted"] < 0.05
+    aside = pd.read_csv(out / "set_aside.csv")
+    assert list(aside["trial"]) == ["valgus_flex60"] and bool(aside["converged"].iloc[0])
+    assert len(pd.read_csv(out / "fit_trials.csv")) == 24
+    assert main(["predict", str(CSV), "--knee", "s192803", "--parameters", str(out / "calibrated.toml"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["converged"] == 25
+
+
+@pytest.mark.slow
 def test_also_free_joins_from_the_calibration(s192803):
     """``also_free`` fits the named effect's parameters beside the calibration's own choice,
     starting from the calibration without them: never a larger sum of squares than that."""

@@ -105,13 +105,17 @@ def cmd_identify(args) -> int:
                                  "(no declared side, no joint loads) or --method nested was asked", field=flag)
         fit = identify(knee, args.measured, args.method, free=args.free, seed=args.seed, noise=args.noise, **options)
         calibration = Calibration(fit, None, [])
+    summary = json.dumps(json.loads(fit.to_json()) | calibration.summary(), indent=2)
     if args.out:
         with staged_directory(args.out) as stage:
             write_csv_atomic(fit.table(), stage.path / "fit_trials.csv", index=False, float_format="%.10g")
-            write_text_atomic(stage.path / "fit.json", fit.to_json())
+            write_text_atomic(stage.path / "fit.json", summary)
             write_text_atomic(stage.path / "calibrated.toml", calibration.to_toml())
+            if calibration.set_aside is not None:  # the trials the outlier test set aside, predicted
+                write_csv_atomic(calibration.set_aside.table(), stage.path / "set_aside.csv", index=False,
+                                 float_format="%.10g")
     if args.json:
-        print(json.dumps(json.loads(fit.to_json()) | calibration.summary(), indent=2))
+        print(summary)
     else:
         print(calibration.report())
     return 0 if fit.success else 1

@@ -75,7 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-outliers", action="store_true",
                    help="real experiments: fit every trial (default: trials the outlier test flags are set aside "
                         "and reported, docs/real-experiment.md)")
-    p.add_argument("--out", help="also write fit.json and fit_trials.csv here")
+    p.add_argument("--out", help="also write fit.json, fit_trials.csv and calibrated.toml here (real experiments: "
+                                 "set_aside.csv, the trials the outlier test set aside, predicted)")
     p.add_argument("--json", action="store_true", help="print JSON instead of the report")
     p.set_defaults(validate=True, out_kind="dir")
 
