@@ -32,7 +32,7 @@ import numpy as np
 
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.model.elements import ForceElement, Pose
-from kneenlp.model.kinematics import axis_components
+from kneenlp.model.kinematics import tibial_pose
 from kneenlp.model.parameters import Parameter
 
 #: Axes of :class:`LoadPoint`'s shift, in the order of the tibial frame's X, Y, Z.
@@ -157,8 +157,14 @@ class TibialOrigin(ForceElement):
         return ca.vertcat(*[values[f"tibial_origin.{a}"] for a in LOAD_POINT_AXES])
 
     def measurement_bias(self, pose, values: dict) -> ca.SX:
-        return ca.vertcat(0.0, 0.0, *axis_components(pose.R @ self.joint_origin_offset(values), pose.flexion,
-                                                     pose.q[0]))
+        q = pose.q
+        shift = self.joint_origin_offset(values)
+        R, _, _ = tibial_pose(0.0, q)  # any flexion gives the same (docstring)
+        w = R @ shift
+        # at zero flexion the axes are e1 = Z, e2 = X, e3 = (0, cos v, sin v): [e1 e2 e3] d = w solved
+        # by hand (no symbolic solve in the exported graphs)
+        proximal = w[1] / ca.cos(q[0])
+        return ca.vertcat(0.0, 0.0, w[2] - ca.sin(q[0]) * proximal, w[0], proximal)
 
 
 class FemoralOrigin(ForceElement):
@@ -182,7 +188,12 @@ class FemoralOrigin(ForceElement):
 
     def measurement_bias(self, pose, values: dict) -> ca.SX:
         s = ca.vertcat(*[values[f"femoral_origin.{a}"] for a in LOAD_POINT_AXES])
-        return ca.vertcat(0.0, 0.0, *axis_components(-s, pose.flexion, pose.q[0]))
+        sf, cf, v = ca.sin(pose.flexion), ca.cos(pose.flexion), pose.q[0]
+        # -s = lateral e1 + anterior e2 + proximal e3 with e1 = Z, e2 = (cos f, -sin f, 0) and
+        # e3 = (cos v sin f, cos v cos f, sin v) (tibial_pose), solved by hand
+        proximal = -(s[0] * sf + s[1] * cf) / ca.cos(v)
+        anterior = -(s[0] * cf - s[1] * sf)
+        return ca.vertcat(0.0, 0.0, -s[2] - ca.sin(v) * proximal, anterior, proximal)
 
 
 class LoadPoint(ForceElement):

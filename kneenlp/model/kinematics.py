@@ -65,16 +65,6 @@ def generalized_forces(q, p, axes, force, moment):
     return jac_p.T @ force + jac_w.T @ moment
 
 
-def axis_components(v, flexion, varus):
-    """``(lateral, anterior, proximal)`` with ``v = lateral e1 + anterior e2 + proximal e3`` (femoral
-    frame) for the Grood & Suntay axes of :func:`tibial_pose` at ``flexion`` and ``varus`` (rad):
-    ``e1 = Z``, ``e2 = (cos f, -sin f, 0)``, ``e3 = (cos v sin f, cos v cos f, sin v)``, solved by
-    hand (CasADi or numpy; no symbolic solve in exported graphs)."""
-    sf, cf = ca.sin(flexion), ca.cos(flexion)
-    proximal = (v[0] * sf + v[1] * cf) / ca.cos(varus)
-    return v[2] - ca.sin(varus) * proximal, v[0] * cf - v[1] * sf, proximal
-
-
 def joint_coordinates(R, p) -> tuple[float, np.ndarray]:
     """Inverse of :func:`tibial_pose`: flexion (rad) and the five free coordinates (rad, m) of the
     tibial frame with rotation ``R`` (tibial -> femoral) and origin ``p`` (femoral frame, m).
