@@ -122,3 +122,49 @@ def test_a_moved_origin_reads_the_translations_of_the_moved_point(element):
         assert not np.allclose(seen, coords_to_user(q))  # the shift is seen
         turns = np.ptp(seen[:, 2:], axis=0).max()  # mm: how much the bias changes with the flexion
         assert turns > 0.1 if element == "femoral_origin" else turns < 1e-9
+
+
+def test_turned_tibial_axes_make_the_coordinates_the_experiments():
+    """``TibialAxes``: the model's coordinates are those of the experiment's tibial axes, turned by
+    ``C = Rz(-flexion) Rx(varus)`` from the model's (oracle: scipy's rotations).  The tibia's own
+    frame is ``R(q) C^T``: reading it in the experiment's axes gives back the prescribed flexion
+    and ``q``; the observation is ``q`` itself; a force at the tuberosity does the virtual work of
+    the turned tibia's point (oracle: central differences); the imaged pose is read the same way."""
+    from scipy.spatial.transform import Rotation
+
+    import kneenlp
+    from kneenlp.model.kinematics import joint_coordinates, reference_transform
+    from kneenlp.model.kneemodel import KneeModel
+
+    model = KneeModel.of(kneenlp.Knee.named("synthetic"))
+    varus, flex_turn = np.radians(4.0), np.radians(-3.0)
+    theta = model.theta({"tibial_axes.varus": varus, "tibial_axes.flexion": flex_turn})
+    C = (Rotation.from_rotvec([0.0, 0.0, -flex_turn]) * Rotation.from_rotvec([varus, 0.0, 0.0])).as_matrix()
+    q, flexion = np.array([0.02, -0.3, 0.001, 0.002, -0.004]), 0.7
+    R, p = (np.asarray(v, float) for v in model.pose(q, flexion, theta))
+    f_back, q_back = joint_coordinates(R @ C, p)
+    assert f_back == pytest.approx(flexion, abs=1e-12) and np.allclose(q_back, q, atol=1e-12)
+    f_model, q_model = joint_coordinates(R, p)  # the model's own axes read another pose
+    assert abs(f_model - flexion) > np.radians(1.0) and abs(q_model[0] - q[0]) > np.radians(2.0)
+    assert np.allclose(model.observe(q[None], theta, flexion), model.observe(q[None], model.theta(), flexion))
+
+    tub = np.asarray(model.knee.tuberosity, float)
+
+    def point(qq):
+        Rq, pq = reference_transform(flexion, qq)
+        return Rq @ C.T @ tub + pq
+
+    load = load_vector({"anterior_force": 120.0, "lateral_force": -30.0, "proximal_force": 50.0}, axes="femoral")
+    ws = model.working_data(q, theta, flexion)
+    extra = (np.asarray(model.residual(q, theta, load, flexion, ws)).ravel()
+             - np.asarray(model.residual(q, theta, np.zeros(LOAD_SIZE), flexion, ws)).ravel())
+    h = 1e-7
+    oracle = np.array([load[0:3] @ (point(q + h * np.eye(5)[i]) - point(q - h * np.eye(5)[i])) / (2 * h)
+                       for i in range(5)])
+    assert np.allclose(extra, oracle, atol=1e-6 * np.abs(oracle).max())
+
+    f_ref, q_ref = model.reference_coordinates(theta)
+    R_ref, p_ref = model.knee.reference_transform
+    R, p = (np.asarray(v, float) for v in model.pose(q_ref, f_ref, theta))
+    assert np.allclose(R, R_ref, atol=1e-12) and np.allclose(p, p_ref, atol=1e-12)
+    assert model.reference_coordinates(model.theta())[0] == model.knee.reference_pose[0]

@@ -12,7 +12,14 @@ with the calibrated parameters, registration included (:func:`~kneenlp.inference
   calibrated on the others.
 
 Errors are measured minus predicted, RMS per coordinate (mm, deg), over the held-out trials that
-reach equilibrium (the others are counted and reported, never dropped silently).
+reach equilibrium (the others are counted and reported, never dropped silently).  Beside each
+error, what the calibration itself expects it to be: the RMS over the held-out trials of the
+standard deviation of measured minus predicted, the noise the calibration estimated plus its
+parameters' covariance carried to the held-out trials
+(:func:`~kneenlp.inference.calibrate.prediction_variances`, linearised).  An error well above it is
+a model that cannot be bent to what was held out; an expected error as large as the error is a
+calibration that says itself it cannot predict that (the held-out loads were the only ones to
+determine some of its parameters).
 """
 
 from __future__ import annotations
@@ -25,8 +32,8 @@ import pandas as pd
 from kneenlp.conventions import coordinate_columns
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.protocol import flexion_groups
-from kneenlp.inference.calibrate import Calibration, calibrate
-from kneenlp.inference.predict import Prediction, predict
+from kneenlp.inference.calibrate import Calibration, calibrate, noise_per_observation, prediction_variances
+from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
 from kneenlp.model.kneemodel import KneeModel
 
 
@@ -50,17 +57,26 @@ class HeldOut:
     held: np.ndarray  # boolean mask over the full data's trials
     calibration: Calibration
     prediction: Prediction  # of the held-out trials
+    #: what the calibration expects measured minus predicted to be, a standard deviation per held-out
+    #: trial and coordinate (T x 5, mm and deg; NaN without equilibrium; module docstring)
+    expected: np.ndarray
 
     def rms(self) -> dict[str, float]:
         """RMS of measured minus predicted per coordinate column (mm, deg), held-out trials."""
         return self.prediction.rms()
+
+    def expected_rms(self) -> dict[str, float]:
+        """RMS of :attr:`expected` per coordinate column (mm, deg), over the held-out trials at
+        equilibrium: what :meth:`rms` should be if the calibration's own uncertainty is right."""
+        return rms_by_coordinate(self.expected[self.prediction.converged])
 
     def row(self) -> dict:
         return {"held_out": self.name, "trials_fitted": int((~self.held).sum()),
                 "trials_predicted": int(self.held.sum()),
                 "converged": int(self.prediction.converged.sum()),
                 **{f"fit_rms_{c}": v for c, v in self.calibration.rms_after.items()},
-                **{f"rms_{c}": v for c, v in self.rms().items()}}
+                **{f"rms_{c}": v for c, v in self.rms().items()},
+                **{f"expected_rms_{c}": v for c, v in self.expected_rms().items()}}
 
 
 def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str = "held out",
@@ -70,8 +86,16 @@ def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str =
     if held.all() or not held.any():
         raise ValueError(f"hold-out {name!r} must keep some trials and hold out some")
     cal = calibrate(model, data.subset(~held), **calibrate_options)
-    pred = predict(model, data.subset(held), cal.fit.params)
-    return HeldOut(name, held, cal, pred)
+    predicted = data.subset(held)
+    pred = predict(model, predicted, cal.fit.params)
+    expected = np.full((len(predicted), 5), np.nan)
+    ok = pred.converged
+    if ok.any():
+        fit = cal.fit
+        options = {"noise": calibrate_options.get("noise"), "weighted": calibrate_options.get("weighted", False)}
+        variance = prediction_variances(fit, predicted.subset(ok), np.array([s.q for s in pred.solutions])[ok], options)
+        expected[ok] = np.sqrt(variance + noise_per_observation(fit)[0])
+    return HeldOut(name, held, cal, pred, expected)
 
 
 def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None = None,
@@ -96,16 +120,19 @@ def table(results: list[HeldOut]) -> pd.DataFrame:
 
 
 def report(results: list[HeldOut]) -> str:
-    """The hold-outs as a text table (mm, deg)."""
+    """The hold-outs as a text table (mm, deg): each error and, in brackets, the calibration's
+    expected error (module docstring)."""
     cols = coordinate_columns()
-    head = "  ".join(f"{c.rsplit('_', 1)[0].replace('_translation', '').replace('_rotation', ''):>9}"
+    head = "  ".join(f"{c.rsplit('_', 1)[0].replace('_translation', '').replace('_rotation', ''):>13}"
                      for c in cols)
-    units = "  ".join(f"{c.rsplit('_', 1)[1]:>9}" for c in cols)
+    units = "  ".join(f"{c.rsplit('_', 1)[1]:>13}" for c in cols)
     width = max(12, *(len(r.name) for r in results))
     lines = ["Held-out prediction: RMS of measured minus predicted on trials the calibration did not see",
+             "(in brackets: what the calibration expects it to be, its noise and its parameters' uncertainty)",
              f"{'held out':<{width}}  trials  {head}", f"{'':<{width}}          {units}"]
     for r in results:
-        cells = "  ".join(f"{v:9.2f}" for v in r.rms().values())
+        cells = "  ".join(f"{v:5.2f} ({e:5.2f})" for v, e in zip(r.rms().values(), r.expected_rms().values(),
+                                                                  strict=True))
         n = f"{int(r.prediction.converged.sum())}/{int(r.held.sum())}"
         lines.append(f"{r.name:<{width}}  {n:>6}  {cells}")
     return "\n".join(lines)

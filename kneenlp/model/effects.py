@@ -8,7 +8,7 @@ An *effect* is something the model adequacy check can add (:mod:`kneenlp.inferen
   file's ``[candidates.<name>]`` (e.g. ``posterior_capsule``, ``ALL``: :class:`Ligament` elements
   with stiffness 0), :class:`Meniscus`, :class:`FlexionOffset`, :class:`LoadPoint` and :class:`Registration` (all five
   coordinates; :func:`registration_effects` adds one candidate per coordinate); every model also carries
-  :class:`TibialOrigin` and :class:`FemoralOrigin`, neutral and fitted only where named (not scored
+  :class:`TibialOrigin`, :class:`FemoralOrigin` and :class:`TibialAxes`, neutral and fitted only where named (not scored
   by the adequacy check);
 * a parameter group of the base model (:func:`parameter_group`): ``lin_strain`` (the linear
   strain limits) and ``contact_modulus``;
@@ -32,7 +32,7 @@ import numpy as np
 
 from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.model.elements import ForceElement, Pose
-from kneenlp.model.kinematics import tibial_pose
+from kneenlp.model.kinematics import rot_x, rot_z, tibial_pose
 from kneenlp.model.parameters import Parameter
 
 #: Axes of :class:`LoadPoint`'s shift, in the order of the tibial frame's X, Y, Z.
@@ -196,6 +196,32 @@ class FemoralOrigin(ForceElement):
         return ca.vertcat(0.0, 0.0, -s[2] - ca.sin(v) * proximal, anterior, proximal)
 
 
+class TibialAxes(ForceElement):
+    """The experiment's tibial axes are the model's turned by ``tibial_axes.varus`` (about the
+    tibial anterior axis X) and ``tibial_axes.flexion`` (about the tibial lateral axis Z), deg: at
+    zero internal rotation the experiment reads that much more varus and flexion.  (A turn about
+    the long axis is the constant internal-rotation registration.)  A robot prescribes the flexion
+    and applies its joint loads in its own axes, so the model's coordinates become the
+    experiment's: the flexion is prescribed about the experiment's axes, the joint loads act along
+    them, and the tibia turns with ``R_model = R(q) C^T``, ``C = Rz(-flexion) Rx(varus)``
+    (:meth:`~kneenlp.model.elements.ForceElement.tibial_axes`).  Unlike the constant
+    registration, the turn couples the readings: with internal rotation ``i`` a varus turn ``a``
+    reads ``a cos i`` of varus and ``a sin i`` of flexion, so the model is held at another flexion
+    under internal-external loads."""
+
+    name = "tibial_axes"
+    description = "the experiment's tibial axes are turned from the model's"
+    #: fitted where named, like :class:`TibialOrigin` (S192803, docs/real-experiment.md "Session 18")
+    candidate = False
+
+    def parameters(self) -> list[Parameter]:
+        return [Parameter(f"tibial_axes.{a}", "angle", f"{a} turn of the experiment's tibial axes from the model's",
+                          0.0, 0.0) for a in ("varus", "flexion")]
+
+    def tibial_axes(self, values: dict) -> ca.SX:
+        return rot_z(-values["tibial_axes.flexion"]) @ rot_x(values["tibial_axes.varus"])
+
+
 class LoadPoint(ForceElement):
     """The applied force acts elsewhere than the model assumes: its point moved by
     ``load_point.<anterior|proximal|lateral>`` (mm, tibial frame X, Y, Z) from the tuberosity
@@ -237,7 +263,7 @@ def builtin_elements(centres: list[np.ndarray], meniscus: bool = True,
     for a knee whose menisci are part of its base model; ``rest``: the condyle centres' rest
     positions over the plateaus (:class:`Meniscus`)."""
     return [*([Meniscus(centres, rest=rest)] if meniscus else []), FlexionOffset(), Registration(), LoadPoint(),
-            TibialOrigin(), FemoralOrigin()]
+            TibialOrigin(), FemoralOrigin(), TibialAxes()]
 
 
 def builtin_groups(ligaments: list[str]) -> list[Effect]:

@@ -38,8 +38,10 @@ from kneenlp.model.parameters import Parameter
 
 @dataclass(frozen=True)
 class Pose:
-    """The tibia's pose as symbols: rotation ``R`` (tibial -> femoral frame), tibial origin ``p``
-    in the femoral frame (m), the five free coordinates ``q`` (rad, m) and the flexion (rad)."""
+    """The tibia's pose as symbols: rotation ``R`` (the model's tibial frame -> femoral frame),
+    tibial origin ``p`` in the femoral frame (m), the five free coordinates ``q`` (rad, m) and the
+    flexion (rad).  ``q`` and the flexion are the Grood-Suntay coordinates of the experiment's
+    tibial axes, which are the model's unless an element turns them (:meth:`ForceElement.tibial_axes`)."""
 
     R: ca.SX
     p: ca.SX
@@ -109,6 +111,12 @@ class ForceElement:
     def load_point_offset(self, values: dict[str, ca.SX]) -> ca.SX | None:
         """Shift (tibial frame, m) of the point where the applied force acts, from its nominal point
         (the tuberosity for femoral or joint axes, the tibial origin for a robot's joint loads)."""
+        return None
+
+    def tibial_axes(self, values: dict[str, ca.SX]) -> ca.SX | None:
+        """The experiment's tibial axes (columns) in the model's tibial frame, a rotation ``C``:
+        the coordinates ``q`` and the prescribed flexion are those of the experiment's axes, and
+        the tibia (its points, its meshes) turns with ``R_model = R(q) C^T``.  ``None``: the model's."""
         return None
 
     def joint_origin_offset(self, values: dict[str, ca.SX]) -> ca.SX | None:

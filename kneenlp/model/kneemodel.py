@@ -45,7 +45,7 @@ from kneenlp.model.effects import (
     registration_effects,
 )
 from kneenlp.model.elements import ForceElement, Output, Pose, StagedElement
-from kneenlp.model.kinematics import generalized_forces, tibial_pose
+from kneenlp.model.kinematics import generalized_forces, joint_coordinates, tibial_pose
 from kneenlp.model.knee import Knee
 from kneenlp.model.parameters import Parameter, ParameterSet
 from kneenlp.model.solvercache import SolverCache
@@ -123,7 +123,15 @@ class KneeModel:
         load = ca.SX.sym("load", LOAD_SIZE)
         values = {n: theta[i] for i, n in enumerate(self.parameter_names)}
         flex_e = flexion + sum((e.flexion_offset(values) for e in self.elements), ca.SX(0))
-        R, p, axes = tibial_pose(flex_e, q)
+        # q and the flexion are the experiment's Grood-Suntay coordinates; an element may turn the
+        # experiment's tibial axes from the model's (TibialAxes): the tibia's own frame is then R C^T
+        R_exp, p, axes = tibial_pose(flex_e, q)
+        turns = [C for e in self.elements if (C := e.tibial_axes(values)) is not None]
+        turn = ca.SX.eye(3)
+        for C in turns:
+            turn = C @ turn
+        R = R_exp @ turn.T if turns else R_exp
+        self.turn = ca.Function("tibial_axes", [theta], [turn])
         pose = Pose(R, p, q, flex_e)
         staged = [e for e in self.elements if isinstance(e, StagedElement)]
         plain = [e for e in self.elements if not isinstance(e, StagedElement)]
@@ -150,7 +158,7 @@ class KneeModel:
         joint_force = ca.solve(ca.horzcat(e1, e2, e3).T, load[8:11])
         force += load[0:3]
         moment += ca.cross(R @ (ca.DM(self.knee.tuberosity) + shift), load[0:3]) + load[3:6]
-        moment += ca.cross(R @ (shift + origin), joint_force)
+        moment += ca.cross(R_exp @ (shift + origin), joint_force)  # the experiment's tibial axes
         residual = generalized_forces(q, p, axes, force, moment) + load[6:LOAD_SIZE]
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
@@ -341,6 +349,17 @@ class KneeModel:
         """Full parameter vector (SI): the knee's parameter set, candidate parameters at neutral,
         other defaults of the elements, ``values`` (by name) overriding."""
         return self._theta_of(self.knee.parameters, values)
+
+    def reference_coordinates(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """The knee's imaged pose (``[reference_pose]``) as the model's coordinates at ``theta``:
+        flexion (rad) and the five free coordinates (rad, m) of the experiment's tibial axes, the
+        knee's own unless an element turns them (:class:`~kneenlp.model.effects.TibialAxes`)."""
+        flexion, q = self.knee.reference_pose
+        turn = np.asarray(self.turn(theta), float)
+        if np.array_equal(turn, np.eye(3)):
+            return flexion, np.asarray(q, float)
+        R, p = self.knee.reference_transform
+        return joint_coordinates(R @ turn, p)
 
     def source_theta(self) -> np.ndarray:
         """:meth:`theta` of the knee file's own parameter set (SI), also when another set replaced it

@@ -83,9 +83,9 @@ class ForwardSolver:
         walk stopped.  The walk of the last parameters is remembered (a fit's trials at several
         flexions walk it once); every pose on it is computed from the one before on the same grid,
         so the result does not depend on which flexions were asked for before."""
-        q = self.reference + COLD_START
-        f_ref = self.model.knee.reference_pose[0]
-        if not np.any(self.reference) and f_ref == 0.0:
+        f_ref, reference = self.model.reference_coordinates(theta)
+        q = reference + COLD_START
+        if not np.any(reference) and f_ref == 0.0:
             return q
         key = np.asarray(theta, float).tobytes()
         if self._passive[0] != key:
