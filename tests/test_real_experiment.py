@@ -325,8 +325,11 @@ def test_also_free_names_parameters_or_effects(s192803, tmp_path, capsys):
     from kneenlp.inference.calibrate import also_free_names
 
     model = KneeModel.of(s192803)
-    assert also_free_names(model, ["PCLal_femoral_attachment", "ACLam.femur_anterior", "PCLal.femur_lateral"]) == [
-        "PCLal.femur_anterior", "PCLal.femur_proximal", "PCLal.femur_lateral", "ACLam.femur_anterior"]
+    names = ["PCLal_femoral_attachment", "ACLam.femur_anterior", "PCLal.femur_lateral", "tibial_axes"]
+    found = also_free_names(model, names)  # in the model's order, whatever the order named
+    assert found == also_free_names(model, names[::-1]) == sorted(found, key=model.index)
+    assert sorted(found) == sorted(["PCLal.femur_anterior", "PCLal.femur_proximal", "PCLal.femur_lateral",
+                                    "ACLam.femur_anterior", "tibial_axes.varus", "tibial_axes.flexion"])
     assert also_free_names(model, ["tibial_origin"]) == [  # an element's parameters
         "tibial_origin.anterior", "tibial_origin.proximal", "tibial_origin.lateral"]
     assert main(["identify", str(CSV), "--knee", "s192803", "--also-free", "PCLx_femoral_attachment"]) == 2

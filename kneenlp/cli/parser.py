@@ -70,8 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="real experiments: fit the ligament parameters whose pivot is at least F of the largest "
                         "(default 0.02; larger fits fewer: worse on these trials, often better on others)")
     p.add_argument("--also-free", type=opt.names, default=None, metavar="NAMES",
-                   help="real experiments: also fit these comma-separated parameters or effects, e.g. "
-                        "PCLal_femoral_attachment,ACLam_femoral_attachment (see 'kneenlp diagnose')")
+                   help="real experiments: also fit these comma-separated parameters, effects or elements, e.g. "
+                        "the experiment's frames tibial_origin,femoral_origin,tibial_axes or attachments "
+                        "PCLal_femoral_attachment (see 'kneenlp diagnose')")
     p.add_argument("--keep-outliers", action="store_true",
                    help="real experiments: fit every trial (default: trials the outlier test flags are set aside "
                         "and reported, docs/real-experiment.md)")
