@@ -211,7 +211,9 @@ class TibialAxes(ForceElement):
 
     name = "tibial_axes"
     description = "the experiment's tibial axes are turned from the model's"
-    #: fitted where named, like :class:`TibialOrigin` (S192803, docs/real-experiment.md "Session 18")
+    #: fitted where named, like :class:`TibialOrigin` (S192803, docs/real-experiment.md "Session 18");
+    #: not scored by ``diagnose``: near small internal rotations the varus turn reads as the constant
+    #: varus registration (``a cos i``), which the adequacy check already tests
     candidate = False
 
     def parameters(self) -> list[Parameter]:
