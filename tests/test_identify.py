@@ -99,6 +99,20 @@ def test_free_parameters_by_name(knee, tmp_path):
     assert fit.params["contact.modulus"] == pytest.approx(1e10, rel=1e-6)
     with pytest.raises(kneenlp.InputError, match=r"unknown parameter 'ACLx\.k'"):
         identify(knee, data, free=["ACLx.k"])
+    assert not fit.at_bounds() and "AT ITS BOUND" not in fit.report()
+
+
+def test_a_parameter_on_its_bound_is_named(knee, tmp_path):
+    """Measured anterior translations 15 mm off: the registration's bound is 10 mm, so the fit
+    stops on it, and the report and the summary say so instead of giving a standard error."""
+    data = measured(knee, "set1", "none", 0, tmp_path)
+    shifted = MeasuredData(data.trials, data.q + np.array([0.0, 0.0, 0.0, 0.015, 0.0]), data.protocol, "shifted")
+    fit = identify(knee, shifted, free=["ACL.k", "registration.anterior_translation"])
+    assert fit.params["registration.anterior_translation"] == pytest.approx(0.010, abs=1e-9)
+    assert fit.at_bounds() == ["registration.anterior_translation"]
+    line = next(ln for ln in fit.report().splitlines() if ln.strip().startswith("registration.anterior"))
+    assert "AT ITS BOUND" in line and "+/-" not in line
+    assert fit.summary()["at_bounds"] == ["registration.anterior_translation"]
 
 
 def test_cli_identify_json(knee, tmp_path, capsys):

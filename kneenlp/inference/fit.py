@@ -220,6 +220,7 @@ class Fit:
             "rank": self.rank,
             "identifiable": self.identifiable,
             "unidentifiable_directions": self.unidentifiable_directions(),
+            "at_bounds": self.at_bounds(),
             "noise_variance_source": self.noise_source,
             "trials": len(self.data),
             "data": self.data.source,
@@ -231,6 +232,20 @@ class Fit:
         from kneenlp.io.serialize import dumps
 
         return dumps(self.summary())
+
+    def at_bounds(self, kinds: tuple[str, ...] | None = None, tol: float = 1e-3) -> list[str]:
+        """The free parameters (of ``kinds``, default every kind) that sit on a bound, within ``tol``
+        of their range (the reduced-space fit's trust region approaches a bound without reaching
+        it: S192803's tibial origin stopped 0.005 mm inside its 10 mm bound): the least squares
+        optimum lies beyond, so their standard errors (which assume an interior optimum) do not hold."""
+        out = []
+        for p in self.problem.parameters:
+            if kinds is not None and p.kind not in kinds:
+                continue
+            lo, hi = p.bounds
+            if min(self.params[p.name] - lo, hi - self.params[p.name]) <= tol * (hi - lo):
+                out.append(p.name)
+        return out
 
     def report(self) -> str:
         """lmfit-like text report (display units: N per unit strain, %, GN/m^3; mm and deg)."""
@@ -252,12 +267,14 @@ class Fit:
             f"    noise variance  = {self.noise_source}",
             "[[Parameters]]",
         ]
-        pu, su = self.params_user(), self.stderr_user()
+        pu, su, bound = self.params_user(), self.stderr_user(), set(self.at_bounds())
         for n in self.free:
             unit = self._info(n).unit
             se = su[n]
             rel = f"({100 * se / abs(pu[n]):.2f}%)" if np.isfinite(se) and pu[n] != 0 else ""
             se_txt = f"+/- {se:.4g} {rel}" if np.isfinite(se) else "+/- (not identifiable)"
+            if n in bound:
+                se_txt = "AT ITS BOUND (the optimum lies beyond; no standard error)"
             start = self.start.get(n)
             init = f"(init = {start * self._info(n).to_user:.6g})" if start is not None else ""
             lines.append(f"    {n:18s} = {pu[n]:12.6g} {unit:7s} {se_txt} {init}")

@@ -192,13 +192,8 @@ def _implausible_misfit(fit: Fit) -> bool:
 
 def _at_bounds(fit: Fit) -> bool:
     """True if a ligament parameter sits on its bound (the prototype's wrong-minimum signature)."""
-    for p in fit.problem.parameters:
-        if p.neutral is not None or p.kind not in ("k", "ref_strain", "lin_strain"):
-            continue
-        lo, hi = p.bounds
-        if min(fit.params[p.name] - lo, hi - fit.params[p.name]) <= 1e-6 * (hi - lo):
-            return True
-    return False
+    on_bound = fit.at_bounds(("k", "ref_strain", "lin_strain"), tol=1e-6)
+    return any(fit.problem.model.parameter(n).neutral is None for n in on_bound)
 
 
 def _nested(problem: IdentificationProblem, start: dict, rng: np.random.Generator, seed: int, options: dict) -> Fit:
