@@ -468,6 +468,25 @@ def test_hold_outs_of_the_experiment():
         hold_out(None, data, np.zeros(len(data), bool))
 
 
+def test_held_out_errors_against_the_expected_ones():
+    """``consistency``: errors drawn with the expected standard deviations are flagged (p < 0.05) in
+    5 % of experiments (oracle: the simulation), errors three times larger nearly always; cells
+    without equilibrium (NaN) are left out."""
+    from kneenlp.inference.crossval import consistency
+
+    rng = np.random.default_rng(11)
+    expected = rng.uniform(0.5, 3.0, (4, 5))
+    p = np.array([consistency(rng.normal(0.0, expected), expected) for _ in range(2000)])
+    assert abs(np.mean(p < 0.05) - 0.05) < 3 * np.sqrt(0.05 * 0.95 / 2000)
+    assert np.mean([consistency(3 * rng.normal(0.0, expected), expected) < 0.05 for _ in range(200)]) > 0.95
+    errors = rng.normal(0.0, expected)
+    partial = errors.copy()
+    partial[1] = np.nan
+    kept = consistency(np.delete(errors, 1, 0), np.delete(expected, 1, 0))
+    assert consistency(partial, expected) == pytest.approx(kept)
+    assert np.isnan(consistency(np.full((2, 5), np.nan), expected[:2]))
+
+
 @pytest.mark.slow
 def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
     """Calibrated on 5-57 deg, the 87 deg trials are predicted: errors finite where a trial reaches
@@ -486,6 +505,7 @@ def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
     # (session 18: 2.8 / 2.9 deg, 1.7 / 2.5 / 1.5 mm against 2.9 / 3.4, 2.0 / 2.9 / 2.0)
     for c in coordinate_columns():
         assert 0.3 * row[f"rms_{c}"] < row[f"expected_rms_{c}"] < 3 * row[f"rms_{c}"], c
+    assert 0.0 <= row["p_within_expected"] <= 1.0
     assert len(pd.read_csv(out / "cross_validation.csv")) == 1
     predicted = pd.read_csv(out / "predicted_flexion_87_deg.csv")
     assert len(predicted) == 6

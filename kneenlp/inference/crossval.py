@@ -19,7 +19,8 @@ parameters' covariance carried to the held-out trials
 (:func:`~kneenlp.inference.calibrate.prediction_variances`, linearised).  An error well above it is
 a model that cannot be bent to what was held out; an expected error as large as the error is a
 calibration that says itself it cannot predict that (the held-out loads were the only ones to
-determine some of its parameters).
+determine some of its parameters).  :func:`consistency` turns the comparison into a p-value: small,
+the held-out errors are larger than the calibration's own uncertainty allows.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy import stats
 
 from kneenlp.conventions import coordinate_columns
 from kneenlp.experiment.measured import MeasuredData
@@ -70,13 +72,29 @@ class HeldOut:
         equilibrium: what :meth:`rms` should be if the calibration's own uncertainty is right."""
         return rms_by_coordinate(self.expected[self.prediction.converged])
 
+    def p_value(self) -> float:
+        """:func:`consistency` of the held-out trials at equilibrium (NaN if none)."""
+        ok = self.prediction.converged
+        return consistency(self.prediction.errors_user[ok], self.expected[ok])
+
     def row(self) -> dict:
         return {"held_out": self.name, "trials_fitted": int((~self.held).sum()),
                 "trials_predicted": int(self.held.sum()),
                 "converged": int(self.prediction.converged.sum()),
                 **{f"fit_rms_{c}": v for c, v in self.calibration.rms_after.items()},
                 **{f"rms_{c}": v for c, v in self.rms().items()},
-                **{f"expected_rms_{c}": v for c, v in self.expected_rms().items()}}
+                **{f"expected_rms_{c}": v for c, v in self.expected_rms().items()},
+                "p_within_expected": self.p_value()}
+
+
+def consistency(errors: np.ndarray, expected: np.ndarray) -> float:
+    """p-value of held-out errors (T x 5, mm and deg) against the calibration's expected standard
+    deviations (T x 5): the chi-square ``sum (error / expected)^2`` on as many degrees of freedom as
+    finite cells, the errors taken as independent and normal (the prediction's correlations between
+    a trial's coordinates are left out).  NaN with no finite cell."""
+    z2 = (np.asarray(errors, float) / np.asarray(expected, float)) ** 2
+    z2 = z2[np.isfinite(z2)]
+    return float(stats.chi2.sf(z2.sum(), z2.size)) if z2.size else float("nan")
 
 
 def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str = "held out",
@@ -128,11 +146,12 @@ def report(results: list[HeldOut]) -> str:
     units = "  ".join(f"{c.rsplit('_', 1)[1]:>13}" for c in cols)
     width = max(12, *(len(r.name) for r in results))
     lines = ["Held-out prediction: RMS of measured minus predicted on trials the calibration did not see",
-             "(in brackets: what the calibration expects it to be, its noise and its parameters' uncertainty)",
-             f"{'held out':<{width}}  trials  {head}", f"{'':<{width}}          {units}"]
+             "(in brackets: what the calibration expects it to be, its noise and its parameters' uncertainty;",
+             " p: how likely errors this large are if that expectation is right)",
+             f"{'held out':<{width}}  trials  {head}  {'p':>7}", f"{'':<{width}}          {units}"]
     for r in results:
         cells = "  ".join(f"{v:5.2f} ({e:5.2f})" for v, e in zip(r.rms().values(), r.expected_rms().values(),
                                                                   strict=True))
         n = f"{int(r.prediction.converged.sum())}/{int(r.held.sum())}"
-        lines.append(f"{r.name:<{width}}  {n:>6}  {cells}")
+        lines.append(f"{r.name:<{width}}  {n:>6}  {cells}  {r.p_value():7.2g}")
     return "\n".join(lines)
