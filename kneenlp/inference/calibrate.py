@@ -388,7 +388,7 @@ def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
             fit.message = "; ".join(filter(None, [fit.message, f"{ids[worst]} not tested as an outlier: {why}"]))
             break
         outlier = deletion_test(ids[worst], alone.errors_user[0], noise_per_observation(refit)[0],
-                                prediction_variances(refit, held, np.array([alone.solutions[0].q]), options)[0],
+                                prediction_variances(refit, held, np.array([alone.solutions[0].q]))[0],
                                 max(len(refit.data) - len(fit.free) / 5, 1.0), len(ids))
         if outlier is None:
             break
@@ -396,13 +396,12 @@ def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
     return fit, found
 
 
-def prediction_variances(fit: Fit, data: MeasuredData, q: np.ndarray, options: dict | None = None) -> np.ndarray:
+def prediction_variances(fit: Fit, data: MeasuredData, q: np.ndarray) -> np.ndarray:
     """Variance (T x 5, mm^2 or deg^2) of ``fit``'s prediction of the trials ``data`` at their
-    predicted poses ``q`` (T x 5, SI): the fitted parameters' covariance (noise from the fit's
-    residuals, :func:`noise_per_observation`) carried through each trial's sensitivities
-    (:func:`~kneenlp.inference.outliers.prediction_variance`); the trials' own noise not included.
-    ``options``: those of the fit's problem (noise, weights, effects)."""
-    problem = IdentificationProblem.from_data(fit.problem.model, data, fit.free, **(options or {}))
+    predicted poses ``q`` (T x 5, SI): the fitted parameters' covariance (the fit's weights, noise
+    from its residuals, :func:`noise_per_observation`) carried through each trial's sensitivities
+    (:func:`~kneenlp.inference.outliers.prediction_variance`); the trials' own noise not included."""
+    problem = IdentificationProblem.from_data(fit.problem.model, data, fit.free)
     sens = problem.sensitivities(np.asarray(q, float).reshape(-1, 5), fit.theta)
     noise_var = noise_per_observation(fit)
     return np.array([prediction_variance(sens[5 * t:5 * t + 5], fit.sensitivity, fit.problem.weights, noise_var)

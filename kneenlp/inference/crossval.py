@@ -110,8 +110,7 @@ def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str =
     ok = pred.converged
     if ok.any():
         fit = cal.fit
-        options = {"noise": calibrate_options.get("noise"), "weighted": calibrate_options.get("weighted", False)}
-        variance = prediction_variances(fit, predicted.subset(ok), np.array([s.q for s in pred.solutions])[ok], options)
+        variance = prediction_variances(fit, predicted.subset(ok), np.array([s.q for s in pred.solutions])[ok])
         expected[ok] = np.sqrt(variance + noise_per_observation(fit)[0])
     return HeldOut(name, held, cal, pred, expected)
 
