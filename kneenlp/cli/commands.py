@@ -316,7 +316,7 @@ def cmd_cross_validate(args) -> int:
     from kneenlp.model.kneemodel import KneeModel
 
     model = KneeModel.of(knee_from_args(args))
-    results = crossval.cross_validate(model, args.measured, args.hold_out or None, seed=args.seed,
+    results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
                                       keep_outliers=args.keep_outliers)
     table = crossval.table(results)

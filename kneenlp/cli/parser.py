@@ -182,6 +182,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-outliers", action="store_true",
                    help="the calibrations fit every trial they keep (see 'kneenlp identify'); the held-out "
                         "trials are always predicted")
+    p.add_argument("--twins", type=opt.integer(0, 100), default=0, metavar="N",
+                   help="hold out the same trials of N twins of the experiment too: the knee calibrated on "
+                        "every trial as the knee, its predictions plus noise at the calibration's level (seeded "
+                        "by --seed); the error a model that is exactly right would have (default 0)")
     p.add_argument("--out", help="write cross_validation.csv and each hold-out's predicted_<name>.csv here")
     p.add_argument("--json", action="store_true", help="print JSON: one row per hold-out (RMS in mm, deg)")
     p.set_defaults(validate=True, out_kind="dir")
