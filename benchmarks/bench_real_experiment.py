@@ -12,7 +12,9 @@ Prints (2 cores; seconds, mm, deg):
   plus calibration <= 60 s with the field cached;
 - the held-out predictions (``kneenlp cross-validate``): calibrated without the highest flexion, and
   without each load direction in turn, the held-out trials predicted (target <= 2 mm, <= 5 deg);
-  the table is written to docs/figures/s192803_cross_validation.csv (what notebook 03 shows).
+  the table is written to docs/figures/s192803_cross_validation.csv (what notebook 03 shows);
+  with ``--twins N`` each hold-out also on N twins of the experiment (``cross-validate --twins``:
+  the error of a model that is exactly right, at the calibration's noise level).
 With ``--pivot-tolerance F`` the calibrations fit only the ligament parameters whose pivot is at
 least F of the largest (``calibrate(pivot_tolerance=F)``; default 0.02); with ``--also-free NAMES``
 they fit these parameters or effects as well (``calibrate(also_free=...)``, e.g.
@@ -20,7 +22,7 @@ they fit these parameters or effects as well (``calibrate(also_free=...)``, e.g.
 written; with ``--keep-outliers`` every trial is fitted.  The laxity per flexion (measured,
 calibrated) is printed too.
 Run: python benchmarks/bench_real_experiment.py [--no-cross-validation] [--pivot-tolerance F] [--also-free NAMES]
-     [--keep-outliers]
+     [--keep-outliers] [--twins N]
 """
 
 from __future__ import annotations
@@ -102,8 +104,10 @@ def main() -> None:
     if "--no-cross-validation" in sys.argv:
         return
     t0 = time.perf_counter()
-    results = crossval.cross_validate(model, data, **options)
-    print(f"cross-validation, {len(results)} hold-outs: {time.perf_counter() - t0:.0f} s")
+    twins = int(sys.argv[sys.argv.index("--twins") + 1]) if "--twins" in sys.argv else 0
+    results = crossval.cross_validate(model, data, reference_draws=twins, **options)
+    print(f"cross-validation, {len(results)} hold-outs{f', each on {twins} twins too' if twins else ''}: "
+          f"{time.perf_counter() - t0:.0f} s")
     print(crossval.report(results))
     print("  targets: <= 2 mm and <= 5 deg on held-out trials")
     if tolerance is not None or also is not None or options["keep_outliers"]:
