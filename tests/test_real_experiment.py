@@ -522,6 +522,30 @@ def test_twin_is_the_knees_own_prediction_plus_noise(s192803):
                                atol=1e-9)
 
 
+def test_twin_draws_are_stored_and_read_back(tmp_path):
+    """``twin_store``: a finished draw is written and read back as it was (NaN rows of trials
+    without equilibrium included, in order); a store of another run (other options) is refused
+    with a one-line error naming it, never mixed in."""
+    from types import SimpleNamespace
+
+    from kneenlp.errors import InputError
+    from kneenlp.inference.crossval import twin_store
+
+    model, data = SimpleNamespace(knee=SimpleNamespace(name="s192803")), read_measured(CSV)
+    errors = {"valgus": np.random.default_rng(3).normal(size=(4, 5)), "flexion 87 deg": np.full((6, 5), 0.25)}
+    errors["valgus"][2] = np.nan
+    saved = twin_store(tmp_path / "twins", model, data, list(errors), {"seed": 0})
+    assert saved(0) is None
+    saved(0, errors)
+    again = twin_store(tmp_path / "twins", model, data, list(errors), {"seed": 0})(0)
+    assert list(again) == list(errors)
+    for name, table in errors.items():
+        np.testing.assert_array_equal(again[name], table)
+    with pytest.raises(InputError, match="twins of another run"):
+        twin_store(tmp_path / "twins", model, data, list(errors), {"seed": 1})
+    assert twin_store(None, model, data, list(errors), {})(0) is None
+
+
 @pytest.mark.slow
 def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
     """Calibrated on 5-57 deg, the 87 deg trials are predicted: errors finite where a trial reaches
@@ -550,20 +574,32 @@ def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_hold_out_of_the_experiments_twin(s192803, capsys):
+def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
     """``cross-validate --twins 1``: the varus hold-out on the real data and on one twin, the knee
-    calibrated on every trial as the knee; each is reported with its twin's error and a p-value.
-    Oracle: without noise the twin's model is exactly right, so what the calibration without the
-    varus trials misses there is only what those trials alone determine: within 1 mm and 1 deg
-    (session 19: 0.79 mm at most)."""
+    calibrated on every trial as the knee; each is reported with its twin's error and a p-value,
+    and the draw, written as it finished, is read back by a rerun (oracle: the stored errors scaled
+    by ten come back ten times larger).  Oracle: without noise the twin's model is exactly right,
+    so what the calibration without the varus trials misses there is only what those trials alone
+    determine: within 1 mm and 1 deg (session 19: 0.79 mm at most)."""
     from kneenlp.inference.calibrate import calibrate
     from kneenlp.inference.crossval import folds, hold_out, twin
 
-    code = main(["cross-validate", str(CSV), "--knee", "s192803", "--hold-out", "varus", "--twins", "1", "--json"])
+    args = ["cross-validate", str(CSV), "--knee", "s192803", "--hold-out", "varus", "--twins", "1", "--out",
+            str(tmp_path / "cv"), "--json"]
+    code = main(args)
     (row,) = json.loads(capsys.readouterr().out)["hold_outs"]
     assert code == 0 and row["twins"] == 1 and row["twin_converged"] == 4
     assert 0.0 <= row["p_against_twin"] <= 1.0
     assert all(0.1 < row[f"twin_rms_{c}"] < 5.0 for c in coordinate_columns())
+    # the draw was written as it finished; a rerun reads it back instead of drawing it again
+    stored = tmp_path / "cv" / "twins" / "draw_0.csv"
+    table = pd.read_csv(stored)
+    table[coordinate_columns()] *= 10.0
+    table.to_csv(stored, index=False)
+    assert main(args) == 0
+    (again,) = json.loads(capsys.readouterr().out)["hold_outs"]
+    for c in coordinate_columns():
+        assert again[f"twin_rms_{c}"] == pytest.approx(10 * row[f"twin_rms_{c}"], rel=1e-9)
     model = KneeModel.of(s192803)
     data = read_measured(CSV)
     exact = twin(model, data, calibrate(model, data).fit.params, np.zeros(5), np.random.default_rng(0))

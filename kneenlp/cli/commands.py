@@ -316,7 +316,8 @@ def cmd_cross_validate(args) -> int:
     from kneenlp.model.kneemodel import KneeModel
 
     model = KneeModel.of(knee_from_args(args))
-    results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, seed=args.seed,
+    store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
+    results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, store, seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
                                       keep_outliers=args.keep_outliers)
     table = crossval.table(results)

@@ -28,7 +28,8 @@ experiment as the calibrated knee itself would have produced it, every trial at 
 and flexion predicted at the all-trial calibration's values, with normal noise at the level that
 calibration estimated (per coordinate, seeded).  The same hold-outs on the twin give the errors of
 a model that is exactly right, calibrated the same way from the same trials
-(:attr:`HeldOut.reference`).  Errors like the twin's are the protocol's: what the held-out trials
+(:attr:`HeldOut.reference`; each draw written as it finishes and read back on a rerun, so a long
+run of many twins resumes).  Errors like the twin's are the protocol's: what the held-out trials
 alone determine cannot be predicted from the others, whatever the model; errors well above the
 twin's are the model's (:func:`against_reference`, a p-value).  S192803 (docs/real-experiment.md
 "Session 19"): the twin misses the external hold-out by 8-11 deg too.
@@ -36,7 +37,9 @@ twin's are the model's (:func:`against_reference`, a p-value).  S192803 (docs/re
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -74,8 +77,9 @@ class HeldOut:
     #: what the calibration expects measured minus predicted to be, a standard deviation per held-out
     #: trial and coordinate (T x 5, mm and deg; NaN without equilibrium; module docstring)
     expected: np.ndarray
-    #: the same hold-out on each twin of the experiment (:func:`twin`; empty: none drawn)
-    reference: list[HeldOut] = field(default_factory=list)
+    #: the same hold-out's errors on each twin of the experiment (:func:`twin`; T x 5 each, mm and
+    #: deg, NaN without equilibrium; empty: none drawn)
+    reference: list[np.ndarray] = field(default_factory=list)
 
     def rms(self) -> dict[str, float]:
         """RMS of measured minus predicted per coordinate column (mm, deg), held-out trials."""
@@ -93,8 +97,8 @@ class HeldOut:
 
     def reference_errors(self) -> np.ndarray:
         """Measured minus predicted of every twin's held-out trials at equilibrium, stacked (mm, deg)."""
-        return np.vstack([r.prediction.errors_user[r.prediction.converged] for r in self.reference]
-                         or [np.empty((0, 5))])
+        stacked = np.vstack([*self.reference, np.empty((0, 5))])
+        return stacked[np.isfinite(stacked).all(axis=1)]
 
     def reference_rms(self) -> dict[str, float]:
         """RMS per coordinate column (mm, deg) of the twins' held-out errors, pooled over the twins:
@@ -115,7 +119,7 @@ class HeldOut:
                "p_within_expected": self.p_value()}
         if self.reference:
             out |= {"twins": len(self.reference),
-                    "twin_converged": sum(int(r.prediction.converged.sum()) for r in self.reference),
+                    "twin_converged": len(self.reference_errors()),
                     **{f"twin_rms_{c}": v for c, v in self.reference_rms().items()},
                     "p_against_twin": self.p_reference()}
         return out
@@ -181,21 +185,82 @@ def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str =
 
 
 def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None = None,
-                   reference_draws: int = 0, **calibrate_options) -> list[HeldOut]:
+                   reference_draws: int = 0, store: Path | None = None, **calibrate_options) -> list[HeldOut]:
     """Every hold-out of :func:`folds` (or those named in ``which``), in order; with
-    ``reference_draws`` N, each also on N twins of the experiment (:func:`twin`: from the
-    calibration on every trial, noise drawn from ``calibrate_options``' ``seed``, default 0)."""
-    results = [hold_out(model, data, mask, name, **calibrate_options) for name, mask in _chosen(data, which)]
+    ``reference_draws`` N, each also on N twins of the experiment (:func:`twin_draw`), each draw
+    written to ``store`` as it finishes and read back from there on a rerun (:func:`twin_store`)."""
+    chosen = _chosen(data, which)
+    names = [n for n, _ in chosen]
+    saved = twin_store(store if reference_draws else None, model, data, names, calibrate_options)  # checked first
+    results = [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
     if reference_draws:
-        fit = calibrate(model, data, **calibrate_options).fit
-        rng = np.random.default_rng(calibrate_options.get("seed", 0))
-        for _ in range(reference_draws):
-            copy = twin(model, data, fit.params, np.sqrt(noise_per_observation(fit)[0]), rng)
-            masks = dict(folds(copy))
+        fit = None
+        for draw in range(reference_draws):
+            errors = saved(draw)
+            if errors is None:
+                if fit is None:  # (only where a draw is still to run)
+                    fit = calibrate(model, data, **calibrate_options).fit
+                errors = twin_draw(model, data, fit, draw, names, **calibrate_options)
+                saved(draw, errors)
             for r in results:
-                if r.name in masks:  # (a twin without the trials of a hold-out has none of it)
-                    r.reference.append(hold_out(model, copy, masks[r.name], r.name, **calibrate_options))
+                if r.name in errors:
+                    r.reference.append(errors[r.name])
     return results
+
+
+def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[str],
+              **calibrate_options) -> dict[str, np.ndarray]:
+    """The hold-outs ``names`` on twin number ``draw`` of the experiment calibrated by ``fit`` (a
+    :class:`~kneenlp.inference.fit.Fit` on every trial): :func:`twin` at the fit's values with its
+    estimated noise (:func:`~kneenlp.inference.calibrate.noise_per_observation`), drawn from the
+    generator seeded by ``(seed, draw)`` (``seed`` of ``calibrate_options``, default 0: any draw
+    alone reproduces); held-out errors by hold-out name (T x 5, mm and deg, NaN without
+    equilibrium; a hold-out whose trials the twin lacks is left out)."""
+    rng = np.random.default_rng([calibrate_options.get("seed", 0), draw])
+    copy = twin(model, data, fit.params, np.sqrt(noise_per_observation(fit)[0]), rng)
+    masks = dict(folds(copy))
+    return {n: hold_out(model, copy, masks[n], n, **calibrate_options).prediction.errors_user
+            for n in names if n in masks}
+
+
+def twin_store(store: Path | None, model: KneeModel, data: MeasuredData, names: list[str], options: dict):
+    """``saved(draw)``: the errors of a finished twin draw in ``store`` (None if not there or no
+    store); ``saved(draw, errors)`` writes one, atomically (``draw_<n>.csv``: hold-out, trial and
+    errors per row, mm and deg).  ``store/run.json`` names the run (knee, data, hold-outs, options);
+    a store of another run is an :class:`~kneenlp.errors.InputError`, never mixed in."""
+    if store is None:
+        return lambda draw, errors=None: None
+    from kneenlp.errors import InputError
+    from kneenlp.io.atomic import write_csv_atomic, write_text_atomic
+
+    store = Path(store)
+    identity = {"knee": model.knee.name, "trials": [t.id for t in data.trials],
+                "measured": np.round(data.q_user, 9).tolist(), "hold_outs": names,
+                "options": {k: v for k, v in sorted(options.items()) if v is not None}}
+    stamp = store / "run.json"
+    if stamp.is_file():
+        if json.loads(stamp.read_text()) != json.loads(json.dumps(identity)):
+            raise InputError("holds the twins of another run (knee, data, hold-outs or options differ); remove it "
+                             "or write elsewhere", source=str(store), field="--out")
+    else:
+        store.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(stamp, json.dumps(identity))
+    columns = coordinate_columns()
+
+    def saved(draw: int, errors: dict[str, np.ndarray] | None = None):
+        path = store / f"draw_{draw}.csv"
+        if errors is not None:
+            rows = [{"held_out": n, "row": i, **dict(zip(columns, e, strict=True))}
+                    for n, table in errors.items() for i, e in enumerate(table)]
+            write_csv_atomic(pd.DataFrame(rows, columns=["held_out", "row", *columns]), path, index=False,
+                             float_format="%.17g")
+            return None
+        if not path.is_file():
+            return None
+        table = pd.read_csv(path)
+        return {n: g.sort_values("row")[columns].to_numpy(float) for n, g in table.groupby("held_out", sort=False)}
+
+    return saved
 
 
 def _chosen(data: MeasuredData, which: list[str] | None) -> list[tuple[str, np.ndarray]]:
