@@ -522,16 +522,14 @@ def test_twin_is_the_knees_own_prediction_plus_noise(s192803):
                                atol=1e-9)
 
 
-def test_twin_draws_are_stored_and_read_back(tmp_path):
+def test_twin_draws_are_stored_and_read_back(s192803, tmp_path):
     """``twin_store``: a finished draw is written and read back as it was (NaN rows of trials
     without equilibrium included, in order); a store of another run (other options) is refused
     with a one-line error naming it, never mixed in."""
-    from types import SimpleNamespace
-
     from kneenlp.errors import InputError
     from kneenlp.inference.crossval import twin_store
 
-    model, data = SimpleNamespace(knee=SimpleNamespace(name="s192803")), read_measured(CSV)
+    model, data = KneeModel.of(s192803), read_measured(CSV)
     errors = {"valgus": np.random.default_rng(3).normal(size=(4, 5)), "flexion 87 deg": np.full((6, 5), 0.25)}
     errors["valgus"][2] = np.nan
     saved = twin_store(tmp_path / "twins", model, data, list(errors), {"seed": 0})
