@@ -523,25 +523,24 @@ def test_twin_is_the_knees_own_prediction_plus_noise(s192803):
 
 
 def test_twin_draws_are_stored_and_read_back(s192803, tmp_path):
-    """``twin_store``: a finished draw is written and read back as it was (NaN rows of trials
+    """``TwinStore``: a finished draw is written and read back as it was (NaN rows of trials
     without equilibrium included, in order); a store of another run (other options) is refused
     with a one-line error naming it, never mixed in."""
     from kneenlp.errors import InputError
-    from kneenlp.inference.crossval import twin_store
+    from kneenlp.inference.crossval import TwinStore
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     errors = {"valgus": np.random.default_rng(3).normal(size=(4, 5)), "flexion 87 deg": np.full((6, 5), 0.25)}
     errors["valgus"][2] = np.nan
-    saved = twin_store(tmp_path / "twins", model, data, list(errors), {"seed": 0})
-    assert saved(0) is None
-    saved(0, errors)
-    again = twin_store(tmp_path / "twins", model, data, list(errors), {"seed": 0})(0)
+    saved = TwinStore.open(tmp_path / "twins", model, data, list(errors), {"seed": 0})
+    assert saved.load(0) is None
+    saved.save(0, errors)
+    again = TwinStore.open(tmp_path / "twins", model, data, list(errors), {"seed": 0}).load(0)
     assert list(again) == list(errors)
     for name, table in errors.items():
         np.testing.assert_array_equal(again[name], table)
     with pytest.raises(InputError, match="twins of another run"):
-        twin_store(tmp_path / "twins", model, data, list(errors), {"seed": 1})
-    assert twin_store(None, model, data, list(errors), {})(0) is None
+        TwinStore.open(tmp_path / "twins", model, data, list(errors), {"seed": 1})
 
 
 @pytest.mark.slow

@@ -189,23 +189,24 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
                    reference_draws: int = 0, store: Path | None = None, **calibrate_options) -> list[HeldOut]:
     """Every hold-out of :func:`folds` (or those named in ``which``), in order; with
     ``reference_draws`` N, each also on N twins of the experiment (:func:`twin_draw`), each draw
-    written to ``store`` as it finishes and read back from there on a rerun (:func:`twin_store`)."""
+    written to ``store`` as it finishes and read back from there on a rerun (:class:`TwinStore`)."""
     chosen = _chosen(data, which)
     names = [n for n, _ in chosen]
-    saved = twin_store(store if reference_draws else None, model, data, names, calibrate_options)  # checked first
+    # the store is checked before the first calibration: a store of another run stops at once
+    saved = TwinStore.open(store, model, data, names, calibrate_options) if store and reference_draws else None
     results = [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
-    if reference_draws:
-        fit = None
-        for draw in range(reference_draws):
-            errors = saved(draw)
-            if errors is None:
-                if fit is None:  # (only where a draw is still to run)
-                    fit = calibrate(model, data, **calibrate_options).fit
-                errors = twin_draw(model, data, fit, draw, names, **calibrate_options)
-                saved(draw, errors)
-            for r in results:
-                if r.name in errors:
-                    r.reference.append(errors[r.name])
+    fit = None
+    for draw in range(reference_draws):
+        errors = saved.load(draw) if saved else None
+        if errors is None:
+            if fit is None:  # (only where a draw is still to run)
+                fit = calibrate(model, data, **calibrate_options).fit
+            errors = twin_draw(model, data, fit, draw, names, **calibrate_options)
+            if saved:
+                saved.save(draw, errors)
+        for r in results:
+            if r.name in errors:
+                r.reference.append(errors[r.name])
     return results
 
 
@@ -224,46 +225,52 @@ def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[
             for n in names if n in masks}
 
 
-def twin_store(store: Path | None, model: KneeModel, data: MeasuredData, names: list[str], options: dict):
-    """``saved(draw)``: the errors of a finished twin draw in ``store`` (None if not there or no
-    store); ``saved(draw, errors)`` writes one, atomically (``draw_<n>.csv``: hold-out, row within
-    it and errors, mm and deg).  ``store/run.json`` names the run (knee and its parameters, data,
-    hold-outs, options);
-    a store of another run is an :class:`~kneenlp.errors.InputError`, never mixed in."""
-    if store is None:
-        return lambda draw, errors=None: None
-    from kneenlp.errors import InputError
-    from kneenlp.io.atomic import write_csv_atomic, write_text_atomic
+@dataclass(frozen=True)
+class TwinStore:
+    """Finished twin draws in a directory: ``draw_<n>.csv`` (hold-out, row within it and errors,
+    mm and deg), and ``run.json`` naming the run (knee and its parameters, data, hold-outs,
+    options) so that a store of another run is refused, never mixed in."""
 
-    store = Path(store)
-    identity = {"knee": model.knee.name, "parameters": np.round(model.theta(), 12).tolist(),
-                "trials": [t.id for t in data.trials],
-                "measured": np.round(data.q_user, 9).tolist(), "hold_outs": names,
-                "options": {k: v for k, v in sorted(options.items()) if v is not None}}
-    stamp = store / "run.json"
-    if stamp.is_file():
-        if json.loads(stamp.read_text()) != json.loads(json.dumps(identity)):
-            raise InputError("holds the twins of another run (knee, data, hold-outs or options differ); remove it "
-                             "or write elsewhere", source=str(store), field="--out")
-    else:
-        store.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(stamp, json.dumps(identity))
-    columns = coordinate_columns()
+    path: Path
 
-    def saved(draw: int, errors: dict[str, np.ndarray] | None = None):
-        path = store / f"draw_{draw}.csv"
-        if errors is not None:
-            rows = [{"held_out": n, "row": i, **dict(zip(columns, e, strict=True))}
-                    for n, table in errors.items() for i, e in enumerate(table)]
-            write_csv_atomic(pd.DataFrame(rows, columns=["held_out", "row", *columns]), path, index=False,
-                             float_format="%.17g")
-            return None
+    @classmethod
+    def open(cls, path: Path, model: KneeModel, data: MeasuredData, names: list[str], options: dict) -> TwinStore:
+        """The store at ``path`` for this run, created if new; another run's is an
+        :class:`~kneenlp.errors.InputError`."""
+        from kneenlp.errors import InputError
+        from kneenlp.io.atomic import write_text_atomic
+
+        path = Path(path)
+        identity = {"knee": model.knee.name, "parameters": np.round(model.theta(), 12).tolist(),
+                    "trials": [t.id for t in data.trials], "measured": np.round(data.q_user, 9).tolist(),
+                    "hold_outs": names, "options": {k: v for k, v in sorted(options.items()) if v is not None}}
+        stamp = path / "run.json"
+        if stamp.is_file():
+            if json.loads(stamp.read_text()) != json.loads(json.dumps(identity)):
+                raise InputError("holds the twins of another run (knee, data, hold-outs or options differ); remove "
+                                 "it or write elsewhere", source=str(path), field="--out")
+        else:
+            path.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(stamp, json.dumps(identity))
+        return cls(path)
+
+    def load(self, draw: int) -> dict[str, np.ndarray] | None:
+        """The held-out errors of finished draw ``draw`` by hold-out name (None: not finished)."""
+        path = self.path / f"draw_{draw}.csv"
         if not path.is_file():
             return None
-        table = pd.read_csv(path)
+        table, columns = pd.read_csv(path), coordinate_columns()
         return {n: g.sort_values("row")[columns].to_numpy(float) for n, g in table.groupby("held_out", sort=False)}
 
-    return saved
+    def save(self, draw: int, errors: dict[str, np.ndarray]) -> None:
+        """Write draw ``draw``'s held-out errors, atomically."""
+        from kneenlp.io.atomic import write_csv_atomic
+
+        columns = coordinate_columns()
+        rows = [{"held_out": n, "row": i, **dict(zip(columns, e, strict=True))}
+                for n, table in errors.items() for i, e in enumerate(table)]
+        write_csv_atomic(pd.DataFrame(rows, columns=["held_out", "row", *columns]), self.path / f"draw_{draw}.csv",
+                         index=False, float_format="%.17g")
 
 
 def _chosen(data: MeasuredData, which: list[str] | None) -> list[tuple[str, np.ndarray]]:
