@@ -46,6 +46,7 @@ from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Trial
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import Parameter
+from kneenlp.model.priors import Prior
 
 
 def default_free(model: KneeModel) -> list[str]:
@@ -74,6 +75,45 @@ def check_free(model: KneeModel, free: Sequence[str]) -> list[str]:
     return list(free)
 
 
+def resolve_priors(model: KneeModel, free: Sequence[str], priors: str | Mapping[str, Prior | None] | None,
+                   fixed: Mapping[str, float] | None = None) -> dict[str, Prior]:
+    """The priors of the ``free`` parameters: none for ``None`` or ``"none"`` (the data-only fit);
+    for ``"default"`` each parameter's prior from the knee's parameter file, else its shipped
+    default (:meth:`~kneenlp.model.parameters.Parameter.default_prior`) centred on its value in the
+    knee's parameter set (or ``fixed``); a mapping gives its own by name over those defaults
+    (``None`` removes one).  A prior on a parameter that is not free is an error naming it."""
+    if priors is None or (isinstance(priors, str) and priors == "none"):
+        return {}
+    if isinstance(priors, str) and priors != "default":
+        raise InputError(f"unknown priors {priors!r}; known: default, none", field="priors")
+    given = {} if isinstance(priors, str) else dict(priors)
+    for name in given:
+        model.index(name)
+        if name not in free:
+            raise InputError("has a prior but is not free: free it or drop its prior", field=f"priors.{name}")
+    theta = model.theta(dict(fixed or {}))
+    declared = model.knee.parameters.priors
+    out = {}
+    for name in free:
+        prior = given[name] if name in given else declared.get(name)
+        if name not in given and prior is None:
+            prior = model.parameter(name).default_prior(float(theta[model.index(name)]))
+        if prior is not None:
+            out[name] = model.parameter(name).check_prior(prior)
+    return out
+
+
+def prior_rows(values, centre, inv_sd, logs: Sequence[bool]):
+    """``inv_sd * (transform(value) - centre)`` per free parameter, ``transform`` the log where
+    ``logs`` says so: the priors' residual rows, for NumPy values and CasADi symbols alike (the
+    MAP objective adds their squares; :meth:`IdentificationProblem.prior_data` gives ``centre``
+    and ``inv_sd``)."""
+    symbolic = isinstance(values, ca.SX | ca.MX)
+    log = ca.log if symbolic else np.log
+    rows = [(log(values[i]) if lg else values[i]) - centre[i] for i, lg in enumerate(logs)]
+    return (ca.vertcat(*rows) if symbolic else np.array(rows, dtype=float)) * inv_sd
+
+
 @dataclass(frozen=True)
 class DataLayout:
     """The NLP's data vector ``p``: the full parameter vector (SI), then per trial (trial-major)
@@ -84,20 +124,22 @@ class DataLayout:
     n_theta: int
     n_trials: int
     n_ws: int = 0
+    n_prior: int = 0
 
-    #: the parts in order, with the rows each trial has (``theta`` is one column of ``n_theta``)
-    PARTS = ("theta", "measured", "weights", "loads", "flexions", "working_sets")
+    #: the parts in order, with the rows each trial has (the parts of :data:`ONCE` are one column)
+    PARTS = ("theta", "prior_centre", "prior_inv_sd", "measured", "weights", "loads", "flexions", "working_sets")
+    ONCE = ("theta", "prior_centre", "prior_inv_sd")
 
     def rows(self) -> dict[str, int]:
-        """Rows per trial of each part (``theta``: its length, once)."""
-        return {"theta": self.n_theta, "measured": 5, "weights": 5, "loads": LOAD_SIZE, "flexions": 1,
-                "working_sets": self.n_ws}
+        """Rows per trial of each part (the parts of :data:`ONCE`: their length, once)."""
+        return {"theta": self.n_theta, "prior_centre": self.n_prior, "prior_inv_sd": self.n_prior, "measured": 5,
+                "weights": 5, "loads": LOAD_SIZE, "flexions": 1, "working_sets": self.n_ws}
 
     def slices(self) -> dict[str, slice]:
         """Where each part sits in ``p``."""
         out, start = {}, 0
         for name, rows in self.rows().items():
-            size = rows if name == "theta" else rows * self.n_trials
+            size = rows if name in self.ONCE else rows * self.n_trials
             out[name] = slice(start, start + size)
             start += size
         return out
@@ -109,23 +151,29 @@ class DataLayout:
     def split(self, p: ca.MX | ca.SX) -> dict[str, ca.MX | ca.SX]:
         """The parts of a symbolic ``p``: ``theta`` a column, the others ``rows x T`` (one column a trial)."""
         rows = self.rows()
-        return {name: p[sl] if name == "theta" else ca.reshape(p[sl], rows[name], self.n_trials)
+        return {name: p[sl] if name in self.ONCE else ca.reshape(p[sl], rows[name], self.n_trials)
                 for name, sl in self.slices().items()}
 
-    def pack(self, theta: np.ndarray, measured: np.ndarray, weights: np.ndarray, loads: np.ndarray,
-             flexions: np.ndarray, working_sets: np.ndarray | None = None) -> np.ndarray:
-        """``p`` from its parts (per-trial parts as ``T x rows`` arrays)."""
+    def pack(self, theta: np.ndarray, prior: tuple[np.ndarray, np.ndarray], measured: np.ndarray,
+             weights: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
+             working_sets: np.ndarray | None = None) -> np.ndarray:
+        """``p`` from its parts (``prior``: centres and inverse widths; per-trial parts as ``T x rows`` arrays)."""
         T = self.n_trials
         ws = np.zeros((T, 0)) if working_sets is None else np.asarray(working_sets, float)
         if ws.shape != (T, self.n_ws):
             raise ValueError(f"working sets of shape {ws.shape}, expected ({T}, {self.n_ws})")
-        return np.concatenate([np.asarray(theta, float).ravel(), *(np.asarray(a, float).reshape(T, -1).ravel()
-                                                                   for a in (measured, weights, loads, flexions)),
-                               ws.ravel()])
+        centre, inv_sd = (np.asarray(a, float).ravel() for a in prior)
+        if centre.size != self.n_prior or inv_sd.size != self.n_prior:
+            raise ValueError(f"prior parts of sizes {centre.size}, {inv_sd.size}, expected {self.n_prior}")
+        return np.concatenate([np.asarray(theta, float).ravel(), centre, inv_sd,
+                               *(np.asarray(a, float).reshape(T, -1).ravel()
+                                 for a in (measured, weights, loads, flexions)), ws.ravel()])
 
     def describe(self) -> str:
         """The layout in words (units included), for export's sidecar."""
-        return ("theta (all model parameters, SI, in 'parameters' order), measured coordinates (T x 5, "
+        return ("theta (all model parameters, SI, in 'parameters' order), the priors of the free parameters "
+                "(centres: the mean in SI or, for a log-normal, the log of the median; then the inverse widths "
+                "times the square root of the prior weight, 0 for none), measured coordinates (T x 5, "
                 "mm/deg), weights (T x 5), loads (T x 11: force at the tuberosity and moment, femoral frame; "
                 "generalised forces; N and N m), flexion (T, rad), "
                 "then, only for contact='expansion', the contact working sets at the start poses (T x "
@@ -147,12 +195,24 @@ class IdentificationProblem:
     fixed: dict[str, float] = field(default_factory=dict)  # values (SI) replacing the knee's parameter set
     source: str | None = None
     protocol: str | None = None
+    #: priors of free parameters by name (a free parameter without one is determined by the data alone)
+    priors: dict[str, Prior] = field(default_factory=dict)
+    #: the noise variance per unit weight (mm^2 or deg^2 times the weights) that puts the priors'
+    #: ``z^2`` on the scale of the weighted sum of squares: the MAP objective is
+    #: ``sum w r^2 + prior_weight * sum z^2`` (1 for a fit weighted by 1/variance)
+    prior_weight: float = 1.0
 
     def __post_init__(self) -> None:
         self.trials = tuple(self.trials)
         self.free = check_free(self.model, self.free)
         for n in self.fixed:
             self.model.index(n)
+        for n, prior in self.priors.items():
+            if n not in self.free:
+                raise unknown_name("free parameter with a prior", n, self.free)
+            self.model.parameter(n).check_prior(prior)
+        if not (np.isfinite(self.prior_weight) and self.prior_weight > 0):
+            raise InputError(f"prior weight must be > 0, got {self.prior_weight!r}", field="prior_weight")
         if self.weights is None:
             self.weights = np.ones((len(self.trials), 5))
         if self.measured is not None:
@@ -165,17 +225,23 @@ class IdentificationProblem:
     def from_data(cls, model: KneeModel, data: MeasuredData, free: Sequence[str] | None = None, *,
                   noise: str | NoiseModel | None = None, weighted: bool = False,
                   fixed: Mapping[str, float] | None = None,
-                  with_effects: Sequence[str] = ()) -> IdentificationProblem:
+                  with_effects: Sequence[str] = (), priors: str | Mapping[str, Prior | None] | None = None,
+                  prior_weight: float | None = None) -> IdentificationProblem:
         """The problem of identifying ``free`` (default: k and ref_strain of every ligament, plus
-        the parameters of ``with_effects``) from measured ``data``."""
+        the parameters of ``with_effects``) from measured ``data``; ``priors`` as
+        :func:`resolve_priors`; ``prior_weight`` the noise variance per unit weight the priors are
+        weighed against (default: 1 for a weighted fit, the declared noise variance, else 1)."""
         model.knee.check_flexions(data.trials, data.source)
         free = free_names(model, free, with_effects)
         noise_model = NoiseModel.parse(noise) if noise is not None else None
         if weighted and (noise_model is None or noise_model.std == 0):
             raise InputError("weighted fit needs a noise model with non-zero level", field="noise")
         weights = np.full((len(data), 5), 1.0 / noise_model.std**2 if weighted else 1.0)
-        return cls(model, tuple(data.trials), free, data.q_user, weights, noise_model, dict(fixed or {}),
-                   data.source, data.protocol)
+        if prior_weight is None:
+            prior_weight = 1.0 if weighted or noise_model is None or noise_model.std == 0 else noise_model.std**2
+        fixed = dict(fixed or {})
+        return cls(model, tuple(data.trials), free, data.q_user, weights, noise_model, fixed,
+                   data.source, data.protocol, resolve_priors(model, free, priors, fixed), float(prior_weight))
 
     # ------------------------------------------------------------------ layout
     @property
@@ -198,7 +264,9 @@ class IdentificationProblem:
 
     @property
     def lower(self) -> np.ndarray:
-        return np.array([p.bounds[0] for p in self.parameters])
+        """Lower bounds (SI); a log-normal prior's floor where it is higher (:meth:`Prior.floor`)."""
+        return np.array([max(p.bounds[0], self.priors[p.name].floor()) if p.name in self.priors else p.bounds[0]
+                         for p in self.parameters])
 
     @property
     def upper(self) -> np.ndarray:
@@ -287,10 +355,47 @@ class IdentificationProblem:
         """The free parameters' values (SI) in a full parameter vector."""
         return {n: float(theta[self.model.index(n)]) for n in self.free}
 
+    # ------------------------------------------------------------------ the priors
+    @property
+    def prior_logs(self) -> tuple[bool, ...]:
+        """Per free parameter: is its prior log-normal (its term is built on ``ln value``)?"""
+        return tuple(n in self.priors and self.priors[n].log for n in self.free)
+
+    def prior_data(self) -> tuple[np.ndarray, np.ndarray]:
+        """(centres, inverse widths) per free parameter, the latter times ``sqrt(prior_weight)``
+        (0 for a parameter without a prior): the data of :func:`prior_rows`."""
+        centre = np.array([self.priors[n].centre if n in self.priors else 0.0 for n in self.free])
+        inv_sd = np.array([np.sqrt(self.prior_weight) / self.priors[n].sd if n in self.priors else 0.0
+                           for n in self.free])
+        return centre, inv_sd
+
+    def prior_residuals(self, values: Mapping[str, float] | Sequence[float] | np.ndarray) -> np.ndarray:
+        """``sqrt(prior_weight) z`` per free parameter (0 without a prior) at ``values`` (SI)."""
+        if isinstance(values, Mapping):
+            values = [values[n] for n in self.free]
+        return np.asarray(prior_rows(np.asarray(values, float), *self.prior_data(), self.prior_logs), float).ravel()
+
+    def prior_jacobian(self, values: Mapping[str, float]) -> np.ndarray:
+        """``d prior_residuals / d p`` (n_free x n_free, diagonal; per SI unit) at ``values`` (SI)."""
+        v = np.array([values[n] for n in self.free], float)
+        _, inv_sd = self.prior_data()
+        return np.diag(inv_sd * np.where(self.prior_logs, 1.0 / np.where(self.prior_logs, v, 1.0), 1.0))
+
+    def prior_objective(self, theta: np.ndarray) -> float:
+        """The priors' share of the MAP objective, ``prior_weight * sum z^2``, at ``theta`` (SI)."""
+        if not self.priors:
+            return 0.0
+        r = self.prior_residuals(self.values(theta))
+        return float(r @ r)
+
+    def map_objective(self, q: np.ndarray, theta: np.ndarray) -> float:
+        """What a fit minimises: :meth:`objective` plus :meth:`prior_objective`."""
+        return self.objective(q, theta) + self.prior_objective(theta)
+
     def layout(self, working_sets: bool = False) -> DataLayout:
         """The data vector's layout; ``working_sets``: with the contact working sets as data."""
         return DataLayout(len(self.model.parameter_names), self.n_trials,
-                          self.model.ws_size if working_sets else 0)
+                          self.model.ws_size if working_sets else 0, self.n_free)
 
     def data_vector(self, ws: np.ndarray | None = None) -> np.ndarray:
         """The NLP's parameter vector (:class:`DataLayout`): the full parameter vector (fixed
@@ -298,7 +403,7 @@ class IdentificationProblem:
         ``ws`` (T x ws_size, from :meth:`working_sets`).  Refitting other data never rebuilds the NLP."""
         meas = self.measured if self.measured is not None else np.zeros((self.n_trials, 5))
         layout = self.layout(working_sets=ws is not None and np.size(ws) > 0)
-        return layout.pack(self.theta(), meas, self.weights, self.loads, self.flexions,
+        return layout.pack(self.theta(), self.prior_data(), meas, self.weights, self.loads, self.flexions,
                            None if ws is None or not np.size(ws) else ws)
 
     def working_sets(self, q: np.ndarray, theta: np.ndarray) -> tuple[list[list[np.ndarray]], np.ndarray]:

@@ -45,6 +45,7 @@ after; :meth:`Calibration.parameter_set` is the calibrated parameter file's cont
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,8 +68,10 @@ from kneenlp.inference.outliers import (
     screen,
 )
 from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
+from kneenlp.inference.statistics import effective_parameters
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import ParameterSet
+from kneenlp.model.priors import Prior
 from kneenlp.solvers.forward import forward_solver
 
 #: Smallest pivot (relative to the largest) of a parameter the calibration frees.
@@ -283,33 +286,39 @@ def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
 
 def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
               noise=None, load_point: bool = True, pivot_tolerance: float | None = None,
-              also_free: list[str] | None = None, keep_outliers: bool = False, **identify_options) -> Calibration:
-    """Fit ``free`` (default :func:`calibration_free`) to the real experiment ``data`` by
-    reduced-space Gauss-Newton from the knee's values (or the probe), the simultaneous NLP if that
-    fails; for a robot's joint loads and the default ``free``, ``load_point`` frees the lateral
-    shift of the point the robot's force acts at too; ``pivot_tolerance``: how weakly determined a
-    ligament parameter may be and still be fitted, for the default ``free`` only
-    (:func:`calibration_free`; larger fits fewer, which trades the fit on the calibration's
-    trials for predictions of others, docs/real-experiment.md); ``also_free``: parameters or
-    effects (:func:`also_free_names`) fitted beside the default ``free``, e.g. attachments a
-    segmentation may have misplaced (S192803: the cruciates' femoral attachments, docs/real-experiment.md
-    "Session 16"); unless ``keep_outliers``, trials the outlier test flags
-    (:mod:`~kneenlp.inference.outliers`) are set aside one at a time and the fit repeated without
-    them.  ``identify_options`` as
-    :func:`~kneenlp.inference.identify.identify`'s (``weighted``, ``with_effects``, ``start``; the
-    rest serve the fallback)."""
-    from kneenlp.inference.identify import identify, reduced_fit
+              also_free: list[str] | None = None, keep_outliers: bool = False, priors="default",
+              prior_weight: float | None = None, **identify_options) -> Calibration:
+    """Fit ``free`` to the real experiment ``data`` by reduced-space Gauss-Newton from the knee's
+    values (or the probe), the simultaneous NLP if that fails.
+
+    ``priors`` (``"default"``, ``"none"`` or a dict of :class:`~kneenlp.model.priors.Prior` by name,
+    as :func:`~kneenlp.experiment.problem.resolve_priors`): with priors the fit is the MAP estimate
+    and, unless ``free`` or ``pivot_tolerance`` says otherwise, every ligament parameter is fitted
+    (each prior determines what the trials do not); without priors only those the trials determine
+    are (:func:`calibration_free`).  The priors are weighed against the misfit's variance
+    ``prior_weight`` (mm^2 or deg^2 per unit weight), by default estimated from the fit itself
+    (:func:`map_fit`).  For a robot's joint loads and the default ``free``,
+    ``load_point`` frees the lateral shift of the point the robot's force acts at too;
+    ``also_free``: parameters or effects (:func:`also_free_names`) fitted beside the default
+    ``free``, e.g. attachments a segmentation may have misplaced; unless ``keep_outliers``, trials
+    the outlier test flags (:mod:`~kneenlp.inference.outliers`) are set aside one at a time and the
+    fit repeated without them.  ``identify_options`` as :func:`~kneenlp.inference.identify.identify`'s
+    (``weighted``, ``with_effects``, ``start``; the rest serve the fallback)."""
+    from kneenlp.inference.identify import identify
 
     if free is not None and pivot_tolerance is not None:
         raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
     if free is not None and also_free:
         raise InputError("adds to what the calibration chooses, --free names it all: give one", field="--also-free")
+    with_priors = not (priors is None or (isinstance(priors, str) and priors == "none"))
     extra = also_free_names(model, also_free or [])
     before = predict(model, data)
     fixed: list[str] = []
     theta, engaged = engaged_probe(model, data, model.theta())
     chosen = free is None  # the calibration chooses what to fit (a user's --free is kept as given)
-    if chosen:
+    if chosen and with_priors and pivot_tolerance is None:
+        free = [*REGISTRATION, *default_free(model)]
+    elif chosen:
         free, fixed = calibration_free(model, data, theta, pivot_tolerance)
         # an engaged group's offset is always fitted: the data, not the probe, decide how taut it is
         offsets = [f"{g}.ref_strain_offset" for g in engaged]
@@ -317,43 +326,98 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         fixed = [n for n in fixed if n not in offsets]
     if chosen and load_point and any(t.axes == "jcs" for t in data.trials):
         free = [*free, LOAD_POINT]
+    if with_priors and engaged and isinstance(priors, str):
+        priors = engaged_priors(model, theta, engaged, free)
     extra = [n for n in extra if n not in free]
     fixed = [n for n in fixed if n not in extra]
     # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
     # docstring: IPOPT wandered on this problem, and from a good point made it worse)
     options = {"noise": noise, "weighted": identify_options.get("weighted", False),
-               "with_effects": identify_options.get("with_effects") or ()}
+               "with_effects": identify_options.get("with_effects") or (), "priors": priors,
+               "prior_weight": prior_weight}
     problem = IdentificationProblem.from_data(model, data, free, **options)
     start = ({n: float(theta[model.index(n)]) for n in problem.free}
              | problem.check_start(identify_options.pop("start", {})))
-    fit = reduced_fit(problem, start, max_evaluations=MAX_EVALUATIONS)
+    fit = map_fit(problem, start, estimate=prior_weight is None)
     if not fit.success:  # the simultaneous NLP, with identify's rescue
         identify_options.setdefault("restarts", 0)
         identify_options.setdefault("solver_options", {"ipopt": {"max_iter": MAX_ITER}})
         fallback = identify(model, data, free=problem.free, seed=seed, noise=noise, start=start,
+                            priors=priors, prior_weight=fit.problem.prior_weight,
                             **{k: v for k, v in identify_options.items() if k != "with_effects"})
         note = f"reduced-space Gauss-Newton did not converge ({fit.status}); the simultaneous NLP followed"
         fallback.message = f"{fallback.message}; {note}" if fallback.message else note
-        if fallback.success or fallback.objective < fit.objective:
+        if fallback.success or fallback.map_objective < fit.map_objective:
             fit = fallback
+    options["prior_weight"] = fit.problem.prior_weight
     if extra:
         # the extra parameters join from this fit, at their neutral values: from the probe, with the
         # ligaments not yet placed, S192803's cruciate attachments ran 8-11 mm to another minimum
-        # (sum of squares 344; from the fit 296, docs/real-experiment.md "Session 16")
+        # (sum of squares 344; from the fit 296, docs/real-experiment.md)
         problem = IdentificationProblem.from_data(model, data, [*problem.free, *extra], **options)
         start = fit.params | {n: float(theta[model.index(n)]) for n in extra}
-        refit = reduced_fit(problem, start, q0=fit.q_pred, max_evaluations=MAX_EVALUATIONS)
-        if refit.objective <= fit.objective:
+        refit = map_fit(problem, start, q0=fit.q_pred, estimate=prior_weight is None)
+        if refit.map_objective <= fit.map_objective:
             fit = refit
         else:
             fit.message = "; ".join(filter(None, [fit.message, f"fitting {', '.join(extra)} as well did not lower "
                                                   "the sum of squares: they stay at the knee's values"]))
+        options["prior_weight"] = fit.problem.prior_weight
     outliers: list[Outlier] = []
     if not keep_outliers:
         fit, outliers = without_outliers(fit, options)
     aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
     return Calibration(fit, before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
                        predict(model, data.subset(aside), fit.params) if outliers else None)
+
+
+def engaged_priors(model: KneeModel, probe: np.ndarray, engaged: list[str], free: list[str]) -> dict[str, Prior]:
+    """The priors of the reference-strain offsets of the groups the probe engaged
+    (:func:`engaged_probe`), centred on the probe's value instead of the knee's: a group slack in
+    every trial of a laxity experiment is the import's artefact (S192803: the FE model's slack
+    lengths were set with deformable cartilage, and leave the cruciates and collaterals slack on
+    rigid bones), not knowledge that it is slack; the probe's 2 % of toe strain in its most
+    stretching trial is the prior's mean, with the kind's width."""
+    out = {}
+    for group in engaged:
+        name = f"{group}.ref_strain_offset"
+        if name in free:
+            value = float(probe[model.index(name)])
+            out[name] = dataclasses.replace(model.parameter(name).default_prior(value), source="engaged probe")
+    return out
+
+
+#: Rounds of :func:`map_fit`'s prior weight (the misfit variance the priors are weighed against).
+WEIGHT_ROUNDS = 4
+#: ... stopped when the estimate changes by less than this share.
+WEIGHT_TOL = 0.2
+
+
+def map_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None,
+            estimate: bool = True) -> Fit:
+    """The reduced-space fit of ``problem`` from ``start``; with priors, ``estimate`` and no declared noise, the
+    prior weight (the misfit variance per unit weight, :attr:`IdentificationProblem.prior_weight`)
+    is the fit's own residual variance over its effective degrees of freedom
+    (:func:`~kneenlp.inference.statistics.effective_parameters`), refitted from the last fit until
+    it changes by less than :data:`WEIGHT_TOL` (at most :data:`WEIGHT_ROUNDS` fits): a prior is
+    weighed against the misfit the model actually has, which on a real knee is the model's error
+    more than the instrument's noise."""
+    from kneenlp.inference.identify import reduced_fit
+
+    fit = reduced_fit(problem, start, q0=q0, max_evaluations=MAX_EVALUATIONS)
+    if not problem.priors or problem.noise is not None or not estimate:
+        return fit
+    for _ in range(WEIGHT_ROUNDS - 1):
+        weight = fit.objective / max(fit.n_observations - effective_parameters(fit), 1.0)
+        print("weight", problem.prior_weight, "->", weight, fit.objective, effective_parameters(fit))
+        if abs(weight / problem.prior_weight - 1) < WEIGHT_TOL:
+            break
+        problem = dataclasses.replace(problem, prior_weight=weight)
+        refit = reduced_fit(problem, fit.params, q0=fit.q_pred, max_evaluations=MAX_EVALUATIONS)
+        if not refit.success and fit.success:
+            break
+        fit = refit
+    return fit
 
 
 def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
@@ -403,9 +467,8 @@ def prediction_variances(fit: Fit, data: MeasuredData, q: np.ndarray) -> np.ndar
     (:func:`~kneenlp.inference.outliers.prediction_variance`); the trials' own noise not included."""
     problem = IdentificationProblem.from_data(fit.problem.model, data, fit.free)
     sens = problem.sensitivities(np.asarray(q, float).reshape(-1, 5), fit.theta)
-    noise_var = noise_per_observation(fit)
-    return np.array([prediction_variance(sens[5 * t:5 * t + 5], fit.sensitivity, fit.problem.weights, noise_var)
-                     for t in range(len(data))])
+    rows = fit.with_prior_rows(noise_per_observation(fit))
+    return np.array([prediction_variance(sens[5 * t:5 * t + 5], *rows) for t in range(len(data))])
 
 
 def noise_per_observation(fit: Fit) -> np.ndarray:

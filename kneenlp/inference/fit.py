@@ -53,6 +53,8 @@ class Fit:
     message: str = ""
     solver: str = "ipopt"
     extra: dict = field(default_factory=dict)
+    #: the priors' share of what the fit minimised (``prior_weight * sum z^2``; 0 without priors)
+    prior_objective: float = 0.0
 
     @classmethod
     def build(cls, problem: IdentificationProblem, method: str, theta: np.ndarray, q: np.ndarray,
@@ -63,7 +65,13 @@ class Fit:
         variance, source = noise_variance(problem.noise, objective, problem.weights, problem.n_free)
         return cls(problem, method, problem.values(theta), np.asarray(theta, float), objective,
                    q_pred=np.asarray(q, float), sensitivity=problem.sensitivities(q, theta),
-                   noise_variance=variance, noise_source=source, **kwargs)
+                   noise_variance=variance, noise_source=source, prior_objective=problem.prior_objective(theta),
+                   **kwargs)
+
+    @property
+    def map_objective(self) -> float:
+        """What the fit minimised: the weighted sum of squares plus the priors' share."""
+        return self.objective + self.prior_objective
 
     # ------------------------------------------------------------------ the problem's parts
     @property
@@ -158,12 +166,26 @@ class Fit:
         return [{n: float(c) for n, c in zip(self.free, vt[i], strict=True) if abs(c) > 0.05}
                 for i in range(self.rank, len(self.free))]
 
+    def with_prior_rows(self, variance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sensitivities, weights, variances) of the data's rows (``variance``: T x 5 or a number,
+        mm^2 or deg^2) followed by one row per prior, ``sqrt(prior_weight) z``, of weight 1 and
+        variance ``prior_weight``: the linearised MAP problem whose Gauss-Newton covariance is the
+        Laplace approximation of the posterior (the data's rows alone without priors)."""
+        s, w = np.asarray(self.sensitivity, float), np.asarray(self.weights, float).ravel()
+        var = np.broadcast_to(np.asarray(variance, float), self.weights.shape).ravel()
+        if not self.problem.priors:
+            return s, w, var
+        jp = self.problem.prior_jacobian(self.params)
+        rows = jp[np.any(jp != 0, axis=1)]
+        return (np.vstack([s, rows]), np.concatenate([w, np.ones(len(rows))]),
+                np.concatenate([var, np.full(len(rows), self.problem.prior_weight)]))
+
     @cached_property
     def covariance(self) -> np.ndarray:
-        """Gauss-Newton (linearised) covariance of the free parameters (SI units); directions the
-        data do not determine get infinite variance (see :func:`gauss_newton_covariance`)."""
-        return gauss_newton_covariance(self.sensitivity, self.weights, self.noise_variance, self.scales,
-                                       self.free)
+        """Gauss-Newton (linearised) covariance of the free parameters (SI units); with priors the
+        posterior's Laplace approximation (:meth:`with_prior_rows`); directions neither the data
+        nor a prior determine get infinite variance (see :func:`gauss_newton_covariance`)."""
+        return gauss_newton_covariance(*self.with_prior_rows(self.noise_variance), self.scales, self.free)
 
     @property
     def stderr(self) -> dict[str, float]:

@@ -57,7 +57,8 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
              solver: str = "ipopt", solver_options: dict | None = None,
              protocol: Protocol | str | None = None, restarts: int = 4,
              nested_options: dict | None = None, with_effects: list[str] | None = None,
-             fixed: dict[str, float] | None = None, threads: int = 2) -> Fit:
+             fixed: dict[str, float] | None = None, threads: int = 2,
+             priors: str | dict | None = None, prior_weight: float | None = None) -> Fit:
     """Identify the ``free`` parameters of ``knee`` from measured ``data``.
 
     Parameters
@@ -83,6 +84,12 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     protocol : protocol the data must match (by default the one named in the data, if known).
     threads : threads of the NLP's trial map and of the trials' Newton (1 in study workers, which run one
         process per core).
+    priors : ``None``/``"none"`` (least squares, the paper's), ``"default"`` (every free parameter's
+        prior from the knee's parameter file or the shipped defaults, centred on the knee's values:
+        the MAP estimate) or a dict of :class:`~kneenlp.model.priors.Prior` by name over the defaults
+        (docs/priors.md).
+    prior_weight : the noise variance per unit weight the priors are weighed against (mm^2 or deg^2;
+        default: 1 for a weighted fit, the declared noise's variance, else 1).
     """
     if method not in METHODS:
         raise unknown_name("method", method, METHODS)
@@ -95,7 +102,8 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     if proto is not None:
         data.check_protocol(proto)
     problem = IdentificationProblem.from_data(model, data, free, noise=noise, weighted=weighted, fixed=fixed,
-                                              with_effects=with_effects or ())
+                                              with_effects=with_effects or (), priors=priors,
+                                              prior_weight=prior_weight)
     start = problem.check_start(start)
     rng = np.random.default_rng(seed)
     if method == "nested":
@@ -105,7 +113,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         return f.success and not _at_bounds(f) and not _implausible_misfit(f)
 
     def rank(f: Fit) -> tuple[bool, bool, float]:  # good first, then converged, then the lower objective
-        return good(f), f.success, -f.objective if f.success else 0.0
+        return good(f), f.success, -f.map_objective if f.success else 0.0
 
     def solve(k: int) -> Fit:
         s = problem.scatter(rng)
@@ -171,7 +179,7 @@ def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fi
     """A second try after IPOPT failed from ``start``: :func:`reduced_then_nlp` from the same start;
     the better of the tries is returned, its message saying so."""
     fit, _, evaluations = reduced_then_nlp(problem, start, solver_options=solver_options, threads=threads)
-    if not fit.success or (failed.success and failed.objective <= fit.objective):
+    if not fit.success or (failed.success and failed.map_objective <= fit.map_objective):
         return failed
     note = (f"rescued: IPOPT failed from the start ({failed.status}); a reduced-space Gauss-Newton start "
             f"({evaluations} evaluations) led it to the solution")

@@ -106,3 +106,16 @@ def fisher_information(sensitivity: np.ndarray, sigma: float) -> np.ndarray:
     n = sensitivity.shape[1]
     blocks = np.asarray(sensitivity, float).reshape(-1, 5, n)
     return np.einsum("tki,tkj->tij", blocks, blocks) / sigma**2
+
+
+def effective_parameters(fit) -> float:
+    """The effective number of parameters of a (MAP) fit: the trace of its hat matrix,
+    ``tr(A_d' A_d (A_d' A_d + A_p' A_p)^-1)`` with ``A_d`` the weighted data rows and ``A_p`` the
+    priors' rows (:meth:`~kneenlp.inference.fit.Fit.with_prior_rows`); the number of free
+    parameters without priors.  A parameter its prior alone determines counts 0, one the data
+    alone determine 1."""
+    s, w, _ = fit.with_prior_rows(1.0)
+    a = np.sqrt(w)[:, None] * s * np.asarray(fit.scales, float)
+    n_data = 5 * fit.problem.n_trials
+    data, total = a[:n_data].T @ a[:n_data], a.T @ a
+    return float(np.trace(np.linalg.pinv(total, rcond=1e-12, hermitian=True) @ data))

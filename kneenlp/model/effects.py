@@ -37,6 +37,12 @@ from kneenlp.model.parameters import Parameter
 
 #: Axes of :class:`LoadPoint`'s shift, in the order of the tibial frame's X, Y, Z.
 LOAD_POINT_AXES = ("anterior", "proximal", "lateral")
+#: Default prior widths (sd) of the experiment's registration: a constant offset of each measured
+#: coordinate (mm, deg), and the shift of a frame's origin or of the robot's load point (mm):
+#: the spread of digitised landmarks and of frame definitions (docs/priors.md).
+REGISTRATION_SD_MM = 5.0
+REGISTRATION_SD_DEG = 5.0
+ORIGIN_SD_MM = 5.0
 
 
 @dataclass(frozen=True)
@@ -123,7 +129,8 @@ class Registration(ForceElement):
 
     def parameters(self) -> list[Parameter]:
         return [Parameter(f"registration.{c}", "angle" if u == "deg" else "length",
-                          f"constant bias of the measured {c.replace('_', ' ')}", 0.0, 0.0)
+                          f"constant bias of the measured {c.replace('_', ' ')}", 0.0, 0.0,
+                          prior=("normal", np.deg2rad(REGISTRATION_SD_DEG) if u == "deg" else REGISTRATION_SD_MM / 1e3))
                 for c, u in zip(COORDINATES, COORDINATE_UNITS, strict=True)]
 
     def measurement_bias(self, pose, values: dict) -> ca.SX:
@@ -151,7 +158,7 @@ class TibialOrigin(ForceElement):
 
     def parameters(self) -> list[Parameter]:
         return [Parameter(f"tibial_origin.{a}", "length", f"{a} shift of the tibial point the translations are read at",
-                          0.0, 0.0) for a in LOAD_POINT_AXES]
+                          0.0, 0.0, prior=("normal", ORIGIN_SD_MM / 1e3)) for a in LOAD_POINT_AXES]
 
     def joint_origin_offset(self, values: dict) -> ca.SX:
         return ca.vertcat(*[values[f"tibial_origin.{a}"] for a in LOAD_POINT_AXES])
@@ -184,7 +191,7 @@ class FemoralOrigin(ForceElement):
 
     def parameters(self) -> list[Parameter]:
         return [Parameter(f"femoral_origin.{a}", "length", f"{a} shift of the femoral point the translations are "
-                          "read from", 0.0, 0.0) for a in LOAD_POINT_AXES]
+                          "read from", 0.0, 0.0, prior=("normal", ORIGIN_SD_MM / 1e3)) for a in LOAD_POINT_AXES]
 
     def measurement_bias(self, pose, values: dict) -> ca.SX:
         s = ca.vertcat(*[values[f"femoral_origin.{a}"] for a in LOAD_POINT_AXES])
@@ -237,8 +244,8 @@ class LoadPoint(ForceElement):
     candidate = True
 
     def parameters(self) -> list[Parameter]:
-        return [Parameter(f"load_point.{a}", "length", f"{a} shift of the point the applied force acts at", 0.0, 0.0)
-                for a in LOAD_POINT_AXES]
+        return [Parameter(f"load_point.{a}", "length", f"{a} shift of the point the applied force acts at", 0.0, 0.0,
+                          prior=("normal", ORIGIN_SD_MM / 1e3)) for a in LOAD_POINT_AXES]
 
     def load_point_offset(self, values: dict) -> ca.SX:
         return ca.vertcat(*[values[f"load_point.{a}"] for a in LOAD_POINT_AXES])

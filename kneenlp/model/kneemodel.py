@@ -54,13 +54,15 @@ from kneenlp.model.solvercache import SolverCache
 def check_set_names(params, info: dict[str, Parameter]) -> None:
     """Every value of the knee's parameter set names a parameter of the model, in a unit of its kind."""
     src = params.source or params.name
-    for name in params.names():
+    for name in dict.fromkeys([*params.names(), *params.priors]):
         if name not in info:
             raise unknown_name("parameter", name, list(info), source=src).with_context(field=name)
         unit = params.meta.get(name)
         if unit is not None and unit not in dict(info[name].meta.file_units):
             raise InputError(f"unit {unit!r} does not suit {name} ({info[name].meta.text}); use one of "
                              f"{', '.join(dict(info[name].meta.file_units))}", source=src, field=f"values.{name}")
+        if name in params.priors:
+            info[name].check_prior(params.priors[name], src, f"values.{name}.prior")
 
 
 class KneeModel:

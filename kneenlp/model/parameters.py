@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from kneenlp.errors import InputError, unknown_name
+from kneenlp.model.priors import Prior
 
 
 @dataclass(frozen=True)
@@ -37,22 +38,31 @@ class Kind:
     relative: bool = False
     file_units: tuple[tuple[str, float], ...] = ()
     text: str = ""
+    #: the kind's default prior: ``("lognormal", sd of ln value)`` or ``("normal", sd in SI)``,
+    #: centred on the knee's own value (docs/priors.md gives each width's source)
+    prior: tuple[str, float] = ("normal", 0.0)
 
 
 #: The one table of parameter metadata (SI inside; display units at the user boundary).
 KINDS: dict[str, Kind] = {
-    "k": Kind("N", 1.0, 0.0, 1e5, 1e4, 500.0, False, (("N", 1.0), ("kN", 1e3)), "stiffness, N per unit strain"),
+    "k": Kind("N", 1.0, 0.0, 1e5, 1e4, 500.0, False, (("N", 1.0), ("kN", 1e3)), "stiffness, N per unit strain",
+              ("lognormal", 0.3)),
     "ref_strain": Kind("%", 100.0, -0.3, 0.3, 1e-2, 0.02, False, (("%", 1e-2), ("1", 1.0)),
-                       "reference strain at the reference pose"),
+                       "reference strain at the reference pose", ("normal", 0.03)),
     "lin_strain": Kind("%", 100.0, 0.005, 0.1, 1e-2, 0.1, True, (("%", 1e-2), ("1", 1.0)),
-                       "linear strain limit of the toe region"),
+                       "linear strain limit of the toe region", ("lognormal", 0.3)),
     "modulus": Kind("GN/m^3", 1e-9, 1e8, 1e12, 1e10, 0.1, True,
-                    (("GN/m^3", 1e9), ("N/mm^3", 1e9), ("N/m^3", 1.0)), "elastic-foundation pressure modulus"),
-    "spring": Kind("N/mm", 1e-3, 0.0, 1e7, 1e5, 1e4, False, (("N/mm", 1e3), ("N/m", 1.0)), "spring stiffness"),
-    "scale": Kind("1", 1.0, 0.0, 20.0, 1.0, 0.05, False, (("1", 1.0),), "stiffness scale of a bundle group"),
-    "angle": Kind("deg", 180 / np.pi, -0.2, 0.2, 1e-2, np.deg2rad(1.0), False, (("deg", np.pi / 180),), "angle"),
-    "length": Kind("mm", 1e3, -0.01, 0.01, 1e-3, 0.5e-3, False, (("mm", 1e-3), ("m", 1.0)), "length"),
-    "force": Kind("N", 1.0, -1e4, 1e4, 100.0, 50.0, False, (("N", 1.0),), "force"),
+                    (("GN/m^3", 1e9), ("N/mm^3", 1e9), ("N/m^3", 1.0)), "elastic-foundation pressure modulus",
+                    ("lognormal", 0.7)),
+    "spring": Kind("N/mm", 1e-3, 0.0, 1e7, 1e5, 1e4, False, (("N/mm", 1e3), ("N/m", 1.0)), "spring stiffness",
+                   ("normal", 5e3)),
+    "scale": Kind("1", 1.0, 0.0, 20.0, 1.0, 0.05, False, (("1", 1.0),), "stiffness scale of a bundle group",
+                  ("lognormal", 0.3)),
+    "angle": Kind("deg", 180 / np.pi, -0.2, 0.2, 1e-2, np.deg2rad(1.0), False, (("deg", np.pi / 180),), "angle",
+                  ("normal", np.deg2rad(3.0))),
+    "length": Kind("mm", 1e3, -0.01, 0.01, 1e-3, 0.5e-3, False, (("mm", 1e-3), ("m", 1.0)), "length",
+                   ("normal", 2e-3)),
+    "force": Kind("N", 1.0, -1e4, 1e4, 100.0, 50.0, False, (("N", 1.0),), "force", ("normal", 50.0)),
 }
 #: Parameters every ligament of the paper's law has, in this order.
 LIGAMENT_KINDS: tuple[str, ...] = ("k", "ref_strain", "lin_strain")
@@ -83,6 +93,9 @@ class Parameter:
     neutral: float | None = None
     lower: float | None = None  # SI; None: the kind's bound
     upper: float | None = None
+    #: the default prior's shape and width, where the element knows better than the kind (e.g. a
+    #: registration offset); None: the kind's (:attr:`Kind.prior`)
+    prior: tuple[str, float] | None = None
 
     @property
     def meta(self) -> Kind:
@@ -109,6 +122,32 @@ class Parameter:
         """(lower, upper) in SI."""
         return (self.meta.lower if self.lower is None else self.lower,
                 self.meta.upper if self.upper is None else self.upper)
+
+    def default_prior(self, value: float) -> Prior:
+        """The shipped prior of this parameter centred on ``value`` (SI, the knee's own): the
+        element's or the kind's shape and width; a log-normal centred on a value <= 0 (a removed
+        ligament) becomes a normal of the same relative width about the kind's scale."""
+        shape, width = self.prior or self.meta.prior
+        if shape == "lognormal" and not value > 0:
+            return Prior("normal", float(value), width * self.meta.scale)
+        if shape == "normal" and width <= 0:
+            width = self.meta.scatter
+        return Prior(shape, float(value), float(width))
+
+    def check_prior(self, prior: Prior, source: str | None = None, field: str | None = None) -> Prior:
+        """``prior``, or a one-line :class:`InputError` naming this parameter: a log-normal on a
+        parameter that can be negative, or a centre outside the bounds."""
+        lo, hi = self.bounds
+        where = field or f"priors.{self.name}"
+        if prior.log and lo < 0:
+            raise InputError(f"a log-normal prior needs a positive parameter; {self.name} may be negative "
+                             f"(bounds {lo * self.to_user:g} to {hi * self.to_user:g} {self.unit}): use a normal one",
+                             source=source, field=where)
+        if not lo <= prior.mean <= hi:
+            raise InputError(f"prior {'median' if prior.log else 'mean'} {prior.mean * self.to_user:g} {self.unit} "
+                             f"outside the bounds [{lo * self.to_user:g}, {hi * self.to_user:g}] {self.unit}",
+                             source=source, field=where)
+        return prior
 
     @property
     def one_sided(self) -> bool:
@@ -142,6 +181,8 @@ class ParameterSet:
     source: str | None = None
     description: str = ""
     meta: dict[str, str] = field(default_factory=dict)
+    #: priors declared in the file (``[values]``' ``prior``), SI, by name: they replace the shipped defaults
+    priors: dict[str, Prior] = field(default_factory=dict)
 
     def __getitem__(self, key: str) -> float:
         try:
@@ -161,7 +202,8 @@ class ParameterSet:
             if k not in self.values:
                 raise unknown_name("parameter", k, self.values)
         return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
-                            name=self.name, source=self.source, description=self.description, meta=dict(self.meta))
+                            name=self.name, source=self.source, description=self.description, meta=dict(self.meta),
+                            priors=dict(self.priors))
 
     def with_values(self, values: Mapping[str, float], name: str | None = None,
                     description: str | None = None) -> ParameterSet:
@@ -169,7 +211,8 @@ class ParameterSet:
         scales and registration); the model checks the names when it uses the set."""
         return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
                             name=name or self.name, source=None,
-                            description=self.description if description is None else description)
+                            description=self.description if description is None else description,
+                            priors=dict(self.priors))
 
     def vector(self, names: Iterable[str]) -> list[float]:
         return [self[n] for n in names]
@@ -235,7 +278,7 @@ class ParameterSet:
                 raise InputError("linear strain limit must be > 0", source=src, field=f"ligaments.{lig}.lin_strain")
             for kind in LIGAMENT_KINDS:
                 plausible(values[f"{lig}.{kind}"], kind, src, f"ligaments.{lig}.{kind}")
-        named, named_units = _named_values(doc.get("values", {}), src)
+        named, named_units, priors = _named_values(doc.get("values", {}), src)
         values |= named
         contact = doc.get("contact", {})
         if not isinstance(contact, dict):
@@ -253,7 +296,7 @@ class ParameterSet:
             if key in doc and not isinstance(doc[key], str):
                 raise InputError(f"expected a string, got {doc[key]!r}", source=src, field=key)
         return cls(values, name=str(doc.get("name", path.stem)), source=src,
-                   description=str(doc.get("description", "")), meta=named_units)
+                   description=str(doc.get("description", "")), meta=named_units, priors=priors)
 
 
 #: The laxity-noise paper's elastic-foundation modulus (N/m^3): the parameter set of an imported knee.
@@ -270,22 +313,56 @@ def imported_parameter_set(program: str, carried: str) -> str:
     return ParameterSet({"contact.modulus": PAPER_MODULUS}, name="imported").to_toml({}, header)
 
 
-def _named_values(table: object, src: str) -> tuple[dict[str, float], dict[str, str]]:
-    """``[values]``: any model parameter by its full name, ``"NAME" = {value = V, unit = "U"}`` (SI
-    out); a calibration writes the parameters it fitted so (:meth:`ParameterSet.to_toml`)."""
+def _named_values(table: object, src: str) -> tuple[dict[str, float], dict[str, str], dict[str, Prior]]:
+    """``[values]``: any model parameter by its full name, ``"NAME" = {value = V, unit = "U"}``, with
+    an optional ``prior`` in the same unit (``{distribution = "normal", mean = M, sd = S}`` or
+    ``{distribution = "lognormal", median = M, sd_log = S}``; ``value`` may then be left out, the
+    knee's own staying): (values SI, units, priors SI).  A calibration writes the parameters it
+    fitted so (:meth:`ParameterSet.to_toml`)."""
     if not isinstance(table, dict):
         raise InputError('must be a table of "NAME" = {value = V, unit = "U"}', source=src, field="values")
-    out, units = {}, {}
+    out, units, priors = {}, {}, {}
     for name, item in table.items():
         fld = f"values.{name}"
-        if not isinstance(item, dict) or set(item) != {"value", "unit"}:
-            raise InputError(f'expected {{value = V, unit = "U"}}, got {item!r}', source=src, field=fld)
+        if not isinstance(item, dict) or "unit" not in item or not set(item) <= {"value", "unit", "prior"} \
+                or not set(item) & {"value", "prior"}:
+            raise InputError(f'expected {{value = V, unit = "U"}} (and optionally prior = {{...}}), got {item!r}',
+                             source=src, field=fld)
         unit = item["unit"]
         if unit not in UNIT_TO_SI:
             raise InputError(f"unknown unit {unit!r}; known: {', '.join(UNIT_TO_SI)}", source=src, field=fld)
-        out[name] = number(item["value"], src, fld) * UNIT_TO_SI[unit]
+        if "value" in item:
+            out[name] = number(item["value"], src, fld) * UNIT_TO_SI[unit]
+        if "prior" in item:
+            priors[name] = read_prior(item["prior"], UNIT_TO_SI[unit], src, f"{fld}.prior")
         units[name] = unit
-    return out, units
+    return out, units, priors
+
+
+#: The keys of a prior table per distribution: (centre, width).
+PRIOR_KEYS = {"normal": ("mean", "sd"), "lognormal": ("median", "sd_log")}
+
+
+def read_prior(item: object, factor: float, src: str | None, fld: str) -> Prior:
+    """A prior table of a parameter file (values in the unit whose factor to SI is ``factor``;
+    ``sd_log`` is dimensionless), or a one-line error naming the field."""
+    if not isinstance(item, dict) or item.get("distribution") not in PRIOR_KEYS:
+        raise InputError(f"expected {{distribution = \"normal\", mean = M, sd = S}} or {{distribution = "
+                         f"\"lognormal\", median = M, sd_log = S}}, got {item!r}", source=src, field=fld)
+    shape = item["distribution"]
+    centre, width = PRIOR_KEYS[shape]
+    extra = set(item) - {"distribution", centre, width}
+    if extra or centre not in item or width not in item:
+        raise InputError(f"a {shape} prior takes {centre} and {width}" + (f"; unknown: {', '.join(sorted(extra))}"
+                                                                           if extra else ""), source=src, field=fld)
+    mean = number(item[centre], src or "", f"{fld}.{centre}") * factor
+    sd = number(item[width], src or "", f"{fld}.{width}") * (1.0 if shape == "lognormal" else factor)
+    if not sd > 0:
+        raise InputError(f"{width} must be > 0, got {item[width]!r}", source=src, field=f"{fld}.{width}")
+    if shape == "lognormal" and not mean > 0:
+        raise InputError(f"a log-normal prior needs a positive median, got {item[centre]!r}", source=src,
+                         field=f"{fld}.{centre}")
+    return Prior(shape, mean, sd, source=src or "file")
 
 
 #: Smallest plausible nonzero ligament stiffness (N per unit strain): ligaments have 10^3-10^5 N;

@@ -34,6 +34,7 @@ import numpy as np
 from kneenlp import interrupts
 from kneenlp.conventions import LOAD_SIZE, coords_from_user
 from kneenlp.errors import InputError
+from kneenlp.experiment.problem import prior_rows
 from kneenlp.model.solvercache import frozen
 from kneenlp.solvers.forward import equilibrium_start
 
@@ -104,9 +105,19 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
               else data["working_sets"])
         g = ca.vec(mapped(q_si, theta, loads, flex, ws))
     diff = model.observation.map(T)(q_si, theta, flex) - data["measured"]
-    f = ca.sum1(ca.sum2(data["weights"] * diff * diff))
+    f = ca.sum1(ca.sum2(data["weights"] * diff * diff)) + _prior_term(problem, xp, data)
     lbx, ubx = problem.x_bounds()
     return NLPExpressions(ca.vertcat(xp, ca.vec(xq)), par, f, g, lbx, ubx, q_si, theta, flex)
+
+
+def _prior_term(problem: IdentificationProblem, xp: ca.MX | ca.SX, data: dict) -> ca.MX | ca.SX:
+    """The priors' share of the MAP objective (:func:`~kneenlp.experiment.problem.prior_rows`
+    squared) of the scaled free parameters ``xp``; centres and widths come from the data vector,
+    so changing a prior never rebuilds the NLP (only which priors are log-normal is its structure)."""
+    if not problem.priors:
+        return 0
+    rows = prior_rows(xp * problem.scales, data["prior_centre"], data["prior_inv_sd"], problem.prior_logs)
+    return ca.sumsqr(rows)
 
 
 @dataclass
@@ -146,7 +157,8 @@ def build_nlp(problem: IdentificationProblem, solver: str = "ipopt", options: di
 def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, threads: int) -> IdentificationNLP:
     """The NLP solver of ``problem``'s layout (number of trials, free parameters), ``solver`` (a CasADi
     nlpsol plugin), its ``options`` and ``threads``, built once per model (``model.solvers``)."""
-    key = ("nlp", problem.n_trials, tuple(problem.free), solver, frozen(options), threads)
+    key = ("nlp", problem.n_trials, tuple(problem.free), bool(problem.priors), problem.prior_logs, solver,
+           frozen(options), threads)
     return problem.model.solvers.get(key, lambda: build_nlp(problem, solver, options, threads))
 
 
@@ -278,8 +290,15 @@ def _trial_block_derivatives(problem: IdentificationProblem, e: NLPExpressions) 
     h_all = second_map(*args, ca.repmat(lam_fm, 1, T), ca.reshape(lam_g, 5, T))
     h_pp = sum((block(h_all, t, ps, ps) for t in range(T)), ca.MX.zeros(nf, nf))
     h_pq = ca.horzcat(*[block(h_all, t, ps, qs) for t in range(T)])
+    f_sum = ca.sum2(f_all)
+    if problem.priors:  # the priors touch the parameters alone: one small block
+        centre, inv_sd = ca.SX.sym("prior_centre", nf), ca.SX.sym("prior_inv_sd", nf)
+        pf = _prior_term(problem, xp, {"prior_centre": centre, "prior_inv_sd": inv_sd})
+        prior = ca.Function("prior", [xp, centre, inv_sd], [pf, ca.gradient(pf, xp), ca.hessian(pf, xp)[0]])
+        pv, pg, ph = prior(xp_m, d["prior_centre"], d["prior_inv_sd"])
+        f_sum, grad, h_pp = f_sum + pv, grad + ca.vertcat(pg, ca.MX.zeros(5 * T)), h_pp + lam_fm * ph
     h_qq = ca.diagcat(*[block(h_all, t, qs, qs) for t in range(T)])
     hess = ca.vertcat(ca.horzcat(h_pp, h_pq), ca.horzcat(h_pq.T, h_qq))
-    return (ca.Function("grad_f", [x, p], [ca.sum2(f_all), grad]),
+    return (ca.Function("grad_f", [x, p], [f_sum, grad]),
             ca.Function("jac_g", [x, p], [ca.vec(r_all), jac]),
             ca.Function("hess_lagrangian", [x, p, lam_fm, lam_g], [ca.triu(hess)]))

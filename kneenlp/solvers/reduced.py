@@ -98,7 +98,7 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
                 if sol.converged:
                     q[i], res[i] = sol.q, sol.max_residual
         ok = bool(np.all(res <= tol_eq))
-        r = problem.residuals(q, theta).ravel() * w
+        r = np.concatenate([problem.residuals(q, theta).ravel() * w, prior_rows_of(x)])
         state["last"] = (x.copy(), q, theta, ok)
         return r, q, theta, ok
 
@@ -115,7 +115,18 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
         dy_dp, dq_dp = problem.sensitivities(q, theta, with_poses=True)
         if state["best"][2] is not None and np.array_equal(theta, state["best"][2]):
             state["slope"] = (theta, dq_dp)
-        return dy_dp * scales * w[:, None]
+        return np.vstack([dy_dp * scales * w[:, None], prior_jacobian_of(x)])
+
+    _, inv_sd = problem.prior_data()
+    logs = np.array(problem.prior_logs)
+
+    def prior_rows_of(x: np.ndarray) -> np.ndarray:  # the priors' rows (none without priors)
+        return problem.prior_residuals(problem.from_scaled(x)) if problem.priors else np.zeros(0)
+
+    def prior_jacobian_of(x: np.ndarray) -> np.ndarray:  # d rows / d x (scaled): diagonal
+        if not problem.priors:
+            return np.zeros((0, len(x)))
+        return np.diag(inv_sd * np.where(logs, 1.0 / np.where(logs, x, 1.0), scales))
 
     lower, upper = problem.scaled_bounds
     x0 = np.clip(problem.to_scaled(start), lower, upper)
@@ -123,5 +134,5 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
                                  method="trf", x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations)
     _, q, theta, ok = evaluate(out.x)  # from the best point's poses: out.x's own branch
     values = dict(zip(problem.free, problem.from_scaled(out.x), strict=True))
-    return ReducedResult(values, q, problem.objective(q, theta), bool(out.status > 0 and ok), int(out.nfev),
+    return ReducedResult(values, q, problem.map_objective(q, theta), bool(out.status > 0 and ok), int(out.nfev),
                          time.perf_counter() - t0, str(out.message))

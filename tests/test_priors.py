@@ -1,0 +1,132 @@
+"""Priors in the one NLP: the prior type, the MAP estimate, its Laplace covariance and bad priors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import kneenlp
+from kneenlp.cli import main
+from kneenlp.errors import InputError
+from kneenlp.experiment.measured import read_measured
+from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.inference.identify import identify, reduced_fit
+from kneenlp.model.parameters import ParameterSet
+from kneenlp.model.priors import Prior
+
+
+def measured(knee, protocol, noise, seed, tmp_path):
+    path = tmp_path / f"{protocol}_{seed}.csv"
+    kneenlp.simulate(knee, protocol).measured(noise, seed).to_csv(path, index=False)
+    return read_measured(path)
+
+
+def test_prior_z_and_interval_are_the_closed_forms():
+    normal, lognormal = Prior("normal", 0.02, 0.03), Prior("lognormal", 5000.0, 0.3)
+    assert normal.z(0.08) == pytest.approx(2.0)
+    assert lognormal.z(5000.0 * math.exp(0.6)) == pytest.approx(2.0)
+    lo, hi = normal.interval()
+    assert (lo, hi) == pytest.approx((0.02 - 3 * 0.03, 0.02 + 3 * 0.03), rel=1e-3)
+    lo, hi = lognormal.interval(0.95)
+    assert stats.lognorm(0.3, scale=5000.0).cdf(hi) - stats.lognorm(0.3, scale=5000.0).cdf(lo) == pytest.approx(0.95)
+    with pytest.raises(ValueError):
+        Prior("normal", 0.0, 0.0)
+    with pytest.raises(ValueError):
+        Prior("lognormal", -1.0, 0.3)
+
+
+def test_map_estimate_of_the_nlp_is_the_reduced_methods(knee, model, tmp_path):
+    """The priors enter the NLP's objective and the reduced-space residuals as the same rows: both
+    solvers reach one MAP optimum (an independent route to the same number)."""
+    data = measured(knee, "set1", "uniform:0.5", 2, tmp_path)
+    fit = identify(knee, data, seed=2, noise="uniform:0.5", priors="default")
+    assert fit.success, fit.report()
+    assert fit.prior_objective > 0
+    problem = fit.problem
+    other = reduced_fit(problem, fit.start, tol=1e-12, max_evaluations=200)
+    assert other.success
+    assert fit.map_objective <= other.map_objective * (1 + 1e-6)
+    assert other.map_objective == pytest.approx(fit.map_objective, rel=1e-6)
+    # the MAP moves towards the priors' centres: its own objective is above the data-only fit's
+    data_only = identify(knee, data, seed=2, noise="uniform:0.5")
+    assert data_only.objective <= fit.objective + 1e-9
+
+
+def test_priors_decide_where_data_do_not(knee, tmp_path):
+    """A tight prior holds its parameter at the prior's mean; a very wide one leaves the data-only fit."""
+    data = measured(knee, "set1", "uniform:0.5", 4, tmp_path)
+    data_only = identify(knee, data, seed=4, noise="uniform:0.5")
+    tight = identify(knee, data, seed=4, noise="uniform:0.5",
+                     priors={"ACL.k": Prior("lognormal", 7000.0, 1e-4)})
+    assert tight.params["ACL.k"] == pytest.approx(7000.0, rel=2e-3)
+    wide = identify(knee, data, seed=4, noise="uniform:0.5",
+                    priors={n: Prior("normal", knee.parameters[n], 1e3 * abs(knee.parameters[n]))
+                            for n in data_only.free})
+    for n in data_only.free:
+        assert abs(wide.params[n] - data_only.params[n]) <= 0.01 * data_only.stderr[n]
+
+
+def test_laplace_covariance_is_the_posterior_of_the_linearised_problem(knee, tmp_path):
+    data = measured(knee, "set1", "uniform:0.5", 5, tmp_path)
+    fit = identify(knee, data, seed=5, noise="uniform:0.5", priors="default")
+    sigma2 = 0.5**2 / 3
+    assert fit.problem.prior_weight == pytest.approx(sigma2)
+    # by hand: sigma^2 (S'S + sigma^2 D' P D)^-1 with P the priors' precisions (SI) and D the transform
+    S = fit.sensitivity
+    prec = []
+    for n in fit.free:
+        prior = fit.problem.priors[n]
+        d = 1 / fit.params[n] if prior.log else 1.0
+        prec.append(d**2 / prior.sd**2)
+    expected = sigma2 * np.linalg.inv(S.T @ S + sigma2 * np.diag(prec))
+    assert np.allclose(fit.covariance, expected, rtol=1e-6)
+    # every direction has a prior: nothing undetermined
+    assert np.all(np.isfinite(np.diag(fit.covariance)))
+
+
+def test_bad_priors_are_refused_with_the_parameters_name(model, tmp_path):
+    trials_csv = tmp_path / "d.csv"
+    kneenlp.simulate(model.knee, "set1").measured("none", 0).to_csv(trials_csv, index=False)
+    data = read_measured(trials_csv)
+    cases = {
+        "ACL.ref_strain": Prior("lognormal", 0.05, 0.3),  # can be negative
+        "ACL.k": Prior("normal", 2e5, 100.0),  # mean outside the bounds
+    }
+    for name, prior in cases.items():
+        with pytest.raises(InputError, match=name.replace(".", r"\.")):
+            IdentificationProblem.from_data(model, data, priors={name: prior})
+    with pytest.raises(InputError, match="ACLx"):
+        IdentificationProblem.from_data(model, data, priors={"ACLx.k": Prior("normal", 1.0, 1.0)})
+    with pytest.raises(InputError, match="not free"):
+        IdentificationProblem.from_data(model, data, priors={"ACL.lin_strain": Prior("normal", 0.03, 0.01)})
+
+
+@pytest.mark.parametrize("entry, field", [
+    ('"ACL.k" = {unit = "N", prior = {distribution = "normal", mean = 5000, sd = 0}}', "sd"),
+    ('"ACL.k" = {unit = "N", prior = {distribution = "normal", mean = 5000, sd = -3}}', "sd"),
+    ('"ACL.ref_strain" = {unit = "%", prior = {distribution = "lognormal", median = 5, sd_log = 0.3}}', "ACL.ref_strain"),
+    ('"ACL.k" = {unit = "N", prior = {distribution = "normal", mean = 500000, sd = 100}}', "ACL.k"),
+    ('"ACLx.k" = {unit = "N", prior = {distribution = "normal", mean = 5000, sd = 100}}', "ACLx"),
+    ('"ACL.k" = {unit = "N", prior = {distribution = "cauchy", mean = 5000, sd = 100}}', "ACL.k"),
+])
+def test_bad_prior_in_a_parameter_file_is_one_line_exit_2(tmp_path, capsys, entry, field):
+    base = (kneenlp.io.resources.resource("parameters", "table1.toml")).read_text()
+    path = tmp_path / "p.toml"
+    path.write_text(base + "\n[values]\n" + entry + "\n")
+    code = main(["simulate", "--protocol", "set1", "--parameters", str(path), "--no-plots"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1 and field in err and "Traceback" not in err
+
+
+def test_a_prior_declared_in_the_parameter_file_replaces_the_default(tmp_path):
+    base = (kneenlp.io.resources.resource("parameters", "table1.toml")).read_text()
+    path = tmp_path / "p.toml"
+    path.write_text(base + '\n[values]\n"ACL.k" = {unit = "kN", prior = {distribution = "normal", '
+                           'mean = 6, sd = 0.5}}\n')
+    params = ParameterSet.load(path)
+    assert params.priors["ACL.k"] == Prior("normal", 6000.0, 500.0, source=str(path))
+    assert params.values["ACL.k"] == ParameterSet.load(kneenlp.io.resources.resource("parameters", "table1.toml")).values["ACL.k"]
