@@ -63,6 +63,11 @@ def positive(text: str) -> float:
     return value
 
 
+def prior_weight(text: str) -> float | str:
+    """An argparse type: a misfit variance > 0 (mm^2, deg^2) or ``estimate``."""
+    return "estimate" if text.strip() == "estimate" else positive(text)
+
+
 def fraction(text: str) -> float:
     """An argparse type: a finite number with 0 < value < 1."""
     value = finite(text)

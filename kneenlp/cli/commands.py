@@ -82,6 +82,11 @@ def cmd_simulate(args) -> int:
     return 1 if result.failed else 0
 
 
+def prior_options(args) -> dict:
+    """``calibrate``'s prior options from ``--priors`` and ``--prior-weight`` (unset: its defaults)."""
+    return {k: v for k, v in (("priors", args.priors), ("prior_weight", args.prior_weight)) if v is not None}
+
+
 def cmd_identify(args) -> int:
     from kneenlp.inference.calibrate import Calibration, calibrate, real_experiment
     from kneenlp.inference.identify import identify
@@ -95,7 +100,7 @@ def cmd_identify(args) -> int:
     if real_experiment(args.measured) and args.method == "simultaneous":
         calibration = calibrate(KneeModel.of(knee), args.measured, args.free, seed=args.seed, noise=args.noise,
                                 pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
-                                keep_outliers=args.keep_outliers, **options)
+                                keep_outliers=args.keep_outliers, **prior_options(args), **options)
         fit = calibration.fit
     else:
         for given, flag in ((args.pivot_tolerance, "--pivot-tolerance"), (args.also_free, "--also-free"),
@@ -103,7 +108,12 @@ def cmd_identify(args) -> int:
             if given is not None:
                 raise InputError(f"{flag} changes what a real experiment's calibration fits; this data is not one "
                                  "(no declared side, no joint loads) or --method nested was asked", field=flag)
-        fit = identify(knee, args.measured, args.method, free=args.free, seed=args.seed, noise=args.noise, **options)
+        if args.prior_weight == "estimate":
+            raise InputError("'estimate' is for a real experiment's calibration; give a variance (mm^2, deg^2)",
+                             field="--prior-weight")
+        fit = identify(knee, args.measured, args.method, free=args.free, seed=args.seed, noise=args.noise,
+                       priors=args.priors, prior_weight=args.prior_weight,
+                       **options)
         calibration = Calibration(fit, None, [])
     summary = json.dumps(json.loads(fit.to_json()) | calibration.summary(), indent=2)
     if args.out:
@@ -319,7 +329,7 @@ def cmd_cross_validate(args) -> int:
     store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
     results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, store, seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
-                                      keep_outliers=args.keep_outliers)
+                                      keep_outliers=args.keep_outliers, **prior_options(args))
     table = crossval.table(results)
     written = []
     if args.out:

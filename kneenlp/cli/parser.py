@@ -11,11 +11,22 @@ from kneenlp.cli.inputs import MAX_STUDY_FITS, set_names
 
 def _knee_args(p: argparse.ArgumentParser, parameters: bool = True) -> None:
     p.add_argument("--knee", help="knee description TOML, or the name of a shipped knee: default (Lenhart 2015, "
-                                  "the default), synthetic")
+                                  "the default), synthetic, implant, s192803")
     if parameters:
         p.add_argument("--parameters", help="parameter set TOML (reference values and fixed parameters)")
     p.add_argument("--element", action="append", default=[], metavar="MODULE:FACTORY",
                    help="add user force elements made by this importable factory (repeatable)")
+
+
+def _prior_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--priors", choices=["default", "none"], default=None,
+                   help="default: the MAP estimate, every free parameter with its prior (from the parameter file "
+                        "or the shipped defaults centred on the knee's values, docs/priors.md); none: least squares "
+                        "on the data alone.  Default: 'default' for a real experiment's calibration, 'none' for data "
+                        "the model produced (the paper's least squares)")
+    p.add_argument("--prior-weight", type=opt.prior_weight, default=None, metavar="VAR",
+                   help="the misfit variance (mm^2 and deg^2) the priors are weighed against, or 'estimate' (from "
+                        "the fit's residuals); default: the declared noise's variance, else 1 (docs/priors.md)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -76,6 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-outliers", action="store_true",
                    help="real experiments: fit every trial (default: trials the outlier test flags are set aside "
                         "and reported, docs/real-experiment.md)")
+    _prior_args(p)
     p.add_argument("--out", help="also write fit.json, fit_trials.csv and calibrated.toml here (real experiments: "
                                  "set_aside.csv, the trials the outlier test set aside, predicted)")
     p.add_argument("--json", action="store_true", help="print JSON instead of the report")
@@ -182,6 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-outliers", action="store_true",
                    help="the calibrations fit every trial they keep (see 'kneenlp identify'); the held-out "
                         "trials are always predicted")
+    _prior_args(p)
     p.add_argument("--twins", type=opt.integer(0, 100), default=0, metavar="N",
                    help="hold out the same trials of N twins of the experiment too: the knee calibrated on "
                         "every trial as the knee, its predictions plus noise at the calibration's level (seeded "

@@ -243,6 +243,11 @@ class Fit:
             "identifiable": self.identifiable,
             "unidentifiable_directions": self.unidentifiable_directions(),
             "at_bounds": self.at_bounds(),
+            "priors": {n: p.record(self._info(n).to_user, self._info(n).unit) | {"source": p.source}
+                       for n, p in self.problem.priors.items()},
+            "prior_weight": self.problem.prior_weight if self.problem.priors else None,
+            "prior_objective": self.prior_objective,
+            "outside_prior": self.outside_prior(),
             "noise_variance_source": self.noise_source,
             "trials": len(self.data),
             "data": self.data.source,
@@ -268,6 +273,31 @@ class Fit:
             if min(self.params[p.name] - lo, hi - self.params[p.name]) <= tol * (hi - lo):
                 out.append(p.name)
         return out
+
+    def outside_prior(self) -> list[str]:
+        """The free parameters outside their prior's 99.7 % range (:meth:`~kneenlp.model.priors.Prior.interval`)."""
+        out = []
+        for name, prior in self.problem.priors.items():
+            lo, hi = prior.interval()
+            if not lo <= self.params[name] <= hi:
+                out.append(name)
+        return out
+
+    def _prior_lines(self) -> list[str]:
+        if not self.problem.priors:
+            return []
+        outside = set(self.outside_prior())
+        lines = [f"[[Priors]] MAP estimate: the priors' share of the objective {self.prior_objective:.4g}, weighed "
+                 f"against a misfit variance of {self.problem.prior_weight:.4g} (mm^2, deg^2)"]
+        for name in self.free:
+            prior = self.problem.priors.get(name)
+            if prior is None:
+                lines.append(f"    {name:18s}   none (the data alone)")
+                continue
+            info = self._info(name)
+            flag = "  ** OUTSIDE ITS PRIOR'S 99.7 % RANGE **" if name in outside else ""
+            lines.append(f"    {name:18s}   {prior.describe(info.to_user, info.unit)} ({prior.source}){flag}")
+        return lines
 
     def report(self) -> str:
         """lmfit-like text report (display units: N per unit strain, %, GN/m^3; mm and deg)."""
@@ -301,7 +331,9 @@ class Fit:
             init = f"(init = {start * self._info(n).to_user:.6g})" if start is not None else ""
             lines.append(f"    {n:18s} = {pu[n]:12.6g} {unit:7s} {se_txt} {init}")
         for d in self.unidentifiable_directions():
-            lines.append("    unidentified direction: " + ", ".join(f"{v:+.2f} {k}" for k, v in d.items()))
+            lines.append(("    direction the data do not determine (its priors do): " if self.problem.priors else
+                          "    unidentified direction: ") + ", ".join(f"{v:+.2f} {k}" for k, v in d.items()))
+        lines += self._prior_lines()
         lines.append("[[Residuals]] largest |model - measured| per coordinate")
         res = self.residuals
         for j, (c, u) in enumerate(zip(COORDINATES, COORDINATE_UNITS, strict=True)):
