@@ -40,13 +40,7 @@ ROTATION, TRANSLATION = 5.0, 2.0
 
 def outside_prior(fit) -> list[str]:
     """The fitted parameters outside the 99.7 % range of their priors (the default ones for a fit without)."""
-    priors = fit.problem.priors or resolve_priors(fit.model, fit.free, "default")
-    out = []
-    for name, prior in priors.items():
-        lo, hi = prior.interval()
-        if not lo <= fit.params[name] <= hi:
-            out.append(name)
-    return out
+    return fit.outside_prior(fit.problem.priors or resolve_priors(fit.model, fit.free, "default"))
 
 
 def main() -> None:

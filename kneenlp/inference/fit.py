@@ -274,10 +274,11 @@ class Fit:
                 out.append(p.name)
         return out
 
-    def outside_prior(self) -> list[str]:
-        """The free parameters outside their prior's 99.7 % range (:meth:`~kneenlp.model.priors.Prior.interval`)."""
+    def outside_prior(self, priors: dict | None = None) -> list[str]:
+        """The free parameters outside their prior's 99.7 % range (:meth:`~kneenlp.model.priors.Prior.interval`);
+        ``priors`` (by name) to judge a fit by other priors than its own (e.g. a least-squares fit's)."""
         out = []
-        for name, prior in self.problem.priors.items():
+        for name, prior in (self.problem.priors if priors is None else priors).items():
             lo, hi = prior.interval()
             if not lo <= self.params[name] <= hi:
                 out.append(name)
