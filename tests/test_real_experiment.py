@@ -581,8 +581,9 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
     from kneenlp.inference.calibrate import calibrate
     from kneenlp.inference.crossval import folds, hold_out, twin
 
+    # the least-squares calibration: the MAP's varus hold-out loses one trial's equilibrium (docs/status.md)
     args = ["cross-validate", str(CSV), "--knee", "s192803", "--hold-out", "varus", "--twins", "1", "--out",
-            str(tmp_path / "cv"), "--json"]
+            str(tmp_path / "cv"), "--priors", "none", "--json"]
     code = main(args)
     (row,) = json.loads(capsys.readouterr().out)["hold_outs"]
     assert code == 0 and row["twins"] == 1 and row["twin_converged"] == 4
@@ -601,8 +602,8 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
         assert again[f"twin_rms_{c}"] == pytest.approx(10 * row[f"twin_rms_{c}"], rel=1e-5)
     model = KneeModel.of(s192803)
     data = read_measured(CSV)
-    exact = twin(model, data, calibrate(model, data).fit.params, np.zeros(5), np.random.default_rng(0))
-    held = hold_out(model, exact, dict(folds(exact))["varus"], "varus")
+    exact = twin(model, data, calibrate(model, data, priors="none").fit.params, np.zeros(5), np.random.default_rng(0))
+    held = hold_out(model, exact, dict(folds(exact))["varus"], "varus", priors="none")
     assert held.prediction.converged.all()
     assert max(held.rms().values()) < 1.0, held.rms()
 
