@@ -75,7 +75,7 @@ def test_designed_protocol_monte_carlo(tmp_path):
     assert np.all(np.abs(s4["mc_std"] / s4["predicted_std"] - 1) <= 0.25)
     assert (d["n"] == 100).all() and (s4["n"] == 100).all()
     # the designed 22 cases are at least as tight as Set 4's 60 for most parameters (docs/design.md:
-    # six of eight before session 9, five since the design leaves out cases that converged only
+    # six of eight when it kept them, five since the design leaves out cases that converged only
     # warm-started from the pool's previous trial)
     assert (d["range"] <= s4["range"]).sum() >= 5
 

@@ -171,8 +171,8 @@ def test_early_hand_over_from_reduced_space_reaches_the_reduced_optimum(tmp_path
     assert there.objective == pytest.approx(early.objective, rel=1e-6)
     for n in problem.free:
         assert there.values[n] == pytest.approx(early.params[n], rel=1e-3), n
-    # fewer reduced evaluations when IPOPT finishes from the early stop (session 17); the path is
-    # chaotic: since session 18's tibial axes changed the NLP Hessian's rounding (1e-12 relative), IPOPT
+    # fewer reduced evaluations when IPOPT finishes from the early stop; the path is
+    # chaotic: since the tibial axes changed the NLP Hessian's rounding (1e-12 relative), IPOPT
     # from the early stop runs out of iterations here, and the rescue finishes the reduced fit first
     # and reaches the same minimum from there, at no more evaluations than the reduced fit alone
     assert evaluations < full.evaluations if finished is None else evaluations <= full.evaluations

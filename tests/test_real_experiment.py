@@ -558,7 +558,7 @@ def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
     assert all(np.isfinite(row[f"rms_{c}"]) and row[f"rms_{c}"] < 15 for c in
                ("varus_rotation_deg", "internal_rotation_deg", "anterior_translation_mm"))
     # the calibration's own expected error: at least its noise, and of the error's size at this hold-out
-    # (session 18: 2.8 / 2.9 deg, 1.7 / 2.5 / 1.5 mm against 2.9 / 3.4, 2.0 / 2.9 / 2.0)
+    # (least squares measured 2.8 / 2.9 deg, 1.7 / 2.5 / 1.5 mm against 2.9 / 3.4, 2.0 / 2.9 / 2.0)
     for c in coordinate_columns():
         assert 0.3 * row[f"rms_{c}"] < row[f"expected_rms_{c}"] < 3 * row[f"rms_{c}"], c
     assert 0.0 <= row["p_within_expected"] <= 1.0
@@ -577,7 +577,7 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
     and the draw, written as it finished, is read back by a rerun (oracle: the stored errors scaled
     by ten come back ten times larger).  Oracle: without noise the twin's model is exactly right,
     so what the calibration without the varus trials misses there is only what those trials alone
-    determine: within 1 mm and 1 deg (session 19: 0.79 mm at most)."""
+    determine: within 1 mm and 1 deg (measured: 0.79 mm at most)."""
     from kneenlp.inference.calibrate import calibrate
     from kneenlp.inference.crossval import folds, hold_out, twin
 

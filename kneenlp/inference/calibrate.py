@@ -8,7 +8,7 @@ writes them) differs from data the model produced in two ways the fit must take 
 * nobody declares the noise: its level is estimated from the fit (the residual variance);
 * a trial can be one no passive knee produces: the outlier test (:mod:`~kneenlp.inference.outliers`)
   sets it aside, the fit is repeated without it, and the report names it (S192803:
-  ``valgus_flex60``, docs/real-experiment.md "Session 17").
+  ``valgus_flex60``, docs/real-experiment.md).
 
 Which ligament parameters the trials can determine is decided before the fit
 (:func:`calibration_free`): the sensitivities of the measured coordinates to every ligament

@@ -164,7 +164,7 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
             new = polished
     if not new.success or new.objective > fit.objective:
         # IPOPT from the base fit itself (effect neutral): on the real S192803 knee the reduced solve,
-        # its polish and the one-step start all failed (session 8, ~4 min a candidate), while this
+        # its polish and the one-step start all failed (~4 min a candidate), while this
         # converged in 50-120 iterations (15-40 s)
         warm = solve_simultaneous(problem, problem.values(fit.theta),
                                   solver_options={"ipopt": {"max_iter": WARM_ITERATIONS}})

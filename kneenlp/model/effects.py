@@ -153,7 +153,7 @@ class TibialOrigin(ForceElement):
     description = "the experiment reads its translations at another tibial point"
     #: not scored by ``diagnose`` (near small rotations it is the constant registration of the three
     #: translations, which the adequacy check already tests); fitted where named, e.g. ``calibrate``'s
-    #: ``also_free`` (S192803, docs/real-experiment.md "Session 16")
+    #: ``also_free`` (S192803, docs/real-experiment.md)
     candidate = False
 
     def parameters(self) -> list[Parameter]:
@@ -186,7 +186,7 @@ class FemoralOrigin(ForceElement):
 
     name = "femoral_origin"
     description = "the experiment reads its translations from another femoral point"
-    #: fitted where named, like :class:`TibialOrigin` (S192803, docs/real-experiment.md "Session 17")
+    #: fitted where named, like :class:`TibialOrigin` (S192803, docs/real-experiment.md)
     candidate = False
 
     def parameters(self) -> list[Parameter]:
@@ -218,7 +218,7 @@ class TibialAxes(ForceElement):
 
     name = "tibial_axes"
     description = "the experiment's tibial axes are turned from the model's"
-    #: fitted where named, like :class:`TibialOrigin` (S192803, docs/real-experiment.md "Session 18");
+    #: fitted where named, like :class:`TibialOrigin` (S192803, docs/real-experiment.md);
     #: not scored by ``diagnose``: near small internal rotations the varus turn reads as the constant
     #: varus registration (``a cos i``), which the adequacy check already tests
     candidate = False
