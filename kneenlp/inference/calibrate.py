@@ -316,7 +316,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
     if free is not None and also_free:
         raise InputError("adds to what the calibration chooses, --free names it all: give one", field="--also-free")
-    with_priors = not (priors is None or (isinstance(priors, str) and priors == "none"))
+    with_priors = priors not in (None, "none")
+    estimate = prior_weight == "estimate"
     extra = also_free_names(model, also_free or [])
     before = predict(model, data)
     fixed: list[str] = []
@@ -340,11 +341,11 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     # docstring: IPOPT wandered on this problem, and from a good point made it worse)
     options = {"noise": noise, "weighted": identify_options.get("weighted", False),
                "with_effects": identify_options.get("with_effects") or (), "priors": priors,
-               "prior_weight": None if prior_weight == "estimate" else float(prior_weight)}
+               "prior_weight": None if estimate else float(prior_weight)}
     problem = IdentificationProblem.from_data(model, data, free, **options)
     start = ({n: float(theta[model.index(n)]) for n in problem.free}
              | problem.check_start(identify_options.pop("start", {})))
-    fit = map_fit(problem, start, estimate=prior_weight == "estimate")
+    fit = map_fit(problem, start, estimate=estimate)
     if not fit.success:  # the simultaneous NLP, with identify's rescue
         identify_options.setdefault("restarts", 0)
         identify_options.setdefault("solver_options", {"ipopt": {"max_iter": MAX_ITER}})
@@ -362,7 +363,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         # (sum of squares 344; from the fit 296, docs/real-experiment.md)
         problem = IdentificationProblem.from_data(model, data, [*problem.free, *extra], **options)
         start = fit.params | {n: float(theta[model.index(n)]) for n in extra}
-        refit = map_fit(problem, start, q0=fit.q_pred, estimate=prior_weight == "estimate")
+        refit = map_fit(problem, start, q0=fit.q_pred, estimate=estimate)
         if refit.map_objective <= fit.map_objective:
             fit = refit
         else:

@@ -117,16 +117,13 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
             state["slope"] = (theta, dq_dp)
         return np.vstack([dy_dp * scales * w[:, None], prior_jacobian_of(x)])
 
-    _, inv_sd = problem.prior_data()
-    logs = np.array(problem.prior_logs)
-
     def prior_rows_of(x: np.ndarray) -> np.ndarray:  # the priors' rows (none without priors)
         return problem.prior_residuals(problem.from_scaled(x)) if problem.priors else np.zeros(0)
 
-    def prior_jacobian_of(x: np.ndarray) -> np.ndarray:  # d rows / d x (scaled): diagonal
+    def prior_jacobian_of(x: np.ndarray) -> np.ndarray:  # d rows / d x (scaled)
         if not problem.priors:
             return np.zeros((0, len(x)))
-        return np.diag(inv_sd * np.where(logs, 1.0 / np.where(logs, x, 1.0), scales))
+        return problem.prior_jacobian(dict(zip(problem.free, problem.from_scaled(x), strict=True))) * scales
 
     lower, upper = problem.scaled_bounds
     x0 = np.clip(problem.to_scaled(start), lower, upper)
