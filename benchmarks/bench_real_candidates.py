@@ -20,8 +20,8 @@ import kneenlp
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.inference.calibrate import calibrate
-from kneenlp.inference.identify import reduced_fit
 from kneenlp.inference.predict import rms_by_coordinate
+from kneenlp.inference.solve import reduced_fit
 from kneenlp.io.resources import resource
 from kneenlp.model.kneemodel import KneeModel
 

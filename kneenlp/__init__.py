@@ -7,11 +7,14 @@ Public API (see README.md)::
     protocol = kneenlp.Protocol.load("set3")      # Table 2 of the laxity-noise paper
     result = kneenlp.simulate(knee, protocol)     # forward laxity simulation
     result.table()                                # pandas table in mm / deg / N
+    fit = kneenlp.identify(knee, "measured.csv")  # the one fit entry point (CLI: kneenlp identify)
+    print(fit.report())
 """
 
 from kneenlp.errors import ConvergenceError, InputError
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Protocol, Trial
+from kneenlp.inference.identify import identify
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import ParameterSet
@@ -29,5 +32,6 @@ __all__ = [
     "Protocol",
     "SimulationResult",
     "Trial",
+    "identify",
     "simulate",
 ]

@@ -377,7 +377,7 @@ def test_simulated_detection_limit_agrees_with_the_linear_one_for_a_linear_effec
 def test_reduced_space_fit_agrees_with_the_simultaneous_nlp(tmp_path):
     """Two solvers of one least-squares problem: reduced-space Gauss-Newton (poses eliminated)
     and IPOPT on the simultaneous NLP reach the same minimum from the same start."""
-    from kneenlp.inference.identify import reduced_fit
+    from kneenlp.inference.solve import reduced_fit
 
     knee = kneenlp.Knee.named("synthetic")
     path = tmp_path / "m.csv"
@@ -411,7 +411,7 @@ def test_reduced_space_refit_stays_on_its_equilibrium_branch(tmp_path):
     best point's poses it reaches IPOPT's minimum."""
     from dataclasses import replace
 
-    from kneenlp.inference.identify import reduced_fit, solve_simultaneous
+    from kneenlp.inference.solve import reduced_fit, solve_simultaneous
 
     knee = kneenlp.Knee.named("synthetic")
     shift = {"ACL.femur_anterior": 3.045e-3, "ACL.femur_proximal": -2.207e-3, "ACL.femur_lateral": -1.106e-3}

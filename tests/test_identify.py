@@ -151,7 +151,7 @@ def test_early_hand_over_from_reduced_space_reaches_the_reduced_optimum(tmp_path
     IPOPT alone wandered for 150 iterations), from the paper's scattered start; there the former
     rescue (reduced fit to its tolerance, then IPOPT) failed: IPOPT wandered off to objective 4705."""
     from kneenlp.experiment.problem import IdentificationProblem
-    from kneenlp.inference.identify import reduced_then_nlp
+    from kneenlp.inference.solve import reduced_then_nlp
     from kneenlp.model.kneemodel import KneeModel
     from kneenlp.solvers.reduced import reduced_least_squares
 

@@ -13,7 +13,8 @@ from kneenlp.cli import main
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.inference.identify import identify, reduced_fit
+from kneenlp.inference.identify import identify
+from kneenlp.inference.solve import reduced_fit
 from kneenlp.model.parameters import ParameterSet
 from kneenlp.model.priors import Prior
 

@@ -347,6 +347,10 @@ def test_also_free_names_parameters_or_effects(s192803, tmp_path, capsys):
     assert "not one" in capsys.readouterr().err
     assert main(["identify", str(tmp_path / "m.csv"), "--knee", "synthetic", "--keep-outliers"]) == 2
     assert "--keep-outliers" in capsys.readouterr().err
+    assert main(["identify", str(CSV), "--knee", "s192803", "--strategy", "scatter", "--keep-outliers"]) == 2
+    assert "--keep-outliers" in capsys.readouterr().err
+    assert main(["identify", str(CSV), "--knee", "s192803", "--strategy", "calibration", "--method", "nested"]) == 2
+    assert "--strategy" in capsys.readouterr().err
 
 
 def test_calibrated_parameter_file_round_trips(s192803, tmp_path, capsys):
@@ -615,11 +619,15 @@ def test_calibration_says_what_predict_reproduces(s192803, tmp_path):
     those whose poses predict does not reproduce; every other trial's prediction is the fit's.
     Read back from ``calibrated.toml`` (a new knee whose own parameters are the fitted ones),
     predict reaches the same poses: hard trials are followed from the knee file's own set.  The
-    outlier test sets aside the one trial no passive knee produces (valgus_flex60)."""
-    from kneenlp.inference.calibrate import SAME_POSE, calibrate
+    outlier test sets aside the one trial no passive knee produces (valgus_flex60).  The entry
+    point is the API's ``identify``, whose strategy for a real experiment is the calibration."""
+    from kneenlp.inference.calibrate import SAME_POSE
+    from kneenlp.inference.identify import identify
     from kneenlp.inference.predict import predict
 
-    cal = calibrate(KneeModel.of(s192803), read_measured(CSV))
+    fit = identify(s192803, CSV)
+    cal = fit.calibration
+    assert cal is not None and cal.fit is fit and fit.problem.priors  # MAP, the calibration's default
     data = cal.fit.data  # the fitted trials
     assert [o.trial for o in cal.outliers] == ["valgus_flex60"]  # 5.9 deg varus under a valgus moment
     assert len(data) == 24 and cal.set_aside.data.trials[0].id == "valgus_flex60"
@@ -661,6 +669,10 @@ def test_identify_writes_the_set_aside_trials(tmp_path, capsys):
     assert len(pd.read_csv(out / "fit_trials.csv")) == 24
     assert main(["predict", str(CSV), "--knee", "s192803", "--parameters", str(out / "calibrated.toml"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["converged"] == 25
+    from kneenlp.inference.identify import identify  # the API fits as the CLI does
+
+    api = identify(kneenlp.Knee.named("s192803"), CSV).params
+    assert saved["params"] == pytest.approx(api, rel=1e-9, abs=1e-12)
 
 
 @pytest.mark.slow

@@ -40,8 +40,8 @@ from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.geometry.distance import winding_number
 from kneenlp.inference.calibrate import calibrate
-from kneenlp.inference.identify import reduced_fit
 from kneenlp.inference.predict import rms_by_coordinate
+from kneenlp.inference.solve import reduced_fit
 from kneenlp.io.resources import resource
 from kneenlp.model.effects import Meniscus
 from kneenlp.model.kinematics import reference_transform

@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 from kneenlp.cli.inputs import MAX_STUDY_FITS, check_names, effect_values, knee_from_args, knee_reference, study_size
-from kneenlp.errors import InputError
 from kneenlp.io.atomic import staged_directory, write_csv_atomic, write_error, write_text_atomic
 
 
@@ -88,33 +87,18 @@ def prior_options(args) -> dict:
 
 
 def cmd_identify(args) -> int:
-    from kneenlp.inference.calibrate import Calibration, calibrate, real_experiment
+    from kneenlp.inference.calibrate import Calibration
     from kneenlp.inference.identify import identify
-    from kneenlp.model.kneemodel import KneeModel
 
     knee = knee_from_args(args)
     check_names(knee, args)
-    options = {"weighted": args.weighted, "multistart": args.multistart, "solver": args.solver,
-               "protocol": args.protocol, "with_effects": args.with_effect}
-    calibration = None
-    if real_experiment(args.measured) and args.method == "simultaneous":
-        calibration = calibrate(KneeModel.of(knee), args.measured, args.free, seed=args.seed, noise=args.noise,
-                                pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
-                                keep_outliers=args.keep_outliers, **prior_options(args), **options)
-        fit = calibration.fit
-    else:
-        for given, flag in ((args.pivot_tolerance, "--pivot-tolerance"), (args.also_free, "--also-free"),
-                            (args.keep_outliers or None, "--keep-outliers")):
-            if given is not None:
-                raise InputError(f"{flag} changes what a real experiment's calibration fits; this data is not one "
-                                 "(no declared side, no joint loads) or --method nested was asked", field=flag)
-        if args.prior_weight == "estimate":
-            raise InputError("'estimate' is for a real experiment's calibration; give a variance (mm^2, deg^2)",
-                             field="--prior-weight")
-        fit = identify(knee, args.measured, args.method, free=args.free, seed=args.seed, noise=args.noise,
-                       priors=args.priors, prior_weight=args.prior_weight,
-                       **options)
-        calibration = Calibration(fit, None, [])
+    given = {"pivot_tolerance": args.pivot_tolerance, "also_free": args.also_free,
+             "keep_outliers": args.keep_outliers or None}
+    fit = identify(knee, args.measured, args.method, strategy=args.strategy, free=args.free, seed=args.seed,
+                   noise=args.noise, weighted=args.weighted, multistart=args.multistart, solver=args.solver,
+                   protocol=args.protocol, with_effects=args.with_effect, **prior_options(args),
+                   **{k: v for k, v in given.items() if v is not None})
+    calibration = fit.calibration or Calibration(fit, None, [])
     summary = json.dumps(json.loads(fit.to_json()) | calibration.summary(), indent=2)
     if args.out:
         with staged_directory(args.out) as stage:

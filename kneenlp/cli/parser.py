@@ -87,6 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-outliers", action="store_true",
                    help="real experiments: fit every trial (default: trials the outlier test flags are set aside "
                         "and reported, docs/real-experiment.md)")
+    p.add_argument("--strategy", default="auto", choices=["auto", "calibration", "scatter"],
+                   help="calibration (a real experiment's: MAP, registration and load point, outlier test), scatter "
+                        "(the paper's: least squares from a seeded scatter) or auto (default: calibration for data "
+                        "with a declared side or joint loads)")
     _prior_args(p)
     p.add_argument("--out", help="also write fit.json, fit_trials.csv and calibrated.toml here (real experiments: "
                                  "set_aside.csv, the trials the outlier test set aside, predicted)")

@@ -16,7 +16,8 @@ from pathlib import Path
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.inference.fit import Fit
-from kneenlp.inference.identify import _implausible_misfit, identify
+from kneenlp.inference.identify import identify
+from kneenlp.inference.solve import implausible_misfit
 from kneenlp.inference.starts import best_fit, run_starts
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
@@ -24,7 +25,7 @@ from kneenlp.model.kneemodel import KneeModel
 #: Relative objective difference below which two starts count as the same minimum.
 AGREE = 1e-3
 #: IPOPT iterations per start: clean data take 9-40; a start that needs more is usually wandering
-#: (a model far from the data), and identify's rescue (reduced-space Gauss-Newton, then IPOPT
+#: (a model far from the data), and the scatter strategy's rescue (reduced-space Gauss-Newton, then IPOPT
 #: again) reaches the minimum sooner than 150 iterations would.
 MAX_ITER = 60
 
@@ -39,7 +40,7 @@ def base_fit(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, noi
                         solver_options={"ipopt": {"max_iter": MAX_ITER}})
 
     def done(fits: list[Fit]) -> bool:
-        if fits[-1].success and not _implausible_misfit(fits[-1]):
+        if fits[-1].success and not implausible_misfit(fits[-1]):
             return True
         ok = sorted((f for f in fits if f.success), key=lambda f: f.objective)
         return len(ok) >= 2 and ok[1].objective - ok[0].objective <= agree * ok[0].objective

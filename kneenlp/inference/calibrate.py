@@ -34,7 +34,7 @@ docs/real-experiment.md).
 
 The solver is the reduced-space Gauss-Newton (:mod:`kneenlp.solvers.reduced`: every iterate at
 equilibrium) from the probe, with the contact's tolerance (:func:`kneenlp.solvers.reduced.tolerance`);
-the simultaneous NLP (IPOPT with identify's rescue) runs only where it fails.  On S192803 the
+the simultaneous NLP (IPOPT with the scatter strategy's rescue) runs only where it fails.  On S192803 the
 reduced solve converges in 40 evaluations (12 s).  IPOPT from the probe stopped at 80 iterations
 and needed the rescue (64 s in all); with the load point free it failed altogether, and started
 at the reduced solution it moved away from it (sum of squares 390 -> 953 in 200 iterations).
@@ -68,6 +68,7 @@ from kneenlp.inference.outliers import (
     screen,
 )
 from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
+from kneenlp.inference.solve import reduced_fit, scatter_fit
 from kneenlp.inference.statistics import effective_parameters
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import ParameterSet
@@ -292,7 +293,9 @@ def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
 def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
               noise=None, load_point: bool = True, pivot_tolerance: float | None = None,
               also_free: list[str] | None = None, keep_outliers: bool = False, priors="default",
-              prior_weight: float | str = PRIOR_WEIGHT, **identify_options) -> Calibration:
+              prior_weight: float | str = PRIOR_WEIGHT, weighted: bool = False,
+              with_effects: list[str] | tuple = (), start: dict[str, float] | None = None, solver: str = "ipopt",
+              solver_options: dict | None = None, multistart: int = 1, threads: int = 2) -> Calibration:
     """Fit ``free`` to the real experiment ``data`` by reduced-space Gauss-Newton from the knee's
     values (or the probe), the simultaneous NLP if that fails.
 
@@ -308,9 +311,10 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     ``also_free``: parameters or effects (:func:`also_free_names`) fitted beside the default
     ``free``, e.g. attachments a segmentation may have misplaced; unless ``keep_outliers``, trials
     the outlier test flags (:mod:`~kneenlp.inference.outliers`) are set aside one at a time and the
-    fit repeated without them.  ``identify_options`` as :func:`~kneenlp.inference.identify.identify`'s
-    (``weighted``, ``with_effects``, ``start``; the rest serve the fallback)."""
-    from kneenlp.inference.identify import identify
+    fit repeated without them.  ``weighted``, ``with_effects`` and ``start`` as
+    :func:`~kneenlp.inference.identify.identify`'s; ``solver``, ``solver_options``, ``multistart``
+    and ``threads`` serve the fallback (the simultaneous NLP, at most :data:`MAX_ITER` iterations
+    unless ``solver_options`` say otherwise)."""
 
     if free is not None and pivot_tolerance is not None:
         raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
@@ -339,19 +343,15 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     fixed = [n for n in fixed if n not in extra]
     # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
     # docstring: IPOPT wandered on this problem, and from a good point made it worse)
-    options = {"noise": noise, "weighted": identify_options.get("weighted", False),
-               "with_effects": identify_options.get("with_effects") or (), "priors": priors,
+    options = {"noise": noise, "weighted": weighted, "with_effects": with_effects or (), "priors": priors,
                "prior_weight": None if estimate else float(prior_weight)}
     problem = IdentificationProblem.from_data(model, data, free, **options)
     start = ({n: float(theta[model.index(n)]) for n in problem.free}
-             | problem.check_start(identify_options.pop("start", {})))
+             | problem.check_start(start))
     fit = map_fit(problem, start, estimate=estimate)
-    if not fit.success:  # the simultaneous NLP, with identify's rescue
-        identify_options.setdefault("restarts", 0)
-        identify_options.setdefault("solver_options", {"ipopt": {"max_iter": MAX_ITER}})
-        fallback = identify(model, data, free=problem.free, seed=seed, noise=noise, start=start,
-                            priors=priors, prior_weight=fit.problem.prior_weight,
-                            **{k: v for k, v in identify_options.items() if k != "with_effects"})
+    if not fit.success:  # the simultaneous NLP, with its rescue
+        fallback = scatter_fit(fit.problem, start, seed=seed, multistart=multistart, restarts=0, solver=solver,
+                               solver_options=solver_options or {"ipopt": {"max_iter": MAX_ITER}}, threads=threads)
         note = f"reduced-space Gauss-Newton did not converge ({fit.status}); the simultaneous NLP followed"
         fallback.message = f"{fallback.message}; {note}" if fallback.message else note
         if fallback.success or fallback.map_objective < fit.map_objective:
@@ -409,7 +409,6 @@ def map_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndar
     it changes by less than :data:`WEIGHT_TOL` (at most :data:`WEIGHT_ROUNDS` fits): a prior is
     weighed against the misfit the model actually has, which on a real knee is the model's error
     more than the instrument's noise."""
-    from kneenlp.inference.identify import reduced_fit
 
     fit = reduced_fit(problem, start, q0=q0, max_evaluations=MAX_EVALUATIONS)
     if not problem.priors or problem.noise is not None or not estimate:
@@ -435,7 +434,6 @@ def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
     fit's residuals is the adequacy check's finding, not every trial's fault).  A refit that loses
     a trial's equilibrium, or a candidate predict cannot solve, keeps the trial (the fit's message
     says so)."""
-    from kneenlp.inference.identify import reduced_fit
 
     model, found = fit.problem.model, []
     limit = int(MAX_OUTLIER_SHARE * len(fit.data))

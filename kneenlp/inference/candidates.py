@@ -142,7 +142,8 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
     the base estimate itself, then from the effect's one-step estimate (clipped to its bounds).
     Returns the refit's numbers (drops in mm^2 + deg^2 and chi-square units, F and LR p-values,
     AIC and BIC changes, parameters SI with standard errors) and the refitted :class:`Fit`."""
-    from kneenlp.inference.identify import identify, reduced_fit, solve_simultaneous
+    from kneenlp.inference.identify import identify
+    from kneenlp.inference.solve import reduced_fit, solve_simultaneous
 
     model = fit.model
     start = dict(fit.params)

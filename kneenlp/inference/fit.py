@@ -55,6 +55,9 @@ class Fit:
     extra: dict = field(default_factory=dict)
     #: the priors' share of what the fit minimised (``prior_weight * sum z^2``; 0 without priors)
     prior_objective: float = 0.0
+    #: a real experiment's calibration (:class:`~kneenlp.inference.calibrate.Calibration`: the RMS
+    #: before, engaged groups, outliers, predict's check) when ``identify`` calibrated; else None
+    calibration: object | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def build(cls, problem: IdentificationProblem, method: str, theta: np.ndarray, q: np.ndarray,

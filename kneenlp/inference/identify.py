@@ -1,54 +1,45 @@
-"""Identify ligament parameters from measured laxity data: ``identify(knee, data, ...) -> Fit``.
+"""Identify ligament parameters from measured laxity data: ``identify(knee, data, ...) -> Fit``,
+the one entry point of the Python API and of ``kneenlp identify``.
+
+**Strategy** (``strategy=``; docs/priors.md):
+
+* ``"calibration"``: a real experiment's calibration (:func:`~kneenlp.inference.calibrate.calibrate`):
+  MAP with the default priors, the experiment's registration and the robot's load point fitted
+  with every ligament parameter, started at the knee's values (a probe engaging groups slack in
+  every trial), the outlier test; the fit's ``calibration`` holds what it found (the RMS before,
+  the engaged groups, the outliers, ``predict``'s check).
+* ``"scatter"``: the paper's identification: least squares by default, started at a seeded
+  scatter around the knee's values, with restarts (below).
+* ``"auto"`` (default): ``"calibration"`` for data from an experiment (a declared side or a
+  robot's joint loads, :func:`~kneenlp.inference.calibrate.real_experiment`) fitted by the
+  simultaneous method, ``"scatter"`` otherwise (data the model produced, and the nested method).
 
 ``method="simultaneous"`` solves the single NLP of :mod:`kneenlp.solvers.nlp` with IPOPT (or another
 CasADi ``nlpsol`` plugin given by ``solver``); ``method="nested"`` runs the paper's Complex
 optimizer around per-trial rootfinders (:mod:`kneenlp.solvers.nested`) on the same objective.
 
-Start: parameters from ``start`` (dict, SI) or the paper's scatter around the knee's parameter
-set (uniform +-500 N on every k, +-0.02 on every reference strain, +-10 % on other kinds; seeded);
-poses solved forward at the starting parameters, so the start satisfies every equilibrium
-constraint.  (Starting at the noisy measured poses sent a prototype to wrong minima with
-stiffnesses at their bounds.)  ``multistart=N`` runs N starts (the first as above, the others
-fresh scatter draws) and keeps the best converged one.  A start whose solve fails (IPOPT wanders
-off from an indefinite-Hessian region, about one seed in ten on Sets 1-3 in our measurements)
-is followed by up to ``restarts`` fresh draws (default 4); so is a solve that ends with a ligament
-parameter on its bound (k = 0 or 1e5 N, strain at +-30 %: the wrong-minimum signature of the
-prototype), and, when the noise model is given, a solve whose misfit the noise cannot explain
-(chi-square p < 1e-9).  The best fit is kept and records how many starts were used.
+How a fit starts and restarts, and the solves themselves: :mod:`kneenlp.inference.solve`.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-from scipy import stats
-
-from kneenlp.errors import unknown_name
+from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import Protocol, available_protocols
 from kneenlp.inference.fit import Fit
-from kneenlp.inference.starts import best_fit, run_starts
+from kneenlp.inference.solve import scatter_fit
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
-from kneenlp.solvers.forward import forward_solver, rim_reason
-from kneenlp.solvers.nlp import solve_nlp
-from kneenlp.solvers.reduced import reduced_least_squares, tolerance
 
 METHODS = ("simultaneous", "nested")
-
-
-#: Relative cost change at which a reduced-space fit hands over to IPOPT (:func:`reduced_then_nlp`,
-#: the rescue of a failed start).  Measured on
-#: the default knee's slowest adequacy case (a PCL attachment moved 4.2 mm, Set 4, two rescues): the
-#: reduced fit's own tolerance (1e-5) took 41-44 evaluations (10.3-10.8 s) before IPOPT converged in
-#: 9-10 iterations; 1e-2 took 12-17 evaluations (3.8-4.9 s), IPOPT 17-21 iterations, the same optimum
-#: (objective 120.3424 both).  The adequacy refits (from the base fit, a closer start) gained
-#: nothing from it (4 refits 30-32 s against 27 s: the early stop still took 10-27 evaluations, and
-#: one polish failed): they keep the reduced fit to its tolerance.
-RESCUE_TOL = 1e-2
+STRATEGIES = ("auto", "calibration", "scatter")
+#: Options only a calibration takes (:func:`~kneenlp.inference.calibrate.calibrate`), by CLI flag.
+CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--also-free",
+                       "keep_outliers": "--keep-outliers", "load_point": "--no-load-point"}
 
 
 def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: str = "simultaneous", *,
@@ -58,8 +49,10 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
              protocol: Protocol | str | None = None, restarts: int = 4,
              nested_options: dict | None = None, with_effects: list[str] | None = None,
              fixed: dict[str, float] | None = None, threads: int = 2,
-             priors: str | dict | None = None, prior_weight: float | None = None) -> Fit:
-    """Identify the ``free`` parameters of ``knee`` from measured ``data``.
+             priors: str | dict | None = None, prior_weight: float | str | None = None,
+             strategy: str = "auto", **calibration_options) -> Fit:
+    """Identify the ``free`` parameters of ``knee`` from measured ``data`` by ``strategy`` (module
+    docstring).
 
     Parameters
     ----------
@@ -89,10 +82,22 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         the MAP estimate) or a dict of :class:`~kneenlp.model.priors.Prior` by name over the defaults
         (docs/priors.md).
     prior_weight : the noise variance per unit weight the priors are weighed against (mm^2 or deg^2;
-        default: 1 for a weighted fit, the declared noise's variance, else 1).
+        default: 1 for a weighted fit, the declared noise's variance, else 1); for a calibration
+        also ``"estimate"`` (:func:`~kneenlp.inference.calibrate.map_fit`).
+    strategy : ``"auto"``, ``"calibration"`` or ``"scatter"`` (module docstring).
+    calibration_options : a calibration's own (``pivot_tolerance``, ``also_free``,
+        ``keep_outliers``, ``load_point``; :func:`~kneenlp.inference.calibrate.calibrate`).
+
+    Returns the :class:`Fit`; a calibration's also carries its
+    :class:`~kneenlp.inference.calibrate.Calibration` as ``fit.calibration``.
     """
     if method not in METHODS:
         raise unknown_name("method", method, METHODS)
+    if strategy not in STRATEGIES:
+        raise unknown_name("strategy", strategy, STRATEGIES)
+    unknown = sorted(set(calibration_options) - set(CALIBRATION_OPTIONS))
+    if unknown:
+        raise TypeError(f"identify() got unexpected keyword argument(s): {', '.join(unknown)}")
     model = KneeModel.of(knee or Knee.default())
     if not isinstance(data, MeasuredData):
         data = read_measured(data)
@@ -101,152 +106,45 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         proto = Protocol.load(data.protocol)
     if proto is not None:
         data.check_protocol(proto)
+    strategy = resolve_strategy(strategy, data, method)
+    if strategy == "calibration":
+        from kneenlp.inference.calibrate import calibrate
+
+        if fixed:
+            raise InputError("a calibration starts from the knee's parameter file: put the values there "
+                             "(--parameters) instead of fixing them here", field="fixed")
+
+        cal = calibrate(model, data, free, seed=seed, noise=noise, weighted=weighted, with_effects=with_effects,
+                        start=start, solver=solver, solver_options=solver_options, multistart=multistart,
+                        threads=threads,
+                        **({} if priors is None else {"priors": priors}),
+                        **({} if prior_weight is None else {"prior_weight": prior_weight}), **calibration_options)
+        cal.fit.calibration = cal
+        return cal.fit
+    for name, flag in CALIBRATION_OPTIONS.items():
+        if name in calibration_options:
+            raise InputError(f"{flag} changes what a real experiment's calibration fits; this fit is not one "
+                             "(data without a declared side or joint loads, --method nested, or --strategy scatter)",
+                             field=flag)
+    if prior_weight == "estimate":
+        raise InputError("'estimate' is for a real experiment's calibration; give a variance (mm^2, deg^2)",
+                         field="--prior-weight")
     problem = IdentificationProblem.from_data(model, data, free, noise=noise, weighted=weighted, fixed=fixed,
                                               with_effects=with_effects or (), priors=priors,
                                               prior_weight=prior_weight)
-    start = problem.check_start(start)
-    rng = np.random.default_rng(seed)
-    if method == "nested":
-        return _nested(problem, start, rng, seed, dict(nested_options or {}))
-
-    def good(f: Fit) -> bool:
-        return f.success and not _at_bounds(f) and not _implausible_misfit(f)
-
-    def rank(f: Fit) -> tuple[bool, bool, float]:  # good first, then converged, then the lower objective
-        return good(f), f.success, -f.map_objective if f.success else 0.0
-
-    def solve(k: int) -> Fit:
-        s = problem.scatter(rng)
-        if k == 0 and start:
-            s.update(start)
-        fit = solve_simultaneous(problem, s, solver, solver_options, threads)
-        if not fit.success and solver == "ipopt":
-            fit = _rescued(problem, s, fit, solver_options, threads)
-        return fit
-
-    fits = run_starts(solve, at_least=multistart, at_most=max(1, multistart) + restarts,
-                      done=lambda fits: good(best_fit(fits, rank)))
-    best, k = best_fit(fits, rank), len(fits)
-    if best.success and _at_bounds(best):
-        note = "ligament parameters at their bounds: a poor local minimum or a model that cannot fit the data"
-        best.message = f"{best.message}; {note}" if best.message else note
-    best.extra["starts"] = k
-    if k > max(1, multistart):
-        note = f"{k - max(1, multistart)} restart(s) after failed solves"
-        best.message = f"{best.message}; {note}" if best.message else note
-    return best
+    return scatter_fit(problem, problem.check_start(start), seed=seed, method=method, multistart=multistart,
+                       restarts=restarts, solver=solver, solver_options=solver_options, threads=threads,
+                       nested_options=nested_options)
 
 
-def reduced_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None,
-                **options) -> Fit:
-    """The fit of ``problem`` by reduced-space Gauss-Newton from ``start`` (SI; poses warm-started
-    from ``q0``, SI): :func:`~kneenlp.solvers.reduced.reduced_least_squares` (``options``:
-    ``max_evaluations``, ``tol``, ``threads``) as a :class:`Fit`."""
-    r = reduced_least_squares(problem, start, q0=q0, **options)
-    theta = problem.theta(r.values)
-    solver = forward_solver(problem.model)
-    max_res = float(np.max(solver.residual_norms(r.q, theta, problem.trials)))
-    return Fit.build(problem, "reduced", theta, r.q, status=r.message,
-                     success=r.success and max_res <= problem.equilibrium_tol,
-                     iterations=r.evaluations, seconds=r.seconds, max_residual=max_res, start=dict(start),
-                     evaluations=r.evaluations, message="reduced-space Gauss-Newton", solver="reduced")
+def resolve_strategy(strategy: str, data: MeasuredData, method: str = "simultaneous") -> str:
+    """``"calibration"`` or ``"scatter"``: what ``strategy`` (``"auto"`` included) means for ``data``
+    fitted by ``method`` (module docstring); a calibration by the nested method is refused."""
+    from kneenlp.inference.calibrate import real_experiment
 
-
-def reduced_then_nlp(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None,
-                     solver_options: dict | None = None, threads: int = 2) -> tuple[Fit, Fit | None, int]:
-    """Reduced-space Gauss-Newton from ``start`` (every iterate at equilibrium) stopped early, at a
-    relative cost change of :data:`RESCUE_TOL`, then the simultaneous NLP (IPOPT) from where it
-    stopped; if the NLP fails from there, the reduced-space fit is finished (:func:`reduced_fit`)
-    and the NLP tried once more from its end.  Returns the NLP's last fit (judge its ``success``),
-    the finished reduced fit (``None`` when the first NLP succeeded) and the reduced evaluations."""
-    coarse = reduced_least_squares(problem, start, q0=q0, threads=threads,
-                                   tol=max(RESCUE_TOL, tolerance(problem.model)))
-    fit = solve_simultaneous(problem, coarse.values, "ipopt", solver_options, threads)
-    fit.seconds += coarse.seconds
-    if fit.success or not coarse.success:
-        return fit, None, coarse.evaluations
-    finished = reduced_fit(problem, coarse.values, q0=coarse.q, threads=threads)
-    finished.seconds += coarse.seconds
-    evaluations = coarse.evaluations + finished.evaluations
-    finished.evaluations = finished.iterations = evaluations
-    again = solve_simultaneous(problem, problem.values(finished.theta), "ipopt", solver_options, threads)
-    again.seconds += finished.seconds
-    return again, finished, evaluations
-
-
-def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fit, solver_options: dict | None,
-             threads: int) -> Fit:
-    """A second try after IPOPT failed from ``start``: :func:`reduced_then_nlp` from the same start;
-    the better of the tries is returned, its message saying so."""
-    fit, _, evaluations = reduced_then_nlp(problem, start, solver_options=solver_options, threads=threads)
-    if not fit.success or (failed.success and failed.map_objective <= fit.map_objective):
-        return failed
-    note = (f"rescued: IPOPT failed from the start ({failed.status}); a reduced-space Gauss-Newton start "
-            f"({evaluations} evaluations) led it to the solution")
-    fit.message = f"{fit.message}; {note}" if fit.message else note
-    fit.seconds += failed.seconds
-    fit.iterations += failed.iterations
-    return fit
-
-
-def _implausible_misfit(fit: Fit) -> bool:
-    """With a known noise model, a misfit the noise cannot explain (chi-square p < 1e-9) marks a
-    wrong local minimum worth a restart (the best fit is kept either way)."""
-    noise = fit.problem.noise
-    if noise is None or noise.std <= 0:
-        return False
-    return bool(stats.chi2.sf(fit.chi_square(noise.std), fit.dof) < 1e-9)
-
-
-def _at_bounds(fit: Fit) -> bool:
-    """True if a ligament parameter sits on its bound (the prototype's wrong-minimum signature)."""
-    on_bound = fit.at_bounds(("k", "ref_strain", "lin_strain"), tol=1e-6)
-    return any(fit.problem.model.parameter(n).neutral is None for n in on_bound)
-
-
-def _nested(problem: IdentificationProblem, start: dict, rng: np.random.Generator, seed: int, options: dict) -> Fit:
-    from kneenlp.solvers.nested import nested_fit
-
-    initial = options.pop("initial", None)
-    if initial is None:  # the paper's population; effect parameters spread from neutral too
-        initial = [problem.scatter(rng, spread_effects=i > 0) for i in range(2 * problem.n_free + 1)]
-        if start:
-            initial[0].update(start)
-    cloud = np.array([[c[n] for n in problem.free] for c in initial])
-    out = nested_fit(problem, cloud, seed=seed, **options)
-    theta = problem.theta(out["values"])
-    q, res = out["q"], out["result"]
-    max_res = float(np.max(out["residual"]))
-    return Fit.build(problem, "nested", theta, q, status=res.message,
-                     success=bool(res.success) and max_res <= problem.equilibrium_tol,
-                     iterations=int(res.nit), seconds=out["seconds"], max_residual=max_res,
-                     start=dict(zip(problem.free, cloud[0], strict=True)), evaluations=out["trial_solves"],
-                     message=f"{res.nfev} objective evaluations", solver="complex",
-                     extra={"objective_evaluations": res.nfev, "history": res.history})
-
-
-def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
-                       solver_options: dict | None = None, threads: int = 2) -> Fit:
-    """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter)
-    (:func:`~kneenlp.solvers.nlp.solve_nlp`), judged: a success needs the solver's, every trial
-    at equilibrium (:attr:`~kneenlp.experiment.problem.IdentificationProblem.equilibrium_tol`), no
-    contact point left out of the working sets and none beyond the femoral surface's open edge."""
-    r = solve_nlp(problem, start, solver, solver_options, threads)
-    tol = problem.equilibrium_tol
-    success = r.solver_success and r.max_residual <= tol and r.left_out <= 0 and r.rim <= 0
-    notes = []
-    if r.started_at_data:
-        notes.append(f"{r.started_at_data} trial(s) had no equilibrium inside the pose envelope at the start; "
-                     "started at data")
-    if r.solver_success and r.max_residual > tol:
-        notes.append(f"equilibrium residual {r.max_residual:.2e} above {tol:g}")
-    if r.left_out > 0:
-        notes.append(f"a contact point outside the working sets penetrates {1e3 * r.left_out:.3f} mm: enlarge "
-                     "contact.working_set in the knee file (or the contact left the represented femoral surface)")
-    if r.rim > 0:
-        notes.append(rim_reason(r.rim))
-    return Fit.build(problem, "simultaneous", problem.theta(r.values), r.q, status=r.status, success=success,
-                     iterations=r.iterations, seconds=r.seconds, max_residual=r.max_residual,
-                     start=dict(start), build_seconds=r.build_seconds, evaluations=r.iterations,
-                     message="; ".join(notes), solver=r.solver_name,
-                     extra={"start_seconds": r.start_seconds, "solver_objective": r.objective})
+    if strategy == "auto":
+        return "calibration" if method == "simultaneous" and real_experiment(data) else "scatter"
+    if strategy == "calibration" and method != "simultaneous":
+        raise InputError("a calibration is solved by the simultaneous method; --method nested fits by the "
+                         "scatter strategy", field="--strategy")
+    return strategy
