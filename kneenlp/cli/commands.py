@@ -89,6 +89,7 @@ def prior_options(args) -> dict:
 def cmd_identify(args) -> int:
     from kneenlp.inference.calibrate import Calibration
     from kneenlp.inference.identify import identify
+    from kneenlp.inference.profile import profile, profile_lines
 
     knee = knee_from_args(args)
     check_names(knee, args)
@@ -99,7 +100,9 @@ def cmd_identify(args) -> int:
                    protocol=args.protocol, with_effects=args.with_effect, **prior_options(args),
                    **{k: v for k, v in given.items() if v is not None})
     calibration = fit.calibration or Calibration(fit, None, [])
-    summary = json.dumps(json.loads(fit.to_json()) | calibration.summary(), indent=2)
+    intervals = profile(fit, args.profile) if args.profile else []
+    summary = json.dumps(json.loads(fit.to_json()) | calibration.summary()
+                         | ({"profile": [i.record() for i in intervals]} if intervals else {}), indent=2)
     if args.out:
         with staged_directory(args.out) as stage:
             write_csv_atomic(fit.table(), stage.path / "fit_trials.csv", index=False, float_format="%.10g")
@@ -111,7 +114,7 @@ def cmd_identify(args) -> int:
     if args.json:
         print(summary)
     else:
-        print(calibration.report())
+        print("\n".join([calibration.report(), *profile_lines(intervals)]))
     return 0 if fit.success else 1
 
 

@@ -9,7 +9,7 @@ import os
 from pathlib import Path
 
 from kneenlp import options as opt
-from kneenlp.errors import InputError
+from kneenlp.errors import InputError, unknown_name
 
 
 # ------------------------------------------------------------------ input files and --out (before the work)
@@ -102,6 +102,9 @@ def check_names(knee, args) -> None:
             check_free(model, args.free)
         except InputError as exc:
             raise InputError(exc.message, source=exc.source, field="--free") from None
+    for name in getattr(args, "profile", None) or []:
+        if name not in model.parameter_names:
+            raise InputError(unknown_name("parameter", name, model.parameter_names).message, field="--profile")
 
 
 def set_names(text: str) -> list[str]:

@@ -92,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(the paper's: least squares from a seeded scatter) or auto (default: calibration for data "
                         "with a declared side or joint loads)")
     _prior_args(p)
+    p.add_argument("--profile", type=opt.names, default=None, metavar="NAMES",
+                   help="profile-likelihood intervals (95 %%, bounds respected) of these comma-separated free "
+                        "parameters, beside the Laplace standard errors")
     p.add_argument("--out", help="also write fit.json, fit_trials.csv and calibrated.toml here (real experiments: "
                                  "set_aside.csv, the trials the outlier test set aside, predicted)")
     p.add_argument("--json", action="store_true", help="print JSON instead of the report")
