@@ -193,3 +193,8 @@ def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: str = "f
     out[0:3] = get["anterior_force"] * e2 + get["proximal_force"] * e3 + get["lateral_force"] * e1
     out[3:6] = get["varus_moment"] * e2 + get["internal_moment"] * e3
     return out
+
+#: The predictive band's level (two-sided) and its half-width in standard deviations (normal):
+#: ``predict`` with a calibration's posterior, its figure.
+BAND_LEVEL = 0.95
+BAND_Z = 1.959963984540054

@@ -63,7 +63,7 @@ def test_profile_refuses_unknown_and_fixed_names(data, tmp_path, capsys):
     fit = kneenlp.identify(kneenlp.Knee.named("synthetic"), data, noise=NOISE, free=["ACL.k"])
     with pytest.raises(InputError, match="was not fitted"):
         profile(fit, ["PCL.k"])
-    with pytest.raises(InputError, match="unknown parameter 'ACLx.k'"):
+    with pytest.raises(InputError, match=r"unknown parameter 'ACLx\.k'"):
         profile(fit, ["ACLx.k"])
     csv = str(tmp_path / "m.csv")
     kneenlp.simulate(kneenlp.Knee.named("synthetic"), "set1").measured(NOISE, 3).to_csv(csv, index=False)

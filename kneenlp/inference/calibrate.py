@@ -69,9 +69,10 @@ from kneenlp.inference.outliers import (
 )
 from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
 from kneenlp.inference.solve import reduced_fit, scatter_fit
-from kneenlp.inference.statistics import effective_parameters
+from kneenlp.inference.statistics import effective_parameters, gauss_newton_covariance
 from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import ParameterSet
+from kneenlp.model.posterior import Posterior
 from kneenlp.model.priors import Prior
 from kneenlp.solvers.forward import forward_solver
 
@@ -200,8 +201,9 @@ class Calibration:
         """The knee's parameter set with the fitted values: ``--parameters`` of later commands."""
         knee = self.fit.problem.model.knee
         values = {n: self.fit.params[n] for n in self.fit.problem.free}
-        return knee.parameters.with_values(values, name=f"{knee.name}-calibrated",
-                                           description=f"{knee.name} calibrated to {self.fit.data.source}")
+        out = knee.parameters.with_values(values, name=f"{knee.name}-calibrated",
+                                          description=f"{knee.name} calibrated to {self.fit.data.source}")
+        return dataclasses.replace(out, posterior=posterior(self.fit))
 
     def to_toml(self) -> str:
         info = {p.name: p for p in self.fit.problem.model.parameters}
@@ -473,6 +475,16 @@ def prediction_variances(fit: Fit, data: MeasuredData, q: np.ndarray) -> np.ndar
     sens = problem.sensitivities(np.asarray(q, float).reshape(-1, 5), fit.theta)
     rows = fit.with_prior_rows(noise_per_observation(fit))
     return np.array([prediction_variance(sens[5 * t:5 * t + 5], *rows) for t in range(len(data))])
+
+
+def posterior(fit: Fit) -> Posterior:
+    """The Laplace posterior of ``fit``'s free parameters (:mod:`~kneenlp.model.posterior`): the
+    Gauss-Newton covariance of its MAP problem, priors included (:meth:`Fit.with_prior_rows`), the
+    data's rows with the declared noise or, without one, each coordinate's from the residuals
+    (:func:`noise_per_observation`, as :func:`prediction_variances`); that noise's sd beside it."""
+    variance = fit.noise_variance if fit.problem.noise is not None else noise_per_observation(fit)
+    covariance = gauss_newton_covariance(*fit.with_prior_rows(variance), fit.scales, fit.free)
+    return Posterior(tuple(fit.free), covariance, np.sqrt(variance[0]))
 
 
 def noise_per_observation(fit: Fit) -> np.ndarray:

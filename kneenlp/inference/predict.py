@@ -5,6 +5,11 @@ trial's equilibrium under the load the experiment applied, at the flexion it mea
 knee's parameters (or a calibration), and reports measured minus predicted per trial and as the
 RMS per coordinate (mm, deg) over the trials that converged.  A trial without equilibrium is
 listed with its reason and left out of the RMS, never dropped silently.
+
+With a calibration's posterior (``[posterior]`` of ``calibrated.toml``, :mod:`~kneenlp.model.posterior`)
+each prediction has a predictive band: the posterior covariance carried through the trial's
+equilibrium (its sensitivities, linearised at the predicted pose) plus the measurement noise the
+calibration estimated, ``+-1.96 sd`` (95 %).  The report counts the measurements inside it.
 """
 
 from __future__ import annotations
@@ -16,13 +21,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import coordinate_columns
+from kneenlp.conventions import BAND_LEVEL, BAND_Z, coordinate_columns
+from kneenlp.errors import InputError
 from kneenlp.experiment.measured import MeasuredData, measured_frame
+from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import Protocol
 from kneenlp.inference.laxity import laxity_lines, laxity_records, laxity_table
 from kneenlp.io.atomic import write_csv_atomic
 from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
+from kneenlp.model.posterior import Posterior
 from kneenlp.solvers.forward import TrialSolution, forward_solver
 
 
@@ -43,6 +51,8 @@ class Prediction:
     #: what the experiment would measure at each solution's pose (T x 5, deg and mm): the model's
     #: observation, registration included (:meth:`KneeModel.observe`)
     observed_user: np.ndarray
+    #: predictive sd (T x 5, deg and mm) with the posterior and the noise; None without a posterior
+    sd_user: np.ndarray | None = None
 
     @property
     def converged(self) -> np.ndarray:
@@ -73,9 +83,21 @@ class Prediction:
         for j, c in enumerate(coordinate_columns()):
             df[f"measured_{c}"] = self.data.q_user[:, j]
             df[f"error_{c}"] = self.errors_user[:, j]
+        if self.sd_user is not None:
+            for j, c in enumerate(coordinate_columns()):
+                df[f"sd_{c}"] = self.sd_user[:, j]
         df["converged"] = self.converged
         df["reason"] = [s.reason for s in self.solutions]
         return df
+
+    def inside_band(self) -> dict[str, int] | None:
+        """Per coordinate column, how many converged trials' measurements lie inside the 95 % band
+        (None without a posterior)."""
+        if self.sd_user is None:
+            return None
+        ok = self.converged
+        inside = np.abs(self.errors_user[ok]) <= BAND_Z * self.sd_user[ok]
+        return {c: int(inside[:, j].sum()) for j, c in enumerate(coordinate_columns())}
 
     def laxity(self) -> pd.DataFrame:
         """Measured and predicted laxity per flexion and load pair (mm, deg; :mod:`~kneenlp.inference.laxity`)."""
@@ -85,7 +107,10 @@ class Prediction:
         return {"knee": self.knee_name, "trials": len(self.solutions), "converged": int(self.converged.sum()),
                 "rms": self.rms(), "rms_units": {c: c.rsplit("_", 1)[1] for c in coordinate_columns()},
                 "failed": [{"trial": s.trial.id, "reason": s.reason} for s in self.solutions if not s.converged],
-                "laxity": laxity_records(self.laxity())}
+                "laxity": laxity_records(self.laxity())} | ({} if self.sd_user is None else {
+                    "band_level": BAND_LEVEL, "inside_band": self.inside_band(),
+                    "sd": {c: [None if not np.isfinite(v) else float(v) for v in self.sd_user[:, j]]
+                           for j, c in enumerate(coordinate_columns())}})
 
     def to_json(self) -> str:
         return json.dumps(self.summary(), indent=2)
@@ -101,20 +126,59 @@ class Prediction:
         for s, e in zip(self.solutions, self.errors_user, strict=True):
             cells = "  ".join(f"{v:14.2f}" for v in e) if s.converged else f"NO EQUILIBRIUM: {s.reason}"
             lines.append(f"{s.trial.id:<{width}}  {s.trial.flexion_deg:7.1f}  {cells}")
+        if self.sd_user is not None:
+            n = int(self.converged.sum())
+            lines.append(f"Inside the {100 * BAND_LEVEL:g} % predictive band (posterior and noise, +-{BAND_Z:.2f} sd): "
+                         + ", ".join(f"{c.rsplit('_', 1)[0]} {k}/{n}" for c, k in self.inside_band().items()))
+            width_sd = np.nanmedian(np.where(np.isfinite(self.sd_user), self.sd_user, np.nan)[self.converged], axis=0)
+            lines.append("  median predictive sd: " + ", ".join(
+                f"{c.rsplit('_', 1)[0]} {v:.2f} {c.rsplit('_', 1)[1]}"
+                for c, v in zip(coordinate_columns(), width_sd, strict=True)))
         lines += laxity_lines(self.laxity(), "Laxity (positive minus negative load, largest loads; mm and deg):")
         return "\n".join(lines)
 
 
-def predict(knee: Knee | KneeModel, data: MeasuredData, parameters: dict[str, float] | None = None) -> Prediction:
+def predict(knee: Knee | KneeModel, data: MeasuredData, parameters: dict[str, float] | None = None,
+            posterior: Posterior | None = None) -> Prediction:
     """Every trial of ``data`` solved at its measured flexion and load on ``knee`` (its parameter set,
-    ``parameters`` overriding by name, SI)."""
+    ``parameters`` overriding by name, SI); with a ``posterior`` (default: the parameter set's, when
+    no ``parameters`` override it) the predictive band (module docstring)."""
     model = KneeModel.of(knee)
     data.check_knee(model.knee)
     protocol = Protocol(data.protocol or "measured", tuple(data.trials), source=data.source)
     theta = model.theta(parameters)
     solutions = forward_solver(model).solve(protocol.trials, theta)
-    observed = model.observe(np.array([s.q for s in solutions]), theta, [s.trial.flexion for s in solutions])
-    return Prediction(data, solutions, model.knee.name, observed)
+    q = np.array([s.q for s in solutions])
+    observed = model.observe(q, theta, [s.trial.flexion for s in solutions])
+    if posterior is None and parameters is None:
+        posterior = model.knee.parameters.posterior
+    ok = np.array([s.converged for s in solutions])
+    sd = None if posterior is None else predictive_sd(model, data, q, theta, posterior, ok)
+    return Prediction(data, solutions, model.knee.name, observed, sd)
+
+
+def predictive_sd(model: KneeModel, data: MeasuredData, q: np.ndarray, theta: np.ndarray, posterior: Posterior,
+                  converged: np.ndarray) -> np.ndarray:
+    """Predictive sd (T x 5, deg and mm) of the trials ``data`` at their poses ``q`` (T x 5, SI) and
+    the parameters ``theta``: ``sqrt(diag(S C S') + noise^2)`` with ``S`` the observations'
+    sensitivities to the posterior's parameters through each trial's equilibrium and ``C`` its
+    covariance; infinite where a direction nothing determined moves the observation, NaN where the
+    trial has no equilibrium."""
+    for n in posterior.names:
+        if n not in model.parameter_names:
+            raise InputError(f"{n!r} is not a parameter of knee {model.knee.name}", source=model.knee.parameters.source,
+                             field="posterior.parameters")
+    out = np.full(q.shape, np.nan)
+    if not converged.any():
+        return out
+    problem = IdentificationProblem.from_data(model, data.subset(converged), list(posterior.names))
+    S = problem.sensitivities(q[converged], theta)  # (T * 5) x n, mm or deg per SI unit
+    C = np.asarray(posterior.covariance, float)
+    unknown = ~np.isfinite(np.diag(C))
+    var = np.einsum("ij,jk,ik->i", S, np.where(np.isfinite(C), C, 0.0), S).reshape(-1, 5)
+    var[np.any(np.abs(S[:, unknown]) > 0, axis=1).reshape(-1, 5)] = np.inf
+    out[converged] = np.sqrt(np.maximum(var, 0.0) + posterior.noise_sd**2)
+    return out
 
 
 def write_prediction(prediction: Prediction, out: Path) -> list[Path]:
@@ -124,6 +188,7 @@ def write_prediction(prediction: Prediction, out: Path) -> list[Path]:
     table = prediction.table()
     write_csv_atomic(table, out / "predicted.csv", index=False, float_format="%.10g")
     write_csv_atomic(prediction.laxity(), out / "laxity.csv", index=False, float_format="%.10g")
+    band = "" if prediction.sd_user is None else f"; shaded: {100 * BAND_LEVEL:g} % predictive band"
     fig = measured_vs_predicted(table, out / "predicted_laxity.png",
-                                f"{prediction.knee_name}: measured (filled) and predicted (open)")
+                                f"{prediction.knee_name}: measured (filled) and predicted (open){band}")
     return [out / "predicted.csv", out / "laxity.csv", fig]

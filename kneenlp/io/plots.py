@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from kneenlp.conventions import BAND_Z
 from kneenlp.experiment.protocol import LAXITY_PAIRS
 
 PANELS = (
@@ -169,7 +170,8 @@ def measured_vs_predicted(table: pd.DataFrame, path: str | Path, title: str = ""
     coordinate each direction pair moves against the measured flexion (deg).  ``table`` has the
     load columns, the predicted coordinates and ``measured_<coordinate>`` (as
     :meth:`kneenlp.inference.predict.Prediction.table` writes it); ``extra`` adds further
-    predictions (label -> such a table), dashed."""
+    predictions (label -> such a table), dashed.  With predictive sds (``sd_<coordinate>``, a
+    calibration's posterior) the 95 % predictive band is shaded."""
     from kneenlp.experiment.protocol import dominant_direction
 
     load_cols = [c for c in table.columns if c.endswith(("_force_N", "_moment_Nm"))]
@@ -186,6 +188,9 @@ def measured_vs_predicted(table: pd.DataFrame, path: str | Path, title: str = ""
             ax.plot(sub["flexion_deg"], sub[f"measured_{col}"], "o", color=c, label=f"{word} measured")
             ax.plot(sub["flexion_deg"], sub[col], "o--" if word == "none" else "o-", mfc="none", color=c,
                     label=f"{word} predicted")
+            if f"sd_{col}" in sub:  # the 95 % predictive band (posterior and noise)
+                ax.fill_between(sub["flexion_deg"], sub[col] - BAND_Z * sub[f"sd_{col}"],
+                                sub[col] + BAND_Z * sub[f"sd_{col}"], color=c, alpha=0.15, lw=0)
             for label, other in (extra or {}).items():
                 o = other[sel].sort_values("flexion_deg")
                 ax.plot(o["flexion_deg"], o[col], "s:", mfc="none", color=c, alpha=0.7, label=f"{word} {label}")

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from kneenlp.errors import InputError, unknown_name
+from kneenlp.model.posterior import Posterior
 from kneenlp.model.priors import Prior
 
 
@@ -183,6 +184,8 @@ class ParameterSet:
     meta: dict[str, str] = field(default_factory=dict)
     #: priors declared in the file (``[values]``' ``prior``), SI, by name: they replace the shipped defaults
     priors: dict[str, Prior] = field(default_factory=dict)
+    #: what a calibration knows about its fitted values (``[posterior]``; None: nothing written)
+    posterior: Posterior | None = None
 
     def __getitem__(self, key: str) -> float:
         try:
@@ -237,6 +240,8 @@ class ParameterSet:
             else:
                 meta = info[name].meta
                 doc["values"][name] = {"value": value * meta.to_user, "unit": meta.unit}
+        if self.posterior is not None:
+            doc["posterior"] = self.posterior.table({n: info[n].meta.unit for n in self.posterior.names}, UNIT_TO_SI)
         return "".join(f"# {h}\n" for h in header) + tomli_w.dumps({k: v for k, v in doc.items() if v != {}})
 
     @classmethod
@@ -295,8 +300,9 @@ class ParameterSet:
         for key in ("name", "description"):
             if key in doc and not isinstance(doc[key], str):
                 raise InputError(f"expected a string, got {doc[key]!r}", source=src, field=key)
+        posterior = (Posterior.read(doc["posterior"], UNIT_TO_SI, set(values), src) if "posterior" in doc else None)
         return cls(values, name=str(doc.get("name", path.stem)), source=src,
-                   description=str(doc.get("description", "")), meta=named_units, priors=priors)
+                   description=str(doc.get("description", "")), meta=named_units, priors=priors, posterior=posterior)
 
 
 #: The laxity-noise paper's elastic-foundation modulus (N/m^3): the parameter set of an imported knee.
