@@ -97,3 +97,26 @@ def test_asymmetric_or_indefinite_covariance_is_refused(calibrated, tmp_path, ca
         bad.write_text(tomli_w.dumps(doc | {"posterior": doc["posterior"] | {"covariance": cov.tolist()}}))
         assert main(["predict", str(csv), "--knee", "synthetic", "--parameters", str(bad)]) == 2
         assert needle in capsys.readouterr().err
+
+
+def test_identify_writes_the_posterior_for_arviz(calibrated, tmp_path, capsys):
+    """``identify --out`` writes posterior.nc: ArviZ reads it, its draws have the fit's values as
+    means and the Laplace standard errors as sds (seeded: the same file twice)."""
+    az = pytest.importorskip("arviz")
+    csv, _, _ = calibrated
+    out = tmp_path / "fit"
+    assert main(["identify", str(csv), "--knee", "synthetic", "--free", ",".join(FREE), "--out", str(out)]) == 0
+    assert not capsys.readouterr().err  # no stray warnings
+    fit = kneenlp.identify(kneenlp.Knee.named("synthetic"), read_measured(csv), free=FREE)
+    idata = az.from_netcdf(out / "posterior.nc")
+    post = posterior(fit)
+    summary = az.summary(idata, kind="stats")
+    for n, sd in zip(post.names, np.sqrt(np.diag(post.covariance)), strict=True):
+        f = fit._info(n).to_user
+        assert summary.loc[n, "mean"] == pytest.approx(fit.params[n] * f, abs=4 * sd * f / np.sqrt(4000))
+        assert summary.loc[n, "sd"] == pytest.approx(sd * f, rel=0.05)
+    assert idata.observed_data["measured"].shape == (len(fit.data), 5)
+    again = tmp_path / "again"
+    assert main(["identify", str(csv), "--knee", "synthetic", "--free", ",".join(FREE), "--out", str(again)]) == 0
+    same = az.from_netcdf(again / "posterior.nc")
+    assert all(np.array_equal(idata.posterior[n].values, same.posterior[n].values) for n in post.names)

@@ -87,9 +87,10 @@ def prior_options(args) -> dict:
 
 
 def cmd_identify(args) -> int:
-    from kneenlp.inference.calibrate import Calibration
+    from kneenlp.inference.calibrate import Calibration, posterior
     from kneenlp.inference.identify import identify
     from kneenlp.inference.profile import profile, profile_lines
+    from kneenlp.io import inferencedata
 
     knee = knee_from_args(args)
     check_names(knee, args)
@@ -111,10 +112,16 @@ def cmd_identify(args) -> int:
             if calibration.set_aside is not None:  # the trials the outlier test set aside, predicted
                 write_csv_atomic(calibration.set_aside.table(), stage.path / "set_aside.csv", index=False,
                                  float_format="%.10g")
+            if inferencedata.available():  # the posterior's draws for ArviZ
+                units = {n: (fit._info(n).unit, fit._info(n).to_user) for n in fit.free}
+                inferencedata.write_inference_data(stage.path / "posterior.nc", posterior(fit), fit.params, units,
+                                                   fit.data, seed=args.seed)
+    notes = [] if not args.out or inferencedata.available() else [
+        "posterior.nc (ArviZ InferenceData) not written: pip install 'kneenlp[arviz]'"]
     if args.json:
         print(summary)
     else:
-        print("\n".join([calibration.report(), *profile_lines(intervals)]))
+        print("\n".join([calibration.report(), *profile_lines(intervals), *notes]))
     return 0 if fit.success else 1
 
 
