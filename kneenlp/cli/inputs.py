@@ -54,6 +54,7 @@ def check_inputs(args) -> None:
     the measured data (read once into ``args.measured``)."""
     if not getattr(args, "validate", False):
         return
+    apply_problem(args)
     if getattr(args, "out_kind", None) and getattr(args, "out", None) is not None:
         check_out(args.out, args.out_kind)
     knee = getattr(args, "knee", None)
@@ -85,6 +86,44 @@ def check_inputs(args) -> None:
         from kneenlp.experiment.measured import read_measured
 
         args.measured = read_measured(args.data, protocol=getattr(args, "protocol", None))
+
+
+#: What a command takes from a problem file when its option is not given (option attribute: the
+#: problem's field), and the defaults without either.
+FROM_PROBLEM = {"noise": "noise", "strategy": "strategy", "priors": "priors", "prior_weight": "prior_weight",
+                "hold_out": "hold_outs"}
+DEFAULTS = {"strategy": "auto"}
+DIAGNOSE_NOISE = "uniform:0.5"
+
+
+def apply_problem(args) -> None:
+    """``--problem DIR``: the problem file's knee, data and options fill those not given (its
+    parameter table joins the knee in :func:`knee_from_args`); the data given twice, or neither,
+    is refused."""
+    from kneenlp.experiment.problem_file import ProblemFile
+
+    if not hasattr(args, "problem"):
+        return
+    args.problem_file = None
+    if args.problem is None:
+        if args.data is None:
+            raise InputError("give the measured data (DATA.csv) or --problem DIR", field="data")
+    else:
+        if args.data is not None or getattr(args, "knee", None) is not None:
+            raise InputError("names the knee and the data: give DATA.csv and --knee, or --problem, not both",
+                             field="--problem")
+        with naming("--problem"):
+            problem = ProblemFile.load(args.problem)
+        args.problem_file, args.data, args.knee = problem, str(problem.data), problem.knee
+        for option, key in FROM_PROBLEM.items():
+            if hasattr(args, option) and getattr(args, option) in (None, []):
+                value = getattr(problem, key)
+                setattr(args, option, list(value) if isinstance(value, tuple) else value)
+    for option, value in DEFAULTS.items():
+        if hasattr(args, option) and getattr(args, option) is None:
+            setattr(args, option, value)
+    if args.command == "diagnose" and args.noise is None:
+        args.noise = DIAGNOSE_NOISE
 
 
 def check_names(knee, args) -> None:
@@ -121,6 +160,8 @@ def knee_from_args(args):
     knee = Knee.load(args.knee) if args.knee else Knee.default()
     if getattr(args, "parameters", None):
         knee = knee.with_parameters(args.parameters)
+    if getattr(args, "problem_file", None) is not None:
+        knee = args.problem_file.knee_with_parameters(knee)
     elements = getattr(args, "element", None)
     return KneeModel(knee, load_elements(elements)) if elements else knee
 

@@ -18,6 +18,14 @@ def _knee_args(p: argparse.ArgumentParser, parameters: bool = True) -> None:
                    help="add user force elements made by this importable factory (repeatable)")
 
 
+def _data_args(p: argparse.ArgumentParser, help: str) -> None:
+    """The measured data: a CSV, or a problem folder naming it with its knee and parameter table."""
+    p.add_argument("data", nargs="?", help=f"{help}; or give --problem")
+    p.add_argument("--problem", metavar="DIR",
+                   help="a problem folder (problem.toml: the knee, the data, the parameter table, the noise, the "
+                        "hold-outs; e.g. problems/s192803): instead of DATA and --knee; options given override it")
+
+
 def _prior_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--priors", choices=["default", "none"], default=None,
                    help="default: the MAP estimate, every free parameter with its prior (from the parameter file "
@@ -47,10 +55,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(validate=True, out_kind="dir")
 
     p = sub.add_parser("diagnose", help="model adequacy: where the fit fails and which effect is missing")
-    p.add_argument("data", help="measured-data CSV")
+    _data_args(p, "measured-data CSV")
     _knee_args(p)
-    p.add_argument("--noise", default="uniform:0.5", type=opt.noise_level,
-                   help="noise model of the data (default uniform:0.5)")
+    p.add_argument("--noise", default=None, type=opt.noise_level,
+                   help="noise model of the data (default: the problem's, else uniform:0.5)")
     p.add_argument("--refit", type=opt.integer(0, opt.MAX_CASES), default=4,
                    help="refit the best N candidates (default 4)")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the start scatter")
@@ -62,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(validate=True, out_kind="dir")
 
     p = sub.add_parser("identify", help="identify ligament parameters from measured data (simultaneous NLP)")
-    p.add_argument("data", help="measured-data CSV (as written by 'kneenlp simulate --noise')")
+    _data_args(p, "measured-data CSV (as written by 'kneenlp simulate --noise')")
     _knee_args(p)
     p.add_argument("--free", type=opt.names,
                    help="comma-separated parameters to identify (default: k and ref_strain of all)")
@@ -87,7 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-outliers", action="store_true",
                    help="real experiments: fit every trial (default: trials the outlier test flags are set aside "
                         "and reported, docs/real-experiment.md)")
-    p.add_argument("--strategy", default="auto", choices=["auto", "calibration", "scatter"],
+    p.add_argument("--strategy", default=None, choices=["auto", "calibration", "scatter"],
                    help="calibration (a real experiment's: MAP, registration and load point, outlier test), scatter "
                         "(the paper's: least squares from a seeded scatter) or auto (default: calibration for data "
                         "with a declared side or joint loads)")
@@ -180,14 +188,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(validate=True, out_kind="file")
 
     p = sub.add_parser("predict", help="simulate every measured trial at its measured load and flexion; compare")
-    p.add_argument("data", help="measured-data CSV (e.g. from import-laxity)")
+    _data_args(p, "measured-data CSV (e.g. from import-laxity)")
     _knee_args(p)
     p.add_argument("--out", help="write predicted.csv and predicted_laxity.png here")
     p.add_argument("--json", action="store_true", help="print JSON: rms (mm, deg by column), trials, converged")
     p.set_defaults(validate=True, out_kind="dir")
 
     p = sub.add_parser("cross-validate", help="calibrate without some trials and predict them (held-out errors)")
-    p.add_argument("data", help="measured-data CSV of a real experiment (e.g. from import-laxity)")
+    _data_args(p, "measured-data CSV of a real experiment (e.g. from import-laxity)")
     _knee_args(p)
     p.add_argument("--hold-out", action="append", default=[], metavar="NAME",
                    help="only this hold-out (repeatable): 'flexion <F> deg' (the highest flexion) or a load "

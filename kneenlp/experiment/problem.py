@@ -55,10 +55,18 @@ def default_free(model: KneeModel) -> list[str]:
     return [n for lig in model.ligament_names for n in model.element(lig).main_parameters()]
 
 
+def declared_free(model: KneeModel, default: Sequence[str]) -> list[str]:
+    """The free parameters the knee's parameter set declares (``free = true`` entries, in the
+    model's order) or, without any, ``default`` less those it declares ``free = false``."""
+    flags = model.knee.parameters.free
+    chosen = [n for n in model.parameter_names if flags.get(n)]
+    return chosen or [n for n in default if flags.get(n, True)]
+
+
 def free_names(model: KneeModel, free: Sequence[str] | None = None, with_effects: Sequence[str] = ()) -> list[str]:
-    """``free`` (default :func:`default_free`) and the parameters of the candidate effects
-    ``with_effects``, each once."""
-    out = list(free or default_free(model))
+    """``free`` (default: :func:`declared_free` over :func:`default_free`) and the parameters of the
+    candidate effects ``with_effects``, each once."""
+    out = list(free or declared_free(model, default_free(model)))
     for name in with_effects:
         out += [n for n in model.effect(name).free_names() if n not in out]
     return out

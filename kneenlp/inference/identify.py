@@ -29,6 +29,7 @@ from kneenlp.errors import InputError, unknown_name
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.experiment.problem_file import STRATEGIES
 from kneenlp.experiment.protocol import Protocol, available_protocols
 from kneenlp.inference.fit import Fit
 from kneenlp.inference.solve import scatter_fit
@@ -36,7 +37,6 @@ from kneenlp.model.knee import Knee
 from kneenlp.model.kneemodel import KneeModel
 
 METHODS = ("simultaneous", "nested")
-STRATEGIES = ("auto", "calibration", "scatter")
 #: Options only a calibration takes (:func:`~kneenlp.inference.calibrate.calibrate`), by CLI flag.
 CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--also-free",
                        "keep_outliers": "--keep-outliers", "load_point": "--no-load-point"}

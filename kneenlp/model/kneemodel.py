@@ -29,6 +29,7 @@ the generalised coordinates (see :mod:`kneenlp.model.elements`).
 
 from __future__ import annotations
 
+import dataclasses
 from functools import cached_property
 
 import casadi as ca
@@ -54,9 +55,15 @@ from kneenlp.model.solvercache import SolverCache
 def check_set_names(params, info: dict[str, Parameter]) -> None:
     """Every value of the knee's parameter set names a parameter of the model, in a unit of its kind."""
     src = params.source or params.name
-    for name in dict.fromkeys([*params.names(), *params.priors]):
+    for name in dict.fromkeys([*params.names(), *params.priors, *params.bounds, *params.free]):
         if name not in info:
             raise unknown_name("parameter", name, list(info), source=src).with_context(field=name)
+        if name in params.bounds and name in params.values:
+            lo, hi = info[name].bounds
+            if not lo <= params.values[name] <= hi:
+                f, unit = info[name].to_user, info[name].unit
+                raise InputError(f"value {params.values[name] * f:g} {unit} outside its bounds [{lo * f:g}, "
+                                 f"{hi * f:g}] {unit}", source=src, field=f"values.{name}.bounds")
         unit = params.meta.get(name)
         if unit is not None and unit not in dict(info[name].meta.file_units):
             raise InputError(f"unit {unit!r} does not suit {name} ({info[name].meta.text}); use one of "
@@ -91,6 +98,9 @@ class KneeModel:
                     raise InputError(f"parameter {p.name!r} declared twice with different metadata",
                                      field=e.name)
                 params.setdefault(p.name, p)
+        for name, (lo, hi) in knee.parameters.bounds.items():  # the parameter file's bounds replace the kind's
+            if name in params:
+                params[name] = dataclasses.replace(params[name], lower=lo, upper=hi)
         self.parameters: list[Parameter] = list(params.values())
         check_set_names(knee.parameters, params)
         self.parameter_names = [p.name for p in self.parameters]

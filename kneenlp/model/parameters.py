@@ -186,6 +186,10 @@ class ParameterSet:
     priors: dict[str, Prior] = field(default_factory=dict)
     #: what a calibration knows about its fitted values (``[posterior]``; None: nothing written)
     posterior: Posterior | None = None
+    #: bounds (SI) declared in the file, replacing the kinds' (``[values]``' ``bounds``)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: free flags declared in the file (``[values]``' ``free``): a fit's default free parameters
+    free: dict[str, bool] = field(default_factory=dict)
 
     def __getitem__(self, key: str) -> float:
         try:
@@ -206,7 +210,7 @@ class ParameterSet:
                 raise unknown_name("parameter", k, self.values)
         return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
                             name=self.name, source=self.source, description=self.description, meta=dict(self.meta),
-                            priors=dict(self.priors))
+                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free))
 
     def with_values(self, values: Mapping[str, float], name: str | None = None,
                     description: str | None = None) -> ParameterSet:
@@ -215,7 +219,15 @@ class ParameterSet:
         return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
                             name=name or self.name, source=None,
                             description=self.description if description is None else description,
-                            priors=dict(self.priors))
+                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free))
+
+    def with_entries(self, entries: Entries, source: str | None = None) -> ParameterSet:
+        """A copy with a parameter table's ``entries`` over this set's (values, units, priors,
+        bounds, free flags; e.g. a problem file's ``[parameters]``); the model checks the names."""
+        return ParameterSet({**self.values, **entries.values}, name=self.name, source=source or self.source,
+                            description=self.description, meta=dict(self.meta) | entries.units,
+                            priors=dict(self.priors) | entries.priors, posterior=self.posterior,
+                            bounds=dict(self.bounds) | entries.bounds, free=dict(self.free) | entries.free)
 
     def vector(self, names: Iterable[str]) -> list[float]:
         return [self[n] for n in names]
@@ -283,8 +295,8 @@ class ParameterSet:
                 raise InputError("linear strain limit must be > 0", source=src, field=f"ligaments.{lig}.lin_strain")
             for kind in LIGAMENT_KINDS:
                 plausible(values[f"{lig}.{kind}"], kind, src, f"ligaments.{lig}.{kind}")
-        named, named_units, priors = _named_values(doc.get("values", {}), src)
-        values |= named
+        entries = read_entries(doc.get("values", {}), src)
+        values |= entries.values
         contact = doc.get("contact", {})
         if not isinstance(contact, dict):
             raise InputError("must be a table with modulus", source=src, field="contact")
@@ -302,7 +314,8 @@ class ParameterSet:
                 raise InputError(f"expected a string, got {doc[key]!r}", source=src, field=key)
         posterior = (Posterior.read(doc["posterior"], UNIT_TO_SI, set(values), src) if "posterior" in doc else None)
         return cls(values, name=str(doc.get("name", path.stem)), source=src,
-                   description=str(doc.get("description", "")), meta=named_units, priors=priors, posterior=posterior)
+                   description=str(doc.get("description", "")), meta=entries.units, priors=entries.priors,
+                   posterior=posterior, bounds=entries.bounds, free=entries.free)
 
 
 #: The laxity-noise paper's elastic-foundation modulus (N/m^3): the parameter set of an imported knee.
@@ -319,30 +332,61 @@ def imported_parameter_set(program: str, carried: str) -> str:
     return ParameterSet({"contact.modulus": PAPER_MODULUS}, name="imported").to_toml({}, header)
 
 
-def _named_values(table: object, src: str) -> tuple[dict[str, float], dict[str, str], dict[str, Prior]]:
+#: The keys of a ``[values]`` entry (a parameter-table row): the value and its unit, a prior, bounds
+#: and whether a fit frees it.
+ENTRY_KEYS = ("value", "unit", "prior", "bounds", "free")
+
+
+@dataclass
+class Entries:
+    """The parameter table of a file (``[values]`` of a parameter file, ``[parameters]`` of a
+    problem file), SI: values, their declared units, priors, bounds and free flags by name."""
+
+    values: dict[str, float] = field(default_factory=dict)
+    units: dict[str, str] = field(default_factory=dict)
+    priors: dict[str, Prior] = field(default_factory=dict)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    free: dict[str, bool] = field(default_factory=dict)
+
+
+def read_entries(table: object, src: str, section: str = "values") -> Entries:
     """``[values]``: any model parameter by its full name, ``"NAME" = {value = V, unit = "U"}``, with
-    an optional ``prior`` in the same unit (``{distribution = "normal", mean = M, sd = S}`` or
-    ``{distribution = "lognormal", median = M, sd_log = S}``; ``value`` may then be left out, the
-    knee's own staying): (values SI, units, priors SI).  A calibration writes the parameters it
-    fitted so (:meth:`ParameterSet.to_toml`)."""
+    optionally, in the same unit, a ``prior`` (``{distribution = "normal", mean = M, sd = S}`` or
+    ``{distribution = "lognormal", median = M, sd_log = S}``), ``bounds = [LOWER, UPPER]`` (replacing
+    the kind's) and ``free = true|false`` (whether a fit frees it; :func:`declared_free`).  Without
+    ``value`` the knee's own value stays.  A calibration writes the parameters it fitted so
+    (:meth:`ParameterSet.to_toml`)."""
     if not isinstance(table, dict):
-        raise InputError('must be a table of "NAME" = {value = V, unit = "U"}', source=src, field="values")
-    out, units, priors = {}, {}, {}
+        raise InputError('must be a table of "NAME" = {value = V, unit = "U"}', source=src, field=section)
+    out = Entries()
     for name, item in table.items():
-        fld = f"values.{name}"
-        if not isinstance(item, dict) or "unit" not in item or not set(item) <= {"value", "unit", "prior"} \
-                or not set(item) & {"value", "prior"}:
-            raise InputError(f'expected {{value = V, unit = "U"}} (and optionally prior = {{...}}), got {item!r}',
-                             source=src, field=fld)
+        fld = f"{section}.{name}"
+        if not isinstance(item, dict) or "unit" not in item or not set(item) <= set(ENTRY_KEYS) \
+                or len(item) < 2:
+            raise InputError(f'expected {{value = V, unit = "U"}} (and optionally prior = {{...}}, bounds = [L, U], '
+                             f"free = true), got {item!r}", source=src, field=fld)
         unit = item["unit"]
         if unit not in UNIT_TO_SI:
             raise InputError(f"unknown unit {unit!r}; known: {', '.join(UNIT_TO_SI)}", source=src, field=fld)
+        factor = UNIT_TO_SI[unit]
         if "value" in item:
-            out[name] = number(item["value"], src, fld) * UNIT_TO_SI[unit]
+            out.values[name] = number(item["value"], src, fld) * factor
         if "prior" in item:
-            priors[name] = read_prior(item["prior"], UNIT_TO_SI[unit], src, f"{fld}.prior")
-        units[name] = unit
-    return out, units, priors
+            out.priors[name] = read_prior(item["prior"], factor, src, f"{fld}.prior")
+        if "bounds" in item:
+            b = item["bounds"]
+            if not isinstance(b, list) or len(b) != 2:
+                raise InputError(f"expected [LOWER, UPPER], got {b!r}", source=src, field=f"{fld}.bounds")
+            lo, hi = (number(v, src, f"{fld}.bounds") * factor for v in b)
+            if not lo < hi:
+                raise InputError(f"lower bound {b[0]!r} not below upper {b[1]!r}", source=src, field=f"{fld}.bounds")
+            out.bounds[name] = (lo, hi)
+        if "free" in item:
+            if not isinstance(item["free"], bool):
+                raise InputError(f"expected true or false, got {item['free']!r}", source=src, field=f"{fld}.free")
+            out.free[name] = item["free"]
+        out.units[name] = unit
+    return out
 
 
 #: The keys of a prior table per distribution: (centre, width).

@@ -1,0 +1,114 @@
+"""Problem files (``problems/<name>/problem.toml``, ``--problem DIR``): the shipped ones load and are
+what they say (the Sets' data regenerate from their seeds), a problem runs as the same options do,
+the parameter table's free flags and bounds act, and bad problem files are refused in one line."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import kneenlp
+from kneenlp.cli import main
+from kneenlp.experiment.problem_file import ProblemFile
+from kneenlp.io.resources import resource
+
+PROBLEMS = Path(__file__).resolve().parents[1] / "problems"
+
+
+def test_every_shipped_problem_loads():
+    names = sorted(p.name for p in PROBLEMS.iterdir() if (p / "problem.toml").is_file())
+    assert names == ["s192803", "set1", "set2", "set3", "set4"]
+    for name in names:
+        problem = ProblemFile.load(PROBLEMS / name)
+        assert problem.name == name and problem.data.is_file() and problem.entries is not None
+        kneenlp.KneeModel.of(problem.knee_with_parameters())  # the table's names, units and priors checked
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_sets_are_the_default_knee_measured_from_their_seed(n):
+    shipped = pd.read_csv(PROBLEMS / f"set{n}" / "measured.csv")
+    again = kneenlp.simulate(kneenlp.Knee.default(), f"set{n}").measured("uniform:0.5", n)
+    pd.testing.assert_frame_equal(shipped, again.reset_index(drop=True), check_exact=False, rtol=1e-12, atol=1e-12)
+
+
+def test_s192803_problem_holds_the_shipped_dataset():
+    assert (PROBLEMS / "s192803" / "laxity.csv").read_bytes() == resource("datasets", "s192803_laxity.csv").read_bytes()
+
+
+def test_a_problem_fits_as_its_options_do(tmp_path, capsys):
+    assert main(["identify", "--problem", str(PROBLEMS / "set1"), "--json"]) == 0
+    by_problem = json.loads(capsys.readouterr().out)
+    assert main(["identify", str(PROBLEMS / "set1" / "measured.csv"), "--knee", "default", "--noise", "uniform:0.5",
+                 "--json"]) == 0
+    by_options = json.loads(capsys.readouterr().out)
+    assert by_problem["params"] == by_options["params"] and by_problem["success"]
+    assert main(["predict", "--problem", str(PROBLEMS / "set1"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["converged"] == 7
+
+
+def _copy(tmp_path: Path, name: str = "set1") -> Path:
+    folder = tmp_path / name
+    shutil.copytree(PROBLEMS / name, folder)
+    return folder
+
+
+def test_free_flags_and_bounds_of_the_table_act(tmp_path, capsys):
+    """``free = false`` keeps a parameter at its value; ``bounds`` replace the kind's in the fit."""
+    folder = _copy(tmp_path)
+    text = (folder / "problem.toml").read_text()
+    text = text.replace('"ACL.k" = {value = 10000.0, unit = "N", free = true}',
+                        '"ACL.k" = {value = 10000.0, unit = "N", free = false}')
+    old = '"PCL.ref_strain" = {value = -6.0, unit = "%", free = true}'
+    assert old in text
+    text = text.replace(old, '"PCL.ref_strain" = {value = -6.0, unit = "%", free = true, bounds = [-6.2, -5.5]}')
+    (folder / "problem.toml").write_text(text)
+    assert main(["identify", "--problem", str(folder), "--json"]) == 0
+    fit = json.loads(capsys.readouterr().out)
+    assert "ACL.k" not in fit["params"] and len(fit["params"]) == 7
+    assert -0.062 - 1e-9 <= fit["params"]["PCL.ref_strain"] <= -0.055 + 1e-9  # free, it went to -6.3 %
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (lambda t: 'colour = "red"\n' + t, "unknown key 'colour'"),
+    (lambda t: t.replace('data = "measured.csv"', 'data = "nowhere.csv"'), "data"),
+    (lambda t: t.replace('noise = "uniform:0.5"', 'noise = "uniform:0"'), "noise"),
+    (lambda t: t.replace('strategy = "scatter"', 'strategy = "guess"'), "unknown strategy 'guess'"),
+    (lambda t: t.replace('knee = "default"', 'knee = "nosuchknee"'), "knee"),
+    (lambda t: t.replace('"ACL.k" = {value = 10000.0, unit = "N", free = true}',
+                         '"ACL.k" = {value = 10000.0, unit = "N", free = "yes"}'), "parameters.ACL.k.free"),
+    (lambda t: t.replace('"ACL.k" = {value = 10000.0, unit = "N", free = true}',
+                         '"ACL.k" = {value = 10000.0, unit = "N", bounds = [2, 1]}'), "parameters.ACL.k.bounds"),
+    (lambda t: t.replace('"ACL.k" = {value = 10000.0, unit = "N", free = true}',
+                         '"ACL.k" = {value = 10000.0, unit = "N", bounds = [0, 5000]}'), "outside its bounds"),
+    (lambda t: t.replace('"ACL.k" =', '"ACLx.k" ='), "unknown parameter 'ACLx.k'"),
+])
+def test_bad_problem_file_is_refused(tmp_path, capsys, edit, needle):
+    folder = _copy(tmp_path)
+    (folder / "problem.toml").write_text(edit((folder / "problem.toml").read_text()))
+    assert main(["identify", "--problem", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and needle in err and "problem.toml" in err
+
+
+def test_data_and_problem_together_or_neither_are_refused(capsys):
+    assert main(["identify", str(PROBLEMS / "set1" / "measured.csv"), "--problem", str(PROBLEMS / "set1")]) == 2
+    assert "not both" in capsys.readouterr().err
+    assert main(["identify"]) == 2
+    assert "--problem" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_s192803_problem_is_the_default_calibration(capsys):
+    """The shipped problem's parameter table is the calibration's default written out: the same fit."""
+    assert main(["identify", "--problem", str(PROBLEMS / "s192803"), "--json"]) == 0
+    by_problem = json.loads(capsys.readouterr().out)
+    assert main(["identify", str(resource("datasets", "s192803_laxity.csv")), "--knee", "s192803", "--json"]) == 0
+    by_options = json.loads(capsys.readouterr().out)
+    assert by_problem["free"] == by_options["free"] if "free" in by_problem else True
+    for name, value in by_options["params"].items():
+        assert np.isclose(by_problem["params"][name], value, rtol=1e-9, atol=1e-12), name
