@@ -68,6 +68,11 @@ class Prior:
         """The standardised residual of ``value`` (SI): ``(transform(value) - centre) / sd``."""
         return (self.transform(value) - self.centre) / self.sd
 
+    def sample(self, rng: np.random.Generator, size: int | None = None):
+        """Draws (SI) from the prior: ``mean + sd N(0, 1)``, or ``exp(ln median + sd N(0, 1))``."""
+        x = self.centre + self.sd * rng.standard_normal(size)
+        return np.exp(x) if self.log else x
+
     def interval(self, level: float = RANGE_LEVEL) -> tuple[float, float]:
         """The central interval (SI) holding ``level`` of the prior (default +-3 sd)."""
         from scipy import stats
