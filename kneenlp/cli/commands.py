@@ -9,10 +9,15 @@ import sys
 from pathlib import Path
 
 from kneenlp.cli.inputs import MAX_STUDY_FITS, check_names, effect_values, knee_from_args, knee_reference, study_size
+from kneenlp.errors import InputError
 from kneenlp.io.atomic import staged_directory, write_csv_atomic, write_error, write_text_atomic
+
+#: Candidates ``diagnose`` judges by their held-out error on a real experiment (``--held-out``).
+HELD_OUT_CANDIDATES = 2
 
 
 def cmd_diagnose(args) -> int:
+    from kneenlp.inference import crossval
     from kneenlp.inference.adequacy import diagnose
     from kneenlp.inference.basefit import base_fit
     from kneenlp.inference.calibrate import calibrate, real_experiment
@@ -20,16 +25,29 @@ def cmd_diagnose(args) -> int:
 
     knee = knee_from_args(args)
     data = args.measured  # read and checked by the options layer
-    if real_experiment(data):  # the base model of a real experiment is its calibration (registration included);
+    real = real_experiment(data)
+    if real:  # the base model of a real experiment is its calibration (registration included);
         # every trial: the residual map shows a trial identify would set aside
         fit = calibrate(KneeModel.of(knee), data, noise=args.noise, seed=args.seed, keep_outliers=True).fit
     else:
+        if args.held_out:
+            raise InputError("judges a real experiment's calibrations (data with a declared side or joint loads)",
+                             field="--held-out")
         fit = base_fit(knee, data, args.noise, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear")
+    n = (HELD_OUT_CANDIDATES if args.held_out is None else args.held_out) if real else 0
+    judged = crossval.judge(KneeModel.of(knee), data, [[s.effect] for s in d.ranking[:n]], seed=args.seed) if n else []
+    extra = {"held_out": [j.record() for j in judged],
+             "held_out_recommended": (best.name if (best := crossval.judged_best(judged)) else None)} if judged else {}
     if args.out:
         with staged_directory(args.out) as stage:
             d.write(stage.path)
-    print(d.to_json() if args.json else d.report())
+            if judged:
+                write_text_atomic(stage.path / "held_out.json", json.dumps(extra, indent=2))
+    if args.json:
+        print(json.dumps(json.loads(d.to_json()) | extra, indent=2))
+    else:
+        print("\n".join([d.report(), *crossval.judgement_lines(judged)]) if judged else d.report())
     return 0
 
 

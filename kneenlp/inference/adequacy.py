@@ -373,8 +373,11 @@ def verdict_words(d: Diagnosis) -> str:
                 "it (a one-step estimate is no evidence this far from the data). Look for an effect outside the "
                 "library, or several together.")
     if best is None:
-        return (f"NOT ADEQUATE, NOT EXPLAINED: the misfit ({glob}) is uneven (p = {v.homogeneity_p:.2g}) and no "
-                f"candidate effect is significant{pattern}. Look for an effect outside the library.")
+        how = (f"has a sign per load direction (mean residuals differ between load directions, p = {v.bias_p:.2g}): "
+               "the model's error, not the instrument's noise" if v.bias_p is not None and v.bias_p < v.alpha
+               else f"is uneven (p = {v.homogeneity_p:.2g})")
+        return (f"MODEL INADEQUATE, NOT EXPLAINED: the misfit ({glob}) {how}, and no candidate effect is "
+                f"significant{pattern}. Look for an effect outside the library.")
     others = [n for n in v.significant if n != best.effect]
     listed = ", ".join(others[:3]) + (" and more" if len(others) > 3 else "")
     also = (f" Also significant: {listed} (they partly mimic it with this protocol; the refit prefers "

@@ -54,6 +54,10 @@ from kneenlp.inference.calibrate import Calibration, calibrate, noise_per_observ
 from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
 from kneenlp.model.kneemodel import KneeModel
 
+#: The held-out targets: RMS of measured minus predicted, rotations (deg) and translations (mm).
+ROTATION_TARGET = 5.0
+TRANSLATION_TARGET = 2.0
+
 
 def folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
     """(name, held-out mask) of the highest-flexion hold-out and of every loaded direction."""
@@ -91,6 +95,12 @@ class HeldOut:
         equilibrium: what :meth:`rms` should be if the calibration's own uncertainty is right."""
         return rms_by_coordinate(self.expected[self.prediction.converged])
 
+    def normalised(self) -> float:
+        """The held-out error against the targets: the largest rotation RMS over
+        :data:`ROTATION_TARGET` or translation RMS over :data:`TRANSLATION_TARGET` (1: on target;
+        NaN when no held-out trial reached equilibrium)."""
+        return normalised_error(self.rms())
+
     def p_value(self) -> float:
         """:func:`consistency` of the held-out trials at equilibrium (NaN if none)."""
         ok = self.prediction.converged
@@ -124,6 +134,87 @@ class HeldOut:
                     **{f"twin_rms_{c}": v for c, v in self.reference_rms().items()},
                     "p_against_twin": self.p_reference()}
         return out
+
+
+def normalised_error(rms: dict[str, float]) -> float:
+    """``max(rotation RMS / 5 deg, translation RMS / 2 mm)`` of an RMS per coordinate column."""
+    rot = [v for c, v in rms.items() if c.endswith("_deg")]
+    trans = [v for c, v in rms.items() if c.endswith("_mm")]
+    return float(max(max(rot) / ROTATION_TARGET, max(trans) / TRANSLATION_TARGET))
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """A calibration judged by what it predicts: its fitted RMS (all trials) and its hold-outs'."""
+
+    name: str  # "base" or the candidate's names
+    also_free: tuple[str, ...]
+    fitted: dict[str, float]  # RMS per coordinate column over the fitted trials (mm, deg)
+    free: int  # parameters fitted
+    held_out: dict[str, float]  # normalised held-out error per hold-out (:meth:`HeldOut.normalised`)
+    converged: dict[str, tuple[int, int]]  # per hold-out, held-out trials at equilibrium of those held out
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(list(self.held_out.values())))
+
+    @property
+    def met(self) -> int:
+        return sum(v <= 1 for v in self.held_out.values())
+
+    def record(self) -> dict:
+        return {"name": self.name, "also_free": list(self.also_free), "free": self.free, "fitted_rms": self.fitted,
+                "held_out_normalised": self.held_out, "held_out_mean": self.mean, "held_out_met": self.met,
+                "held_out_converged": {k: list(v) for k, v in self.converged.items()}}
+
+
+def judge(model: KneeModel, data: MeasuredData, candidates: list[list[str]], which: list[str] | None = None,
+          **calibrate_options) -> list[Judgement]:
+    """The base calibration and one with each candidate (parameters or effects fitted beside it,
+    ``also_free``) judged by what they predict: each calibrated on all trials (the fitted RMS) and
+    cross-validated over the hold-outs (:func:`cross_validate`).  The base first."""
+    out = []
+    for extra in [[], *candidates]:
+        options = dict(calibrate_options)
+        if extra:
+            options["also_free"] = [*(options.get("also_free") or []), *extra]
+        cal = calibrate(model, data, **options)
+        results = cross_validate(model, data, which, **options)
+        out.append(Judgement(" + ".join(extra) or "base", tuple(extra), cal.rms_after, len(cal.fit.free),
+                             {r.name: r.normalised() for r in results},
+                             {r.name: (int(r.prediction.converged.sum()), int(r.held.sum())) for r in results}))
+    return out
+
+
+def judged_best(judgements: list[Judgement]) -> Judgement | None:
+    """The candidate whose held-out error (mean normalised, every held-out trial at equilibrium) is
+    lowest, if lower than the base's; None when no candidate lowers it."""
+    base, rest = judgements[0], judgements[1:]
+    whole = [j for j in rest if all(ok == n for ok, n in j.converged.values())]
+    best = min(whole, key=lambda j: j.mean, default=None)
+    return best if best is not None and best.mean < base.mean else None
+
+
+def judgement_lines(judgements: list[Judgement]) -> list[str]:
+    """The judgements as a table: fitted RMS beside the held-out error, base and each candidate."""
+    holds = list(judgements[0].held_out)
+    lines = [f"Judged by what it predicts: fitted RMS (all trials; deg, deg, mm, mm, mm) beside the held-out "
+             f"error (RMS over {ROTATION_TARGET:g} deg or {TRANSLATION_TARGET:g} mm, the larger; <= 1 meets the "
+             "target) of each hold-out",
+             f"    {'calibration':40s} {'free':>4}  {'fitted RMS':>29}  {'mean':>5} {'met':>4}  " + " ".join(
+                 f"{h[:10]:>10}" for h in holds)]
+    for j in judgements:
+        fitted = " ".join(f"{v:5.2f}" for v in j.fitted.values())
+        cells = " ".join(f"{j.held_out[h]:10.2f}" + ("" if j.converged[h][0] == j.converged[h][1] else "!")
+                         for h in holds)
+        lines.append(f"    {j.name[:40]:40s} {j.free:4d}  {fitted:>29}  {j.mean:5.2f} {j.met:2d}/{len(holds)}  {cells}")
+    best = judged_best(judgements)
+    lines.append("    ! a held-out trial without equilibrium (the candidate is not recommended)"
+                 if any("!" in x for x in lines) else "")
+    lines.append(f"    held out, {best.name} lowers the error {judgements[0].mean:.2f} -> {best.mean:.2f} (met "
+                 f"{judgements[0].met} -> {best.met} of {len(holds)}): recommended" if best else
+                 "    held out, no candidate lowers the error: none is recommended, whatever it does to the fit")
+    return [x for x in lines if x]
 
 
 def consistency(errors: np.ndarray, expected: np.ndarray) -> float:

@@ -15,9 +15,13 @@ Outcomes (:data:`OUTCOMES`):
   refit is as good (BIC within :data:`AMBIGUOUS_BIC`, or not worse in Vuong's non-nested test,
   :func:`closeness_z` below :data:`RIVAL_Z`): then both are named and neither is recommended (the
   protocol cannot tell them apart; nested candidates are compared by their likelihood ratio);
-* ``noise_larger``: only the global test rejects, no candidate is significant and the excess is
+* ``noise_larger``: only the global test rejects, no candidate is significant, the excess is
   spread evenly over coordinates and load directions (Brown-Forsythe tests of equal spread, p >=
-  alpha): the signature of noise larger than declared, reported with the level the data imply;
+  alpha) and the misfit has no sign per load direction (one-way tests of equal mean residual per
+  coordinate across load directions, :func:`bias_structure`, p >= alpha): the signature of noise
+  larger than declared, reported with the level the data imply.  A declared noise is the user's
+  knowledge of the instrument: a misfit of one sign in every trial of a load direction (S192803:
+  lateral +2.8 mm in all external-rotation trials) is the model's, never the noise's;
 * ``unexplained``: the misfit is real but no candidate removes it (patterns in words say where).
   That includes significant score tests whose refits all failed to lower the misfit (named as
   ``unconfirmed``): the one-step linearisation is no evidence that the effect explains anything.
@@ -90,6 +94,21 @@ def spread_homogeneity(trials: Sequence[Trial], residuals: np.ndarray) -> float:
     return float(min(1.0, 2 * min(p_coord, p_dir)))
 
 
+def bias_structure(trials: Sequence[Trial], residuals: np.ndarray) -> float:
+    """p-value that the mean residual of each coordinate is the same in every load direction (one-way
+    ANOVA F test per coordinate over the directions with at least two trials; Bonferroni over the
+    five coordinates): a small p says the misfit has a sign per load direction, a model's error."""
+    r = np.asarray(residuals, float)
+    directions = sorted({t.dominant for t in trials})
+    rows = [[i for i, t in enumerate(trials) if t.dominant == d] for d in directions]
+    rows = [g for g in rows if len(g) >= 2]
+    if len(rows) < 2:
+        return 1.0
+    p = [stats.f_oneway(*[r[g, j] for g in rows]).pvalue for j in range(r.shape[1])]
+    p = [v for v in p if np.isfinite(v)]
+    return float(min(1.0, len(p) * min(p))) if p else 1.0
+
+
 def implied_noise(declared: NoiseModel, rss: float, dof: int) -> NoiseModel:
     """The noise model of the declared kind whose variance is the residuals' ``rss / dof``."""
     sd = float(np.sqrt(rss / max(dof, 1)))
@@ -110,6 +129,8 @@ class Verdict:
     recommended: str | None = None
     implied_noise: NoiseModel | None = None
     homogeneity_p: float | None = None
+    #: p that the mean residuals are equal across load directions (:func:`bias_structure`)
+    bias_p: float | None = None
     rivals: list[str] = field(default_factory=list)  # candidates as good as ``best`` (:func:`_rival`)
     #: significant by their score tests, but their refits found nothing that lowers the misfit
     unconfirmed: list[str] = field(default_factory=list)
@@ -121,7 +142,7 @@ class Verdict:
                 "rivals": self.rivals, "unconfirmed": self.unconfirmed,
                 "implied_noise": str(self.implied_noise) if self.implied_noise else None,
                 "implied_noise_std": self.implied_noise.std if self.implied_noise else None,
-                "homogeneity_p": self.homogeneity_p}
+                "homogeneity_p": self.homogeneity_p, "bias_p": self.bias_p}
 
 
 def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residuals: np.ndarray,
@@ -159,8 +180,10 @@ def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residu
         return v
     rss = float(np.sum(np.asarray(residuals, float) ** 2))
     homog = spread_homogeneity(trials, residuals)
-    outcome = "noise_larger" if homog >= alpha else "unexplained"
-    return Verdict(outcome, alpha, adjusted, [], implied_noise=implied_noise(declared, rss, dof), homogeneity_p=homog)
+    bias = bias_structure(trials, residuals)
+    outcome = "noise_larger" if homog >= alpha and bias >= alpha else "unexplained"
+    return Verdict(outcome, alpha, adjusted, [], implied_noise=implied_noise(declared, rss, dof), homogeneity_p=homog,
+                   bias_p=bias)
 
 
 def nested_p(bigger, smaller) -> float:
