@@ -48,8 +48,9 @@ if TYPE_CHECKING:
 #: equilibrium by ~20 N (1-norm 126) and the next ones by ~200 N (1-norm 1.5e3), where the
 #: contact's linearisation no longer holds: the steps grew (||d|| 25-100), the Hessian needed
 #: inertia corrections, and the restoration phase failed (Set 4, default knee, seed 186: 150
-#: iterations, then the rescue, 12 s).  Under the ceiling such a step is refused and its
-#: second-order correction (back towards equilibrium) or a shorter step is taken instead.
+#: iterations, then the rescue, 12 s).  Under the ceiling the trial points of 1.3e3-4.2e3 are
+#: refused and IPOPT backtracks to a short step (3 % of it), staying near equilibrium: 17
+#: iterations, the same optimum.
 #: Set 4, default knee, seeds 0-199, the solve alone: 199/200 converged, worst 150 and 43
 #: iterations, median 14 -> 200/200, worst 23, median 13 (100: worst 27; 1000: worst 25, median
 #: 13.5); synthetic knee, 12 seeds: median 11.5 -> 11, worst 22 -> 17.  Sets 1 and 2 (7, 13
