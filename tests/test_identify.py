@@ -176,3 +176,18 @@ def test_early_hand_over_from_reduced_space_reaches_the_reduced_optimum(tmp_path
     # from the early stop runs out of iterations here, and the rescue finishes the reduced fit first
     # and reaches the same minimum from there, at no more evaluations than the reduced fit alone
     assert evaluations < full.evaluations if finished is None else evaluations <= full.evaluations
+
+
+def test_set4_start_that_wandered_converges_without_rescue(tmp_path):
+    """Set 4 on the default knee, noise seed 186 (the paper's scatter): under IPOPT's own ceiling of
+    the equilibrium residual (``theta_max_fact`` 1e4) the first steps broke equilibrium by 20-200 N,
+    the restoration phase failed after 150 iterations and the reduced-space rescue took 12 s.  With
+    the large-protocol ceiling (:data:`kneenlp.solvers.nlp.THETA_MAX_FACT`) IPOPT converges alone."""
+    from kneenlp.solvers.nlp import THETA_MAX_FACT, ipopt_trial_options
+
+    assert ipopt_trial_options(60) == {"obj_scaling_factor": 0.1, "theta_max_fact": THETA_MAX_FACT}
+    assert ipopt_trial_options(13) == {"obj_scaling_factor": 1.0}  # small protocols: IPOPT's own
+    knee = kneenlp.Knee.default()
+    fit = identify(knee, measured(knee, "set4", "uniform:0.5", 186, tmp_path), seed=186, noise="uniform:0.5")
+    assert fit.success and fit.extra["starts"] == 1 and "rescued" not in fit.message, fit.message
+    assert fit.iterations <= 40

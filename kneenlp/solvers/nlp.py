@@ -41,6 +41,22 @@ from kneenlp.solvers.forward import equilibrium_start
 if TYPE_CHECKING:
     from kneenlp.experiment.problem import IdentificationProblem
 
+#: From :data:`OBJECTIVE_SCALE_FROM` trials on, IPOPT's filter line search refuses a trial point
+#: whose equilibrium residual (1-norm of the scaled constraints, N and N m) exceeds
+#: ``THETA_MAX_FACT * max(1, residual at the start)`` (IPOPT's ``theta_max_fact``, its own 1e4).
+#: The start is at equilibrium (residual ~1e-6), so IPOPT's own ceiling let a first full step break
+#: equilibrium by ~20 N (1-norm 126) and the next ones by ~200 N (1-norm 1.5e3), where the
+#: contact's linearisation no longer holds: the steps grew (||d|| 25-100), the Hessian needed
+#: inertia corrections, and the restoration phase failed (Set 4, default knee, seed 186: 150
+#: iterations, then the rescue, 12 s).  Under the ceiling the trial points of 1.3e3-4.2e3 are
+#: refused and IPOPT backtracks to a short step (3 % of it), staying near equilibrium: 17
+#: iterations, the same optimum.
+#: Set 4, default knee, seeds 0-199, the solve alone: 199/200 converged, worst 150 and 43
+#: iterations, median 14 -> 200/200, worst 23, median 13 (100: worst 27; 1000: worst 25, median
+#: 13.5); synthetic knee, 12 seeds: median 11.5 -> 11, worst 22 -> 17.  Sets 1 and 2 (7, 13
+#: trials) gained nothing (medians 21.5 -> 25 and 19 -> 21 at 300; at 1000 one Set 1 seed of 16
+#: failed), so smaller protocols keep IPOPT's own ceiling (docs/solvers.md).
+THETA_MAX_FACT = 300.0
 #: IPOPT options of the identification (tol 1e-10: same estimates as 1e-12, ~30 % fewer iterations).
 IPOPT_OPTIONS = {"tol": 1e-10, "acceptable_tol": 1e-9, "constr_viol_tol": 1e-9, "max_iter": 150,
                  "print_level": 0, "linear_solver": "mumps", "mu_strategy": "monotone",
@@ -139,9 +155,7 @@ def build_nlp(problem: IdentificationProblem, solver: str = "ipopt", options: di
     nlp, derivatives = _with_working_sets_of_the_pose(problem, e)
     opts = {**derivatives, **dict(options or {})}
     if solver == "ipopt":
-        T = problem.n_trials
-        scale = OBJECTIVE_SCALE_TRIALS / T if T >= OBJECTIVE_SCALE_FROM else 1.0
-        opts = {"ipopt": {**IPOPT_OPTIONS, "obj_scaling_factor": scale, **opts.pop("ipopt", {})},
+        opts = {"ipopt": {**IPOPT_OPTIONS, **ipopt_trial_options(problem.n_trials), **opts.pop("ipopt", {})},
                 "print_time": False, "error_on_fail": False,
                 **opts}
     else:
@@ -152,6 +166,15 @@ def build_nlp(problem: IdentificationProblem, solver: str = "ipopt", options: di
         raise InputError(f"cannot create NLP solver {solver!r}: {str(exc).splitlines()[-1]}",
                          field="solver") from None
     return IdentificationNLP(list(problem.free), problem.n_trials, solver, fn, time.perf_counter() - t0)
+
+
+def ipopt_trial_options(n_trials: int) -> dict[str, float]:
+    """IPOPT's options that depend on the number of trials: the objective's scaling
+    (:data:`OBJECTIVE_SCALE_TRIALS`) and, for large protocols, the ceiling of the equilibrium
+    residual along the iterates (:data:`THETA_MAX_FACT`); a user's options win over both."""
+    if n_trials < OBJECTIVE_SCALE_FROM:
+        return {"obj_scaling_factor": 1.0}
+    return {"obj_scaling_factor": OBJECTIVE_SCALE_TRIALS / n_trials, "theta_max_fact": THETA_MAX_FACT}
 
 
 def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, threads: int) -> IdentificationNLP:
