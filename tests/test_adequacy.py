@@ -452,3 +452,35 @@ def test_verdict_advises_adding_only_an_effect_that_explains_most_of_the_misfit(
                         expected_rms=0.29, fit=None, refits={}, noise="uniform:0.5")
     words = adequacy.verdict_words(d)
     assert ("Add it" in words) is advised and ("do not add it" in words) is not advised
+
+
+def test_a_misfit_with_a_sign_per_load_direction_is_the_models():
+    """verdict.bias_structure: residuals of one sign in every trial of a load direction give a small
+    p (the model's error, never 'noise larger'); noise alone of any size does not."""
+    from kneenlp.inference.verdict import bias_structure
+
+    trials = kneenlp.Protocol.load("set3").trials
+    rng = np.random.default_rng(3)
+    noise = rng.normal(0, 2.0, (len(trials), 5))
+    assert bias_structure(trials, noise) > 0.05
+    biased = noise.copy()
+    directions = sorted({t.dominant for t in trials})
+    for i, t in enumerate(trials):
+        biased[i, 2] += 3.0 * (directions.index(t.dominant) % 2 * 2 - 1)
+    assert bias_structure(trials, biased) < 1e-3
+
+
+def test_held_out_judge_recommends_only_what_lowers_the_held_out_error():
+    from kneenlp.inference.crossval import Judgement, judged_best, judgement_lines
+
+    def j(name, errors, ok=True):
+        return Judgement(name, (name,), {"varus_rotation_deg": 1.0}, 8, errors,
+                         {h: (4 if ok else 3, 4) for h in errors})
+
+    base = j("base", {"a": 1.2, "b": 0.9})
+    better, worse = j("x", {"a": 0.8, "b": 0.9}), j("y", {"a": 1.5, "b": 0.7})
+    broken = j("z", {"a": 0.1, "b": 0.1}, False)
+    assert judged_best([base, worse, better, broken]) is better  # z loses a held-out trial's equilibrium
+    assert judged_best([base, worse, broken]) is None
+    assert "no candidate lowers" in judgement_lines([base, worse])[-1]
+    assert "x lowers the error 1.05 -> 0.85 (met 1 -> 2 of 2)" in judgement_lines([base, better])[-1]

@@ -112,3 +112,9 @@ def test_s192803_problem_is_the_default_calibration(capsys):
     assert by_problem["free"] == by_options["free"] if "free" in by_problem else True
     for name, value in by_options["params"].items():
         assert np.isclose(by_problem["params"][name], value, rtol=1e-9, atol=1e-12), name
+
+
+def test_held_out_judge_is_for_real_experiments(capsys):
+    assert main(["diagnose", "--problem", str(PROBLEMS / "set1"), "--held-out", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--held-out" in err

@@ -212,7 +212,8 @@ def judgement_lines(judgements: list[Judgement]) -> list[str]:
     lines.append("    ! a held-out trial without equilibrium (the candidate is not recommended)"
                  if any("!" in x for x in lines) else "")
     lines.append(f"    held out, {best.name} lowers the error {judgements[0].mean:.2f} -> {best.mean:.2f} (met "
-                 f"{judgements[0].met} -> {best.met} of {len(holds)}): recommended" if best else
+                 f"{judgements[0].met} -> {best.met} of {len(holds)}): recommended (the held-out error is the judge; "
+                 "the tests above rank the candidates)" if best else
                  "    held out, no candidate lowers the error: none is recommended, whatever it does to the fit")
     return [x for x in lines if x]
 
