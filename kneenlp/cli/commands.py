@@ -143,9 +143,30 @@ def cmd_identify(args) -> int:
     return 0 if fit.success else 1
 
 
-def cmd_compare_methods(args) -> int:
-    from kneenlp.inference.compare import compare_methods
+def _calibration_comparison(out: dict) -> str:
+    """``compare_calibration``'s result as a table (MAP objective: mm^2 + deg^2)."""
+    p = out["problem"]
+    fit = f"MAP (priors weighed against {p['prior_weight']:g})" if p["priors"] else "least squares"
+    lines = [f"the calibration's problem: {p['trials']} trials, {p['free']} free parameters, {fit}",
+             f"{'method':36s} {'MAP objective':>14s} {'evaluations':>12s} {'seconds':>8s} {'max resid':>10s}  status"]
+    for r in out["methods"]:
+        lines.append(f"{r['method']:36s} {r['map_objective']:14.6g} {r['evaluations']:12d} {r['seconds']:8.1f} "
+                     f"{r['max_residual']:10.2e}  {r['status']}{'' if r['success'] else ' (NOT CONVERGED)'}")
+    lines.append("nested, best MAP objective after N rootfinder solves: "
+                 + ", ".join(f"{k:,}: {v:.6g}" for k, v in out["nested_checkpoints"].items()))
+    return "\n".join(lines)
 
+
+def cmd_compare_methods(args) -> int:
+    from kneenlp.inference.calibrate import real_experiment
+    from kneenlp.inference.compare import compare_calibration, compare_methods
+    from kneenlp.model.kneemodel import KneeModel
+
+    if real_experiment(args.measured):
+        out = compare_calibration(KneeModel.of(knee_from_args(args)), args.measured, seed=args.seed,
+                                  max_solves=args.max_solves, max_seconds=args.max_seconds)
+        print(json.dumps(out, indent=2) if args.json else _calibration_comparison(out))
+        return 0 if all(r["success"] for r in out["methods"]) else 1
     out = compare_methods(knee_from_args(args), args.measured, seed=args.seed, max_evals=args.max_evals,
                           max_seconds=args.max_seconds)
     rows, units = out["methods"], out["units"]

@@ -118,6 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-evals", type=opt.integer(1, opt.MAX_EVALS), default=5000,
                    help="Complex evaluation budget")
     p.add_argument("--max-seconds", type=opt.positive, default=None, help="Complex wall-time budget")
+    p.add_argument("--max-solves", type=opt.integer(1, 10**7), default=75_000,
+                   help="real experiments: the nested method's budget in rootfinder solves (trial equilibria; "
+                        "default 75000, its best objective reported after 1k, 5k, 20k and 75k)")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(validate=True)
 

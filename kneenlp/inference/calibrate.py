@@ -405,7 +405,8 @@ def polished(fit: Fit, threads: int = 2) -> Fit:
     a point that depends on the order of its unknowns (S192803: MAP objective 553.79, the NLP from
     there 553.08 in 39 iterations, 3.9 s).  The reduced fit is kept, and the message says so, when
     the NLP fails or ends above it."""
-    nlp = solve_simultaneous(fit.problem, fit.params, "ipopt", {"ipopt": {"max_iter": POLISH_ITER}}, threads)
+    nlp = solve_simultaneous(fit.problem, fit.params, "ipopt", {"ipopt": {"max_iter": POLISH_ITER}}, threads,
+                             q0=fit.q_pred)
     start = f"reduced-space Gauss-Newton ({fit.iterations} evaluations, MAP objective {fit.map_objective:.6g})"
     if nlp.success and nlp.map_objective <= fit.map_objective * (1 + POLISH_RTOL):
         nlp.message = "; ".join(filter(None, [nlp.message, f"started at the {start}"]))

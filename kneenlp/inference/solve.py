@@ -165,12 +165,12 @@ def nested_fit_of(problem: IdentificationProblem, start: dict, rng: np.random.Ge
 
 
 def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
-                       solver_options: dict | None = None, threads: int = 2) -> Fit:
+                       solver_options: dict | None = None, threads: int = 2, q0: np.ndarray | None = None) -> Fit:
     """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter)
     (:func:`~kneenlp.solvers.nlp.solve_nlp`), judged: a success needs the solver's, every trial
     at equilibrium (:attr:`~kneenlp.experiment.problem.IdentificationProblem.equilibrium_tol`), no
     contact point left out of the working sets and none beyond the femoral surface's open edge."""
-    r = solve_nlp(problem, start, solver, solver_options, threads)
+    r = solve_nlp(problem, start, solver, solver_options, threads, q0)
     tol = problem.equilibrium_tol
     success = r.solver_success and r.max_residual <= tol and r.left_out <= 0 and r.rim <= 0
     notes = []

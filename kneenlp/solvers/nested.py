@@ -33,7 +33,8 @@ CONSTRAINT_TOL = 1e-3
 
 
 class NestedObjective:
-    """``Psi^T Psi`` (the problem's objective) + penalties, a function of the scaled free parameters."""
+    """``Psi^T Psi`` (the problem's objective, with its priors' share: the MAP objective) + penalties,
+    a function of the scaled free parameters."""
 
     def __init__(self, problem: IdentificationProblem, q_start: np.ndarray | None = None):
         self.problem = problem
@@ -59,7 +60,7 @@ class NestedObjective:
         ok = res <= CONSTRAINT_TOL
         if ok.all():
             self.q_last = q
-        psi = self.problem.objective(q, theta)
+        psi = self.problem.map_objective(q, theta)
         penalty = PENALTY * float(np.sum(np.where(ok, 0.0, np.minimum(res, 1e6)) ** 2))
         for stiff, v in zip(self.is_stiffness, x_scaled, strict=True):
             if stiff and v < 0:

@@ -32,7 +32,7 @@ import casadi as ca
 import numpy as np
 
 from kneenlp import interrupts
-from kneenlp.conventions import LOAD_SIZE, coords_from_user
+from kneenlp.conventions import LOAD_SIZE, coords_from_user, coords_to_user
 from kneenlp.errors import InputError
 from kneenlp.experiment.problem import prior_rows
 from kneenlp.model.solvercache import frozen
@@ -206,13 +206,19 @@ class NLPResult:
 
 
 def solve_nlp(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
-              solver_options: dict | None = None, threads: int = 2) -> NLPResult:
+              solver_options: dict | None = None, threads: int = 2, q0: np.ndarray | None = None) -> NLPResult:
     """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter), poses
-    started at equilibrium (:func:`~kneenlp.solvers.forward.equilibrium_start`)."""
+    started at equilibrium (:func:`~kneenlp.solvers.forward.equilibrium_start`) or at ``q0`` (T x 5,
+    SI: e.g. a reduced-space fit's, the equilibria its continuation followed, which a solve from the
+    unloaded state need not reach)."""
     t0 = time.perf_counter()
     nlp = get_nlp(problem, solver, solver_options, threads)
-    q0 = equilibrium_start(problem, problem.theta(start), threads)
-    x0 = problem.to_x(start, q0.q_user)
+    if q0 is None:
+        eq = equilibrium_start(problem, problem.theta(start), threads)
+        q_user, started_at_data = eq.q_user, int(np.sum(~eq.ok))
+    else:
+        q_user, started_at_data = coords_to_user(np.asarray(q0, float).reshape(-1, 5)), 0
+    x0 = problem.to_x(start, q_user)
     lbx, ubx = problem.x_bounds()
     t1 = time.perf_counter()
     # contact working sets are taken at every pose IPOPT evaluates; after the solve no sample point left
@@ -231,7 +237,7 @@ def solve_nlp(problem: IdentificationProblem, start: dict[str, float], solver: s
         rim = float(np.max(model.rim_batch(q, theta, problem.flexions)))
     return NLPResult(dict(zip(problem.free, values, strict=True)), q, str(st.get("return_status", "unknown")),
                      bool(st.get("success", False)), int(st.get("iter_count", 0)), seconds, t1 - t0,
-                     float(np.max(np.abs(g))) if g.size else 0.0, left_out, rim, int(np.sum(~q0.ok)), float(sol["f"]),
+                     float(np.max(np.abs(g))) if g.size else 0.0, left_out, rim, started_at_data, float(sol["f"]),
                      nlp.build_seconds, nlp.solver_name)
 
 
