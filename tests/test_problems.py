@@ -118,3 +118,5 @@ def test_held_out_judge_is_for_real_experiments(capsys):
     assert main(["diagnose", "--problem", str(PROBLEMS / "set1"), "--held-out", "1"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--held-out" in err
+    assert main(["identify", "--problem", str(PROBLEMS / "set1"), "--held-out"]) == 2
+    assert "--held-out" in capsys.readouterr().err

@@ -688,3 +688,20 @@ def test_also_free_joins_from_the_calibration(s192803):
     assert set(names) <= set(cal.fit.free) and set(base.fit.free) < set(cal.fit.free)
     assert cal.fit.objective <= base.fit.objective
     assert any(abs(cal.fit.params[n]) > 1e-4 for n in names)  # moved by more than 0.1 mm
+
+
+@pytest.mark.slow
+def test_candidates_are_judged_by_their_held_out_error(s192803):
+    """crossval.judge: the base calibration and one with a candidate, each with its fitted RMS beside
+    its held-out error (here the varus hold-out alone); the candidate is recommended only where its
+    held-out error is lower, whatever its fit."""
+    from kneenlp.inference import crossval
+
+    model, data = KneeModel.of(s192803), read_measured(CSV)
+    base, wider = crossval.judge(model, data, [["PCLal_femoral_attachment"]], which=["varus"])
+    assert base.name == "base" and wider.also_free == ("PCLal_femoral_attachment",)
+    assert wider.free == base.free + 3 and list(base.held_out) == ["varus"]
+    best = crossval.judged_best([base, wider])
+    assert (best is wider) == (wider.held_out["varus"] < base.held_out["varus"] and wider.converged["varus"][0] == 4)
+    lines = crossval.judgement_lines([base, wider])
+    assert "fitted RMS" in lines[0] and any(line.strip().startswith("base") for line in lines)

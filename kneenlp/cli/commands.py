@@ -104,7 +104,20 @@ def prior_options(args) -> dict:
     return {k: v for k, v in (("priors", args.priors), ("prior_weight", args.prior_weight)) if v is not None}
 
 
+def held_out_judgements(knee, args) -> list:
+    """``identify --held-out``: the calibration (without ``--also-free``) and, given, with it, judged by
+    their held-out errors (:func:`kneenlp.inference.crossval.judge`)."""
+    from kneenlp.inference import crossval
+    from kneenlp.model.kneemodel import KneeModel
+
+    options = {k: v for k, v in (("pivot_tolerance", args.pivot_tolerance), ("keep_outliers", args.keep_outliers))
+               if v} | prior_options(args)
+    return crossval.judge(KneeModel.of(knee), args.measured, [args.also_free] if args.also_free else [],
+                          noise=args.noise, seed=args.seed, **options)
+
+
 def cmd_identify(args) -> int:
+    from kneenlp.inference import crossval
     from kneenlp.inference.calibrate import Calibration, posterior
     from kneenlp.inference.identify import identify
     from kneenlp.inference.profile import profile, profile_lines
@@ -119,9 +132,14 @@ def cmd_identify(args) -> int:
                    protocol=args.protocol, with_effects=args.with_effect, **prior_options(args),
                    **{k: v for k, v in given.items() if v is not None})
     calibration = fit.calibration or Calibration(fit, None, [])
+    if args.held_out and fit.calibration is None:
+        raise InputError("judges a real experiment's calibration (data with a declared side or joint loads)",
+                         field="--held-out")
+    judged = held_out_judgements(knee, args) if args.held_out else []
     intervals = profile(fit, args.profile) if args.profile else []
     summary = json.dumps(json.loads(fit.to_json()) | calibration.summary()
-                         | ({"profile": [i.record() for i in intervals]} if intervals else {}), indent=2)
+                         | ({"profile": [i.record() for i in intervals]} if intervals else {})
+                         | ({"held_out": [j.record() for j in judged]} if judged else {}), indent=2)
     if args.out:
         with staged_directory(args.out) as stage:
             write_csv_atomic(fit.table(), stage.path / "fit_trials.csv", index=False, float_format="%.10g")
@@ -139,7 +157,8 @@ def cmd_identify(args) -> int:
     if args.json:
         print(summary)
     else:
-        print("\n".join([calibration.report(), *profile_lines(intervals), *notes]))
+        judgement = crossval.judgement_lines(judged) if judged else []
+        print("\n".join([calibration.report(), *profile_lines(intervals), *judgement, *notes]))
     return 0 if fit.success else 1
 
 

@@ -103,6 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(the paper's: least squares from a seeded scatter) or auto (default: calibration for data "
                         "with a declared side or joint loads)")
     _prior_args(p)
+    p.add_argument("--held-out", action="store_true",
+                   help="real experiments: judge the calibration by what it predicts: cross-validated (each load "
+                        "direction and the highest flexion held out) beside its fit, and with --also-free before "
+                        "and after (about a minute per calibration)")
     p.add_argument("--profile", type=opt.names, default=None, metavar="NAMES",
                    help="profile-likelihood intervals (95 %%, bounds respected) of these comma-separated free "
                         "parameters, beside the Laplace standard errors")
