@@ -8,7 +8,7 @@ minus predicted on the held-out trials (deg, mm) and whether it meets 5 deg and 
   registration and the robot's load point fitted (no ligament parameter moves);
 - ``data-only``: least squares, the ligament parameters the trials determine (``--priors none``);
 - ``MAP``: the default, every ligament parameter with its prior, weighed against a 1 mm / 1 deg misfit;
-- ``MAP, weight 0.3`` and ``MAP, weight estimated``: the priors weighed against a smaller misfit, or
+- ``MAP weight 0.3`` and ``MAP weight estimated``: the priors weighed against a smaller misfit, or
   the one estimated from the fit's own residuals;
 - ``MAP + the six effects``: the experiment's frames and the cruciates' femoral attachments (the
   parameter table of problems/s192803); ``MAP + frames and femoral attachments``: the frames and every
@@ -43,8 +43,8 @@ VARIANTS = {
     "source": {"free": [*REGISTRATION, LOAD_POINT], "priors": "none"},
     "data-only": {"priors": "none"},
     "MAP": {},
-    "MAP, weight 0.3": {"prior_weight": 0.3},
-    "MAP, weight estimated": {"prior_weight": "estimate"},
+    "MAP weight 0.3": {"prior_weight": 0.3},
+    "MAP weight estimated": {"prior_weight": "estimate"},
     "MAP + the six effects": {"also_free": SIX},
     "MAP + frames and femoral attachments": {"also_free": ["tibial_origin", "femoral_origin", "tibial_axes", *FEMORAL]},
 }
