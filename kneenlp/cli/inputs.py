@@ -91,7 +91,7 @@ def check_inputs(args) -> None:
 #: What a command takes from a problem file when its option is not given (option attribute: the
 #: problem's field), and the defaults without either.
 FROM_PROBLEM = {"noise": "noise", "strategy": "strategy", "priors": "priors", "prior_weight": "prior_weight",
-                "hold_out": "hold_outs"}
+                "hold_out": "hold_outs", "also_free": "also_free"}
 DEFAULTS = {"strategy": "auto"}
 DIAGNOSE_NOISE = "uniform:0.5"
 
@@ -116,8 +116,8 @@ def apply_problem(args) -> None:
             problem = ProblemFile.load(args.problem)
         args.problem_file, args.data, args.knee = problem, str(problem.data), problem.knee
         for option, key in FROM_PROBLEM.items():
-            if hasattr(args, option) and getattr(args, option) in (None, []):
-                value = getattr(problem, key)
+            value = getattr(problem, key)
+            if hasattr(args, option) and getattr(args, option) in (None, []) and value not in (None, ()):
                 setattr(args, option, list(value) if isinstance(value, tuple) else value)
     for option, value in DEFAULTS.items():
         if hasattr(args, option) and getattr(args, option) is None:

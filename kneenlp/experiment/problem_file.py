@@ -13,6 +13,7 @@ so that identify, cross-validate, diagnose and predict run the same problem::
     priors = "default"            # optional: default | none
     prior_weight = 1.0            # optional: mm^2, deg^2
     hold_outs = ["anterior"]      # optional: cross-validate's hold-outs (default: all)
+    also_free = ["tibial_origin"] # optional: effects a calibration fits beside its table (--also-free)
 
     [parameters]                  # the parameter table, as a parameter file's [values]
     "PFL.k_scale" = {value = 1.0, unit = "1", free = true, bounds = [0.1, 10],
@@ -37,7 +38,7 @@ STRATEGIES = ("auto", "calibration", "scatter")
 FILE = "problem.toml"
 #: The keys of a problem file: required, then optional.
 REQUIRED = ("name", "knee", "data")
-OPTIONAL = ("description", "noise", "strategy", "priors", "prior_weight", "hold_outs", "parameters")
+OPTIONAL = ("description", "noise", "strategy", "priors", "prior_weight", "hold_outs", "also_free", "parameters")
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,7 @@ class ProblemFile:
     prior_weight: float | None = None
     hold_outs: tuple[str, ...] = ()
     entries: Entries | None = None
+    also_free: tuple[str, ...] = ()
 
     @classmethod
     def load(cls, path: str | Path) -> ProblemFile:
@@ -101,13 +103,14 @@ class ProblemFile:
         if weight is not None and (isinstance(weight, bool) or not isinstance(weight, int | float) or not weight > 0):
             raise InputError(f"expected a variance > 0 (mm^2, deg^2), got {weight!r}", source=src,
                              field="prior_weight")
-        holds = doc.get("hold_outs", [])
-        if not isinstance(holds, list) or not all(isinstance(h, str) for h in holds):
-            raise InputError(f"expected a list of hold-out names, got {holds!r}", source=src, field="hold_outs")
+        holds, extra = (doc.get(k, []) for k in ("hold_outs", "also_free"))
+        for key, names in (("hold_outs", holds), ("also_free", extra)):
+            if not isinstance(names, list) or not all(isinstance(h, str) and h for h in names):
+                raise InputError(f"expected a list of names, got {names!r}", source=src, field=key)
         entries = read_entries(doc["parameters"], src, "parameters") if "parameters" in doc else None
         return cls(path, text["name"], knee, data, text.get("description", ""), text.get("noise"),
                    text.get("strategy"), text.get("priors"), None if weight is None else float(weight), tuple(holds),
-                   entries)
+                   entries, tuple(extra))
 
     def knee_with_parameters(self, knee: Knee | None = None) -> Knee:
         """The problem's knee (or ``knee``) with the parameter table over its own parameter set."""
