@@ -287,6 +287,15 @@ class Fit:
                 out.append(name)
         return out
 
+    def _rank_note(self) -> str:
+        """What the rank (of the data's sensitivities) leaves: with a prior on every free parameter the
+        priors determine the directions the data do not."""
+        if self.identifiable:
+            return ""
+        if self.problem.priors and all(n in self.problem.priors for n in self.free):
+            return f" from the data; the priors determine the other {len(self.free) - self.rank} direction(s)"
+        return "  ** NOT ALL PARAMETERS IDENTIFIABLE **"
+
     def _prior_lines(self) -> list[str]:
         if not self.problem.priors:
             return []
@@ -318,8 +327,7 @@ class Fit:
             f"    iterations      = {self.iterations}   evaluations = {self.evaluations}",
             f"    time            = {self.seconds:.3f} s (build {self.build_seconds:.3f} s)",
             f"    max equilibrium residual = {self.max_residual:.2e} (N, N m)",
-            f"    rank            = {self.rank} of {len(self.free)}"
-            + ("" if self.identifiable else "  ** NOT ALL PARAMETERS IDENTIFIABLE **"),
+            f"    rank            = {self.rank} of {len(self.free)}" + self._rank_note(),
             f"    noise variance  = {self.noise_source}",
             "[[Parameters]]",
         ]
