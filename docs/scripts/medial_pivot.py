@@ -1,6 +1,6 @@
-"""Issue 21, session 15: is the S192803 translation misfit a pivot in the wrong place?
+"""Is the S192803 translation misfit a pivot in the wrong place? (issue 21)
 
-Two measurements from the calibration (docs/real-experiment.md, "Session 15"):
+Two measurements from the calibration:
 
 1. the lateral and anterior translation residuals regressed on the internal rotation (a rotation
    axis shifted by ``a`` moves the tibial origin by ``a`` per radian): the slope and the RMS left;

@@ -1,6 +1,6 @@
-"""Issue 21, session 16: where the S192803 calibration misses the translations, and what does not fix it.
+"""Where the S192803 calibration misses the translations, and what does not fix it (issue 21).
 
-Measurements (docs/real-experiment.md, "Session 16"), each from the default calibration:
+Measurements, each from the default calibration:
 
 1. the laxity per flexion and load pair, measured and calibrated (``Calibration.laxity``);
 2. the residuals' structure: their RMS left after removing a mean per flexion, per load direction,
@@ -17,9 +17,8 @@ Measurements (docs/real-experiment.md, "Session 16"), each from the default cali
 8. those and the tibial origin (``TibialOrigin``: where the experiment reads its translations).
 
 3-5 need the deposit at ../shared/data/du-s192803 (skipped without it).  ~5 min on 2 cores.
-Every calibration here fits all 25 trials (``keep_outliers=True``: session 16 had no outlier test).
-Since session 17 ``TibialOrigin`` moves the robot's joint loads with the reading point, so 8.
-gives other numbers than session 16's (docs/real-experiment.md "Session 17").
+Every calibration here fits all 25 trials (``keep_outliers=True``).  ``TibialOrigin`` moves the
+robot's joint loads with the reading point.
 
     python docs/scripts/translation_misfit.py
 """
