@@ -4,8 +4,8 @@ Prints (2 cores; seconds, mm, deg):
 - the import of the Abaqus model (``import-abaqus``, needs the deposit at ../shared/data/du-s192803)
   and the knee load with the distance field cached;
 - the prediction of the 25 measured trials with the FE model's own parameters (RMS per coordinate);
-- the calibration (registration + the ligament groups the trials determine, then the robot's load
-  point; noise estimated; trials the outlier test flags set aside): its time and the RMS per
+- the calibration (the MAP estimate: every ligament group with its prior, the registration and the
+  robot's load point; misfit estimated; trials the outlier test flags set aside): its time and the RMS per
   coordinate after it, over the fitted trials and over the loaded ones among them, and with the
   set-aside trials predicted at the calibrated values;
 - the issue's targets beside the figures: RMS <= 1.0 mm and <= 2.5 deg after calibration, import
@@ -16,7 +16,7 @@ Prints (2 cores; seconds, mm, deg):
   with ``--twins N`` each hold-out also on N twins of the experiment (``cross-validate --twins``:
   the error of a model that is exactly right, at the calibration's noise level).
 With ``--pivot-tolerance F`` the calibrations fit only the ligament parameters whose pivot is at
-least F of the largest (``calibrate(pivot_tolerance=F)``; default 0.02); with ``--also-free NAMES``
+least F of the largest (``calibrate(pivot_tolerance=F)``); with ``--also-free NAMES``
 they fit these parameters or effects as well (``calibrate(also_free=...)``, e.g.
 ``PCLal_femoral_attachment,ACLam_femoral_attachment,PCLal_bundles``); with either the table is not
 written; with ``--keep-outliers`` every trial is fitted.  The laxity per flexion (measured,
