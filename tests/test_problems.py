@@ -86,6 +86,9 @@ def test_free_flags_and_bounds_of_the_table_act(tmp_path, capsys):
     (lambda t: t.replace('"ACL.k" = {value = 10000.0, unit = "N", free = true}',
                          '"ACL.k" = {value = 10000.0, unit = "N", bounds = [0, 5000]}'), "outside its bounds"),
     (lambda t: t.replace('"ACL.k" =', '"ACLx.k" ='), "unknown parameter 'ACLx.k'"),
+    (lambda t: t.replace('"ACL.k" = {value = 10000.0,', '"ACL.k" = {value = -1.0,'), "outside the range"),
+    (lambda t: t.replace('"PCL.ref_strain" = {value = -6.0,', '"PCL.ref_strain" = {value = 400.0,'),
+     "PCL.ref_strain: value 400 % outside"),
 ])
 def test_bad_problem_file_is_refused(tmp_path, capsys, edit, needle):
     folder = _copy(tmp_path)

@@ -705,3 +705,27 @@ def test_candidates_are_judged_by_their_held_out_error(s192803):
     assert (best is wider) == (wider.held_out["varus"] < base.held_out["varus"] and wider.converged["varus"][0] == 4)
     lines = crossval.judgement_lines([base, wider])
     assert "fitted RMS" in lines[0] and any(line.strip().startswith("base") for line in lines)
+
+
+def test_import_laxity_does_not_overwrite_its_input(tmp_path, capsys):
+    mat = tmp_path / "laxity.mat"
+    mat.write_bytes(kneenlp.io.resources.resource("datasets", "s192803_laxity.mat").read_bytes())
+    assert main(["import-laxity", str(mat), "--side", "left", "--out", str(mat)]) == 2
+    assert "--out" in capsys.readouterr().err and mat.read_bytes()[:4] == b"MATL"
+
+
+def test_side_warning_needs_three_flexions_and_a_significant_slope(caplog):
+    """Two flexions whose unloaded blocks differ by 10 deg are no evidence of a mirrored side; a
+    steady external rotation over four flexions is."""
+    from kneenlp.io.laxity_mat import _screw_home_note
+
+    words = np.array(["none"] * 6)
+    two = pd.DataFrame({"flexion_deg": [5, 5, 5, 60, 60, 60], "internal_rotation_deg": [0, 1, -1, -10, -9, -11]})
+    with caplog.at_level("WARNING", logger="kneenlp"):
+        _screw_home_note(two, words, "two.csv")
+    assert not caplog.records
+    four = pd.DataFrame({"flexion_deg": [5, 30, 60, 90, 5, 30, 60, 90][:6], "internal_rotation_deg":
+                         [0.0, -5.1, -9.8, -15.2, 0.3, -4.9][:6]})
+    with caplog.at_level("WARNING", logger="kneenlp"):
+        _screw_home_note(four, words, "four.csv")
+    assert any("side right" in r.message for r in caplog.records)

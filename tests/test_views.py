@@ -131,3 +131,19 @@ def test_real_knee_unloaded_views(real_knee, tmp_path):
     png, html = views.knee_view(result, sol.trial.id, tmp_path / "v.png", tmp_path / "v.html")
     _check_png(png)
     _check_html(html)
+
+
+def test_an_empty_legend_is_not_drawn():
+    """No matplotlib warning about a legend without labelled artists (a stray library warning)."""
+    import warnings
+
+    from kneenlp.io.plots import _subplots, legend
+
+    _, ax = _subplots(1, 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        legend(ax)
+    assert ax.get_legend() is None
+    ax.plot([0, 1], [0, 1], label="x")
+    legend(ax)
+    assert ax.get_legend() is not None

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from scipy import stats
 
 from kneenlp.errors import InputError
 from kneenlp.experiment.measured import measured_frame
@@ -211,12 +212,20 @@ def _check_directions(df: pd.DataFrame, words: np.ndarray, nominal: np.ndarray, 
                                  "loads?)", source=src, field=col)
 
 
+#: Flexions closer than this (deg) are one flexion for the side check; its slope's significance level.
+SCREW_HOME_SPACING = 10.0
+SCREW_HOME_P = 0.01
+
+
 def _screw_home_note(df: pd.DataFrame, words: np.ndarray, src: str) -> None:
     flexion = df["flexion_deg"].to_numpy()
     near = np.isin(words, ["none", "anterior", "posterior"])
-    if near.sum() >= 3 and np.ptp(flexion[near]) > 30:
-        slope = np.polyfit(flexion[near], df["internal_rotation_deg"].to_numpy()[near], 1)[0]
-        if slope < -0.02:
+    # only on evidence: at least three flexions apart and a slope the scatter cannot make (a slope
+    # fitted through two flexions' blocks is their difference, whatever its cause)
+    if len(np.unique(np.round(flexion[near] / SCREW_HOME_SPACING))) >= 3 and np.ptp(flexion[near]) > 30:
+        fit = stats.linregress(flexion[near], df["internal_rotation_deg"].to_numpy()[near])
+        slope = fit.slope
+        if slope < -0.02 and fit.pvalue < SCREW_HOME_P:
             log.warning(f"{src}: the tibia rotates externally by {-slope * 60:.1f} deg per 60 deg of flexion in the "
                         "unloaded and drawer trials, the opposite of the screw-home: is the knee's side right (a left "
                         "knee processed as a right one flips internal-external rotation)?")
@@ -226,6 +235,8 @@ def import_laxity(path: str | Path, out: str | Path, side: str) -> pd.DataFrame:
     """Write the measured-data CSV of a MATLAB laxity file (atomically); returns the table."""
     from kneenlp.io.atomic import write_csv_atomic
 
+    if Path(out).resolve() == Path(path).resolve():
+        raise InputError("is the MATLAB file itself: give another path for the CSV", source=str(out), field="--out")
     df = laxity_frame(path, side)
     write_csv_atomic(df, out, index=False, float_format="%.6g")
     return df

@@ -56,7 +56,7 @@ def laxity_curves(table: pd.DataFrame, path: str | Path, title: str = "",
         ax.grid(alpha=0.3)
         ax.axhline(0, color="k", lw=0.5)
         ax.axvline(0, color="k", lw=0.5)
-    axes[0].legend(fontsize=8)
+    legend(axes[0], fontsize=8)
     if title:
         fig.suptitle(title)
     return _save(fig, path)
@@ -81,7 +81,7 @@ def ligament_forces(table: pd.DataFrame, ligaments: list[str], path: str | Path,
                    color=f"C{j}")
         ax.set_ylabel(label)
         ax.grid(axis="y", alpha=0.3)
-    axes[0, 0].legend()
+    legend(axes[0, 0])
     if recruitment is not None:
         ax = axes[1, 0]
         ax.axhline(0.0, color="k", lw=0.6)
@@ -136,7 +136,7 @@ def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str
             ax.set_ylabel(f"{kind.replace('_', ' ')} [{unit}]")
             ax.grid(alpha=0.3)
     if ligs:
-        axes[0, 0].legend(fontsize=7)
+        legend(axes[0, 0], fontsize=7)
     if title:
         fig.suptitle(title)
     return _save(fig, path)
@@ -197,10 +197,16 @@ def measured_vs_predicted(table: pd.DataFrame, path: str | Path, title: str = ""
         ax.set_xlabel("flexion [deg]")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        legend(ax, fontsize=7)
     if title:
         fig.suptitle(title)
     return _save(fig, path)
+
+
+def legend(ax, **kwargs) -> None:
+    """``ax.legend`` where the axes have labelled artists (matplotlib warns on an empty legend)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(**kwargs)
 
 
 def _subplots(*args, **kwargs):

@@ -58,12 +58,14 @@ def check_set_names(params, info: dict[str, Parameter]) -> None:
     for name in dict.fromkeys([*params.names(), *params.priors, *params.bounds, *params.free]):
         if name not in info:
             raise unknown_name("parameter", name, list(info), source=src).with_context(field=name)
-        if name in params.bounds and name in params.values:
+        if name in params.values:  # every way of giving a value passes here: file, --parameters, calibration
             lo, hi = info[name].bounds
             if not lo <= params.values[name] <= hi:
                 f, unit = info[name].to_user, info[name].unit
-                raise InputError(f"value {params.values[name] * f:g} {unit} outside its bounds [{lo * f:g}, "
-                                 f"{hi * f:g}] {unit}", source=src, field=f"values.{name}.bounds")
+                where = "its bounds" if name in params.bounds else f"the range of a {info[name].meta.text}"
+                raise InputError(f"value {params.values[name] * f:g} {unit} outside {where} [{lo * f:g}, "
+                                 f"{hi * f:g}] {unit}", source=src,
+                                 field=f"values.{name}" + (".bounds" if name in params.bounds else ""))
         unit = params.meta.get(name)
         if unit is not None and unit not in dict(info[name].meta.file_units):
             raise InputError(f"unit {unit!r} does not suit {name} ({info[name].meta.text}); use one of "

@@ -16,6 +16,7 @@ from matplotlib.figure import Figure
 from kneenlp.errors import InputError
 from kneenlp.experiment.protocol import Trial
 from kneenlp.io.atomic import atomic_target
+from kneenlp.io.plots import legend
 from kneenlp.io.views.maps import PRESSURE_CMAP, pressure_map, save_figure
 from kneenlp.io.views.scene import MM, MPA, Scene, build_scene, decimate
 from kneenlp.simulation import SimulationResult
@@ -136,7 +137,7 @@ def _view_png(scene: Scene, path: Path) -> Path:
         ax.set_title(label, fontsize=10)
         ax.tick_params(labelsize=7)
         if scene.cops and k == 0:
-            ax.legend(loc="upper left", fontsize=8)
+            legend(ax, loc="upper left", fontsize=8)
     fig.colorbar(ScalarMappable(norm=pnorm, cmap=PRESSURE_CMAP), ax=axes, label="pressure (MPa)",
                  shrink=0.6, location="right")
     fmap = ScalarMappable(norm=fnorm, cmap=ListedColormap(fcmap(np.linspace(0.25, 1, 256))))
