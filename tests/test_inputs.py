@@ -531,3 +531,17 @@ def test_landmarks_of_the_users_own_and_the_hip_in_metres(knee_copy):
     with pytest.raises(InputError, match=re.escape("a point in m with units = 'mm'?")) as err:
         Knee.load(knee_copy)
     assert err.value.field == "landmarks.hip_center"
+
+
+def test_api_values_pass_the_range_check_of_file_values():
+    """A value given through the API (simulate, predict, a fit's start) passes the same range check
+    as a parameter file's: a negative stiffness or a NaN is an InputError naming the parameter."""
+    import math
+
+    import kneenlp
+    from kneenlp.errors import InputError
+
+    knee = kneenlp.Knee.named("synthetic")
+    for value in (-5.0, math.nan, 2e5):
+        with pytest.raises(InputError, match=r"ACL\.k = .* outside the range of a stiffness"):
+            kneenlp.simulate(knee, "set1", parameters={"ACL.k": value})

@@ -74,6 +74,11 @@ def check_set_names(params, info: dict[str, Parameter]) -> None:
             info[name].check_prior(params.priors[name], src, f"values.{name}.prior")
 
 
+#: How far (in units of a parameter's scale) a value given to the model may lie beyond its bounds:
+#: the bound tolerance of the solvers that produce values (IPOPT relaxes bounds by 1e-8 relative).
+BOUND_SLACK = 1e-6
+
+
 class KneeModel:
     """Symbolic equilibrium model of a :class:`~kneenlp.model.knee.Knee` (built once, reused).
 
@@ -382,8 +387,14 @@ class KneeModel:
 
     def _theta_of(self, params: ParameterSet, values: dict[str, float] | None = None) -> np.ndarray:
         values = dict(values or {})
-        for n in values:
-            self.index(n)
+        for n, v in values.items():  # the API's values pass the range check a file's values pass (a
+            # solver's own bound tolerance, IPOPT's relaxation of 1e-8, stays inside BOUND_SLACK)
+            lo, hi = self.parameter(n).bounds
+            slack = BOUND_SLACK * self.parameter(n).scale
+            if not lo - slack <= v <= hi + slack:
+                p = self.parameter(n)
+                raise InputError(f"{n} = {v * p.to_user:g} {p.unit} outside the range of a {p.meta.text} "
+                                 f"[{lo * p.to_user:g}, {hi * p.to_user:g}] {p.unit}", field=n)
         out = []
         for p in self.parameters:
             if p.name in values:
