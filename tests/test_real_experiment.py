@@ -215,6 +215,7 @@ def _mat(tmp_path: Path, name: str, **entry_overrides) -> Path:
     ("newton_mm", "N mm"),
     ("far", "beyond any knee's reach"),
     ("no_field", "has no field tf_loads_step2"),
+    ("flexion_150", "flexion 150 deg outside"),  # the CSV reader's check, made before writing
 ])
 def test_import_laxity_bad_input(tmp_path, capsys, case, needle):
     raw = scipy.io.loadmat(MAT, squeeze_me=True, struct_as_record=False)["processed_laxity_trial"][0]
@@ -232,6 +233,10 @@ def test_import_laxity_bad_input(tmp_path, capsys, case, needle):
         load[:3] *= 1000
         load[0] = 675.8  # as the example Abaqus file gives it, N mm
         path = _mat(tmp_path, "x.mat", tf_loads_step2=load)
+    elif case == "flexion_150":
+        pose = np.array(raw.tf_kin_step2_GS, float)
+        pose[0] = 150.0
+        path = _mat(tmp_path, "x.mat", tf_kin_step2_GS=pose)
     elif case == "far":
         pose = np.array(raw.tf_kin_step2_GS, float)
         pose[4] = 450.0

@@ -255,7 +255,7 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
             raise InputError(f"expected one of left, right for every row, got {', '.join(sorted(sides))}",
                              source=src, field="side")
         side = sides.pop() if sides else None
-    _check_plausible(df, src)
+    check_plausible(df, src)
     trials = []
     for i, row in df.iterrows():
         loads = {c: float(row[col]) for c, col in zip(ALL_LOAD_COMPONENTS, load_columns(extra=True), strict=True)
@@ -276,8 +276,10 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     return data
 
 
-def _check_plausible(df: pd.DataFrame, src: str) -> None:
-    """Ranges and unit plausibility of a measured-data table (see module docstring)."""
+def check_plausible(df: pd.DataFrame, src: str) -> None:
+    """Ranges and unit plausibility of a measured-data table (see module docstring): the one check
+    of a table read from CSV and of one made by an importer (``import-laxity``), so an importer never
+    writes a file the reader refuses."""
     lo, hi = FLEXION_RANGE
     flex = df["flexion_deg"].to_numpy()
     bad = (flex < lo) | (flex > hi)

@@ -46,7 +46,7 @@ import pandas as pd
 from scipy import stats
 
 from kneenlp.errors import InputError
-from kneenlp.experiment.measured import measured_frame
+from kneenlp.experiment.measured import check_plausible, measured_frame
 from kneenlp.experiment.protocol import DIRECTION_WORDS, MAX_FORCE, MAX_MOMENT, Trial, dominant_direction
 from kneenlp.model.kinematics import tibial_pose
 
@@ -194,6 +194,7 @@ def laxity_frame(path: str | Path, side: str) -> pd.DataFrame:
     words = np.array([t.dominant for t in trials])
     nominal = np.array([e.nominal_flexion if e.nominal_flexion is not None else 10 * round(t.flexion_deg / 10)
                         for e, t in zip(entries, trials, strict=True)])
+    check_plausible(df, str(path))  # what the CSV reader checks, before anything is written
     _check_directions(df, words, nominal, str(path))
     _screw_home_note(df, words, str(path))
     return df
