@@ -590,7 +590,7 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
     from kneenlp.inference.calibrate import calibrate
     from kneenlp.inference.crossval import folds, hold_out, twin
 
-    # the least-squares calibration: the MAP's varus hold-out loses one trial's equilibrium (docs/status.md)
+    # the least-squares calibration, whose twin the oracle below was measured on
     args = ["cross-validate", str(CSV), "--knee", "s192803", "--hold-out", "varus", "--twins", "1", "--out",
             str(tmp_path / "cv"), "--priors", "none", "--json"]
     code = main(args)
