@@ -734,3 +734,20 @@ def test_side_warning_needs_three_flexions_and_a_significant_slope(caplog):
     with caplog.at_level("WARNING", logger="kneenlp"):
         _screw_home_note(four, words, "four.csv")
     assert any("side right" in r.message for r in caplog.records)
+
+
+@pytest.mark.slow
+def test_hold_outs_in_two_processes_are_the_sequential_ones(s192803):
+    """cross_validate(workers=2) forks two processes that inherit the model and send their hold-outs
+    back without it: the same errors, expectations and fitted parameters as one process."""
+    from kneenlp.inference import crossval
+
+    model, data = KneeModel.of(s192803), read_measured(CSV)
+    one = crossval.cross_validate(model, data, ["varus", "anterior"])
+    two = crossval.cross_validate(model, data, ["varus", "anterior"], workers=2)
+    assert [r.name for r in two] == [r.name for r in one] and len(one) == 2
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a.prediction.errors_user, b.prediction.errors_user)
+        np.testing.assert_array_equal(a.expected, b.expected)
+        assert a.calibration.fit.params == b.calibration.fit.params
+        assert b.calibration.fit.problem.model is model

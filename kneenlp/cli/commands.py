@@ -36,7 +36,8 @@ def cmd_diagnose(args) -> int:
         fit = base_fit(knee, data, args.noise, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear")
     n = (HELD_OUT_CANDIDATES if args.held_out is None else args.held_out) if real else 0
-    judged = crossval.judge(KneeModel.of(knee), data, [[s.effect] for s in d.ranking[:n]], seed=args.seed) if n else []
+    judged = crossval.judge(KneeModel.of(knee), data, [[s.effect] for s in d.ranking[:n]], seed=args.seed,
+                            workers=hold_out_workers(args)) if n else []
     extra = {"held_out": [j.record() for j in judged],
              "held_out_recommended": (best.name if (best := crossval.judged_best(judged)) else None)} if judged else {}
     if args.out:
@@ -104,6 +105,13 @@ def prior_options(args) -> dict:
     return {k: v for k, v in (("priors", args.priors), ("prior_weight", args.prior_weight)) if v is not None}
 
 
+def hold_out_workers(args) -> int:
+    """``--workers``, by default every core: the processes the hold-outs' calibrations share."""
+    import os
+
+    return args.workers or os.cpu_count() or 1
+
+
 def held_out_judgements(knee, args) -> list:
     """``identify --held-out``: the calibration (without ``--also-free``) and, given, with it, judged by
     their held-out errors (:func:`kneenlp.inference.crossval.judge`)."""
@@ -113,7 +121,7 @@ def held_out_judgements(knee, args) -> list:
     options = {k: v for k, v in (("pivot_tolerance", args.pivot_tolerance), ("keep_outliers", args.keep_outliers))
                if v} | prior_options(args)
     return crossval.judge(KneeModel.of(knee), args.measured, [args.also_free] if args.also_free else [],
-                          noise=args.noise, seed=args.seed, **options)
+                          noise=args.noise, seed=args.seed, workers=hold_out_workers(args), **options)
 
 
 def cmd_identify(args) -> int:
@@ -379,7 +387,8 @@ def cmd_cross_validate(args) -> int:
 
     model = KneeModel.of(knee_from_args(args))
     store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
-    results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, store, seed=args.seed,
+    results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, store,
+                                      workers=hold_out_workers(args), seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
                                       keep_outliers=args.keep_outliers, **prior_options(args))
     table = crossval.table(results)

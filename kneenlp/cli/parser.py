@@ -26,6 +26,11 @@ def _data_args(p: argparse.ArgumentParser, help: str) -> None:
                         "hold-outs; e.g. problems/s192803): instead of DATA and --knee; options given override it")
 
 
+def _workers_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", type=opt.integer(1, opt.MAX_WORKERS), default=None,
+                   help="processes the hold-outs' calibrations share (default: all cores)")
+
+
 def _prior_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--priors", choices=["default", "none"], default=None,
                    help="default: the MAP estimate, every free parameter with its prior (from the parameter file "
@@ -65,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--held-out", type=opt.integer(0, opt.MAX_CASES), default=None, metavar="N",
                    help="real experiments: judge the N best-ranked candidates by their held-out error (each "
                         "calibrated beside the default and cross-validated: about a minute each; default 2, 0 skips)")
+    _workers_arg(p)
     p.add_argument("--simulated-limits", action="store_true",
                    help="detection limits from simulated noise-free data instead of the linearised test "
                         "(a few seconds per candidate parameter; exact for nonlinear effects)")
@@ -107,6 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="real experiments: judge the calibration by what it predicts: cross-validated (each load "
                         "direction and the highest flexion held out) beside its fit, and with --also-free before "
                         "and after (about a minute per calibration)")
+    _workers_arg(p)
     p.add_argument("--profile", type=opt.names, default=None, metavar="NAMES",
                    help="profile-likelihood intervals (95 %%, bounds respected) of these comma-separated free "
                         "parameters, beside the Laplace standard errors")
@@ -225,6 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "every trial as the knee, its predictions plus noise at the calibration's level (seeded "
                         "by --seed); the error a model that is exactly right would have (default 0); with --out "
                         "each draw is written to OUT/twins as it finishes and a rerun resumes from there")
+    _workers_arg(p)
     p.add_argument("--out", help="write cross_validation.csv and each hold-out's predicted_<name>.csv here")
     p.add_argument("--json", action="store_true", help="print JSON: one row per hold-out (RMS in mm, deg)")
     p.set_defaults(validate=True, out_kind="dir")

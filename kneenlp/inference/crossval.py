@@ -169,7 +169,7 @@ class Judgement:
 
 
 def judge(model: KneeModel, data: MeasuredData, candidates: list[list[str]], which: list[str] | None = None,
-          **calibrate_options) -> list[Judgement]:
+          workers: int = 1, **calibrate_options) -> list[Judgement]:
     """The base calibration and one with each candidate (parameters or effects fitted beside it,
     ``also_free``) judged by what they predict: each calibrated on all trials (the fitted RMS) and
     cross-validated over the hold-outs (:func:`cross_validate`).  The base first."""
@@ -179,7 +179,7 @@ def judge(model: KneeModel, data: MeasuredData, candidates: list[list[str]], whi
         if extra:
             options["also_free"] = [*(options.get("also_free") or []), *extra]
         cal = calibrate(model, data, **options)
-        results = cross_validate(model, data, which, **options)
+        results = cross_validate(model, data, which, workers=workers, **options)
         out.append(Judgement(" + ".join(extra) or "base", tuple(extra), cal.rms_after, len(cal.fit.free),
                              {r.name: r.normalised() for r in results},
                              {r.name: (int(r.prediction.converged.sum()), int(r.held.sum())) for r in results}))
@@ -278,15 +278,17 @@ def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str =
 
 
 def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None = None,
-                   reference_draws: int = 0, store: Path | None = None, **calibrate_options) -> list[HeldOut]:
+                   reference_draws: int = 0, store: Path | None = None, workers: int = 1,
+                   **calibrate_options) -> list[HeldOut]:
     """Every hold-out of :func:`folds` (or those named in ``which``), in order; with
     ``reference_draws`` N, each also on N twins of the experiment (:func:`twin_draw`), each draw
-    written to ``store`` as it finishes and read back from there on a rerun (:class:`TwinStore`)."""
+    written to ``store`` as it finishes and read back from there on a rerun (:class:`TwinStore`).
+    ``workers`` > 1 calibrates the hold-outs in that many forked processes (:func:`hold_outs`)."""
     chosen = _chosen(data, which)
     names = [n for n, _ in chosen]
     # the store is checked before the first calibration: a store of another run stops at once
     saved = TwinStore.open(store, model, data, names, calibrate_options) if store and reference_draws else None
-    results = [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
+    results = hold_outs(model, data, chosen, workers, **calibrate_options)
     fit = None
     for draw in range(reference_draws):
         errors = saved.load(draw) if saved else None
@@ -300,6 +302,62 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
             if r.name in errors:
                 r.reference.append(errors[r.name])
     return results
+
+
+def hold_outs(model: KneeModel, data: MeasuredData, chosen: list[tuple[str, np.ndarray]], workers: int = 1,
+              **calibrate_options) -> list[HeldOut]:
+    """:func:`hold_out` of every ``chosen`` (name, mask), in order.  With ``workers`` > 1 (Linux:
+    fork) the hold-outs are shared out over that many processes, each inheriting the model (its
+    compiled functions are not picklable) and sending its results back without it; the results are
+    the sequential ones (every calibration is deterministic and independent of the others)."""
+    import sys
+
+    if workers <= 1 or len(chosen) <= 1 or not sys.platform.startswith("linux"):
+        return [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
+    from multiprocessing import get_context
+
+    ctx = get_context("fork")
+    parts = [chosen[i::workers] for i in range(min(workers, len(chosen)))]
+    running = []
+    try:
+        for part in parts:
+            receive, send = ctx.Pipe(duplex=False)
+            proc = ctx.Process(target=_hold_out_worker, args=(model, data, part, calibrate_options, send),
+                               daemon=True)
+            proc.start()
+            send.close()
+            running.append((proc, receive))
+        done: dict[str, HeldOut] = {}
+        for proc, receive in running:
+            status, payload = receive.recv()
+            proc.join()
+            if status == "error":
+                raise payload
+            for r in payload:
+                r.calibration.fit.problem.model = model  # sent without it
+                done[r.name] = r
+    finally:
+        for proc, _ in running:
+            if proc.is_alive():
+                proc.terminate()
+    return [done[name] for name, _ in chosen]
+
+
+def _hold_out_worker(model: KneeModel, data: MeasuredData, part: list, options: dict, send) -> None:
+    """A forked process's hold-outs, sent back as ("ok", results without the model) or ("error", exc)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops its workers
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        out = [hold_out(model, data, mask, name, **options) for name, mask in part]
+        for r in out:
+            r.calibration.fit.problem.model = None
+        send.send(("ok", out))
+    except Exception as exc:  # sent to the parent, which raises it
+        send.send(("error", exc))
+    finally:
+        send.close()
 
 
 def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[str],
