@@ -751,3 +751,19 @@ def test_hold_outs_in_two_processes_are_the_sequential_ones(s192803):
         np.testing.assert_array_equal(a.expected, b.expected)
         assert a.calibration.fit.params == b.calibration.fit.params
         assert b.calibration.fit.problem.model is model
+
+
+def test_what_too_few_trials_cannot_determine_is_not_reported_as_a_result(s192803, capsys):
+    """A hold-out calibrated on one trial has no misfit to estimate: its expected error and p are
+    "not determined", never an expected RMS of 1e-13 and p = 0; data with every trial unloaded are
+    refused (nothing there determines a ligament)."""
+    from kneenlp.inference import crossval
+
+    model, data = KneeModel.of(s192803), read_measured(CSV)
+    keep_one = np.arange(len(data)) != 0
+    r = crossval.hold_out(model, data, keep_one, "all but the first")
+    assert np.isnan(r.expected).all() and np.isnan(r.p_value())
+    assert "n.d." in crossval.report([r])
+    unloaded = data.subset(np.array([t.dominant == "none" for t in data.trials]))
+    with pytest.raises(kneenlp.InputError, match="unloaded"):
+        crossval.calibrate(model, unloaded)

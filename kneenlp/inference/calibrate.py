@@ -323,6 +323,9 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
     if free is not None and also_free:
         raise InputError("adds to what the calibration chooses, --free names it all: give one", field="--also-free")
+    if all(t.dominant == "none" for t in data.trials):
+        raise InputError(f"every trial of {data.source or 'the data'} is unloaded: laxity under load is what "
+                         "determines the ligaments", field="data")
     with_priors = priors not in (None, "none")
     estimate = prior_weight == "estimate"
     extra = also_free_names(model, also_free or [])
@@ -534,7 +537,11 @@ def posterior(fit: Fit) -> Posterior:
 
 def noise_per_observation(fit: Fit) -> np.ndarray:
     """The noise variance of each observation of ``fit`` (T x 5, mm^2 or deg^2), per coordinate
-    from the fit's residuals (sum of squares over ``T - p / 5``)."""
+    from the fit's residuals (sum of squares over ``T - p / 5``); NaN, not determined, when the
+    trials are too few for that (``T - p / 5 < 1``: the residuals of a fit with as many parameters
+    as observations say nothing of the misfit, and a zero would promise exact predictions)."""
     residuals = fit.data.q_user - fit.predicted_user
-    dof = max(len(residuals) - len(fit.free) / 5, 1.0)
+    dof = len(residuals) - len(fit.free) / 5
+    if dof < 1:
+        return np.full(residuals.shape, np.nan)
     return np.broadcast_to(np.sum(residuals**2, axis=0) / dof, residuals.shape).copy()

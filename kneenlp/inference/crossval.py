@@ -443,6 +443,13 @@ def table(results: list[HeldOut]) -> pd.DataFrame:
     return pd.DataFrame([r.row() for r in results])
 
 
+def _number(value: float, spec: str) -> str:
+    """``value`` formatted, or "n.d." (not determined: a calibration on too few trials to estimate
+    its misfit) right-aligned in the same width."""
+    text = format(value, spec)
+    return text if np.isfinite(value) else "n.d.".rjust(len(text))
+
+
 def report(results: list[HeldOut]) -> str:
     """The hold-outs as a text table (mm, deg): each error and, in brackets, the calibration's
     expected error (module docstring); with twins, a second table of each error beside the twins'."""
@@ -454,10 +461,10 @@ def report(results: list[HeldOut]) -> str:
 
     def rows(second, p):
         for r in results:
-            cells = "  ".join(f"{v:5.2f} ({e:5.2f})" for v, e in zip(r.rms().values(), second(r).values(),
-                                                                      strict=True))
+            cells = "  ".join(f"{v:5.2f} ({_number(e, '5.2f')})" for v, e in zip(r.rms().values(),
+                                                                                  second(r).values(), strict=True))
             n = f"{int(r.prediction.converged.sum())}/{int(r.held.sum())}"
-            yield f"{r.name:<{width}}  {n:>6}  {cells}  {p(r):7.2g}"
+            yield f"{r.name:<{width}}  {n:>6}  {cells}  {_number(p(r), '7.2g')}"
 
     header = [f"{'held out':<{width}}  trials  {head}  {'p':>7}", f"{'':<{width}}          {units}"]
     lines = ["Held-out prediction: RMS of measured minus predicted on trials the calibration did not see",
