@@ -767,3 +767,22 @@ def test_what_too_few_trials_cannot_determine_is_not_reported_as_a_result(s19280
     unloaded = data.subset(np.array([t.dominant == "none" for t in data.trials]))
     with pytest.raises(kneenlp.InputError, match="unloaded"):
         crossval.calibrate(model, unloaded)
+
+
+def test_frames_are_exact_or_refused():
+    """import-abaqus takes a Grood-Suntay frame whose axes are orthogonal to rounding; a skew beyond
+    1 deg, an axis point on the origin or a node without three coordinates is refused in one line
+    (orthonormalising a 20 deg skew silently moved the reference internal rotation by 10 deg)."""
+    from kneenlp.io.import_abaqus import _frame
+
+    def frame(ap=(1.0, 0.0, 0.0), si=(0.0, 1.0, 0.0), ml=(0.0, 0.0, 1.0), origin=(0.0, 0.0, 0.0)):
+        return {1980001: np.array(origin), 1980002: np.array(ml), 1980003: np.array(ap), 1980004: np.array(si)}
+
+    rot, o, off = _frame(frame(ap=(1.0, 1e-4, 0.0)), 1980000, "f.inp")
+    assert off < 0.01 and np.allclose(rot @ rot.T, np.eye(3)) and not o.any()
+    skew = np.radians(20)
+    for points, needle in ((frame(ap=(np.cos(skew), np.sin(skew), 0.0)), "from orthogonal"),
+                           (frame(si=(0.0, 0.0, 0.0)), "is the origin"),
+                           (frame(ml=(0.0, 1.0)), "2 coordinates")):
+        with pytest.raises(kneenlp.InputError, match=needle):
+            _frame(points, 1980000, "f.inp")

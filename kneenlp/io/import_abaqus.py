@@ -147,6 +147,11 @@ class AbaqusKnee:
     notes: list[str] = field(default_factory=list)
 
 
+#: Largest angle (deg) a frame's axes may be from orthogonal: rounding in the file, made exact; more
+#: is refused (orthonormalising a 20 deg skew moved S192803's reference internal rotation by 10 deg).
+MAX_FRAME_SKEW = 1.0
+
+
 def _frame(points: dict[int, np.ndarray], base: int, source: str) -> tuple[np.ndarray, np.ndarray, float]:
     """Rotation (rows: anterior-posterior, superior-inferior, medial-lateral axes) and origin of a
     Grood-Suntay frame given by its origin (``base + 1``) and axis points (``+2`` ML, ``+3`` AP,
@@ -155,15 +160,27 @@ def _frame(points: dict[int, np.ndarray], base: int, source: str) -> tuple[np.nd
     missing = [n for n in need if n not in points]
     if missing:
         raise InputError(f"frame node {missing[0]} missing", source=source, field="*NODE")
+    for n in need:
+        if np.shape(points[n]) != (3,):
+            raise InputError(f"frame node {n} has {np.size(points[n])} coordinates, expected 3", source=source,
+                             field="*NODE")
     o = points[need[0]]
     raw = np.vstack([points[need[2]] - o, points[need[3]] - o, points[need[1]] - o])
-    raw = raw / np.linalg.norm(raw, axis=1, keepdims=True)
+    length = np.linalg.norm(raw, axis=1, keepdims=True)
+    for n, size in zip((need[2], need[3], need[1]), length.ravel(), strict=True):
+        if not size > 1e-9:
+            raise InputError(f"frame {base}: axis point {n} is the origin {need[0]}: no axis", source=source,
+                             field="*NODE")
+    raw = raw / length
     u, _, vt = np.linalg.svd(raw)
     rot = u @ vt
     if np.linalg.det(rot) < 0:
         raise InputError(f"frame {base}: the ML, AP and SI axes are not right-handed", source=source,
                          field="*NODE")
     off = float(np.degrees(np.max(np.arccos(np.clip(np.sum(rot * raw, axis=1), -1, 1)))))
+    if off > MAX_FRAME_SKEW:
+        raise InputError(f"frame {base}: its axes are {off:.1f} deg from orthogonal (at most {MAX_FRAME_SKEW:g} "
+                         "deg is taken as rounding): which axis is meant is not clear", source=source, field="*NODE")
     return rot, o, off
 
 
