@@ -95,3 +95,10 @@ def deferred() -> Iterator[None]:
     finally:
         handler.deferring -= 1
     check()
+
+
+def as_worker() -> None:
+    """In a worker process: leave Ctrl-C and SIGTERM to the parent, SIGINT ignored (the parent stops
+    its workers), SIGTERM back to its default (a handler inherited by fork would keep them alive)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)

@@ -299,8 +299,10 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
               prior_weight: float | str = PRIOR_WEIGHT, weighted: bool = False,
               with_effects: list[str] | tuple = (), start: dict[str, float] | None = None, solver: str = "ipopt",
               solver_options: dict | None = None, multistart: int = 1, threads: int = 2) -> Calibration:
-    """Fit ``free`` to the real experiment ``data`` by reduced-space Gauss-Newton from the knee's
-    values (or the probe), the simultaneous NLP if that fails.
+    """Fit ``free`` to the real experiment ``data``: reduced-space Gauss-Newton from the knee's
+    values (or the probe), then the simultaneous NLP from there (:func:`polished`); the NLP with the
+    scatter strategy's rescue where the reduced fit fails.  ``free`` defaults to the parameter
+    table's ``free = true`` entries, else to the calibration's choice below.
 
     ``priors`` (``"default"``, ``"none"`` or a dict of :class:`~kneenlp.model.priors.Prior` by name,
     as :func:`~kneenlp.experiment.problem.resolve_priors`): with priors the fit is the MAP estimate
@@ -332,8 +334,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     before = predict(model, data)
     fixed: list[str] = []
     theta, engaged = engaged_probe(model, data, model.theta())
-    declared = [n for n in model.parameter_names if model.knee.parameters.free.get(n)]
-    if free is None and declared:  # the parameter table names what to fit (a problem file's free = true)
+    declared = declared_free(model, [])  # the parameter table's free = true entries, if any
+    if free is None and declared:
         free = declared
     chosen = free is None  # the calibration chooses what to fit (a user's --free is kept as given)
     if chosen and with_priors and pivot_tolerance is None:
@@ -348,8 +350,9 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         free = [*free, LOAD_POINT]
     if chosen:  # less what the parameter table declares fixed (free = false); in the model's order, as
         # a parameter table's (the fit's path, and so its local minimum, depends on the order)
-        fixed += [n for n in free if n in default_free(model) and not declared_free(model, [n])]
-        free = sorted(declared_free(model, free), key=model.index)
+        kept = declared_free(model, free)
+        fixed += [n for n in free if n not in kept]
+        free = sorted(kept, key=model.index)
     if with_priors and engaged and isinstance(priors, str):
         priors = engaged_priors(model, theta, engaged, free)
     extra = [n for n in extra if n not in free]
@@ -397,7 +400,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
                        predict(model, data.subset(aside), fit.params) if outliers else None)
 
 
-#: IPOPT iterations of the simultaneous NLP from a reduced-space fit (S192803: 39).
+#: IPOPT iterations of the simultaneous NLP from a reduced-space fit (S192803: 52).
 POLISH_ITER = 150
 #: Relative objective by which the NLP may end above the reduced-space fit it started at and still
 #: be taken (its constraints hold to 1e-6 N, the reduced fit's poses to the forward solver's tolerance).
@@ -409,9 +412,11 @@ def polished(fit: Fit, threads: int = 2) -> Fit:
     started at the reduced-space ``fit``: the calibration's solver.  The reduced fit is its
     globalisation (every iterate at equilibrium, so it cannot wander off from the knee's values), the
     NLP its convergence to a KKT point: the reduced fit stops within the mesh contact's cost noise, at
-    a point that depends on the order of its unknowns (S192803: MAP objective 553.79, the NLP from
-    there 553.08 in 39 iterations, 3.9 s).  The reduced fit is kept, and the message says so, when
-    the NLP fails or ends above it."""
+    a point that depends on the order of its unknowns.  The NLP starts at the reduced fit's poses: from
+    the unloaded state some trials reach other equilibria than its continuation followed, and IPOPT
+    ends in another minimum.  S192803 (benchmarks/bench_compare_real.py): MAP objective 561.76
+    reduced, 552.94 after 52 IPOPT iterations (1.4 s).  The reduced fit is kept, and the message says
+    so, when the NLP fails or ends above it."""
     nlp = solve_simultaneous(fit.problem, fit.params, "ipopt", {"ipopt": {"max_iter": POLISH_ITER}}, threads,
                              q0=fit.q_pred)
     start = f"reduced-space Gauss-Newton ({fit.iterations} evaluations, MAP objective {fit.map_objective:.6g})"

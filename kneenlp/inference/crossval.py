@@ -345,10 +345,9 @@ def hold_outs(model: KneeModel, data: MeasuredData, chosen: list[tuple[str, np.n
 
 def _hold_out_worker(model: KneeModel, data: MeasuredData, part: list, options: dict, send) -> None:
     """A forked process's hold-outs, sent back as ("ok", results without the model) or ("error", exc)."""
-    import signal
+    from kneenlp import interrupts
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops its workers
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    interrupts.as_worker()
     try:
         out = [hold_out(model, data, mask, name, **options) for name, mask in part]
         for r in out:

@@ -103,7 +103,7 @@ def profile(fit: Fit, names: list[str], level: float = LEVEL) -> list[ProfileInt
         if not centre.success:
             centre = dataclasses.replace(fit, problem=problem)  # the fit's own point as the centre
     threshold = float(stats.chi2.ppf(level, 1))
-    base = centre.map_objective / s2 if fit.problem.priors else centre.objective / s2
+    base = (centre.objective + problem.prior_objective(centre.theta)) / s2  # P at the centre, priors weighed at s2
     return [_interval(centre, problem, name, base, s2, threshold, level) for name in names]
 
 

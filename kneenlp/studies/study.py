@@ -20,7 +20,6 @@ import json
 import logging
 import os
 import re
-import signal
 import sys
 import time
 import zlib
@@ -127,13 +126,6 @@ def _worker_sample(spec: StudySpec, set_name: str, index: int) -> dict:
 
 def _run_sample_args(args: tuple) -> dict:
     return _worker_sample(*args)
-
-
-def _worker_init() -> None:
-    """Worker processes leave Ctrl-C and SIGTERM to the parent: SIGINT ignored (the parent stops
-    them), SIGTERM back to its default (a handler inherited by fork would keep them alive)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 @dataclass
@@ -298,7 +290,7 @@ def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, dask) -
     # fork: works from scripts and notebooks without a __main__ guard; the parent holds no CasADi
     # threads at this point (thread maps join their threads after every evaluation)
     ctx = get_context("fork") if sys.platform.startswith("linux") else get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=interrupts.as_worker)
     try:
         futures = [pool.submit(_run_sample_args, (spec, s, i)) for s, i in todo]
         for fut in as_completed(futures):
