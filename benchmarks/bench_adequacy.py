@@ -4,7 +4,7 @@ Generates its own datasets on the synthetic knee (``--knee`` for another) and di
 
 * ``clean``: no effect, declared noise (false-alarm rate: any outcome other than ``adequate``);
 * ``hidden``: one library effect at ``factor`` times its detection limit for the protocol (the
-  simulated limit, :func:`~kneenlp.inference.detection.simulated_limits`; flagged, named = the
+  simulated limit, :func:`~kneenlp.adequacy.detection.simulated_limits`; flagged, named = the
   verdict's named candidate frees the moved parameter, e.g. ``registration`` or
   ``registration_anterior_translation`` for an anterior bias; top-1 = first of the ranking;
   recommendation correct / wrong; truth among the rivals of an ambiguous verdict);
@@ -31,14 +31,14 @@ from pathlib import Path
 import numpy as np
 
 import kneenlp
-import kneenlp.errors
+import kneenlp.base.errors
+from kneenlp.adequacy.basefit import base_fit
+from kneenlp.adequacy.candidates import base_projection, effect_sensitivity
+from kneenlp.adequacy.detection import detection_limits, noncentrality_needed, simulated_limits
+from kneenlp.adequacy.diagnosis import along_the_ligament, diagnose
+from kneenlp.adequacy.verdict import ALPHA
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.adequacy import along_the_ligament, diagnose
-from kneenlp.inference.basefit import base_fit
-from kneenlp.inference.candidates import base_projection, effect_sensitivity
-from kneenlp.inference.detection import detection_limits, noncentrality_needed, simulated_limits
-from kneenlp.inference.verdict import ALPHA
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import SHIFT_AXES
 
 NOISE = "uniform:0.5"
@@ -64,7 +64,7 @@ def protocol_for(name: str, knee, out: Path):
         return Protocol.load(name)
     path = out / "designed.toml"
     if not path.exists():
-        from kneenlp.inference.design import candidate_pool, default_flexions, design, write_protocol
+        from kneenlp.design.optimal import candidate_pool, default_flexions, design, write_protocol
 
         write_protocol(design(knee, 16, "A", pool=candidate_pool(default_flexions(knee)), robust=1, seed=0), path)
     return Protocol.load(path)
@@ -259,7 +259,7 @@ def main() -> None:
                 continue
             try:
                 row = run_case(knee, protocol, values, noise, seed, args.refit, out)
-            except kneenlp.errors.ConvergenceError as exc:
+            except kneenlp.base.errors.ConvergenceError as exc:
                 print(f"{key}: skipped, the simulation did not converge ({str(exc)[:80]})")
                 continue
             kind, pname, *rest = key.split("|")

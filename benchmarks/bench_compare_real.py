@@ -8,8 +8,8 @@ Run: python benchmarks/bench_compare_real.py [MAX_SOLVES]   (75000: about 15-30 
 
 import sys
 
+from kneenlp.base.resources import resource
 from kneenlp.cli import main
-from kneenlp.io.resources import resource
 
 if __name__ == "__main__":
     solves = sys.argv[1] if len(sys.argv) > 1 else "75000"

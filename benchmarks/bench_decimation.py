@@ -40,7 +40,7 @@ CHILD = r"""
 import json, resource, sys, time
 t0 = time.perf_counter()
 import kneenlp
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 t1 = time.perf_counter()
 try:
     knee = kneenlp.Knee.load(sys.argv[1])

@@ -18,8 +18,8 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from kneenlp import Knee, Protocol
-from kneenlp.inference.design import design, predicted_rse, write_protocol
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.design.optimal import design, predicted_rse, write_protocol
+from kneenlp.experiment.kneemodel import KneeModel
 
 
 def main(mc: int = 0) -> None:

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from kneenlp import Knee, Protocol
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.solvers.forward import ForwardSolver
 
 

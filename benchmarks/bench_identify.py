@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 import kneenlp
+from kneenlp.estimation.identify import identify
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.identify import identify
 from kneenlp.solvers.nlp import get_nlp
 
 

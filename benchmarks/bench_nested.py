@@ -9,8 +9,8 @@ import tempfile
 from pathlib import Path
 
 import kneenlp
+from kneenlp.estimation.identify import identify
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.identify import identify
 
 
 def main(seed: int = 1, max_evals: int = 6000) -> None:

@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 
 import kneenlp
-from kneenlp.inference.identify import identify
+from kneenlp.base.resources import resource
+from kneenlp.estimation.identify import identify
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.io.import_osim import import_osim
-from kneenlp.io.resources import resource
-from kneenlp.model.kneemodel import KneeModel
 
 DATA = resource("knees", "lenhart2015", "opensim")
 

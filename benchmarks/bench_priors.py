@@ -26,12 +26,12 @@ import time
 import numpy as np
 
 import kneenlp
+from kneenlp.base.resources import resource
+from kneenlp.estimation.calibrate import LOAD_POINT, REGISTRATION, calibrate
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import resolve_priors
-from kneenlp.inference import crossval
-from kneenlp.inference.calibrate import LOAD_POINT, REGISTRATION, calibrate
-from kneenlp.io.resources import resource
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.validation import crossval
 
 #: The experiment's frames and the cruciates' femoral attachments and PCLal's bundles: the effects the
 #: diagnosis of S192803 found (docs/real-experiment.md), in problems/s192803's parameter table.

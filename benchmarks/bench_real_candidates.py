@@ -17,13 +17,13 @@ import time
 import numpy as np
 
 import kneenlp
+from kneenlp.base.resources import resource
+from kneenlp.estimation.calibrate import calibrate
+from kneenlp.estimation.solve import reduced_fit
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.inference.calibrate import calibrate
-from kneenlp.inference.predict import rms_by_coordinate
-from kneenlp.inference.solve import reduced_fit
-from kneenlp.io.resources import resource
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.prediction.predict import rms_by_coordinate
 
 
 def main() -> None:

@@ -35,13 +35,13 @@ from pathlib import Path
 import numpy as np
 
 import kneenlp
+from kneenlp.base.resources import resource
+from kneenlp.estimation.calibrate import calibrate
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference import crossval
-from kneenlp.inference.calibrate import calibrate
-from kneenlp.inference.laxity import laxity_lines
-from kneenlp.inference.predict import predict, rms_by_coordinate
-from kneenlp.io.resources import resource
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.prediction.laxity import laxity_lines
+from kneenlp.prediction.predict import predict, rms_by_coordinate
+from kneenlp.validation import crossval
 
 DEPOSIT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "du-s192803"
 TABLE = Path(__file__).resolve().parents[1] / "docs" / "figures" / "s192803_cross_validation.csv"

@@ -11,12 +11,12 @@ Public API (see README.md)::
     print(fit.report())
 """
 
-from kneenlp.errors import ConvergenceError, InputError
+from kneenlp.base.errors import ConvergenceError, InputError
+from kneenlp.estimation.identify import identify
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Protocol, Trial
-from kneenlp.inference.identify import identify
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import ParameterSet
 from kneenlp.simulation import SimulationResult, simulate
 

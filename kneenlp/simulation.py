@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import EQUILIBRIUM_TOL, coords_to_user
+from kneenlp.base.atomic import write_csv_atomic
+from kneenlp.base.conventions import EQUILIBRIUM_TOL, coords_to_user
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import measured_frame
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.io.atomic import write_csv_atomic
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import TrialSolution, forward_solver
 
 
@@ -91,7 +91,7 @@ class SimulationResult:
         """Measured-data table: the converged poses plus seeded noise (mm, deg)."""
         noise = NoiseModel.parse(noise)
         if self.failed:
-            from kneenlp.errors import ConvergenceError
+            from kneenlp.base.errors import ConvergenceError
 
             raise ConvergenceError("cannot write measured data: trials did not converge: "
                                    + ", ".join(s.trial.id for s in self.failed), self)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 
 import kneenlp
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.experiment.kneemodel import KneeModel
 
 
 @pytest.fixture(scope="session")

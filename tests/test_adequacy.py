@@ -8,16 +8,16 @@ import numpy as np
 import pytest
 
 import kneenlp
-import kneenlp.io.resources
+import kneenlp.base.resources
+from kneenlp.adequacy.basefit import base_fit
+from kneenlp.adequacy.detection import noncentrality_needed
+from kneenlp.adequacy.diagnosis import diagnose
+from kneenlp.adequacy.patterns import failure_patterns
+from kneenlp.adequacy.verdict import holm
 from kneenlp.cli import main
+from kneenlp.estimation.identify import identify
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.adequacy import diagnose
-from kneenlp.inference.basefit import base_fit
-from kneenlp.inference.detection import noncentrality_needed
-from kneenlp.inference.identify import identify
-from kneenlp.inference.patterns import failure_patterns
-from kneenlp.inference.verdict import holm
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import SHIFT_AXES
 
 NOISE = "uniform:0.5"
@@ -194,7 +194,8 @@ def moved_knee(tmp_path, old: str, new: str):
     text = kneenlp.model.knee_file.knee_file("synthetic").read_text()
     assert old in text
     text = text.replace(old, new)
-    text = text.replace("../../parameters/table1.toml", str(kneenlp.io.resources.resource("parameters", "table1.toml")))
+    table1 = kneenlp.base.resources.resource("parameters", "table1.toml")
+    text = text.replace("../../parameters/table1.toml", str(table1))
     text = text.replace('"meshes/', f'"{kneenlp.model.knee_file.knee_file("synthetic").parent}/meshes/')
     (tmp_path / "moved.toml").write_text(text)
     return kneenlp.Knee.load(tmp_path / "moved.toml")
@@ -210,8 +211,8 @@ def test_verdict_picks_by_bic_and_refuses_to_guess_between_equals():
     2 BIC units (then both are named and neither is recommended)."""
     from types import SimpleNamespace
 
+    from kneenlp.adequacy.verdict import decide
     from kneenlp.experiment.noise import NoiseModel
-    from kneenlp.inference.verdict import decide
 
     def cand(name, p, bic, aic):
         refit = {"success": True, "delta_bic": bic, "delta_aic": aic, "p_value_after": 0.5, "drop": -aic}
@@ -275,7 +276,7 @@ def test_base_fit_restarts_out_of_a_wrong_basin(tmp_path):
 def test_closeness_z_is_half_the_bic_difference_over_its_spread():
     """Vuong's statistic (Schwarz-corrected): 0 for identical refits, positive when the first fits
     better (negative the other way round), and its numerator is half the BIC difference."""
-    from kneenlp.inference.verdict import closeness_z
+    from kneenlp.adequacy.verdict import closeness_z
 
     rng = np.random.default_rng(0)
     b = rng.normal(0, 0.3, 300)
@@ -296,8 +297,8 @@ def test_verdict_refuses_a_best_refit_the_non_nested_test_cannot_separate():
     Vuong's test cannot separate them, so neither is recommended; clearly different residuals can."""
     from types import SimpleNamespace
 
+    from kneenlp.adequacy.verdict import decide
     from kneenlp.experiment.noise import NoiseModel
-    from kneenlp.inference.verdict import decide
 
     trials = kneenlp.experiment.protocol.Protocol.load("set3").trials
     rng = np.random.default_rng(1)
@@ -327,9 +328,9 @@ def test_nested_candidates_are_compared_by_their_likelihood_ratio():
 
     from scipy import stats
 
-    from kneenlp.inference.verdict import NESTED_ALPHA, _rival, nested_p
+    from kneenlp.adequacy.verdict import NESTED_ALPHA, _rival, nested_p
 
-    coords = kneenlp.conventions.COORDINATES
+    coords = kneenlp.base.conventions.COORDINATES
     full = SimpleNamespace(effect="registration", df=5, parameters=[f"registration.{c}" for c in coords],
                            refit={"chi2_drop": 169.6, "delta_bic": -84.2})
     one = SimpleNamespace(effect="registration_anterior_translation", df=1,
@@ -349,7 +350,7 @@ def test_nested_candidates_are_compared_by_their_likelihood_ratio():
 
 def test_registration_of_one_coordinate_is_a_candidate(model):
     names = {e.name: e.parameters for e in model.effects}
-    for c in kneenlp.conventions.COORDINATES:
+    for c in kneenlp.base.conventions.COORDINATES:
         assert names[f"registration_{c}"] == (f"registration.{c}",)
     assert len(names["registration"]) == 5
 
@@ -358,7 +359,7 @@ def test_simulated_detection_limit_agrees_with_the_linear_one_for_a_linear_effec
     """A registration bias enters the observation linearly, so the exact noncentrality of
     simulated noise-free data equals the linearised one; a linear strain limit does not (the toe
     region moves): the base model absorbs most of it, and the simulated limit exceeds the linear."""
-    from kneenlp.inference.detection import detection_limits, exact_noncentrality, simulated_limits
+    from kneenlp.adequacy.detection import detection_limits, exact_noncentrality, simulated_limits
 
     knee = kneenlp.Knee.named("synthetic")
     path = tmp_path / "truth.csv"
@@ -377,7 +378,7 @@ def test_simulated_detection_limit_agrees_with_the_linear_one_for_a_linear_effec
 def test_reduced_space_fit_agrees_with_the_simultaneous_nlp(tmp_path):
     """Two solvers of one least-squares problem: reduced-space Gauss-Newton (poses eliminated)
     and IPOPT on the simultaneous NLP reach the same minimum from the same start."""
-    from kneenlp.inference.solve import reduced_fit
+    from kneenlp.estimation.solve import reduced_fit
 
     knee = kneenlp.Knee.named("synthetic")
     path = tmp_path / "m.csv"
@@ -411,7 +412,7 @@ def test_reduced_space_refit_stays_on_its_equilibrium_branch(tmp_path):
     best point's poses it reaches IPOPT's minimum."""
     from dataclasses import replace
 
-    from kneenlp.inference.solve import reduced_fit, solve_simultaneous
+    from kneenlp.estimation.solve import reduced_fit, solve_simultaneous
 
     knee = kneenlp.Knee.named("synthetic")
     shift = {"ACL.femur_anterior": 3.045e-3, "ACL.femur_proximal": -2.207e-3, "ACL.femur_lateral": -1.106e-3}
@@ -441,8 +442,8 @@ def test_verdict_advises_adding_only_an_effect_that_explains_most_of_the_misfit(
     seed) was followed by "Add it and look for a further effect"."""
     from types import SimpleNamespace
 
-    from kneenlp.inference import adequacy
-    from kneenlp.inference.verdict import Verdict
+    from kneenlp.adequacy import diagnosis as adequacy
+    from kneenlp.adequacy.verdict import Verdict
 
     monkeypatch.setattr(adequacy, "estimate_words", lambda *a: "an estimate")
     refit = {"excess_explained": share, "chi2_drop": 40.0, "lr_p_value": 1e-9, "rms": 0.5, "p_value_after": 1e-6}
@@ -457,7 +458,7 @@ def test_verdict_advises_adding_only_an_effect_that_explains_most_of_the_misfit(
 def test_a_misfit_with_a_sign_per_load_direction_is_the_models():
     """verdict.bias_structure: residuals of one sign in every trial of a load direction give a small
     p (the model's error, never 'noise larger'); noise alone of any size does not."""
-    from kneenlp.inference.verdict import bias_structure
+    from kneenlp.adequacy.verdict import bias_structure
 
     trials = kneenlp.Protocol.load("set3").trials
     rng = np.random.default_rng(3)
@@ -471,7 +472,7 @@ def test_a_misfit_with_a_sign_per_load_direction_is_the_models():
 
 
 def test_held_out_judge_recommends_only_what_lowers_the_held_out_error():
-    from kneenlp.inference.crossval import Judgement, judged_best, judgement_lines
+    from kneenlp.validation.crossval import Judgement, judged_best, judgement_lines
 
     def j(name, errors, ok=True):
         return Judgement(name, (name,), {"varus_rotation_deg": 1.0}, 8, errors,

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import kneenlp
-from kneenlp.inference.identify import identify
+from kneenlp.estimation.identify import identify
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.io.export import export_problem
-from kneenlp.model.kneemodel import KneeModel
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
 
@@ -126,7 +126,7 @@ def test_user_element_consistent_across_methods(example):
 
     model = KneeModel(kneenlp.Knee.named("synthetic"), extra_elements=[Compression()])
     data = kneenlp.simulate(model, "set1", parameters={"compression.force": 150.0}).measured("uniform:0.5", seed=2)
-    from kneenlp.conventions import coordinate_columns, coords_from_user
+    from kneenlp.base.conventions import coordinate_columns, coords_from_user
     from kneenlp.experiment.measured import MeasuredData
 
     res = kneenlp.simulate(model, "set1")

@@ -20,7 +20,7 @@ def test_noise_is_seeded_and_bounded(tmp_path):
     import numpy as np
 
     from kneenlp import simulate
-    from kneenlp.conventions import coordinate_columns
+    from kneenlp.base.conventions import coordinate_columns
 
     res = simulate(kneenlp.Knee.named("synthetic"), "set1")
     a, b, c = (res.measured("uniform:0.5", seed=s) for s in (1, 1, 2))

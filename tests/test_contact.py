@@ -4,10 +4,10 @@ import pytest
 import trimesh
 
 import kneenlp
-from kneenlp.conventions import LOAD_SIZE
+from kneenlp.base.conventions import LOAD_SIZE
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.geometry import kernels
 from kneenlp.model.contact import compartment_function, sphere_plane_force
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.laws import CASADI, NUMPY, ElasticFoundation, PowerFoundation, gate
 
 K = 10e9  # N/m^3
@@ -138,8 +138,8 @@ def test_left_out_batch_agrees_with_the_per_pose_check():
 def test_unknown_pressure_law_is_named(tmp_path, where, field):
     import shutil
 
-    from kneenlp.errors import InputError
-    from kneenlp.io.resources import resource
+    from kneenlp.base.errors import InputError
+    from kneenlp.base.resources import resource
     from kneenlp.model.knee import Knee
     from kneenlp.model.knee_file import knee_file
 

@@ -10,8 +10,8 @@ import pytest
 
 import kneenlp
 from kneenlp.cli import main
+from kneenlp.design.optimal import candidate_pool, criterion_value, design, predicted_rse, write_protocol
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.inference.design import candidate_pool, criterion_value, design, predicted_rse, write_protocol
 
 
 @pytest.fixture(scope="module")

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 import kneenlp
-import kneenlp.errors
-import kneenlp.io.resources
+import kneenlp.base.errors
+import kneenlp.base.resources
+from kneenlp.base.conventions import TO_USER
 from kneenlp.cli import main
-from kneenlp.conventions import TO_USER
+from kneenlp.estimation.identify import identify
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.identify import identify
 from kneenlp.io.export import export_problem, nl_function, write_export
 from kneenlp.model import anatomy
 
@@ -33,7 +33,7 @@ def coarse_case(tmp_path_factory):
         anatomy.condyle_mesh(c).export(d / "meshes" / f"femur_{c.name}.stl")
         anatomy.plateau_mesh(c, spacing=3.0).export(d / "meshes" / f"tibia_{c.name}.stl")
     text = (kneenlp.model.knee_file.knee_file("synthetic")).read_text().replace(
-        "../../parameters/table1.toml", str(kneenlp.io.resources.resource("parameters", "table1.toml")))
+        "../../parameters/table1.toml", str(kneenlp.base.resources.resource("parameters", "table1.toml")))
     (d / "knee.toml").write_text(text)
     knee = kneenlp.Knee.load(d / "knee.toml")
     kneenlp.simulate(knee, "set1").measured("uniform:0.5", 1).to_csv(d / "m.csv", index=False)
@@ -250,9 +250,9 @@ def test_nl_export_of_a_mesh_knee_states_its_approximation(mesh_case, tmp_path, 
     and the command's JSON say so with the error measured around the start; the exact form is
     refused for .nl."""
     knee, data, _, d = mesh_case
-    with pytest.raises(kneenlp.errors.InputError, match="cannot hold mesh contact exactly"):
+    with pytest.raises(kneenlp.base.errors.InputError, match="cannot hold mesh contact exactly"):
         write_export(export_problem(knee, data, seed=2), "nl", tmp_path / "refused")
-    with pytest.raises(kneenlp.errors.InputError, match="needs the loop layout"):
+    with pytest.raises(kneenlp.base.errors.InputError, match="needs the loop layout"):
         write_export(export_problem(knee, data, seed=2), "c", tmp_path / "refused")
     code = main(["export", str(d / "m.csv"), "--format", "nl", "--out", str(tmp_path / "nl"), "--json"])
     assert code == 0

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import kneenlp
-import kneenlp.io.resources
-from kneenlp.conventions import LOAD_SIZE, coords_to_user
+import kneenlp.base.resources
+from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.experiment.protocol import Protocol, Trial
 from kneenlp.solvers.forward import ForwardSolver
 
@@ -70,7 +70,7 @@ def test_paper_fig2_isolating_load_cases(knee, axes):
     ``docs/scripts/fig2_axes_scan.py``: 0 of 36 knees with attachments moved by +-5 mm)."""
     import tomllib
 
-    doc = tomllib.loads((kneenlp.io.resources.resource("protocols", "set3.toml")).read_text())
+    doc = tomllib.loads((kneenlp.base.resources.resource("protocols", "set3.toml")).read_text())
     doc["load_axes"] = axes
     rec = kneenlp.simulate(knee, Protocol.from_dict(doc)).recruitment().set_index("trial")
     dominant = rec["dominant"]
@@ -132,7 +132,7 @@ def test_cold_start_remembers_the_passive_path():
     """A knee imaged at another pose walks from its reference flexion to each trial's; the walk of
     the last parameters is remembered, and what a flexion gets does not depend on the flexions
     asked for before it (the same numbers, bit for bit, in either order)."""
-    model = kneenlp.model.kneemodel.KneeModel.of(kneenlp.Knee.named("s192803"))
+    model = kneenlp.experiment.kneemodel.KneeModel.of(kneenlp.Knee.named("s192803"))
     theta = model.theta()
     flexions = np.radians([60.0, 30.0, 47.5, 87.0])
     fresh = [ForwardSolver(model).cold_start(f, theta) for f in flexions]
@@ -165,7 +165,7 @@ def test_load_point_shift_adds_the_virtual_work_of_the_moved_force(model):
     """LoadPoint (a candidate of real experiments): a robot's joint loads whose force acts at the
     tibial origin shifted by d (tibial frame) add F . d(R d)/dq to the residual, F the force whose
     components along e1, e2, e3 are the joint forces; oracle: central differences of the tibial pose."""
-    from kneenlp.conventions import load_vector
+    from kneenlp.base.conventions import load_vector
     from kneenlp.model.kinematics import tibial_pose
 
     q = np.array([0.03, -0.1, 0.001, 0.002, -0.001])

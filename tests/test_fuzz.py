@@ -36,12 +36,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import kneenlp
+from kneenlp.base.errors import InputError
+from kneenlp.base.resources import resource
 from kneenlp.cli import main
 from kneenlp.cli.parser import build_parser
-from kneenlp.errors import InputError
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.io.resources import resource
 from kneenlp.model.knee import Knee
 from kneenlp.model.knee_file import knee_file
 from kneenlp.model.parameters import ParameterSet
@@ -49,8 +49,8 @@ from kneenlp.model.parameters import ParameterSet
 #: Commands that take --json.
 JSON_COMMANDS = {"simulate", "diagnose", "identify", "compare-methods", "study", "export", "design", "identifiability"}
 #: The work of each command: with ``before_work`` a case must fail before any of these is called.
-WORK = [("kneenlp.simulation", "simulate"), ("kneenlp.inference.identify", "identify"),
-        ("kneenlp.inference.design", "design"), ("kneenlp.studies.study", "run_study"),
+WORK = [("kneenlp.simulation", "simulate"), ("kneenlp.estimation.identify", "identify"),
+        ("kneenlp.design.optimal", "design"), ("kneenlp.studies.study", "run_study"),
         ("kneenlp.io.export", "export_problem")]
 TMP_NAME = re.compile(r"(^\.kneenlp-tmp-)|(\.tmp$)")
 

@@ -32,8 +32,8 @@ import trimesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from kneenlp.base.errors import InputError
 from kneenlp.cli import main
-from kneenlp.errors import InputError
 from kneenlp.model.knee import Knee
 from kneenlp.model.knee_file import knee_file
 

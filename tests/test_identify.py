@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import kneenlp
+from kneenlp.base.conventions import coords_to_user
 from kneenlp.cli import main
-from kneenlp.conventions import coords_to_user
+from kneenlp.estimation.identify import identify
 from kneenlp.experiment.measured import MeasuredData, read_measured
-from kneenlp.inference.identify import identify
 from kneenlp.solvers.forward import ForwardSolver
 
 
@@ -150,9 +150,9 @@ def test_early_hand_over_from_reduced_space_reaches_the_reduced_optimum(tmp_path
     tolerance, with fewer reduced evaluations.  Set 4 from cartilage four times softer (where
     IPOPT alone wandered for 150 iterations), from the paper's scattered start; there the former
     rescue (reduced fit to its tolerance, then IPOPT) failed: IPOPT wandered off to objective 4705."""
+    from kneenlp.estimation.solve import reduced_then_nlp
+    from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.experiment.problem import IdentificationProblem
-    from kneenlp.inference.solve import reduced_then_nlp
-    from kneenlp.model.kneemodel import KneeModel
     from kneenlp.solvers.reduced import reduced_least_squares
 
     knee = kneenlp.Knee.named("synthetic")

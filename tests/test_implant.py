@@ -96,7 +96,7 @@ def test_cropped_femur_contact_beyond_its_edge_fails_the_trial(tmp_path):
     knee report warns that the mesh is open where the tibia reaches, and a valgus trial whose
     lateral tibial points pass the edge fails with that reason instead of carrying fake contact.
     The shipped implant (17 mm) is open too, but not where the tibia reaches."""
-    from kneenlp.io.resources import resource
+    from kneenlp.base.resources import resource
     from kneenlp.simulation import simulate
 
     implant.write_implant_knee(tmp_path, implant.FemoralComponent(half_width=10.0))

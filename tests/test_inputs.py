@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 import kneenlp
+from kneenlp.base.errors import InputError
 from kneenlp.cli import main
-from kneenlp.errors import InputError
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.protocol import Protocol
 from kneenlp.model.knee import Knee
@@ -143,7 +143,7 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     import numpy as np
     import trimesh
 
-    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.experiment.kneemodel import KneeModel
 
     rot = trimesh.transformations.rotation_matrix(0.4, [0.3, 1.0, 0.2])[:3, :3]
     shift = np.array([120.0, -35.0, 410.0])
@@ -303,7 +303,7 @@ def test_flexion_beyond_the_represented_surface(tmp_path, capsys):
     data = synthetic.measured("uniform:0.5", 0)
     csv = tmp_path / "d.csv"
     data.to_csv(csv, index=False)
-    from kneenlp.inference.identify import identify
+    from kneenlp.estimation.identify import identify
 
     with pytest.raises(InputError, match="115 deg flexion") as err:
         identify(Knee.default(), read_measured(csv))
@@ -372,7 +372,7 @@ def test_point_in_metres_in_a_millimetre_knee(knee_copy, old, new, field):
 
 def test_negative_femur_offset_in_import_osim(tmp_path, capsys):
     """import-osim --femur-offset -2 (issue 24: accepted): exit 2 naming the option, nothing written."""
-    from kneenlp.io.resources import resource
+    from kneenlp.base.resources import resource
 
     data = resource("knees", "lenhart2015", "opensim")
     out = tmp_path / "imp"
@@ -539,7 +539,7 @@ def test_api_values_pass_the_range_check_of_file_values():
     import math
 
     import kneenlp
-    from kneenlp.errors import InputError
+    from kneenlp.base.errors import InputError
 
     knee = kneenlp.Knee.named("synthetic")
     for value in (-5.0, math.nan, 2e5):

@@ -2,7 +2,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from kneenlp.conventions import LOAD_SIZE, load_vector
+from kneenlp.base.conventions import LOAD_SIZE, load_vector
 from kneenlp.model.kinematics import tibial_pose
 
 
@@ -101,9 +101,9 @@ def test_a_moved_origin_reads_the_translations_of_the_moved_point(element):
     oracle ``joint_coordinates`` of ``p - s``; they depend on the flexion (unlike a constant
     registration)."""
     import kneenlp
-    from kneenlp.conventions import coords_to_user
+    from kneenlp.base.conventions import coords_to_user
+    from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.model.kinematics import joint_coordinates, reference_transform
-    from kneenlp.model.kneemodel import KneeModel
 
     model = KneeModel.of(kneenlp.Knee.named("synthetic"))
     rng = np.random.default_rng(7)
@@ -133,8 +133,8 @@ def test_turned_tibial_axes_make_the_coordinates_the_experiments():
     from scipy.spatial.transform import Rotation
 
     import kneenlp
+    from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.model.kinematics import joint_coordinates, reference_transform
-    from kneenlp.model.kneemodel import KneeModel
 
     model = KneeModel.of(kneenlp.Knee.named("synthetic"))
     varus, flex_turn = np.radians(4.0), np.radians(-3.0)

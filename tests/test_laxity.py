@@ -1,4 +1,4 @@
-"""Laxity per flexion and load pair (``kneenlp.inference.laxity``), against hand-made poses."""
+"""Laxity per flexion and load pair (``kneenlp.prediction.laxity``), against hand-made poses."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from kneenlp.experiment.protocol import Trial
-from kneenlp.inference.laxity import laxity_lines, laxity_records, laxity_table
+from kneenlp.prediction.laxity import laxity_lines, laxity_records, laxity_table
 
 
 def _trial(direction: str, size: float, flexion: float) -> Trial:

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.model.ligament import force_strain, force_strain_numpy, slack_length
 
 K, EPS_L = 10000.0, 0.03
@@ -76,8 +76,8 @@ def test_unknown_law_in_a_knee_file_is_named(tmp_path, law, needle):
     """A knee file's law that does not exist or is not a law: one line naming the field."""
     import shutil
 
-    from kneenlp.errors import InputError
-    from kneenlp.io.resources import resource
+    from kneenlp.base.errors import InputError
+    from kneenlp.base.resources import resource
     from kneenlp.model.knee import Knee
     from kneenlp.model.knee_file import knee_file
 

@@ -9,8 +9,8 @@ import pytest
 
 import kneenlp
 from kneenlp.cli import main
+from kneenlp.estimation.identify import identify
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.identify import identify
 from kneenlp.solvers.boxcomplex import minimize_complex
 from kneenlp.solvers.nested import NestedObjective
 

@@ -14,9 +14,9 @@ import sys
 import numpy as np
 import pytest
 
+from kneenlp.base.resources import resource
 from kneenlp.io import osim as O
 from kneenlp.io.osim import kinematics as K
-from kneenlp.io.resources import resource
 
 LENHART = str(resource("knees", "lenhart2015", "opensim", "lenhart2015.osim"))
 

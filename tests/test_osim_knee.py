@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 import kneenlp
-from kneenlp.inference.identifiability import identifiability
-from kneenlp.inference.identify import identify
+from kneenlp.base.resources import resource
+from kneenlp.design.identifiability import identifiability
+from kneenlp.estimation.identify import identify
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.io import osim as O
 from kneenlp.io.export_osim import calibrated_values, export_osim
 from kneenlp.io.import_osim import import_osim
-from kneenlp.io.resources import resource
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import force_strain_numpy
 
 DATA = resource("knees", "lenhart2015", "opensim")
@@ -102,7 +102,7 @@ def test_export_osim_changes_only_the_calibrated_values(imported, tmp_path):
 def test_export_osim_bad_input(imported, tmp_path, params, out, needle):
     """A misspelt parameter, a value that is text, an output in a missing directory: one line, no
     file written (issue 24)."""
-    from kneenlp.errors import InputError
+    from kneenlp.base.errors import InputError
 
     _, knee = imported
     (tmp_path / "fit.json").write_text(json.dumps({"params": params}))
@@ -180,7 +180,7 @@ def test_zero_noise_recovery_of_the_grouped_parameters(imported, tmp_path):
 
 
 def test_design_pool_reaches_90_degrees_on_a_multi_bundle_knee(imported):
-    from kneenlp.inference.design import FLEXIONS, FLEXIONS_MULTI_BUNDLE, default_flexions
+    from kneenlp.design.optimal import FLEXIONS, FLEXIONS_MULTI_BUNDLE, default_flexions
 
     _, knee = imported
     assert default_flexions(knee) == FLEXIONS_MULTI_BUNDLE and max(FLEXIONS_MULTI_BUNDLE) == 90.0
@@ -221,9 +221,9 @@ def test_bundle_groups_are_adequacy_candidates(imported):
 def test_a_fixed_bundle_group_that_differs_is_found(imported, tmp_path):
     """Data from the knee with the PFL 1.6 times stiffer, fitted with the PFL group fixed at the
     model's values: diagnose recommends PFL_bundles and estimates the scale within 3 sd."""
+    from kneenlp.adequacy.basefit import base_fit
+    from kneenlp.adequacy.diagnosis import diagnose
     from kneenlp.experiment.measured import read_measured
-    from kneenlp.inference.adequacy import diagnose
-    from kneenlp.inference.basefit import base_fit
 
     _, knee = imported
     path = tmp_path / "pfl.csv"

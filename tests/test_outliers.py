@@ -1,11 +1,11 @@
-"""The outlier test of a calibration (kneenlp.inference.outliers) against linear least squares,
+"""The outlier test of a calibration (kneenlp.estimation.outliers) against linear least squares,
 where the residuals' distribution is known exactly."""
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from kneenlp.inference.outliers import (
+from kneenlp.estimation.outliers import (
     OUTLIER_ALPHA,
     SCREEN_ALPHA,
     deletion_test,

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 import kneenlp
+from kneenlp.base.conventions import BAND_Z
 from kneenlp.cli import main
-from kneenlp.conventions import BAND_Z
+from kneenlp.estimation.calibrate import Calibration, posterior
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.calibrate import Calibration, posterior
-from kneenlp.inference.predict import predict
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.prediction.predict import predict
 
 NOISE = "uniform:0.5"
 FREE = ["ACL.k", "ACL.ref_strain", "MCL.k", "MCL.ref_strain"]

@@ -9,12 +9,12 @@ import pytest
 from scipy import stats
 
 import kneenlp
+from kneenlp.base.errors import InputError
 from kneenlp.cli import main
-from kneenlp.errors import InputError
+from kneenlp.estimation.identify import identify
+from kneenlp.estimation.solve import reduced_fit
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.inference.identify import identify
-from kneenlp.inference.solve import reduced_fit
 from kneenlp.model.parameters import ParameterSet
 from kneenlp.model.priors import Prior
 
@@ -115,7 +115,7 @@ def test_bad_priors_are_refused_with_the_parameters_name(model, tmp_path):
     ('"ACL.k" = {unit = "N", prior = {distribution = "cauchy", mean = 5000, sd = 100}}', "ACL.k"),
 ])
 def test_bad_prior_in_a_parameter_file_is_one_line_exit_2(tmp_path, capsys, entry, field):
-    base = (kneenlp.io.resources.resource("parameters", "table1.toml")).read_text()
+    base = (kneenlp.base.resources.resource("parameters", "table1.toml")).read_text()
     path = tmp_path / "p.toml"
     path.write_text(base + "\n[values]\n" + entry + "\n")
     code = main(["simulate", "--protocol", "set1", "--parameters", str(path), "--no-plots"])
@@ -125,13 +125,13 @@ def test_bad_prior_in_a_parameter_file_is_one_line_exit_2(tmp_path, capsys, entr
 
 
 def test_a_prior_declared_in_the_parameter_file_replaces_the_default(tmp_path):
-    base = (kneenlp.io.resources.resource("parameters", "table1.toml")).read_text()
+    base = (kneenlp.base.resources.resource("parameters", "table1.toml")).read_text()
     path = tmp_path / "p.toml"
     path.write_text(base + '\n[values]\n"ACL.k" = {unit = "kN", prior = {distribution = "normal", '
                            'mean = 6, sd = 0.5}}\n')
     params = ParameterSet.load(path)
     assert params.priors["ACL.k"] == Prior("normal", 6000.0, 500.0, source=str(path))
-    table1 = ParameterSet.load(kneenlp.io.resources.resource("parameters", "table1.toml"))
+    table1 = ParameterSet.load(kneenlp.base.resources.resource("parameters", "table1.toml"))
     assert params.values["ACL.k"] == table1.values["ACL.k"]  # the value stays the file's own
 
 

@@ -13,9 +13,9 @@ import pandas as pd
 import pytest
 
 import kneenlp
+from kneenlp.base.resources import resource
 from kneenlp.cli import main
 from kneenlp.experiment.problem_file import ProblemFile
-from kneenlp.io.resources import resource
 
 PROBLEMS = Path(__file__).resolve().parents[1] / "problems"
 

@@ -1,4 +1,4 @@
-"""Profile-likelihood intervals (``kneenlp.inference.profile``, ``identify --profile``): checked
+"""Profile-likelihood intervals (``kneenlp.estimation.profile``, ``identify --profile``): checked
 against an independent refit (the simultaneous NLP with the parameter held), against a prior's
 closed-form interval where the data say little, and at a bound."""
 
@@ -11,10 +11,10 @@ import pytest
 from scipy import stats
 
 import kneenlp
+from kneenlp.base.errors import InputError
 from kneenlp.cli import main
-from kneenlp.errors import InputError
+from kneenlp.estimation.profile import profile
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.profile import profile
 
 NOISE = "uniform:0.5"
 

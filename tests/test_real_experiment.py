@@ -17,15 +17,15 @@ import pytest
 import scipy.io
 
 import kneenlp
+from kneenlp.base.conventions import coordinate_columns, coords_to_user
+from kneenlp.base.resources import resource
 from kneenlp.cli import main
-from kneenlp.conventions import coordinate_columns, coords_to_user
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
-from kneenlp.inference.predict import predict
 from kneenlp.io.import_abaqus import import_abaqus, law_force, read_abaqus_knee, reference_pose, table_force
 from kneenlp.io.laxity_mat import entry_trial, laxity_frame, read_laxity_mat
-from kneenlp.io.resources import resource
 from kneenlp.model.kinematics import joint_coordinates, tibial_pose
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.prediction.predict import predict
 
 DEPOSIT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "du-s192803"
 needs_deposit = pytest.mark.skipif(not DEPOSIT.is_dir(), reason=f"the S192803 deposit is not at {DEPOSIT}")
@@ -287,7 +287,7 @@ def test_calibration_frees_what_the_trials_determine(s192803):
     """The registration always; of the ligament groups, those the trials move at the knee's values:
     the superficial MCL (20 % slack in the FE model), the LCL and the PCL never engage in these 25
     trials and stay at the knee's values."""
-    from kneenlp.inference.calibrate import REGISTRATION, calibration_free, real_experiment
+    from kneenlp.estimation.calibrate import REGISTRATION, calibration_free, real_experiment
 
     data = read_measured(CSV)
     assert real_experiment(data)
@@ -303,7 +303,7 @@ def test_calibration_frees_what_the_trials_determine(s192803):
 def test_a_larger_pivot_tolerance_fits_a_subset(s192803):
     """``pivot_tolerance`` chooses how weakly determined a fitted parameter may be: a larger one
     fits a strict subset of the default's ligament parameters (the registration always)."""
-    from kneenlp.inference.calibrate import PIVOT_TOLERANCE, REGISTRATION, calibration_free
+    from kneenlp.estimation.calibrate import PIVOT_TOLERANCE, REGISTRATION, calibration_free
 
     data, model = read_measured(CSV), KneeModel.of(s192803)
     default, _ = calibration_free(model, data)
@@ -328,7 +328,7 @@ def test_pivot_tolerance_is_refused_where_nothing_is_calibrated(tmp_path, capsys
 def test_also_free_names_parameters_or_effects(s192803, tmp_path, capsys):
     """``--also-free`` takes parameter names and effect names (an effect is all its parameters);
     an unknown name, a given --free and data that is not a real experiment are refused in one line."""
-    from kneenlp.inference.calibrate import also_free_names
+    from kneenlp.estimation.calibrate import also_free_names
 
     model = KneeModel.of(s192803)
     names = ["PCLal_femoral_attachment", "ACLam.femur_anterior", "PCLal.femur_lateral", "tibial_axes"]
@@ -361,7 +361,7 @@ def test_also_free_names_parameters_or_effects(s192803, tmp_path, capsys):
 def test_calibrated_parameter_file_round_trips(s192803, tmp_path, capsys):
     """A calibration's parameter file (group scales and offsets, the registration: [values] with
     units) is what --parameters reads back: the same values, a model that uses them."""
-    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.model.parameters import ParameterSet
 
     values = {"ACLam.k_scale": 1.7, "ACLam.ref_strain_offset": 0.021, "registration.varus_rotation": np.radians(4.5),
@@ -406,7 +406,7 @@ def test_protocol_files_take_joint_loads_and_the_extra_components():
     femoral = Protocol.from_dict({"cases": [{"loads": {"lateral_force": 10.0, "proximal_force": 40.0},
                                              "flexion": [0.0]}]}).trials[0].load
     assert np.allclose(femoral, [0, 40.0, 10.0, 0, 0, 0, 0, 0, 0, 0, 0])
-    with pytest.raises(kneenlp.errors.InputError, match="beyond the largest laxity load"):
+    with pytest.raises(kneenlp.base.errors.InputError, match="beyond the largest laxity load"):
         Protocol.from_dict({"cases": [{"loads": {"proximal_force": 5000.0}, "flexion": [0.0]}]})
 
 
@@ -433,7 +433,7 @@ def test_prediction_includes_the_registration(s192803):
     """What predict compares with the data is the model's observation: a registration (a constant
     offset between the experiment's frames and the model's) shifts every predicted coordinate by
     exactly itself and moves no pose."""
-    from kneenlp.inference.predict import predict
+    from kneenlp.prediction.predict import predict
 
     data = read_measured(CSV)
     part = data.subset(np.isin(np.arange(len(data)), [0, 8, 24]))
@@ -448,7 +448,7 @@ def test_probe_engages_the_groups_slack_in_every_trial(s192803):
     """At the knee's values the superficial MCL, LCL and PCL are slack in all 25 trials (no
     sensitivity, nothing to fit); the calibration's probe raises their offsets until each reaches
     the toe region in its most stretching trial, and leaves every other group alone."""
-    from kneenlp.inference.calibrate import ENGAGE_STRAIN, engaged_probe
+    from kneenlp.estimation.calibrate import ENGAGE_STRAIN, engaged_probe
     from kneenlp.solvers.forward import forward_solver
 
     model = KneeModel.of(s192803)
@@ -466,7 +466,7 @@ def test_probe_engages_the_groups_slack_in_every_trial(s192803):
 
 def test_hold_outs_of_the_experiment():
     """The highest flexion (84-89 deg measured) and every loaded direction, each held out whole."""
-    from kneenlp.inference.crossval import folds, hold_out
+    from kneenlp.validation.crossval import folds, hold_out
 
     data = read_measured(CSV)
     named = dict(folds(data))
@@ -482,7 +482,7 @@ def test_held_out_errors_against_the_expected_ones():
     """``consistency``: errors drawn with the expected standard deviations are flagged (p < 0.05) in
     5 % of experiments (oracle: the simulation), errors three times larger nearly always; cells
     without equilibrium (NaN) are left out."""
-    from kneenlp.inference.crossval import consistency
+    from kneenlp.validation.crossval import consistency
 
     rng = np.random.default_rng(11)
     expected = rng.uniform(0.5, 3.0, (4, 5))
@@ -501,7 +501,7 @@ def test_held_out_errors_against_the_twins():
     """``against_reference``: held-out errors drawn from the twins' distribution are flagged
     (p < 0.05) in 5 % of experiments (oracle: the simulation), errors three times larger nearly
     always; without twin cells, NaN."""
-    from kneenlp.inference.crossval import against_reference
+    from kneenlp.validation.crossval import against_reference
 
     rng = np.random.default_rng(12)
     spread = rng.uniform(0.5, 3.0, 5)
@@ -517,7 +517,7 @@ def test_twin_is_the_knees_own_prediction_plus_noise(s192803):
     """``twin``: without noise, each trial's pose is predict's at the given values (registration
     included); with noise of standard deviation ``sd`` per coordinate, the poses move by the seeded
     standard normal draw times ``sd``, trial by trial; the trials and the side are the data's."""
-    from kneenlp.inference.crossval import twin
+    from kneenlp.validation.crossval import twin
 
     model = KneeModel.of(s192803)
     data = read_measured(CSV).subset(np.arange(25) % 3 == 0)
@@ -535,8 +535,8 @@ def test_twin_draws_are_stored_and_read_back(s192803, tmp_path):
     """``TwinStore``: a finished draw is written and read back as it was (NaN rows of trials
     without equilibrium included, in order); a store of another run (other options) is refused
     with a one-line error naming it, never mixed in."""
-    from kneenlp.errors import InputError
-    from kneenlp.inference.crossval import TwinStore
+    from kneenlp.base.errors import InputError
+    from kneenlp.validation.crossval import TwinStore
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     errors = {"valgus": np.random.default_rng(3).normal(size=(4, 5)), "flexion 87 deg": np.full((6, 5), 0.25)}
@@ -587,8 +587,8 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
     by ten come back ten times larger).  Oracle: without noise the twin's model is exactly right,
     so what the calibration without the varus trials misses there is only what those trials alone
     determine: within 1 mm and 1 deg (measured: 0.79 mm at most)."""
-    from kneenlp.inference.calibrate import calibrate
-    from kneenlp.inference.crossval import folds, hold_out, twin
+    from kneenlp.estimation.calibrate import calibrate
+    from kneenlp.validation.crossval import folds, hold_out, twin
 
     # the least-squares calibration, whose twin the oracle below was measured on
     args = ["cross-validate", str(CSV), "--knee", "s192803", "--hold-out", "varus", "--twins", "1", "--out",
@@ -626,9 +626,9 @@ def test_calibration_says_what_predict_reproduces(s192803, tmp_path):
     predict reaches the same poses: hard trials are followed from the knee file's own set.  The
     outlier test sets aside the one trial no passive knee produces (valgus_flex60).  The entry
     point is the API's ``identify``, whose strategy for a real experiment is the calibration."""
-    from kneenlp.inference.calibrate import SAME_POSE
-    from kneenlp.inference.identify import identify
-    from kneenlp.inference.predict import predict
+    from kneenlp.estimation.calibrate import SAME_POSE
+    from kneenlp.estimation.identify import identify
+    from kneenlp.prediction.predict import predict
 
     fit = identify(s192803, CSV)
     cal = fit.calibration
@@ -674,7 +674,7 @@ def test_identify_writes_the_set_aside_trials(tmp_path, capsys):
     assert len(pd.read_csv(out / "fit_trials.csv")) == 24
     assert main(["predict", str(CSV), "--knee", "s192803", "--parameters", str(out / "calibrated.toml"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["converged"] == 25
-    from kneenlp.inference.identify import identify  # the API fits as the CLI does
+    from kneenlp.estimation.identify import identify  # the API fits as the CLI does
 
     api = identify(kneenlp.Knee.named("s192803"), CSV).params
     assert saved["params"] == pytest.approx(api, rel=1e-9, abs=1e-12)
@@ -684,7 +684,7 @@ def test_identify_writes_the_set_aside_trials(tmp_path, capsys):
 def test_also_free_joins_from_the_calibration(s192803):
     """``also_free`` fits the named effect's parameters beside the calibration's own choice,
     starting from the calibration without them: never a larger sum of squares than that."""
-    from kneenlp.inference.calibrate import calibrate
+    from kneenlp.estimation.calibrate import calibrate
 
     data, model = read_measured(CSV), KneeModel.of(s192803)
     base = calibrate(model, data, keep_outliers=True)  # the same trials in both
@@ -700,7 +700,7 @@ def test_candidates_are_judged_by_their_held_out_error(s192803):
     """crossval.judge: the base calibration and one with a candidate, each with its fitted RMS beside
     its held-out error (here the varus hold-out alone); the candidate is recommended only where its
     held-out error is lower, whatever its fit."""
-    from kneenlp.inference import crossval
+    from kneenlp.validation import crossval
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     base, wider = crossval.judge(model, data, [["PCLal_femoral_attachment"]], which=["varus"])
@@ -714,7 +714,7 @@ def test_candidates_are_judged_by_their_held_out_error(s192803):
 
 def test_import_laxity_does_not_overwrite_its_input(tmp_path, capsys):
     mat = tmp_path / "laxity.mat"
-    mat.write_bytes(kneenlp.io.resources.resource("datasets", "s192803_laxity.mat").read_bytes())
+    mat.write_bytes(kneenlp.base.resources.resource("datasets", "s192803_laxity.mat").read_bytes())
     assert main(["import-laxity", str(mat), "--side", "left", "--out", str(mat)]) == 2
     assert "--out" in capsys.readouterr().err and mat.read_bytes()[:4] == b"MATL"
 
@@ -740,7 +740,7 @@ def test_side_warning_needs_three_flexions_and_a_significant_slope(caplog):
 def test_hold_outs_in_two_processes_are_the_sequential_ones(s192803):
     """cross_validate(workers=2) forks two processes that inherit the model and send their hold-outs
     back without it: the same errors, expectations and fitted parameters as one process."""
-    from kneenlp.inference import crossval
+    from kneenlp.validation import crossval
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     one = crossval.cross_validate(model, data, ["varus", "anterior"])
@@ -757,7 +757,7 @@ def test_what_too_few_trials_cannot_determine_is_not_reported_as_a_result(s19280
     """A hold-out calibrated on one trial has no misfit to estimate: its expected error and p are
     "not determined", never an expected RMS of 1e-13 and p = 0; data with every trial unloaded are
     refused (nothing there determines a ligament)."""
-    from kneenlp.inference import crossval
+    from kneenlp.validation import crossval
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     keep_one = np.arange(len(data)) != 0

@@ -11,12 +11,12 @@ import pytest
 import trimesh
 
 import kneenlp
-from kneenlp.conventions import TO_USER
+from kneenlp.base.conventions import TO_USER
+from kneenlp.estimation.identify import identify
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.geometry.distance import MeshDistance
-from kneenlp.inference.identify import identify
 from kneenlp.io.lenhart import knee_toml
 from kneenlp.model.knee_file import knee_file
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.testing.reference import compare_contact
 
 
@@ -122,7 +122,7 @@ def test_every_load_moves_the_tibia_its_own_way(real_knee):
     decreases its varus angle: docs/real-knee.md)."""
     import tomllib
 
-    doc = tomllib.loads(kneenlp.io.resources.resource("protocols", "set3.toml").read_text())
+    doc = tomllib.loads(kneenlp.base.resources.resource("protocols", "set3.toml").read_text())
     doc["load_axes"] = "joint"
     table = kneenlp.simulate(real_knee, kneenlp.Protocol.from_dict(doc)).table()
     axis = {"anterior_force_N": "anterior_translation_mm", "varus_moment_Nm": "varus_rotation_deg",

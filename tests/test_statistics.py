@@ -1,11 +1,11 @@
-"""The statistics of a fit, each defined once (kneenlp.inference.statistics): the information
+"""The statistics of a fit, each defined once (kneenlp.estimation.statistics): the information
 criteria of weighted least squares and the weighted SVD."""
 
 import numpy as np
 import pytest
 
-from kneenlp.inference.identify import identify
-from kneenlp.inference.statistics import information_criteria, weighted_svd
+from kneenlp.estimation.identify import identify
+from kneenlp.estimation.statistics import information_criteria, weighted_svd
 
 
 def test_information_criteria_formula():

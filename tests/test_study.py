@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 import kneenlp
-import kneenlp.io.resources
+import kneenlp.base.resources
 from kneenlp.cli import main
 from kneenlp.studies.study import StudySpec, run_study, sample_seed
 
@@ -54,7 +54,8 @@ def test_seeds_derive_from_study_seed_and_index_only():
 def test_protocol_file_draws_do_not_depend_on_its_directory(tmp_path):
     from kneenlp.studies.study import run_sample
 
-    text = kneenlp.io.resources.resource("protocols", "set1.toml").read_text().replace('name = "set1"', 'name = "mine"')
+    text = kneenlp.base.resources.resource("protocols", "set1.toml").read_text()
+    text = text.replace('name = "set1"', 'name = "mine"')
     rows_ = []
     for where in ("a", "b/c"):
         path = tmp_path / where / "mine.toml"
@@ -139,7 +140,7 @@ def test_protocol_files_as_sets_stay_inside_the_study(tmp_path):
 
 
 def kneenlp_problems():
-    from kneenlp.io.resources import resource
+    from kneenlp.base.resources import resource
 
     return resource()
 

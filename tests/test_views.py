@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import kneenlp
+from kneenlp.base.errors import InputError
 from kneenlp.cli import main
-from kneenlp.errors import InputError
 from kneenlp.experiment.protocol import Protocol
 from kneenlp.io import views
 
@@ -137,7 +137,7 @@ def test_an_empty_legend_is_not_drawn():
     """No matplotlib warning about a legend without labelled artists (a stray library warning)."""
     import warnings
 
-    from kneenlp.io.plots import _subplots, legend
+    from kneenlp.figures.plots import _subplots, legend
 
     _, ax = _subplots(1, 1)
     with warnings.catch_warnings():

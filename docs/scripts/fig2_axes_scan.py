@@ -17,16 +17,16 @@ import tomllib
 import numpy as np
 
 import kneenlp
-import kneenlp.io.resources
+import kneenlp.base.resources
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import Bundle, Ligament
 
 CASES = {"ACL": "anterior_134N_flex0", "MCL": "valgus_10Nm_flex0", "LCL": "varus_10Nm_flex30"}
 
 
 def set3(axes: str) -> Protocol:
-    doc = tomllib.loads((kneenlp.io.resources.resource("protocols", "set3.toml")).read_text())
+    doc = tomllib.loads((kneenlp.base.resources.resource("protocols", "set3.toml")).read_text())
     doc["load_axes"] = axes
     return Protocol.from_dict(doc)
 

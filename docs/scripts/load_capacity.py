@@ -13,8 +13,8 @@ import sys
 import numpy as np
 
 import kneenlp
-from kneenlp.conventions import TO_USER
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.base.conventions import TO_USER
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.solvers.forward import COLD_START, forward_solver
 
 #: (name, load component, sign, steps): internal/external moment is component 4 (N m about Y),

@@ -24,11 +24,11 @@ from pathlib import Path
 import tomli_w
 
 import kneenlp
+from kneenlp.base.resources import resource
+from kneenlp.estimation.calibrate import LOAD_POINT, REGISTRATION, engaged_probe
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import default_free
-from kneenlp.inference.calibrate import LOAD_POINT, REGISTRATION, engaged_probe
-from kneenlp.io.resources import resource
-from kneenlp.model.kneemodel import KneeModel
 
 NOISE = "uniform:0.5"
 #: What the held-out error accepts beside S192803's calibration (docs/real-experiment.md): the

@@ -22,16 +22,16 @@ import casadi as ca
 import numpy as np
 
 import kneenlp
+from kneenlp.base.resources import resource
+from kneenlp.estimation.calibrate import calibrate
+from kneenlp.estimation.solve import reduced_fit
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.inference.calibrate import calibrate
-from kneenlp.inference.predict import rms_by_coordinate
-from kneenlp.inference.solve import reduced_fit
-from kneenlp.io.resources import resource
 from kneenlp.model.effects import Meniscus
 from kneenlp.model.kinematics import reference_transform
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import Parameter
+from kneenlp.prediction.predict import rms_by_coordinate
 
 
 class CompartmentMeniscus(Meniscus):

@@ -8,7 +8,7 @@ import sys
 import tomllib
 
 import kneenlp
-from kneenlp.io.resources import resource
+from kneenlp.base.resources import resource
 
 CASES = [("anterior_134N", "anterior_translation_mm"), ("posterior_67N", "anterior_translation_mm"),
          ("varus_10Nm", "varus_rotation_deg"), ("valgus_10Nm", "varus_rotation_deg"),

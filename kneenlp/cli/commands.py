@@ -8,20 +8,20 @@ import math
 import sys
 from pathlib import Path
 
+from kneenlp.base.atomic import staged_directory, write_csv_atomic, write_error, write_text_atomic
+from kneenlp.base.errors import InputError
 from kneenlp.cli.inputs import MAX_STUDY_FITS, check_names, effect_values, knee_from_args, knee_reference, study_size
-from kneenlp.errors import InputError
-from kneenlp.io.atomic import staged_directory, write_csv_atomic, write_error, write_text_atomic
 
 #: Candidates ``diagnose`` judges by their held-out error on a real experiment (``--held-out``).
 HELD_OUT_CANDIDATES = 2
 
 
 def cmd_diagnose(args) -> int:
-    from kneenlp.inference import crossval
-    from kneenlp.inference.adequacy import diagnose
-    from kneenlp.inference.basefit import base_fit
-    from kneenlp.inference.calibrate import calibrate, real_experiment
-    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.adequacy.basefit import base_fit
+    from kneenlp.adequacy.diagnosis import diagnose
+    from kneenlp.estimation.calibrate import calibrate, real_experiment
+    from kneenlp.experiment.kneemodel import KneeModel
+    from kneenlp.validation import crossval
 
     knee = knee_from_args(args)
     data = args.measured  # read and checked by the options layer
@@ -56,7 +56,7 @@ def cmd_simulate(args) -> int:
     import numpy as np
 
     from kneenlp.experiment.protocol import Protocol
-    from kneenlp.io import plots
+    from kneenlp.figures import plots
     from kneenlp.simulation import simulate
 
     protocol = Protocol.load(args.protocol)
@@ -114,9 +114,9 @@ def hold_out_workers(args) -> int:
 
 def held_out_judgements(knee, args) -> list:
     """``identify --held-out``: the calibration (without ``--also-free``) and, given, with it, judged by
-    their held-out errors (:func:`kneenlp.inference.crossval.judge`)."""
-    from kneenlp.inference import crossval
-    from kneenlp.model.kneemodel import KneeModel
+    their held-out errors (:func:`kneenlp.validation.crossval.judge`)."""
+    from kneenlp.experiment.kneemodel import KneeModel
+    from kneenlp.validation import crossval
 
     options = {k: v for k, v in (("pivot_tolerance", args.pivot_tolerance), ("keep_outliers", args.keep_outliers))
                if v} | prior_options(args)
@@ -125,11 +125,11 @@ def held_out_judgements(knee, args) -> list:
 
 
 def cmd_identify(args) -> int:
-    from kneenlp.inference import crossval
-    from kneenlp.inference.calibrate import Calibration, posterior
-    from kneenlp.inference.identify import identify
-    from kneenlp.inference.profile import profile, profile_lines
+    from kneenlp.estimation.calibrate import Calibration, posterior
+    from kneenlp.estimation.identify import identify
+    from kneenlp.estimation.profile import profile, profile_lines
     from kneenlp.io import inferencedata
+    from kneenlp.validation import crossval
 
     knee = knee_from_args(args)
     check_names(knee, args)
@@ -185,9 +185,9 @@ def _calibration_comparison(out: dict) -> str:
 
 
 def cmd_compare_methods(args) -> int:
-    from kneenlp.inference.calibrate import real_experiment
-    from kneenlp.inference.compare import compare_calibration, compare_methods
-    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.estimation.calibrate import real_experiment
+    from kneenlp.estimation.compare import compare_calibration, compare_methods
+    from kneenlp.experiment.kneemodel import KneeModel
 
     if real_experiment(args.measured):
         out = compare_calibration(KneeModel.of(knee_from_args(args)), args.measured, seed=args.seed,
@@ -268,7 +268,7 @@ def cmd_export(args) -> int:
 
 
 def cmd_design(args) -> int:
-    from kneenlp.inference.design import candidate_pool, default_flexions, design, rse_text, write_protocol
+    from kneenlp.design.optimal import candidate_pool, default_flexions, design, rse_text, write_protocol
 
     knee = knee_from_args(args)
     check_names(knee, args)
@@ -298,7 +298,7 @@ def cmd_design(args) -> int:
 
 
 def cmd_view(args) -> int:
-    from kneenlp.errors import unknown_name
+    from kneenlp.base.errors import unknown_name
     from kneenlp.experiment.protocol import Protocol
     from kneenlp.io import views
     from kneenlp.simulation import simulate
@@ -363,7 +363,7 @@ def cmd_import_laxity(args) -> int:
 
 
 def cmd_predict(args) -> int:
-    from kneenlp.inference.predict import predict, write_prediction
+    from kneenlp.prediction.predict import predict, write_prediction
 
     knee = knee_from_args(args)
     prediction = predict(knee, args.measured)
@@ -382,8 +382,8 @@ def cmd_predict(args) -> int:
 
 
 def cmd_cross_validate(args) -> int:
-    from kneenlp.inference import crossval
-    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.experiment.kneemodel import KneeModel
+    from kneenlp.validation import crossval
 
     model = KneeModel.of(knee_from_args(args))
     store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
@@ -412,7 +412,7 @@ def cmd_cross_validate(args) -> int:
 
 
 def cmd_identifiability(args) -> int:
-    from kneenlp.inference.identifiability import identifiability
+    from kneenlp.design.identifiability import identifiability
 
     knee = knee_from_args(args)
     check_names(knee, args)

@@ -8,8 +8,8 @@ import contextlib
 import os
 from pathlib import Path
 
-from kneenlp import options as opt
-from kneenlp.errors import InputError, unknown_name
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.cli import options as opt
 
 
 # ------------------------------------------------------------------ input files and --out (before the work)
@@ -28,7 +28,7 @@ def check_out(value: str, kind: str) -> None:
     ancestor, which also catches read-only file systems."""
     import tempfile
 
-    from kneenlp.io.atomic import TMP_PREFIX
+    from kneenlp.base.atomic import TMP_PREFIX
 
     if not value.strip():
         raise InputError("empty path", field="--out")
@@ -129,8 +129,8 @@ def apply_problem(args) -> None:
 def check_names(knee, args) -> None:
     """``--free`` and ``--with-effect`` must name parameters and effects of the model (checked
     after the knee is read, before the work)."""
+    from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.experiment.problem import check_free
-    from kneenlp.model.kneemodel import KneeModel
 
     model = KneeModel.of(knee)
     for spec in getattr(args, "with_effect", None) or []:
@@ -153,8 +153,8 @@ def set_names(text: str) -> list[str]:
 
 def knee_from_args(args):
     """The knee model of the --knee, --parameters and --element options."""
+    from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.model.knee import Knee
-    from kneenlp.model.kneemodel import KneeModel
     from kneenlp.model.plugins import load_elements
 
     knee = Knee.load(args.knee) if args.knee else Knee.default()
@@ -181,7 +181,7 @@ def effect_values(knee, specs: list[str]) -> dict[str, float]:
     ``registration:anterior_translation=1.5``) -> parameter values in SI."""
     import numpy as np
 
-    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.experiment.kneemodel import KneeModel
 
     model = KneeModel.of(knee)
     values: dict[str, float] = {}

@@ -5,7 +5,7 @@ traceback); with ``--json`` the error is also printed on stdout as ``{"error": .
 "field": ...}``.  A run in which some trial or fit did not converge still writes its outputs and
 exits with status 1.  Every option and input file is checked before any work starts (option
 values by their argparse types, files by :func:`check_inputs`); outputs are written through a
-staging directory (:func:`kneenlp.io.atomic.staged_directory`), so a failed or interrupted
+staging directory (:func:`kneenlp.base.atomic.staged_directory`), so a failed or interrupted
 command leaves no half-written file.  Ctrl-C (SIGINT) and SIGTERM end a command with one line and
 status 130 / 143, keeping finished work (a study's finished samples).  An unexpected exception
 (a bug) is one line and status 3 (``KNEENLP_DEBUG=1`` shows the traceback).
@@ -19,10 +19,10 @@ import os
 import signal
 import sys
 
+from kneenlp.base.errors import ConvergenceError, InputError
 from kneenlp.cli.commands import COMMANDS
 from kneenlp.cli.inputs import check_inputs
 from kneenlp.cli.parser import build_parser
-from kneenlp.errors import ConvergenceError, InputError
 
 #: Exit statuses: 0 done, 1 some trial or fit did not converge, 2 bad input, 3 internal error (a
 #: bug), 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
@@ -70,7 +70,7 @@ def _interrupted(signum: int, as_json: bool) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     as_json = "--json" in argv  # until the options are parsed
-    from kneenlp.interrupts import Interrupted, catching_signals, pending
+    from kneenlp.base.interrupts import Interrupted, catching_signals, pending
 
     with catching_signals():
         try:

@@ -1,11 +1,11 @@
 """The argument parser of the command line: every subcommand, its options and their types
-(:mod:`kneenlp.options` checks values by type and range)."""
+(:mod:`kneenlp.cli.options` checks values by type and range)."""
 
 from __future__ import annotations
 
 import argparse
 
-from kneenlp import options as opt
+from kneenlp.cli import options as opt
 from kneenlp.cli.inputs import MAX_STUDY_FITS, set_names
 
 

@@ -1,6 +1,6 @@
 """Measured laxity data: the CSV format that ``kneenlp simulate`` writes and identification reads.
 
-One row per trial.  Columns (units in the names; signs as in :mod:`kneenlp.conventions`):
+One row per trial.  Columns (units in the names; signs as in :mod:`kneenlp.base.conventions`):
 
 =============================  ===============================================================
 column                         meaning
@@ -17,7 +17,7 @@ column                         meaning
 ``proximal_translation_mm``    measured proximal (+) / distal (-) translation (mm)
 ``protocol`` (optional)        protocol name the trials come from (e.g. ``set3``)
 ``load_axes`` (optional)       ``femoral`` (default), ``joint`` or ``jcs`` (a robot's joint
-                               loads), see :mod:`kneenlp.conventions`
+                               loads), see :mod:`kneenlp.base.conventions`
 ``lateral_force_N`` (optional)   force, + lateral (N)
 ``proximal_force_N`` (optional)  force, + proximal: compression of the joint (N)
 ``flexion_moment_Nm`` (optional) moment, + flexion (N m): reported, carried by the prescribed flexion
@@ -32,7 +32,7 @@ too).
 Other columns (e.g. ligament forces written by ``simulate``) are ignored; a column that names a
 coordinate or load with a different unit (``anterior_translation_m``) is an error.
 
-Checks at reading (every problem is a one-line :class:`~kneenlp.errors.InputError` naming the file,
+Checks at reading (every problem is a one-line :class:`~kneenlp.base.errors.InputError` naming the file,
 the column and the row):
 
 * every value a finite number; trial ids present and unique; ``load_axes`` known;
@@ -67,7 +67,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import (
+from kneenlp.base.conventions import (
     ALL_LOAD_COMPONENTS,
     COORDINATES,
     LOAD_AXES,
@@ -78,7 +78,7 @@ from kneenlp.conventions import (
     coords_to_user,
     load_columns,
 )
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 from kneenlp.experiment.protocol import FLEXION_RANGE, Protocol, Trial, available_protocols, check_load
 
 REQUIRED = ["trial", "flexion_deg", *load_columns(), *coordinate_columns()]

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 
 KINDS = ("none", "uniform", "gaussian")
 

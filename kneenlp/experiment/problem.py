@@ -11,7 +11,7 @@ values of the fixed ones.  It sits below the solvers (docs/architecture.md) and 
 * the data-vector layout (:class:`DataLayout`: :meth:`data_vector` packs it, the NLP and export
   split it);
 * the one equilibrium tolerance (:attr:`equilibrium_tol`,
-  :data:`~kneenlp.conventions.EQUILIBRIUM_TOL`).
+  :data:`~kneenlp.base.conventions.EQUILIBRIUM_TOL`).
 
 From it:
 
@@ -22,7 +22,7 @@ From it:
 * export writes its NLP.
 
 Every comparison of model and measurement goes through the model's ONE observation function
-(:attr:`kneenlp.model.kneemodel.KneeModel.observation`): predicted coordinates in mm and deg,
+(:attr:`kneenlp.experiment.kneemodel.KneeModel.observation`): predicted coordinates in mm and deg,
 including any measurement bias of the model's elements.
 """
 
@@ -34,17 +34,17 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import (
+from kneenlp.base.conventions import (
     EQUILIBRIUM_TOL,
     LOAD_SIZE,
     coords_to_user,
     pose_envelope_user,
 )
-from kneenlp.errors import InputError, unknown_name
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Trial
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.parameters import Parameter
 from kneenlp.model.priors import Prior
 
@@ -126,7 +126,7 @@ def prior_rows(values, centre, inv_sd, logs: Sequence[bool]):
 class DataLayout:
     """The NLP's data vector ``p``: the full parameter vector (SI), then per trial (trial-major)
     the measured coordinates (5, mm and deg), the weights (5, per mm^2 or deg^2), the load vector
-    (:data:`~kneenlp.conventions.LOAD_SIZE`, N and N m), the flexion (rad) and, for a program
+    (:data:`~kneenlp.base.conventions.LOAD_SIZE`, N and N m), the flexion (rad) and, for a program
     holding its contact working sets as data, the working sets (``n_ws``)."""
 
     n_theta: int
@@ -288,7 +288,7 @@ class IdentificationProblem:
     @property
     def pose_bounds_user(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds (5, mm and deg) of every trial's pose: the physiological envelope
-        (:data:`~kneenlp.conventions.POSE_ENVELOPE_USER`) about the knee's reference pose."""
+        (:data:`~kneenlp.base.conventions.POSE_ENVELOPE_USER`) about the knee's reference pose."""
         return pose_envelope_user(self.model.knee.reference_pose[1])
 
     def inside_pose_bounds(self, q: np.ndarray, margin: float = 0.99) -> np.ndarray:

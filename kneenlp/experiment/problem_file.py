@@ -27,12 +27,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.model.knee import Knee
 from kneenlp.model.parameters import Entries, read_entries, read_toml
 
-#: The fit strategies a problem may name (:func:`kneenlp.inference.identify.identify`'s).
+#: The fit strategies a problem may name (:func:`kneenlp.estimation.identify.identify`'s).
 STRATEGIES = ("auto", "calibration", "scatter")
 #: The file a problem folder holds.
 FILE = "problem.toml"

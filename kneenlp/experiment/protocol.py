@@ -18,7 +18,7 @@ Load axes (top-level ``load_axes``):
   clinical laxity device applies them.  These directions depend only on the flexion angle, so the
   loads stay fixed in the femoral frame during a trial in both cases;
 * ``"jcs"``: generalised forces of the joint coordinate system, as a robotic knee simulator
-  applies them (:mod:`kneenlp.conventions`).
+  applies them (:mod:`kneenlp.base.conventions`).
 
 A combined load may also name ``lateral_force``, ``proximal_force`` (N) and ``flexion_moment`` (N m,
 reported only).
@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.conventions import ALL_LOAD_COMPONENTS, DIRECTIONS, LOAD_AXES, load_vector
-from kneenlp.errors import InputError, unknown_name
-from kneenlp.io.resources import resource
+from kneenlp.base.conventions import ALL_LOAD_COMPONENTS, DIRECTIONS, LOAD_AXES, load_vector
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.resources import resource
 from kneenlp.model.parameters import number, read_toml
 
 PROTOCOL_DIR = resource("protocols")
@@ -57,7 +57,7 @@ class Trial:
 
     @property
     def load(self) -> np.ndarray:
-        """Internal load vector (N, N m; :func:`~kneenlp.conventions.load_vector`)."""
+        """Internal load vector (N, N m; :func:`~kneenlp.base.conventions.load_vector`)."""
         return load_vector(self.loads, flexion=self.flexion, axes=self.axes)
 
     @property

@@ -32,10 +32,10 @@ import trimesh
 from scipy.ndimage import spline_filter
 from scipy.spatial import cKDTree
 
+from kneenlp.base.atomic import atomic_target
 from kneenlp.geometry.cache import cache_dir
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.kernels import cell_minimum, field_values
-from kneenlp.io.atomic import atomic_target
 
 #: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
 FORMAT_VERSION = 4

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 
 #: Node indices (0-based) of each face label of Abaqus's solid elements.
 FACES: dict[str, dict[str, tuple[int, ...]]] = {

@@ -42,20 +42,20 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import (
+from kneenlp.base.atomic import atomic_target, write_text_atomic
+from kneenlp.base.conventions import (
     COORDINATE_UNITS,
     COORDINATES,
     RESIDUAL_NAMES,
     RESIDUAL_UNITS,
     coords_from_user,
 )
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.geometry.graph_field import LAYOUTS
-from kneenlp.io.atomic import atomic_target, write_text_atomic
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import equilibrium_start
 from kneenlp.solvers.nlp import nlp_expressions
 
@@ -106,7 +106,7 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
                    with_effects: list[str] | None = None, fixed: dict[str, float] | None = None,
                    contact: str = "exact", layout: str = "vector") -> ExportProblem:
     """Build the identification NLP of ``data`` with a start like
-    :func:`kneenlp.inference.identify.identify`'s (``knee`` may be a model with user elements);
+    :func:`kneenlp.estimation.identify.identify`'s (``knee`` may be a model with user elements);
     ``contact``: ``"exact"`` (CasADi, C) or ``"expansion"`` (what ``.nl`` can hold; module docstring);
     ``layout``: the exact contact's graph shape (``"vector"`` for CasADi files, ``"loop"`` for C)."""
     if contact not in CONTACT_FORMS:

@@ -18,10 +18,10 @@ import json
 import math
 from pathlib import Path
 
-from kneenlp.errors import InputError, unknown_name
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.io.osim import OsimError, write_calibrated
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.ligament import slack_length
 
 

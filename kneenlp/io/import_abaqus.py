@@ -47,10 +47,10 @@ import numpy as np
 import tomli_w
 import trimesh
 
-from kneenlp.conventions import COORDINATES, coords_to_user
-from kneenlp.errors import InputError
+from kneenlp.base.atomic import export_mesh_atomic, write_text_atomic
+from kneenlp.base.conventions import COORDINATES, coords_to_user
+from kneenlp.base.errors import InputError
 from kneenlp.io.abaqus import evaluate_parameters, nodes, read_keywords, read_mesh, substitute, triangles
-from kneenlp.io.atomic import export_mesh_atomic, write_text_atomic
 from kneenlp.model.kinematics import joint_coordinates
 from kneenlp.model.parameters import KINDS, imported_parameter_set
 

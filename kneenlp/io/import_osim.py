@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from kneenlp.errors import InputError
-from kneenlp.io.atomic import write_text_atomic
+from kneenlp.base.atomic import write_text_atomic
+from kneenlp.base.errors import InputError
 from kneenlp.io.osim import OsimError, knee_line_elements, ligament_groups, read_osim
 from kneenlp.model.knee_file import PLAUSIBLE_MM
 from kneenlp.model.laws import BlankevoortLaw

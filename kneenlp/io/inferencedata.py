@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.conventions import coordinate_columns
+from kneenlp.base.conventions import coordinate_columns
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.model.posterior import Posterior
 

@@ -45,7 +45,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 from kneenlp.experiment.measured import check_plausible, measured_frame
 from kneenlp.experiment.protocol import DIRECTION_WORDS, MAX_FORCE, MAX_MOMENT, Trial, dominant_direction
 from kneenlp.model.kinematics import tibial_pose
@@ -234,7 +234,7 @@ def _screw_home_note(df: pd.DataFrame, words: np.ndarray, src: str) -> None:
 
 def import_laxity(path: str | Path, out: str | Path, side: str) -> pd.DataFrame:
     """Write the measured-data CSV of a MATLAB laxity file (atomically); returns the table."""
-    from kneenlp.io.atomic import write_csv_atomic
+    from kneenlp.base.atomic import write_csv_atomic
 
     if Path(out).resolve() == Path(path).resolve():
         raise InputError("is the MATLAB file itself: give another path for the CSV", source=str(out), field="--out")

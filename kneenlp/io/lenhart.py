@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.io.atomic import write_text_atomic
+from kneenlp.base.atomic import write_text_atomic
+from kneenlp.base.resources import resource
 from kneenlp.io.osim import knee_line_elements, ligament_groups, read_osim
-from kneenlp.io.resources import resource
 from kneenlp.model.parameters import KINDS
 
 #: Which OpenSim bundle groups make each of the paper's four single-bundle ligaments.

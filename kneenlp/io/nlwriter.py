@@ -23,7 +23,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from kneenlp.io.atomic import atomic_target, write_text_atomic
+from kneenlp.base.atomic import atomic_target, write_text_atomic
 
 _BINARY = {ca.OP_ADD: "o0", ca.OP_SUB: "o1", ca.OP_MUL: "o2", ca.OP_DIV: "o3", ca.OP_POW: "o5",
            ca.OP_CONSTPOW: "o5", ca.OP_ATAN2: "o48"}

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from kneenlp.io.atomic import export_mesh_atomic
+from kneenlp.base.atomic import export_mesh_atomic
 
 
 @dataclass(frozen=True)

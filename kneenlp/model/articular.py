@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 from kneenlp.geometry.axes import CondyleSplit, FlexionAxis, split_plateaus, sweep, touchable_box
 from kneenlp.geometry.distance import vertex_areas
 from kneenlp.geometry.rim import OpenEdges, at_open_edge

@@ -1,6 +1,6 @@
 """Candidate physical effects: elements and parameter groups that are neutral in the base model.
 
-An *effect* is something the model adequacy check can add (:mod:`kneenlp.inference.adequacy`):
+An *effect* is something the model adequacy check can add (:mod:`kneenlp.adequacy.diagnosis`):
 
 * a candidate force element (:class:`~kneenlp.model.elements.ForceElement` with
   ``candidate = True``): at its neutral parameter values it contributes exactly nothing, so the
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
+from kneenlp.base.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.model.elements import ForceElement, Pose
 from kneenlp.model.kinematics import rot_x, rot_z, tibial_pose
 from kneenlp.model.parameters import Parameter

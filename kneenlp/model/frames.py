@@ -2,7 +2,7 @@
 
 ``coordinates = "scan"`` in a knee file: every point and mesh is in the scanner's frame.  kneenlp
 maps it rigidly into the femoral frame (X anterior, Y proximal, Z lateral, origin at the knee
-centre; :mod:`kneenlp.conventions`), ``x_femoral = rotation @ (x_scan - origin)``, built by one
+centre; :mod:`kneenlp.base.conventions`), ``x_femoral = rotation @ (x_scan - origin)``, built by one
 of two methods (``frame = ...`` in the knee file):
 
 * ``"cylinders"`` (default when the knee has a femoral mesh; the laxity-noise paper's procedure):
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 
 FRAME_METHODS = ("cylinders", "landmarks")
 

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from kneenlp.io.atomic import export_mesh_atomic, write_text_atomic
+from kneenlp.base.atomic import export_mesh_atomic, write_text_atomic
 
 #: Medio-lateral positions of the medial and lateral condyle (mm, femoral frame).
 CONDYLE_Z = {"medial": -21.0, "lateral": 21.0}

@@ -1,4 +1,4 @@
-"""Tibial pose from Grood & Suntay joint coordinates (see :mod:`kneenlp.conventions`).
+"""Tibial pose from Grood & Suntay joint coordinates (see :mod:`kneenlp.base.conventions`).
 
 All functions take CasADi symbols or numbers in SI units (rad, m) and return CasADi
 expressions, so the same code serves the symbolic model and numerical evaluation.

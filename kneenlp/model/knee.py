@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 from kneenlp.geometry.axes import FlexionAxis
 from kneenlp.model.articular import (
     RIM_GAP,
@@ -72,7 +72,7 @@ class Knee:
     #: the knee file's own parameter set once :meth:`with_parameters` replaced it (e.g. by a
     #: calibration's file); the forward solver follows hard trials from it
     source_parameters: ParameterSet | None = None
-    #: the knee's CasADi model once built (:meth:`kneenlp.model.kneemodel.KneeModel.of` builds and keeps it)
+    #: the knee's CasADi model once built (:meth:`kneenlp.experiment.kneemodel.KneeModel.of` builds and keeps it)
     built_model: object = field(default=None, init=False, repr=False, compare=False)
 
     @property

@@ -13,8 +13,9 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from kneenlp.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
-from kneenlp.errors import InputError, unknown_name
+from kneenlp.base.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.resources import resource
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
 from kneenlp.geometry.decimate import (
     MAX_MESH_FACES,
@@ -26,7 +27,6 @@ from kneenlp.geometry.decimate import (
 from kneenlp.geometry.distance import MeshDistance, winding_number
 from kneenlp.geometry.rim import OpenEdges
 from kneenlp.geometry.sdf import DistanceField
-from kneenlp.io.resources import resource
 from kneenlp.model.articular import (
     COMPARTMENT_KEYS,
     CONTACT_SETTINGS,

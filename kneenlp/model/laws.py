@@ -49,7 +49,7 @@ from typing import Any, Protocol, runtime_checkable
 import casadi as ca
 import numpy as np
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 from kneenlp.geometry.kernels import REFERENCE_DEPTH
 from kneenlp.geometry.ramp import ramp_inner
 

@@ -23,7 +23,7 @@ Attachment shifts: every (non-candidate) ligament also has six parameters, neutr
 all its femoral attachments (femoral frame) and all its tibial attachments (tibial frame) by a
 vector (m inside, mm at the user boundary): ``<lig>.femur_anterior``, ``.femur_proximal``,
 ``.femur_lateral``, ``.tibia_anterior``, ... (axes X anterior, Y proximal, Z lateral of
-:mod:`kneenlp.conventions`).  The reference length follows the moved attachments, so the model
+:mod:`kneenlp.base.conventions`).  The reference length follows the moved attachments, so the model
 with a shift equals a knee file whose attachments are moved by it (a segmentation error); model
 adequacy frees them as geometry candidates (:func:`kneenlp.model.effects.attachment_effects`).
 """
@@ -51,7 +51,7 @@ def force_strain_numpy(eps: np.ndarray, k: float, eps_l: float) -> np.ndarray:
     return ToeLinearLaw().tension(np.asarray(eps, dtype=float), k, eps_l, NUMPY)
 
 
-#: Attachment-shift axes, in the order of the frames' X, Y, Z (:mod:`kneenlp.conventions`).
+#: Attachment-shift axes, in the order of the frames' X, Y, Z (:mod:`kneenlp.base.conventions`).
 SHIFT_AXES: tuple[str, ...] = ("anterior", "proximal", "lateral")
 #: Largest attachment shift a fit may give (m).
 SHIFT_BOUND = 0.02

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.errors import InputError, unknown_name
+from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.model.posterior import Posterior
 from kneenlp.model.priors import Prior
 

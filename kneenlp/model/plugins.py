@@ -8,7 +8,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Sequence
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 from kneenlp.model.elements import ForceElement
 
 

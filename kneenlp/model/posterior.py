@@ -2,10 +2,10 @@
 
 A calibration writes it into ``calibrated.toml`` beside the values (``[posterior]``), so that
 ``kneenlp predict --parameters calibrated.toml`` can say how far to trust a prediction
-(:func:`~kneenlp.inference.predict.predict`: the covariance carried through each trial's
+(:func:`~kneenlp.prediction.predict.predict`: the covariance carried through each trial's
 equilibrium, plus the measurement noise).  It is the Laplace approximation: a normal about the
 fitted values with the Gauss-Newton covariance of the MAP problem, priors included
-(:meth:`~kneenlp.inference.fit.Fit.with_prior_rows`).
+(:meth:`~kneenlp.estimation.fit.Fit.with_prior_rows`).
 
 In the file, display units (those of ``[values]``)::
 
@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kneenlp.conventions import coordinate_columns
-from kneenlp.errors import InputError
+from kneenlp.base.conventions import coordinate_columns
+from kneenlp.base.errors import InputError
 
 #: Largest relative asymmetry, and most negative eigenvalue relative to the largest, of a
 #: covariance read from a file.

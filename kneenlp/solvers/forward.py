@@ -14,7 +14,7 @@ Strategy per trial (all with the model's one residual function):
    :meth:`ForwardSolver.continue_parameters`; strategy ``continuation``): a load path can pass a
    fold that no load ramp crosses while the equilibrium at the end exists;
 4. a trial is *converged* only if the largest generalised force at the returned pose is below
-   ``tol`` (default :data:`~kneenlp.conventions.EQUILIBRIUM_TOL`, 1e-6 N / N m; the paper's 1e-3 is
+   ``tol`` (default :data:`~kneenlp.base.conventions.EQUILIBRIUM_TOL`, 1e-6 N / N m; the paper's 1e-3 is
    the ceiling) AND the pose lies in the
    physiological envelope (:data:`ENVELOPE`: |varus| <= 30 deg, |internal| <= 60 deg,
    |translation| <= 25 mm, some cartilage contact).  An "equilibrium" outside it (e.g. a 100 kN
@@ -29,10 +29,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from kneenlp.conventions import EQUILIBRIUM_TOL, POSE_ENVELOPE_USER, coords_from_user, coords_to_user
+from kneenlp.base.conventions import EQUILIBRIUM_TOL, POSE_ENVELOPE_USER, coords_from_user, coords_to_user
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.protocol import Trial
 from kneenlp.model.elements import StagedElement
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.newton import EquilibriumNewton
 
 if TYPE_CHECKING:

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 
 PENALTY = 100.0
 #: N or N m: the paper's FDK tolerance, above which a trial's residual is penalised; looser than the
-#: equilibrium tolerance of every other solver (:data:`~kneenlp.conventions.EQUILIBRIUM_TOL`) on purpose,
+#: equilibrium tolerance of every other solver (:data:`~kneenlp.base.conventions.EQUILIBRIUM_TOL`) on purpose,
 #: as in the paper (the fit's success is still judged at the equilibrium tolerance)
 CONSTRAINT_TOL = 1e-3
 

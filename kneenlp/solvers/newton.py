@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kneenlp.conventions import EQUILIBRIUM_TOL, LOAD_SIZE, TO_USER
+from kneenlp.base.conventions import EQUILIBRIUM_TOL, LOAD_SIZE, TO_USER
 
 #: Largest Newton step (mm for translations, deg for rotations).
 MAX_STEP = 5.0

@@ -31,9 +31,9 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from kneenlp import interrupts
-from kneenlp.conventions import LOAD_SIZE, coords_from_user, coords_to_user
-from kneenlp.errors import InputError
+from kneenlp.base import interrupts
+from kneenlp.base.conventions import LOAD_SIZE, coords_from_user, coords_to_user
+from kneenlp.base.errors import InputError
 from kneenlp.experiment.problem import prior_rows
 from kneenlp.model.solvercache import frozen
 from kneenlp.solvers.forward import equilibrium_start
@@ -187,7 +187,7 @@ def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, t
 
 @dataclass
 class NLPResult:
-    """One solve of the simultaneous NLP, as the solver left it (:mod:`kneenlp.inference` judges it)."""
+    """One solve of the simultaneous NLP, as the solver left it (:mod:`kneenlp.estimation` judges it)."""
 
     values: dict[str, float]  # free parameters, SI
     q: np.ndarray  # poses, T x 5, SI

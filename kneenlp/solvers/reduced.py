@@ -11,8 +11,8 @@ and their Jacobian the implicit-function sensitivities
 (:meth:`~kneenlp.experiment.problem.IdentificationProblem.sensitivities`); scipy's trust-region
 reflective least squares takes the steps within the parameter bounds.  Every iterate is an
 equilibrium, so it cannot wander off.  Used to rescue a failed simultaneous solve
-(:func:`kneenlp.inference.identify.identify`) and to solve the refits of model adequacy
-(:func:`kneenlp.inference.candidates.refit_with`), which start at the base fit.
+(:func:`kneenlp.estimation.identify.identify`) and to solve the refits of model adequacy
+(:func:`kneenlp.adequacy.candidates.refit_with`), which start at the base fit.
 """
 
 from __future__ import annotations

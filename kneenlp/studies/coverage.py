@@ -5,7 +5,7 @@ defaults about the knee's values, docs/priors.md), simulates the protocol with t
 noise, and identifies the MAP estimate with those priors and the declared noise (so the prior
 weight is the noise variance: the posterior proper).  Averaged over the prior, a Bayesian
 interval that is right covers the truth at its level; the Laplace intervals (the MAP Hessian,
-:attr:`~kneenlp.inference.fit.Fit.stderr`) are checked so (``benchmarks/bench_coverage.py``:
+:attr:`~kneenlp.estimation.fit.Fit.stderr`) are checked so (``benchmarks/bench_coverage.py``:
 at least 200 experiments; a fast version in the tests).
 """
 
@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from kneenlp.estimation.identify import identify
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import free_names, resolve_priors
-from kneenlp.inference.identify import identify
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.simulation import simulate
 
 #: Draws of a truth outside a parameter's bounds are redrawn at most this often.

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from kneenlp.base.atomic import atomic_target, write_csv_atomic, write_text_atomic
+from kneenlp.base.resources import resource
 from kneenlp.experiment.noise import NoiseModel
-from kneenlp.io.atomic import atomic_target, write_csv_atomic, write_text_atomic
-from kneenlp.io.resources import resource
 from kneenlp.model.parameters import KINDS
 from kneenlp.studies.truth import study_model, study_truth
 
@@ -39,8 +39,8 @@ def _write_parquet(df: pd.DataFrame, path: Path) -> bool:
 
 def predicted_std(study, set_name: str) -> dict[str, float]:
     """Linearised (Gauss-Newton) standard deviation of each free parameter at the true values (SI)."""
+    from kneenlp.estimation.statistics import gauss_newton_covariance
     from kneenlp.experiment.problem import IdentificationProblem, free_names
-    from kneenlp.inference.statistics import gauss_newton_covariance
 
     spec = study.spec
     model = study_model(spec.knee, tuple(spec.elements))
@@ -56,7 +56,7 @@ def predicted_std(study, set_name: str) -> dict[str, float]:
 def analyse_study(study) -> dict:
     """Write estimates.csv/.parquet, table3.csv, failures.csv, fig3_boxplots.png,
     fig2_set3_forces.png and summary.md into the study directory; return the Table 3 frame."""
-    from kneenlp.io import plots
+    from kneenlp.figures import plots
 
     out = study.out
     df = study.load_rows()

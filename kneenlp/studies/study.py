@@ -32,9 +32,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kneenlp import interrupts
-from kneenlp.errors import InputError, unknown_name
-from kneenlp.io.atomic import write_text_atomic
+from kneenlp.base import interrupts
+from kneenlp.base.atomic import write_text_atomic
+from kneenlp.base.errors import InputError, unknown_name
 
 STARTS = ("scatter", "truth")
 #: Keys every sample file holds (written by :meth:`Study.record`).
@@ -84,10 +84,10 @@ def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2) -> 
     """Simulate, add noise and identify one sample; returns one result row (never raises).
 
     ``threads`` of the NLP's trial map: 1 in worker processes (one process per core already)."""
-    from kneenlp.conventions import coordinate_columns
+    from kneenlp.base.conventions import coordinate_columns
+    from kneenlp.estimation.identify import identify
     from kneenlp.experiment.measured import MeasuredData
     from kneenlp.experiment.problem import default_free
-    from kneenlp.inference.identify import identify
     from kneenlp.studies.truth import study_model, study_truth
 
     row: dict = {"set": set_name, "sample": index, "seed": -1}

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from kneenlp.errors import InputError
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.base.errors import InputError
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.simulation import SimulationResult
 
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.geometry.distance import MeshDistance
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.laws import NUMPY, ElasticFoundation, PressureLaw
 
 

@@ -9,7 +9,7 @@ import os
 import re
 from collections.abc import Mapping, Sequence
 
-from kneenlp.io.atomic import write_text_atomic
+from kneenlp.base.atomic import write_text_atomic
 from kneenlp.io.osim.kinematics import OsimError
 from kneenlp.io.osim.model import _LIGAMENT_TAG, JAM_ONLY_CLASSES
 from kneenlp.io.osim.read import read_osim

@@ -12,9 +12,9 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from kneenlp.errors import InputError
+from kneenlp.base.atomic import save_figure_atomic
+from kneenlp.base.errors import InputError
 from kneenlp.experiment.protocol import Trial
-from kneenlp.io.atomic import save_figure_atomic
 from kneenlp.io.views.scene import MM, MPA, ContactMap, contact_maps, solution
 from kneenlp.simulation import SimulationResult
 from kneenlp.solvers.forward import TrialSolution

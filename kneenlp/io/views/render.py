@@ -13,10 +13,10 @@ from matplotlib.cm import ScalarMappable
 from matplotlib.colors import ListedColormap, Normalize
 from matplotlib.figure import Figure
 
-from kneenlp.errors import InputError
+from kneenlp.base.atomic import atomic_target
+from kneenlp.base.errors import InputError
 from kneenlp.experiment.protocol import Trial
-from kneenlp.io.atomic import atomic_target
-from kneenlp.io.plots import legend
+from kneenlp.figures.plots import legend
 from kneenlp.io.views.maps import PRESSURE_CMAP, pressure_map, save_figure
 from kneenlp.io.views.scene import MM, MPA, Scene, build_scene, decimate
 from kneenlp.simulation import SimulationResult
@@ -34,7 +34,7 @@ def knee_view(result: SimulationResult, trial: str | Trial | TrialSolution, path
     Writes a static PNG (matplotlib 3-D, meshes decimated to a few thousand faces) to ``path_png``
     and an interactive self-contained HTML file (plotly, opens offline) to ``path_html``; either may
     be None.  The HTML needs plotly (``pip install 'kneenlp[view]'``); without it an
-    :class:`~kneenlp.errors.InputError` says so.  Returns the written paths."""
+    :class:`~kneenlp.base.errors.InputError` says so.  Returns the written paths."""
     if path_html is not None:
         require_plotly()
     scene = build_scene(result, trial)

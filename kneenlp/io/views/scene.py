@@ -9,11 +9,11 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from kneenlp.errors import unknown_name
+from kneenlp.base.errors import unknown_name
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.protocol import Protocol, Trial
 from kneenlp.model.articular import Compartment
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.simulation import SimulationResult
 from kneenlp.solvers.forward import TrialSolution
 
@@ -69,7 +69,7 @@ def trial_ids(result: SimulationResult) -> list[str]:
 
 def solution(result: SimulationResult, trial: str | Trial | TrialSolution) -> TrialSolution:
     """The solution of one trial of ``result``, by id (or Trial); unknown ids raise the standard
-    one-line :class:`~kneenlp.errors.InputError`."""
+    one-line :class:`~kneenlp.base.errors.InputError`."""
     if isinstance(trial, TrialSolution):
         return trial
     tid = trial.id if isinstance(trial, Trial) else str(trial)

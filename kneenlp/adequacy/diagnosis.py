@@ -1,18 +1,18 @@
 """Model adequacy: where the model fails, which physical effect is missing, and what adding it does.
 
-``diagnose(fit, noise)`` judges a base fit (:func:`kneenlp.inference.basefit.base_fit` makes one
+``diagnose(fit, noise)`` judges a base fit (:func:`kneenlp.adequacy.basefit.base_fit` makes one
 with the noise model) against the declared noise (mm, deg):
 
 * **global test**: ``chi2 = sum r^2 / sigma^2`` on ``N - p`` degrees of freedom (for uniform noise
   the statistic is less dispersed than chi-square, so the test is conservative), RMS residual vs
   the noise RMS, every residual beyond the noise bound;
 * **where**: a residual map (trials x coordinates, in noise standard deviations), failure patterns
-  in words (:mod:`kneenlp.inference.patterns`) and the three worst cells;
+  in words (:mod:`kneenlp.adequacy.patterns`) and the three worst cells;
 * **targeted tests** of every candidate effect (:mod:`kneenlp.model.effects`: force elements,
   parameter groups and the position of every ligament attachment): the score test from the base
-  fit, a refit of the best ``refit`` of them (:mod:`kneenlp.inference.candidates`); each with its
-  detection limit for this protocol (:mod:`kneenlp.inference.detection`);
-* **verdict** (:mod:`kneenlp.inference.verdict`): the global and targeted tests as one family,
+  fit, a refit of the best ``refit`` of them (:mod:`kneenlp.adequacy.candidates`); each with its
+  detection limit for this protocol (:mod:`kneenlp.adequacy.detection`);
+* **verdict** (:mod:`kneenlp.adequacy.verdict`): the global and targeted tests as one family,
   Holm-corrected at level ``alpha``; outcome ``adequate``, ``missing_effect`` (with the
   recommended effect and its estimate), ``noise_larger`` (with the noise level the data imply) or
   ``unexplained``.
@@ -32,16 +32,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
-from kneenlp.errors import InputError
+from kneenlp.adequacy.candidates import EffectScore, refit_with, score_effects
+from kneenlp.adequacy.detection import detection_limits, simulated_limits_either_way
+from kneenlp.adequacy.patterns import Pattern, failure_patterns
+from kneenlp.adequacy.verdict import ALPHA, AMBIGUOUS_BIC, Verdict, decide
+from kneenlp.base.atomic import write_csv_atomic, write_text_atomic
+from kneenlp.base.conventions import COORDINATE_UNITS, COORDINATES
+from kneenlp.base.errors import InputError
+from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.statistics import chi_square_test
 from kneenlp.experiment.noise import NoiseModel
-from kneenlp.inference.candidates import EffectScore, refit_with, score_effects
-from kneenlp.inference.detection import detection_limits, simulated_limits_either_way
-from kneenlp.inference.fit import Fit
-from kneenlp.inference.patterns import Pattern, failure_patterns
-from kneenlp.inference.statistics import chi_square_test
-from kneenlp.inference.verdict import ALPHA, AMBIGUOUS_BIC, Verdict, decide
-from kneenlp.io.atomic import write_csv_atomic, write_text_atomic
 from kneenlp.model.ligament import SHIFT_AXES
 
 __all__ = ["Diagnosis", "EffectScore", "diagnose", "rank_effects", "refit_with"]
@@ -115,7 +115,7 @@ class Diagnosis:
                 "seconds": self.seconds}
 
     def to_json(self) -> str:
-        from kneenlp.io.serialize import dumps
+        from kneenlp.base.serialize import dumps
 
         return dumps(self.summary())
 
@@ -171,7 +171,7 @@ class Diagnosis:
     def figures(self, out: str | Path) -> list[Path]:
         """Residual heat map and measured vs predicted laxity curves (mm, deg)."""
         from kneenlp.experiment.measured import measured_frame
-        from kneenlp.io import plots
+        from kneenlp.figures import plots
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -218,11 +218,11 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
     passes), give each its detection limit and decide at family level ``alpha``.
 
     ``limits``: ``True`` or ``"linear"`` for the linearised detection limits (instant),
-    ``"simulated"`` for limits from simulated noise-free data (:func:`~kneenlp.inference.detection.simulated_limits`,
+    ``"simulated"`` for limits from simulated noise-free data (:func:`~kneenlp.adequacy.detection.simulated_limits`,
     a few seconds per parameter; exact where the linearisation is optimistic, e.g. the linear strain
     limits), ``False`` for none."""
     if limits not in (True, False, "linear", "simulated"):
-        from kneenlp.errors import unknown_name
+        from kneenlp.base.errors import unknown_name
 
         raise unknown_name("detection-limit kind", str(limits), ["linear", "simulated"])
     t0 = time.perf_counter()
@@ -292,7 +292,7 @@ def _other_side(effect: str) -> str | None:
 
 
 def rank_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> list[EffectScore]:
-    """Score test of every candidate effect, best first (:func:`~kneenlp.inference.candidates.score_effects`)."""
+    """Score test of every candidate effect, best first (:func:`~kneenlp.adequacy.candidates.score_effects`)."""
     return score_effects(fit, sigma, effects)
 
 

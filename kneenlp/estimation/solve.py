@@ -19,9 +19,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
+from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.starts import best_fit, run_starts
 from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.inference.fit import Fit
-from kneenlp.inference.starts import best_fit, run_starts
 from kneenlp.solvers.forward import forward_solver, rim_reason
 from kneenlp.solvers.nlp import solve_nlp
 from kneenlp.solvers.reduced import reduced_least_squares, tolerance
@@ -42,7 +42,7 @@ def scatter_fit(problem: IdentificationProblem, start: dict[str, float], *, seed
                 solver_options: dict | None = None, threads: int = 2, nested_options: dict | None = None) -> Fit:
     """The fit of ``problem`` by the scatter strategy (module docstring): ``start`` (SI, checked)
     fills the first start, the rest is scattered from ``seed``; ``method`` ``"simultaneous"`` or
-    ``"nested"``; the other options as :func:`~kneenlp.inference.identify.identify`'s."""
+    ``"nested"``; the other options as :func:`~kneenlp.estimation.identify.identify`'s."""
     rng = np.random.default_rng(seed)
     if method == "nested":
         return nested_fit_of(problem, start, rng, seed, dict(nested_options or {}))

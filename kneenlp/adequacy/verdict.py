@@ -2,7 +2,7 @@
 
 Tests (one family): the global chi-square test of the base fit against the declared noise, and
 one test per candidate effect (its refit's F test if refitted, else its score test's; see
-:mod:`kneenlp.inference.candidates`).  Holm's step-down procedure over the family keeps the
+:mod:`kneenlp.adequacy.candidates`).  Holm's step-down procedure over the family keeps the
 chance of any false rejection on clean data at most ``alpha`` (default 0.01) whatever the
 dependence between the tests; the false-alarm rate actually reached is measured by
 ``benchmarks/bench_adequacy.py`` (docs/adequacy.md).
@@ -149,7 +149,7 @@ def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residu
            declared: NoiseModel, dof: int, alpha: float = ALPHA,
            refit_residuals: dict[str, np.ndarray] | None = None) -> Verdict:
     """The outcome of the global test (``global_p``) and the candidates' tests (``candidates``:
-    :class:`~kneenlp.inference.candidates.EffectScore`, ranked best first) at family level
+    :class:`~kneenlp.adequacy.candidates.EffectScore`, ranked best first) at family level
     ``alpha``; ``residuals`` (T x 5, mm and deg) and ``dof`` are the base fit's;
     ``refit_residuals`` the weighted residuals of each refitted candidate (for the non-nested
     comparison of the best with its rivals, :func:`closeness_z`)."""

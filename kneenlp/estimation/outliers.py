@@ -32,7 +32,7 @@ noise with a different level per coordinate): a trial set aside in 0.2-0.7 % of 
 experiments with 25 trials and 24 free parameters (1.8 % with nothing fitted); a trial 4 noise
 levels off in every coordinate found in 98.5 % of experiments, 5 levels off in all of 600.
 The calibration repeats screen and test on the remaining trials, at most
-:data:`MAX_OUTLIER_SHARE` of them (:func:`kneenlp.inference.calibrate.without_outliers`).
+:data:`MAX_OUTLIER_SHARE` of them (:func:`kneenlp.estimation.calibrate.without_outliers`).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from kneenlp.conventions import coordinate_columns
+from kneenlp.base.conventions import coordinate_columns
 
 #: Family-wise false-alarm rate of the outlier test (Bonferroni over the trials).
 OUTLIER_ALPHA = 0.05

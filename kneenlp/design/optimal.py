@@ -26,14 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.errors import InputError
+from kneenlp.base.atomic import write_text_atomic
+from kneenlp.base.errors import InputError
+from kneenlp.estimation.statistics import fisher_information
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.experiment.protocol import Protocol, Trial, trial_id
-from kneenlp.inference.statistics import fisher_information
-from kneenlp.io.atomic import write_text_atomic
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.solvers.forward import forward_solver
 
 CRITERIA = ("A", "D", "W", "R")
@@ -163,7 +163,7 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
            robust: int = 3, seed: int = 0, name: str | None = None,
            reference: Protocol | str = "set4") -> DesignResult:
     """Choose at most ``max_cases`` trials of ``pool`` minimising ``criterion`` (see module doc)."""
-    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.experiment.kneemodel import KneeModel
 
     if criterion not in CRITERIA:
         raise InputError(f"unknown criterion {criterion!r}; known: {', '.join(CRITERIA)}", field="--criterion")

@@ -8,10 +8,8 @@ from functools import cached_property
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import COORDINATE_UNITS, COORDINATES, coordinate_columns
-from kneenlp.experiment.measured import MeasuredData
-from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.inference.statistics import (
+from kneenlp.base.conventions import COORDINATE_UNITS, COORDINATES, coordinate_columns
+from kneenlp.estimation.statistics import (
     chi_square_test,
     gauss_newton_covariance,
     information_criteria,
@@ -19,7 +17,9 @@ from kneenlp.inference.statistics import (
     svd_rank,
     weighted_svd,
 )
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.experiment.kneemodel import KneeModel
+from kneenlp.experiment.measured import MeasuredData
+from kneenlp.experiment.problem import IdentificationProblem
 
 
 @dataclass
@@ -55,7 +55,7 @@ class Fit:
     extra: dict = field(default_factory=dict)
     #: the priors' share of what the fit minimised (``prior_weight * sum z^2``; 0 without priors)
     prior_objective: float = 0.0
-    #: a real experiment's calibration (:class:`~kneenlp.inference.calibrate.Calibration`: the RMS
+    #: a real experiment's calibration (:class:`~kneenlp.estimation.calibrate.Calibration`: the RMS
     #: before, engaged groups, outliers, predict's check) when ``identify`` calibrated; else None
     calibration: object | None = field(default=None, repr=False, compare=False)
 
@@ -129,7 +129,7 @@ class Fit:
     @property
     def aic(self) -> float:
         """Akaike information criterion of the (weighted) least-squares fit, ``N ln(WRSS/N) + 2 p``
-        (:func:`~kneenlp.inference.statistics.information_criteria`)."""
+        (:func:`~kneenlp.estimation.statistics.information_criteria`)."""
         return information_criteria(self.objective, self.n_observations, len(self.free))[0]
 
     @property
@@ -259,7 +259,7 @@ class Fit:
         }
 
     def to_json(self) -> str:
-        from kneenlp.io.serialize import dumps
+        from kneenlp.base.serialize import dumps
 
         return dumps(self.summary())
 

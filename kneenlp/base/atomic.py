@@ -21,7 +21,7 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 
 #: Prefix of temporary files and staging directories; stale staging directories (of a killed
 #: process) are removed by the next command writing into the same directory.

@@ -3,7 +3,7 @@ the one entry point of the Python API and of ``kneenlp identify``.
 
 **Strategy** (``strategy=``; docs/priors.md):
 
-* ``"calibration"``: a real experiment's calibration (:func:`~kneenlp.inference.calibrate.calibrate`):
+* ``"calibration"``: a real experiment's calibration (:func:`~kneenlp.estimation.calibrate.calibrate`):
   MAP with the default priors, the experiment's registration and the robot's load point fitted
   with every ligament parameter, started at the knee's values (a probe engaging groups slack in
   every trial), the outlier test; the fit's ``calibration`` holds what it found (the RMS before,
@@ -11,33 +11,33 @@ the one entry point of the Python API and of ``kneenlp identify``.
 * ``"scatter"``: the paper's identification: least squares by default, started at a seeded
   scatter around the knee's values, with restarts (below).
 * ``"auto"`` (default): ``"calibration"`` for data from an experiment (a declared side or a
-  robot's joint loads, :func:`~kneenlp.inference.calibrate.real_experiment`) fitted by the
+  robot's joint loads, :func:`~kneenlp.estimation.calibrate.real_experiment`) fitted by the
   simultaneous method, ``"scatter"`` otherwise (data the model produced, and the nested method).
 
 ``method="simultaneous"`` solves the single NLP of :mod:`kneenlp.solvers.nlp` with IPOPT (or another
 CasADi ``nlpsol`` plugin given by ``solver``); ``method="nested"`` runs the paper's Complex
 optimizer around per-trial rootfinders (:mod:`kneenlp.solvers.nested`) on the same objective.
 
-How a fit starts and restarts, and the solves themselves: :mod:`kneenlp.inference.solve`.
+How a fit starts and restarts, and the solves themselves: :mod:`kneenlp.estimation.solve`.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from kneenlp.errors import InputError, unknown_name
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.solve import scatter_fit
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.problem_file import STRATEGIES
 from kneenlp.experiment.protocol import Protocol, available_protocols
-from kneenlp.inference.fit import Fit
-from kneenlp.inference.solve import scatter_fit
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 
 METHODS = ("simultaneous", "nested")
-#: Options only a calibration takes (:func:`~kneenlp.inference.calibrate.calibrate`), by CLI flag.
+#: Options only a calibration takes (:func:`~kneenlp.estimation.calibrate.calibrate`), by CLI flag.
 CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--also-free",
                        "keep_outliers": "--keep-outliers", "load_point": "--no-load-point"}
 
@@ -83,13 +83,13 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         (docs/priors.md).
     prior_weight : the noise variance per unit weight the priors are weighed against (mm^2 or deg^2;
         default: 1 for a weighted fit, the declared noise's variance, else 1); for a calibration
-        also ``"estimate"`` (:func:`~kneenlp.inference.calibrate.map_fit`).
+        also ``"estimate"`` (:func:`~kneenlp.estimation.calibrate.map_fit`).
     strategy : ``"auto"``, ``"calibration"`` or ``"scatter"`` (module docstring).
     calibration_options : a calibration's own (``pivot_tolerance``, ``also_free``,
-        ``keep_outliers``, ``load_point``; :func:`~kneenlp.inference.calibrate.calibrate`).
+        ``keep_outliers``, ``load_point``; :func:`~kneenlp.estimation.calibrate.calibrate`).
 
     Returns the :class:`Fit`; a calibration's also carries its
-    :class:`~kneenlp.inference.calibrate.Calibration` as ``fit.calibration``.
+    :class:`~kneenlp.estimation.calibrate.Calibration` as ``fit.calibration``.
     """
     if method not in METHODS:
         raise unknown_name("method", method, METHODS)
@@ -108,7 +108,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         data.check_protocol(proto)
     strategy = resolve_strategy(strategy, data, method)
     if strategy == "calibration":
-        from kneenlp.inference.calibrate import calibrate
+        from kneenlp.estimation.calibrate import calibrate
 
         if fixed:
             raise InputError("a calibration starts from the knee's parameter file: put the values there "
@@ -140,7 +140,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
 def resolve_strategy(strategy: str, data: MeasuredData, method: str = "simultaneous") -> str:
     """``"calibration"`` or ``"scatter"``: what ``strategy`` (``"auto"`` included) means for ``data``
     fitted by ``method`` (module docstring); a calibration by the nested method is refused."""
-    from kneenlp.inference.calibrate import real_experiment
+    from kneenlp.estimation.calibrate import real_experiment
 
     if strategy == "auto":
         return "calibration" if method == "simultaneous" and real_experiment(data) else "scatter"

@@ -7,12 +7,12 @@ Unlike the Laplace standard error it follows the model's nonlinearity and the bo
 that reaches a bound before the profile rises enough ends at the bound, and says so.
 
 The profiled function is the posterior the Laplace covariance approximates
-(:meth:`~kneenlp.inference.fit.Fit.with_prior_rows`): ``P = sum w r^2 / s^2 + sum z^2``, with
+(:meth:`~kneenlp.estimation.fit.Fit.with_prior_rows`): ``P = sum w r^2 / s^2 + sum z^2``, with
 ``s^2`` the fit's noise variance per unit weight (declared, or estimated from its residuals) and
 ``z`` the priors' standardised deviations (none for a least-squares fit).  A MAP fit weighed its
 priors against ``prior_weight`` rather than ``s^2``; the profile's centre is therefore refitted at
 ``s^2`` first (the same point when the two agree).  Every point is a reduced-space fit
-(:func:`~kneenlp.inference.solve.reduced_fit`, every iterate at equilibrium) warm-started from its
+(:func:`~kneenlp.estimation.solve.reduced_fit`, every iterate at equilibrium) warm-started from its
 neighbour, in steps of the Laplace standard error.
 """
 
@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from kneenlp.errors import InputError, unknown_name
-from kneenlp.inference.fit import Fit
-from kneenlp.inference.solve import reduced_fit
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.solve import reduced_fit
 
 #: The interval's level (two-sided), as the Laplace intervals of the report.
 LEVEL = 0.95

@@ -111,7 +111,7 @@ def fisher_information(sensitivity: np.ndarray, sigma: float) -> np.ndarray:
 def effective_parameters(fit) -> float:
     """The effective number of parameters of a (MAP) fit: the trace of its hat matrix,
     ``tr(A_d' A_d (A_d' A_d + A_p' A_p)^-1)`` with ``A_d`` the weighted data rows and ``A_p`` the
-    priors' rows (:meth:`~kneenlp.inference.fit.Fit.with_prior_rows`); the number of free
+    priors' rows (:meth:`~kneenlp.estimation.fit.Fit.with_prior_rows`); the number of free
     parameters without priors.  A parameter its prior alone determines counts 0, one the data
     alone determine 1."""
     s, w, _ = fit.with_prior_rows(1.0)

@@ -4,9 +4,9 @@
 
 * ``q`` (5): free coordinates ``[varus, internal, lateral, anterior, proximal]`` (rad, m),
 * ``theta`` (n): all model parameters in :attr:`KneeModel.parameter_names` order (SI),
-* ``load`` (:data:`~kneenlp.conventions.LOAD_SIZE`): ``[F, M, Q]``, a force at the tibial
+* ``load`` (:data:`~kneenlp.base.conventions.LOAD_SIZE`): ``[F, M, Q]``, a force at the tibial
   tuberosity and a pure moment in the femoral frame (N, N m) and generalised forces added to ``r``
-  as they are (a robot's joint loads; :func:`~kneenlp.conventions.load_vector`),
+  as they are (a robot's joint loads; :func:`~kneenlp.base.conventions.load_vector`),
 * ``flexion`` (1): prescribed flexion (rad),
 * ``ws``: the contact working sets of the trial *taken at the pose q* (:meth:`KneeModel.working_set`:
   the points that can touch and, for mesh contact, the expansion of the contact at q; empty when no
@@ -35,8 +35,8 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from kneenlp.conventions import LOAD_SIZE, coords_to_user
-from kneenlp.errors import InputError, unknown_name
+from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
+from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.model.effects import (
     Effect,
     attachment_effects,

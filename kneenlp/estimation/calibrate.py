@@ -6,7 +6,7 @@ writes them) differs from data the model produced in two ways the fit must take 
 * the experiment's frames are not the model's: the registration (a constant offset of the five
   measured coordinates, :class:`~kneenlp.model.effects.Registration`) is fitted with the ligaments;
 * nobody declares the noise: its level is estimated from the fit (the residual variance);
-* a trial can be one no passive knee produces: the outlier test (:mod:`~kneenlp.inference.outliers`)
+* a trial can be one no passive knee produces: the outlier test (:mod:`~kneenlp.estimation.outliers`)
   sets it aside, the fit is repeated without it, and the report names it (S192803:
   ``valgus_flex60``, docs/real-experiment.md).
 
@@ -53,13 +53,10 @@ import numpy as np
 import pandas as pd
 import scipy.linalg
 
-from kneenlp.conventions import COORDINATES
-from kneenlp.errors import InputError, unknown_name
-from kneenlp.experiment.measured import MeasuredData
-from kneenlp.experiment.problem import IdentificationProblem, declared_free, default_free
-from kneenlp.inference.fit import Fit
-from kneenlp.inference.laxity import laxity_lines, laxity_records, laxity_table
-from kneenlp.inference.outliers import (
+from kneenlp.base.conventions import COORDINATES
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.outliers import (
     MAX_OUTLIER_SHARE,
     SCREEN_ALPHA,
     Outlier,
@@ -68,13 +65,16 @@ from kneenlp.inference.outliers import (
     residual_factors,
     screen,
 )
-from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
-from kneenlp.inference.solve import reduced_fit, scatter_fit, solve_simultaneous
-from kneenlp.inference.statistics import effective_parameters, gauss_newton_covariance
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.estimation.solve import reduced_fit, scatter_fit, solve_simultaneous
+from kneenlp.estimation.statistics import effective_parameters, gauss_newton_covariance
+from kneenlp.experiment.kneemodel import KneeModel
+from kneenlp.experiment.measured import MeasuredData
+from kneenlp.experiment.problem import IdentificationProblem, declared_free, default_free
 from kneenlp.model.parameters import ParameterSet
 from kneenlp.model.posterior import Posterior
 from kneenlp.model.priors import Prior
+from kneenlp.prediction.laxity import laxity_lines, laxity_records, laxity_table
+from kneenlp.prediction.predict import Prediction, predict, rms_by_coordinate
 from kneenlp.solvers.forward import forward_solver
 
 #: Smallest pivot (relative to the largest) of a parameter the calibration frees.
@@ -164,7 +164,7 @@ class Calibration:
     #: ``predict`` at the calibrated values: each trial solved from the knee's unloaded state, as a
     #: user's ``predict --parameters calibrated.toml`` solves it (None: not checked)
     check: Prediction | None = None
-    #: trials the outlier test set aside (:mod:`~kneenlp.inference.outliers`), in the order found
+    #: trials the outlier test set aside (:mod:`~kneenlp.estimation.outliers`), in the order found
     outliers: list[Outlier] = field(default_factory=list)
     #: ``predict`` of the set-aside trials at the calibrated values (None: none set aside)
     set_aside: Prediction | None = None
@@ -215,7 +215,7 @@ class Calibration:
             "Values in [values] carry their units; the rest are the knee's own parameter set."])
 
     def laxity(self) -> pd.DataFrame:
-        """Measured and fitted laxity per flexion and load pair (mm, deg; :mod:`~kneenlp.inference.laxity`)."""
+        """Measured and fitted laxity per flexion and load pair (mm, deg; :mod:`~kneenlp.prediction.laxity`)."""
         return laxity_table(self.fit.data.trials, self.fit.data.q_user, self.fit.predicted_user)
 
     def summary(self) -> dict:
@@ -315,9 +315,9 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     ``load_point`` frees the lateral shift of the point the robot's force acts at too;
     ``also_free``: parameters or effects (:func:`also_free_names`) fitted beside the default
     ``free``, e.g. attachments a segmentation may have misplaced; unless ``keep_outliers``, trials
-    the outlier test flags (:mod:`~kneenlp.inference.outliers`) are set aside one at a time and the
+    the outlier test flags (:mod:`~kneenlp.estimation.outliers`) are set aside one at a time and the
     fit repeated without them.  ``weighted``, ``with_effects`` and ``start`` as
-    :func:`~kneenlp.inference.identify.identify`'s; ``solver``, ``solver_options``, ``multistart``
+    :func:`~kneenlp.estimation.identify.identify`'s; ``solver``, ``solver_options``, ``multistart``
     and ``threads`` serve the fallback (the simultaneous NLP, at most :data:`MAX_ITER` iterations
     unless ``solver_options`` say otherwise)."""
 
@@ -460,7 +460,7 @@ def map_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndar
     """The reduced-space fit of ``problem`` from ``start``; with priors, ``estimate`` and no declared noise, the
     prior weight (the misfit variance per unit weight, :attr:`IdentificationProblem.prior_weight`)
     is the fit's own residual variance over its effective degrees of freedom
-    (:func:`~kneenlp.inference.statistics.effective_parameters`), refitted from the last fit until
+    (:func:`~kneenlp.estimation.statistics.effective_parameters`), refitted from the last fit until
     it changes by less than :data:`WEIGHT_TOL` (at most :data:`WEIGHT_ROUNDS` fits): a prior is
     weighed against the misfit the model actually has, which on a real knee is the model's error
     more than the instrument's noise."""
@@ -481,7 +481,7 @@ def map_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndar
 
 
 def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
-    """``fit`` refitted without the trials the outlier test sets aside (:mod:`~kneenlp.inference.outliers`:
+    """``fit`` refitted without the trials the outlier test sets aside (:mod:`~kneenlp.estimation.outliers`:
     the screen's worst trial, refitted without and predicted; at most :data:`MAX_OUTLIER_SHARE` of
     the trials, one at a time), and those trials; ``options`` those of the fit's problem (noise,
     weights, effects).  The noise is always estimated from the other trials, never a declared
@@ -523,7 +523,7 @@ def prediction_variances(fit: Fit, data: MeasuredData, q: np.ndarray) -> np.ndar
     """Variance (T x 5, mm^2 or deg^2) of ``fit``'s prediction of the trials ``data`` at their
     predicted poses ``q`` (T x 5, SI): the fitted parameters' covariance (the fit's weights, noise
     from its residuals, :func:`noise_per_observation`) carried through each trial's sensitivities
-    (:func:`~kneenlp.inference.outliers.prediction_variance`); the trials' own noise not included."""
+    (:func:`~kneenlp.estimation.outliers.prediction_variance`); the trials' own noise not included."""
     problem = IdentificationProblem.from_data(fit.problem.model, data, fit.free)
     sens = problem.sensitivities(np.asarray(q, float).reshape(-1, 5), fit.theta)
     rows = fit.with_prior_rows(noise_per_observation(fit))

@@ -21,16 +21,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import BAND_LEVEL, BAND_Z, coordinate_columns
-from kneenlp.errors import InputError
+from kneenlp.base.atomic import write_csv_atomic
+from kneenlp.base.conventions import BAND_LEVEL, BAND_Z, coordinate_columns
+from kneenlp.base.errors import InputError
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, measured_frame
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.inference.laxity import laxity_lines, laxity_records, laxity_table
-from kneenlp.io.atomic import write_csv_atomic
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 from kneenlp.model.posterior import Posterior
+from kneenlp.prediction.laxity import laxity_lines, laxity_records, laxity_table
 from kneenlp.solvers.forward import TrialSolution, forward_solver
 
 
@@ -100,7 +100,7 @@ class Prediction:
         return {c: int(inside[:, j].sum()) for j, c in enumerate(coordinate_columns())}
 
     def laxity(self) -> pd.DataFrame:
-        """Measured and predicted laxity per flexion and load pair (mm, deg; :mod:`~kneenlp.inference.laxity`)."""
+        """Measured and predicted laxity per flexion and load pair (mm, deg; :mod:`~kneenlp.prediction.laxity`)."""
         return laxity_table(self.data.trials, self.data.q_user, self.predicted_user)
 
     def summary(self) -> dict:
@@ -183,7 +183,7 @@ def predictive_sd(model: KneeModel, data: MeasuredData, q: np.ndarray, theta: np
 
 def write_prediction(prediction: Prediction, out: Path) -> list[Path]:
     """``predicted.csv``, ``laxity.csv`` and ``predicted_laxity.png`` in ``out``; the paths written."""
-    from kneenlp.io.plots import measured_vs_predicted
+    from kneenlp.figures.plots import measured_vs_predicted
 
     table = prediction.table()
     write_csv_atomic(table, out / "predicted.csv", index=False, float_format="%.10g")

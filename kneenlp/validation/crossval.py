@@ -2,8 +2,8 @@
 
 A calibration's RMS on its own trials says how well the model can be bent to them; the errors on
 held-out trials say how far its predictions can be trusted.  :func:`hold_out` calibrates
-(:func:`~kneenlp.inference.calibrate.calibrate`) on the trials a mask keeps and predicts the others
-with the calibrated parameters, registration included (:func:`~kneenlp.inference.predict.predict`).
+(:func:`~kneenlp.estimation.calibrate.calibrate`) on the trials a mask keeps and predicts the others
+with the calibrated parameters, registration included (:func:`~kneenlp.prediction.predict.predict`).
 :func:`folds` names the two hold-outs of a laxity experiment:
 
 * ``flexion <F> deg``: the trials at the highest nominal flexion (measured flexions grouped by
@@ -16,7 +16,7 @@ reach equilibrium (the others are counted and reported, never dropped silently).
 error, what the calibration itself expects it to be: the RMS over the held-out trials of the
 standard deviation of measured minus predicted, the noise the calibration estimated plus its
 parameters' covariance carried to the held-out trials
-(:func:`~kneenlp.inference.calibrate.prediction_variances`, linearised).  An error well above it is
+(:func:`~kneenlp.estimation.calibrate.prediction_variances`, linearised).  An error well above it is
 a model that cannot be bent to what was held out; an expected error as large as the error is a
 calibration that says itself it cannot predict that (the held-out loads were the only ones to
 determine some of its parameters).  :func:`consistency` turns the comparison into a p-value: small,
@@ -46,13 +46,13 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from kneenlp.conventions import coordinate_columns
+from kneenlp.base.conventions import coordinate_columns
+from kneenlp.estimation.calibrate import Calibration, calibrate, noise_per_observation, prediction_variances
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import flexion_groups
-from kneenlp.inference.calibrate import Calibration, calibrate, noise_per_observation, prediction_variances
-from kneenlp.inference.predict import Prediction, predict, rms_by_coordinate
-from kneenlp.model.kneemodel import KneeModel
+from kneenlp.prediction.predict import Prediction, predict, rms_by_coordinate
 
 #: The held-out targets: RMS of measured minus predicted, rotations (deg) and translations (mm).
 ROTATION_TARGET = 5.0
@@ -345,7 +345,7 @@ def hold_outs(model: KneeModel, data: MeasuredData, chosen: list[tuple[str, np.n
 
 def _hold_out_worker(model: KneeModel, data: MeasuredData, part: list, options: dict, send) -> None:
     """A forked process's hold-outs, sent back as ("ok", results without the model) or ("error", exc)."""
-    from kneenlp import interrupts
+    from kneenlp.base import interrupts
 
     interrupts.as_worker()
     try:
@@ -362,8 +362,8 @@ def _hold_out_worker(model: KneeModel, data: MeasuredData, part: list, options: 
 def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[str],
               **calibrate_options) -> dict[str, np.ndarray]:
     """The hold-outs ``names`` on twin number ``draw`` of the experiment calibrated by ``fit`` (a
-    :class:`~kneenlp.inference.fit.Fit` on every trial): :func:`twin` at the fit's values with its
-    estimated noise (:func:`~kneenlp.inference.calibrate.noise_per_observation`), drawn from the
+    :class:`~kneenlp.estimation.fit.Fit` on every trial): :func:`twin` at the fit's values with its
+    estimated noise (:func:`~kneenlp.estimation.calibrate.noise_per_observation`), drawn from the
     generator seeded by ``(seed, draw)`` (``seed`` of ``calibrate_options``, default 0: any draw
     alone reproduces); held-out errors by hold-out name (T x 5, mm and deg, NaN without
     equilibrium; a hold-out whose trials the twin lacks is left out)."""
@@ -385,9 +385,9 @@ class TwinStore:
     @classmethod
     def open(cls, path: Path, model: KneeModel, data: MeasuredData, names: list[str], options: dict) -> TwinStore:
         """The store at ``path`` for this run, created if new; another run's is an
-        :class:`~kneenlp.errors.InputError`."""
-        from kneenlp.errors import InputError
-        from kneenlp.io.atomic import write_text_atomic
+        :class:`~kneenlp.base.errors.InputError`."""
+        from kneenlp.base.atomic import write_text_atomic
+        from kneenlp.base.errors import InputError
 
         path = Path(path)
         identity = {"knee": model.knee.name, "parameters": np.round(model.theta(), 12).tolist(),
@@ -413,7 +413,7 @@ class TwinStore:
 
     def save(self, draw: int, errors: dict[str, np.ndarray]) -> None:
         """Write draw ``draw``'s held-out errors, atomically."""
-        from kneenlp.io.atomic import write_csv_atomic
+        from kneenlp.base.atomic import write_csv_atomic
 
         columns = coordinate_columns()
         rows = [{"held_out": n, "row": i, **dict(zip(columns, e, strict=True))}
@@ -429,7 +429,7 @@ def _chosen(data: MeasuredData, which: list[str] | None) -> list[tuple[str, np.n
         names = [n for n, _ in chosen]
         unknown = [w for w in which if w not in names]
         if unknown:
-            from kneenlp.errors import unknown_name
+            from kneenlp.base.errors import unknown_name
 
             raise unknown_name("hold-out", unknown[0], names)
         chosen = [(n, m) for n, m in chosen if n in which]

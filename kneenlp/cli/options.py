@@ -9,7 +9,7 @@ import argparse
 import math
 import re
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
 
 #: Upper limits of counts (documented in docs/inputs.md): beyond them a run
 #: would take days or exhaust memory, which is never what a user meant.

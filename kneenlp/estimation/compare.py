@@ -4,18 +4,18 @@ their estimates, costs and largest relative parameter difference (``kneenlp comp
 On a real experiment (:func:`compare_calibration`) the problem is the calibration's (MAP with the
 default priors, registration and load point, every trial): the reduced-space Gauss-Newton fit,
 IPOPT from the calibration's start, IPOPT from the reduced fit (the calibration's solver,
-:func:`~kneenlp.inference.calibrate.polished`) and the nested Complex method from the same start,
+:func:`~kneenlp.estimation.calibrate.polished`) and the nested Complex method from the same start,
 its best objective reported after 1k, 5k, 20k and 75k rootfinder solves (trial equilibria)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from kneenlp.errors import InputError
+from kneenlp.base.errors import InputError
+from kneenlp.estimation.identify import identify
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
-from kneenlp.inference.identify import identify
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 
 
 def compare_methods(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, *, seed: int = 0,
@@ -50,13 +50,13 @@ def compare_calibration(model: KneeModel, data: MeasuredData, *, seed: int = 0, 
     equilibrium residual (N or N m), status and success (a fit stopped at a cap is not converged)."""
     import numpy as np
 
-    from kneenlp.inference.calibrate import (
+    from kneenlp.estimation.calibrate import (
         MAX_EVALUATIONS,
         POLISH_ITER,
         calibrate,
         engaged_probe,
     )
-    from kneenlp.inference.solve import nested_fit_of, reduced_fit, solve_simultaneous
+    from kneenlp.estimation.solve import nested_fit_of, reduced_fit, solve_simultaneous
 
     problem = calibrate(model, data, keep_outliers=True, seed=seed).fit.problem  # the calibration's problem
     theta, _ = engaged_probe(model, data, model.theta())

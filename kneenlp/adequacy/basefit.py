@@ -3,7 +3,7 @@ is either plausible for the noise or reproducible.
 
 A misfit the noise cannot explain (chi-square p < 1e-9) has two causes: a wrong local minimum of
 the optimiser or a model that cannot fit the data.  Every statistic of
-:mod:`kneenlp.inference.adequacy` assumes the second, so the base fit restarts from fresh scatter
+:mod:`kneenlp.adequacy.diagnosis` assumes the second, so the base fit restarts from fresh scatter
 draws until the misfit is plausible, or two converged starts agree on it (relative objective
 difference below ``agree``: the same minimum, reached twice, is the model's).  A clean dataset
 costs one solve, an inadequate model two.
@@ -13,14 +13,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.identify import identify
+from kneenlp.estimation.solve import implausible_misfit
+from kneenlp.estimation.starts import best_fit, run_starts
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
-from kneenlp.inference.fit import Fit
-from kneenlp.inference.identify import identify
-from kneenlp.inference.solve import implausible_misfit
-from kneenlp.inference.starts import best_fit, run_starts
 from kneenlp.model.knee import Knee
-from kneenlp.model.kneemodel import KneeModel
 
 #: Relative objective difference below which two starts count as the same minimum.
 AGREE = 1e-3

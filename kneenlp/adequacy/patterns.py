@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kneenlp.conventions import COORDINATE_UNITS, COORDINATES
+from kneenlp.base.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.experiment.protocol import Trial, flexion_groups
 
 #: |sum z| / sqrt(n) above which a group of residuals is a pattern.

@@ -27,8 +27,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import stats
 
-from kneenlp.inference.fit import Fit
-from kneenlp.inference.statistics import information_criteria
+from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.statistics import information_criteria
 
 #: IPOPT iterations allowed to finish a refit whose reduced-space solve failed.
 POLISH_ITERATIONS = 40
@@ -137,13 +137,13 @@ def score_effects(fit: Fit, sigma: float, effects: list[str] | None = None) -> l
 
 def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
     """Refit with the effect's parameters free: reduced-space Gauss-Newton from the base estimate
-    (effect neutral; :func:`~kneenlp.inference.identify.reduced_fit`), finished by the
+    (effect neutral; :func:`~kneenlp.estimation.identify.reduced_fit`), finished by the
     simultaneous NLP if it fails; if that fails too or does worse than the base fit, the NLP from
     the base estimate itself, then from the effect's one-step estimate (clipped to its bounds).
     Returns the refit's numbers (drops in mm^2 + deg^2 and chi-square units, F and LR p-values,
     AIC and BIC changes, parameters SI with standard errors) and the refitted :class:`Fit`."""
-    from kneenlp.inference.identify import identify
-    from kneenlp.inference.solve import reduced_fit, solve_simultaneous
+    from kneenlp.estimation.identify import identify
+    from kneenlp.estimation.solve import reduced_fit, solve_simultaneous
 
     model = fit.model
     start = dict(fit.params)

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from kneenlp.conventions import BAND_Z
+from kneenlp.base.conventions import BAND_Z
 from kneenlp.experiment.protocol import LAXITY_PAIRS
 
 PANELS = (
@@ -169,7 +169,7 @@ def measured_vs_predicted(table: pd.DataFrame, path: str | Path, title: str = ""
     """Measured (filled) against predicted (open, joined) laxity per load direction and flexion: the
     coordinate each direction pair moves against the measured flexion (deg).  ``table`` has the
     load columns, the predicted coordinates and ``measured_<coordinate>`` (as
-    :meth:`kneenlp.inference.predict.Prediction.table` writes it); ``extra`` adds further
+    :meth:`kneenlp.prediction.predict.Prediction.table` writes it); ``extra`` adds further
     predictions (label -> such a table), dashed.  With predictive sds (``sd_<coordinate>``, a
     calibration's posterior) the 95 % predictive band is shaded."""
     from kneenlp.experiment.protocol import dominant_direction
@@ -218,8 +218,8 @@ def _subplots(*args, **kwargs):
 
 
 def _save(fig, path: str | Path) -> Path:
-    """Save through a temporary file: a figure file is either whole or absent (kneenlp.io.atomic)."""
-    from kneenlp.io.atomic import save_figure_atomic
+    """Save through a temporary file: a figure file is either whole or absent (kneenlp.base.atomic)."""
+    from kneenlp.base.atomic import save_figure_atomic
 
     fig.tight_layout()
     return save_figure_atomic(fig, path, dpi=110)

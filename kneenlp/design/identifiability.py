@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kneenlp.estimation.statistics import gauss_newton_covariance, svd_rank, weighted_svd
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem, default_free
 from kneenlp.experiment.protocol import Protocol
-from kneenlp.inference.statistics import gauss_newton_covariance, svd_rank, weighted_svd
 
 
 @dataclass
@@ -82,7 +82,7 @@ def identifiability(knee, protocol: Protocol | str, free: list[str] | None = Non
     """Identifiability of ``free`` (default: each ligament's stiffness and reference strain, or
     each bundle group's scale and offset) from ``protocol`` at the knee's parameter values (or
     ``values``, SI), for measurement ``noise``."""
-    from kneenlp.model.kneemodel import KneeModel
+    from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.simulation import simulate
 
     model = KneeModel.of(knee)

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from kneenlp.inference.fit import Fit
+from kneenlp.estimation.fit import Fit
 
 
 def run_starts(solve: Callable[[int], Fit], *, at_least: int, at_most: int,

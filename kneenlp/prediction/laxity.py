@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
-from kneenlp.conventions import coordinate_columns
+from kneenlp.base.conventions import coordinate_columns
 from kneenlp.experiment.protocol import LAXITY_PAIRS, Trial, flexion_groups
 
 #: Columns of :func:`laxity_table` (units in the names; ``laxity`` names the pair, ``unit`` its unit).

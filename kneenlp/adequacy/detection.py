@@ -22,9 +22,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import optimize, stats
 
+from kneenlp.adequacy.candidates import base_projection, effect_sensitivity
+from kneenlp.estimation.fit import Fit
 from kneenlp.experiment.measured import MeasuredData
-from kneenlp.inference.candidates import base_projection, effect_sensitivity
-from kneenlp.inference.fit import Fit
 
 #: Probability of flagging at the detection limit.
 POWER = 0.5
@@ -66,7 +66,7 @@ def exact_noncentrality(fit: Fit, name: str, shift: float, sigma: float) -> floa
     neutral value (the base fit's value for a base-model parameter): the weighted residual sum of
     the base model refitted to noise-free data simulated with the shift, over ``sigma^2``.  ``nan``
     when the simulation or the refit fails."""
-    from kneenlp.inference.identify import identify
+    from kneenlp.estimation.identify import identify
     from kneenlp.solvers.forward import forward_solver
 
     model = fit.model
