@@ -281,7 +281,7 @@ def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
     the order named: the reduced-space fit stops within the mesh contact's cost noise, at a point
     that depends on the order of its unknowns (S192803: sum of squares 113-117 for two orders of the
     same six effects), and the same names must give the same calibration."""
-    groups = {e.name: [p.name for p in e.parameters()] for e in model.elements} | {
+    groups = {e.name: [p.name for p in e.parameters()] for e in model.parts} | {
         e.name: e.free_names() for e in model.effects}
     out: list[str] = []
     for name in names:

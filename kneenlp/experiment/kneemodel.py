@@ -16,8 +16,14 @@
   rotations, N for the translations); equilibrium is ``r = 0``.  The flexion moment is reacted.
 
 ``KneeModel.observation`` is THE map from a pose to what is measured, ``(q, theta, flexion) -> y``
-with ``y`` the five coordinates in mm and deg plus any measurement bias of the elements (which may
-depend on the prescribed flexion: :class:`~kneenlp.model.effects.FemoralOrigin`).
+with ``y`` the five coordinates in mm and deg plus the experiment's measurement bias (which may
+depend on the prescribed flexion: :class:`~kneenlp.experiment.measurement.FemoralOrigin`).
+
+A ``KneeModel`` is the knee (:class:`~kneenlp.model.knee.Knee`: its force elements) in an
+experiment (:class:`~kneenlp.experiment.measurement.Measurement`: the flexion the experiment
+prescribes, its frames, its registration, where it applies its load): the residual adds the knee's
+forces and the load where the experiment applies it; the observation reads the pose as the
+experiment reads it.
 
 The forward Newton solver, the simultaneous NLP, the nested objective, sensitivities and export all
 call these functions.  They are built once per model with the parameters as symbols, so changing
@@ -37,15 +43,15 @@ import numpy as np
 
 from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.experiment.measurement import ExperimentPart, Measurement, registration_effects
 from kneenlp.model.effects import (
     Effect,
     attachment_effects,
     builtin_elements,
     builtin_groups,
     bundle_group_effects,
-    registration_effects,
 )
-from kneenlp.model.elements import ForceElement, Output, Pose, StagedElement
+from kneenlp.model.elements import ForceElement, Output, Part, Pose, StagedElement
 from kneenlp.model.kinematics import generalized_forces, joint_coordinates, tibial_pose
 from kneenlp.model.knee import Knee
 from kneenlp.model.parameters import Parameter, ParameterSet
@@ -82,24 +88,36 @@ BOUND_SLACK = 1e-6
 class KneeModel:
     """Symbolic equilibrium model of a :class:`~kneenlp.model.knee.Knee` (built once, reused).
 
-    ``extra_elements`` adds user force elements (e.g. a candidate effect, see
-    ``docs/architecture.md``) to the knee's own and the built-in candidate elements.
+    ``extra_elements`` adds user parts (e.g. a candidate effect, see ``docs/architecture.md``): force
+    elements join the knee's own and the built-in candidate elements, experiment parts
+    (:class:`~kneenlp.experiment.measurement.ExperimentPart`) join ``measurement`` (default: the
+    standard parts, :meth:`Measurement.standard`, every one neutral until fitted).
     """
 
-    def __init__(self, knee: Knee, extra_elements: list[ForceElement] | None = None):
+    def __init__(self, knee: Knee, extra_elements: list[Part] | None = None,
+                 measurement: Measurement | None = None):
         self.knee = knee
-        self.elements: list[ForceElement] = [*knee.elements(),
-                                             *builtin_elements(knee.condyle_centres(), knee.menisci is None,
-                                                               knee.condyle_rest()),
-                                             *(extra_elements or [])]
-        names = [e.name for e in self.elements]
+        extra = list(extra_elements or [])
+        wrong = [e for e in extra if not isinstance(e, ForceElement | ExperimentPart)]
+        if wrong:
+            raise InputError(f"{type(wrong[0]).__name__} is neither a ForceElement nor an ExperimentPart",
+                             field="elements")
+        own = [*knee.elements(), *builtin_elements(knee.condyle_centres(), knee.menisci is None, knee.condyle_rest())]
+        experiment = measurement or Measurement.standard()
+        #: the knee's force elements (its own, the built-in candidates, the user's)
+        self.elements: list[ForceElement] = [*own, *[e for e in extra if isinstance(e, ForceElement)]]
+        #: how the experiment measured the knee (its frames, registration, flexion, load point)
+        self.measurement = experiment.with_parts([e for e in extra if isinstance(e, ExperimentPart)])
+        #: every part with parameters, in the parameter vector's order
+        self.parts: list[Part] = [*own, *experiment.parts, *extra]
+        names = [e.name for e in self.parts]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
-            raise InputError(f"two force elements are called {dup[0]!r}", field="elements")
+            raise InputError(f"two parts of the model are called {dup[0]!r}", field="elements")
         self.ligament_names = list(knee.ligaments)
         self.compartment_names = list(knee.compartments)
         params: dict[str, Parameter] = {}
-        for e in self.elements:
+        for e in self.parts:
             for p in e.parameters():
                 if p.name in params and params[p.name] != p:
                     raise InputError(f"parameter {p.name!r} declared twice with different metadata",
@@ -113,7 +131,7 @@ class KneeModel:
         self.parameter_names = [p.name for p in self.parameters]
         self._index = {n: i for i, n in enumerate(self.parameter_names)}
         self.effects: list[Effect] = [Effect(e.name, e.description, tuple(e.frees()))
-                                      for e in self.elements if e.candidate]
+                                      for e in self.parts if e.candidate]
         if any(e.name == "registration" for e in self.effects):
             self.effects += registration_effects()
         self.effects += builtin_groups([n for n in self.ligament_names if not knee.ligaments[n].grouped])
@@ -126,13 +144,10 @@ class KneeModel:
 
     @classmethod
     def of(cls, knee: Knee | KneeModel) -> KneeModel:
-        """The model of ``knee``, built once per knee object (kept on it); a :class:`KneeModel`
-        (e.g. one built with extra user elements) is returned as it is."""
-        if isinstance(knee, KneeModel):
-            return knee
-        if knee.built_model is None:
-            knee.built_model = cls(knee)
-        return knee.built_model
+        """``knee``'s model in the standard experiment, built anew; a :class:`KneeModel` (e.g. one
+        built with extra user parts) is returned as it is.  The model keeps the solvers built for
+        it (:attr:`solvers`): pass the model, not the knee, to reuse them."""
+        return knee if isinstance(knee, KneeModel) else cls(knee)
 
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
@@ -141,16 +156,13 @@ class KneeModel:
         theta = ca.SX.sym("theta", len(self.parameter_names))
         load = ca.SX.sym("load", LOAD_SIZE)
         values = {n: theta[i] for i, n in enumerate(self.parameter_names)}
-        flex_e = flexion + sum((e.flexion_offset(values) for e in self.elements), ca.SX(0))
-        # q and the flexion are the experiment's Grood-Suntay coordinates; an element may turn the
-        # experiment's tibial axes from the model's (TibialAxes): the tibia's own frame is then R C^T
+        flex_e = self.measurement.flexion(flexion, values)
+        # q and the flexion are the experiment's Grood-Suntay coordinates; the experiment may turn
+        # its tibial axes from the model's (TibialAxes): the tibia's own frame is then R C^T
         R_exp, p, axes = tibial_pose(flex_e, q)
-        turns = [C for e in self.elements if (C := e.tibial_axes(values)) is not None]
-        turn = ca.SX.eye(3)
-        for C in turns:
-            turn = C @ turn
-        R = R_exp @ turn.T if turns else R_exp
-        self.turn = ca.Function("tibial_axes", [theta], [turn])
+        turn = self.measurement.turn(values)
+        R = R_exp if turn is None else R_exp @ turn.T
+        self.turn = ca.Function("tibial_axes", [theta], [ca.SX.eye(3) if turn is None else turn])
         pose = Pose(R, p, q, flex_e)
         staged = [e for e in self.elements if isinstance(e, StagedElement)]
         plain = [e for e in self.elements if not isinstance(e, StagedElement)]
@@ -168,11 +180,11 @@ class KneeModel:
             force += f_e
             moment += m_e
         # the applied force acts at the tuberosity (femoral or joint axes) or, for a robot's joint
-        # loads, at the tibial origin; an element may shift that point (LoadPoint), and the
-        # experiment's tibial origin may be elsewhere (TibialOrigin): the joint loads' force (the
-        # vector whose projections on e1, e2, e3 are the joint forces) then adds the couple of the shift
-        shift = sum((s for e in self.elements if (s := e.load_point_offset(values)) is not None), ca.SX.zeros(3))
-        origin = sum((s for e in self.elements if (s := e.joint_origin_offset(values)) is not None), ca.SX.zeros(3))
+        # loads, at the tibial origin; the experiment may shift that point (LoadPoint), and its
+        # tibial origin may be elsewhere (TibialOrigin): the joint loads' force (the vector whose
+        # projections on e1, e2, e3 are the joint forces) then adds the couple of the shift
+        shift = self.measurement.load_point_shift(values)
+        origin = self.measurement.joint_origin_shift(values)
         e1, e2, e3 = axes
         joint_force = ca.solve(ca.horzcat(e1, e2, e3).T, load[8:11])
         force += load[0:3]
@@ -182,8 +194,8 @@ class KneeModel:
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 
-        bias = [b for e in self.elements if (b := e.measurement_bias(pose, values)) is not None]
-        y = coords_to_user(q) + (coords_to_user(sum(bias, ca.SX.zeros(5))) if bias else 0)
+        bias = self.measurement.bias(pose, values)
+        y = coords_to_user(q) + (coords_to_user(bias) if bias is not None else 0)
         self.observation = ca.Function("observation", [q, theta, flexion], [y], ["q", "theta", "flexion"], ["y"])
 
         self.pose = ca.Function("pose", [q, flexion, theta], [R, p], ["q", "flexion", "theta"], ["R", "p"])
@@ -372,7 +384,7 @@ class KneeModel:
     def reference_coordinates(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         """The knee's imaged pose (``[reference_pose]``) as the model's coordinates at ``theta``:
         flexion (rad) and the five free coordinates (rad, m) of the experiment's tibial axes, the
-        knee's own unless an element turns them (:class:`~kneenlp.model.effects.TibialAxes`)."""
+        knee's own unless the experiment turns them (:class:`~kneenlp.experiment.measurement.TibialAxes`)."""
         flexion, q = self.knee.reference_pose
         turn = np.asarray(self.turn(theta), float)
         if np.array_equal(turn, np.eye(3)):
@@ -418,7 +430,7 @@ class KneeModel:
         return np.asarray(self.observation.map(len(q))(q.T, theta, flexions[None, :])).T
 
     def bias_user(self, theta: np.ndarray, flexion: float = 0.0) -> np.ndarray:
-        """Measurement bias (mm, deg) that the elements add to the model's coordinates at the
+        """Measurement bias (mm, deg) that the experiment adds to the model's coordinates at the
         neutral pose and ``flexion`` (rad)."""
         return self.observe(np.zeros(5), theta, flexion)[0]
 
@@ -429,11 +441,12 @@ class KneeModel:
                 return e
         raise unknown_name("effect", name, [e.name for e in self.effects])
 
-    def element(self, name: str) -> ForceElement:
-        for e in self.elements:
+    def element(self, name: str) -> Part:
+        """The part (force element or experiment part) called ``name``."""
+        for e in self.parts:
             if e.name == name:
                 return e
-        raise unknown_name("force element", name, [e.name for e in self.elements])
+        raise unknown_name("force element or experiment part", name, [e.name for e in self.parts])
 
     def index(self, name: str) -> int:
         """Position of parameter ``name`` in ``theta``."""

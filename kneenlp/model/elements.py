@@ -11,10 +11,10 @@ Conventions of every method (SI units, CasADi SX expressions):
 * ``values`` maps every model parameter name to its symbol;
 * outputs are scalars, reported per trial (e.g. a ligament's strain and force).
 
-Three optional hooks let an element change what is *not* a force: :meth:`ForceElement.flexion_offset`
-(the true flexion differs from the prescribed one), :meth:`ForceElement.measurement_bias` (a
-bias of the measured coordinates, e.g. a registration offset, possibly depending on the pose) and
-:meth:`ForceElement.load_point_offset` (the applied force acts elsewhere than its nominal point).
+A force element only adds a force.  What changes the kinematics or the observation instead (the
+experiment's frames, its registration, where it applies its load, its flexion) is the experiment's,
+not the knee's: :mod:`kneenlp.experiment.measurement`.  Both are :class:`Part` s: a name, a
+description, parameters with metadata and whether model adequacy may add it (``candidate``).
 
 Elements whose force needs an expensive computation over many surface points (contact) split it
 in two stages, :class:`StagedElement`: a cheap SX ``probe`` of the pose and parameters, and an MX
@@ -41,7 +41,8 @@ class Pose:
     """The tibia's pose as symbols: rotation ``R`` (the model's tibial frame -> femoral frame),
     tibial origin ``p`` in the femoral frame (m), the five free coordinates ``q`` (rad, m) and the
     flexion (rad).  ``q`` and the flexion are the Grood-Suntay coordinates of the experiment's
-    tibial axes, which are the model's unless an element turns them (:meth:`ForceElement.tibial_axes`)."""
+    tibial axes, which are the model's unless the experiment turns them
+    (:class:`kneenlp.experiment.measurement.TibialAxes`)."""
 
     R: ca.SX
     p: ca.SX
@@ -67,25 +68,33 @@ class Output:
     to_user: float = 1.0
 
 
-class ForceElement:
-    """Base class: no parameters, no wrench, no outputs.
+class Part:
+    """A named part of the model with parameters: a force element of the knee
+    (:class:`ForceElement`) or a part of the experiment's description
+    (:class:`kneenlp.experiment.measurement.ExperimentPart`).
 
-    ``candidate`` marks an element that is neutral in the knee's own parameter set (it contributes
+    ``candidate`` marks a part that is neutral in the knee's own parameter set (it contributes
     nothing until its ``frees`` parameters move from their neutral values): model adequacy tests
     whether adding it explains the data.
     """
 
-    name: str = "element"
+    name: str = "part"
     description: str = ""
     candidate: bool = False
 
     def parameters(self) -> list[Parameter]:
-        """This element's parameters (names are ``<element>.<parameter>``)."""
+        """This part's parameters (names are ``<part>.<parameter>``)."""
         return []
 
     def frees(self) -> list[str]:
-        """Parameters identified when this element is added as an effect (default: all)."""
+        """Parameters identified when this part is added as an effect (default: all)."""
         return [p.name for p in self.parameters()]
+
+
+class ForceElement(Part):
+    """A force on the tibia (OpenSim's Force).  Base class: no parameters, no wrench, no outputs."""
+
+    name: str = "element"
 
     def wrench(self, pose: Pose, values: dict[str, ca.SX]) -> tuple[ca.SX, ca.SX]:
         """Force (N) and moment about the tibial origin (N m) on the tibia, femoral frame."""
@@ -98,32 +107,6 @@ class ForceElement:
     def output_values(self, pose: Pose, values: dict[str, ca.SX]) -> list[ca.SX]:
         """Values (SI) of :meth:`outputs`, in order."""
         return []
-
-    def flexion_offset(self, values: dict[str, ca.SX]) -> ca.SX | float:
-        """True minus prescribed flexion (rad)."""
-        return 0.0
-
-    def measurement_bias(self, pose: Pose, values: dict[str, ca.SX]) -> ca.SX | None:
-        """Added to the model's five coordinates ``pose.q`` before comparison with measurements
-        (rad, m); it may depend on the pose, flexion included."""
-        return None
-
-    def load_point_offset(self, values: dict[str, ca.SX]) -> ca.SX | None:
-        """Shift (tibial frame, m) of the point where the applied force acts, from its nominal point
-        (the tuberosity for femoral or joint axes, the tibial origin for a robot's joint loads)."""
-        return None
-
-    def tibial_axes(self, values: dict[str, ca.SX]) -> ca.SX | None:
-        """The experiment's tibial axes (columns) in the model's tibial frame, a rotation ``C``:
-        the coordinates ``q`` and the prescribed flexion are those of the experiment's axes, and
-        the tibia (its points, its meshes) turns with ``R_model = R(q) C^T``.  ``None``: the model's."""
-        return None
-
-    def joint_origin_offset(self, values: dict[str, ca.SX]) -> ca.SX | None:
-        """Shift (tibial frame, m) of the experiment's tibial origin from the model's: where a
-        robot reads its translations *and* applies its joint loads (the Grood-Suntay origin of
-        both kinematics and kinetics).  The joint loads' force acts there too."""
-        return None
 
 
 def share_out(run: Callable[[int, int], None], n: int, threads: int) -> None:

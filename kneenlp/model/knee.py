@@ -72,8 +72,6 @@ class Knee:
     #: the knee file's own parameter set once :meth:`with_parameters` replaced it (e.g. by a
     #: calibration's file); the forward solver follows hard trials from it
     source_parameters: ParameterSet | None = None
-    #: the knee's CasADi model once built (:meth:`kneenlp.experiment.kneemodel.KneeModel.of` builds and keeps it)
-    built_model: object = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def reference_transform(self) -> tuple[np.ndarray, np.ndarray]:
