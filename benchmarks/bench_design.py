@@ -51,7 +51,8 @@ def main(mc: int = 0, knee: str = "default") -> None:
     if mc:
         from kneenlp.studies.study import StudySpec, run_study
 
-        study = run_study(StudySpec(knee=knee, sets=(str(designs["R"]), "set4"), samples=mc, seed=5), tmp / "mc", progress=False)
+        spec = StudySpec(knee=knee, sets=(str(designs["R"]), "set4"), samples=mc, seed=5)
+        study = run_study(spec, tmp / "mc", progress=False)
         t3 = pd.read_csv(study.out / "table3.csv")
         t3["rel_range_%"] = 100 * t3["range"] / t3["true"].abs()
         t3["rel_std_%"] = 100 * t3["mc_std"] / t3["true"].abs()
