@@ -3,7 +3,7 @@
 Designs 22-case protocols (criteria A and R), prints the predicted relative standard errors of
 every set and design, optionally (``--mc N``) runs an N-sample Monte Carlo of the R design and Set
 4, and draws number of load cases vs worst relative spread into docs/figures/design_tradeoff.png.
-Run: python benchmarks/bench_design.py [--mc 200]
+Run: python benchmarks/bench_design.py [--mc 200] [--knee synthetic]
 """
 
 import argparse
@@ -22,8 +22,8 @@ from kneenlp.design.optimal import design, predicted_rse, write_protocol
 from kneenlp.experiment.kneemodel import KneeModel
 
 
-def main(mc: int = 0) -> None:
-    model = KneeModel.of(Knee.default())
+def main(mc: int = 0, knee: str = "default") -> None:
+    model = KneeModel.of(Knee.named(knee))
     rows = []
     for s in ("set1", "set2", "set3", "set4"):
         p = Protocol.load(s)
@@ -34,7 +34,7 @@ def main(mc: int = 0) -> None:
     designs = {}
     for crit in ("A", "R"):
         t0 = time.perf_counter()
-        r = design(max_cases=22, criterion=crit, robust=3)
+        r = design(Knee.named(knee), max_cases=22, criterion=crit, robust=3)
         designs[crit] = write_protocol(r, tmp / f"designed_{crit}22.toml")
         rows.append({"protocol": f"designed {crit}", "cases": len(r.protocol),
                      **{k: 100 * v for k, v in r.predicted_rse.items()}})
@@ -51,7 +51,8 @@ def main(mc: int = 0) -> None:
     if mc:
         from kneenlp.studies.study import StudySpec, run_study
 
-        study = run_study(StudySpec(sets=(str(designs["R"]), "set4"), samples=mc, seed=5), tmp / "mc", progress=False)
+        spec = StudySpec(knee=knee, sets=(str(designs["R"]), "set4"), samples=mc, seed=5)
+        study = run_study(spec, tmp / "mc", progress=False)
         t3 = pd.read_csv(study.out / "table3.csv")
         t3["rel_range_%"] = 100 * t3["range"] / t3["true"].abs()
         t3["rel_std_%"] = 100 * t3["mc_std"] / t3["true"].abs()
@@ -74,4 +75,6 @@ def main(mc: int = 0) -> None:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--mc", type=int, default=0)
-    main(ap.parse_args().mc)
+    ap.add_argument("--knee", default="default")
+    args = ap.parse_args()
+    main(args.mc, args.knee)

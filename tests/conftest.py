@@ -1,9 +1,9 @@
 """Shared fixtures.
 
 ``knee`` is the synthetic example knee (explicit spherical condyles): the machinery tests (identify,
-nested, adequacy, design, export, studies) run on it because it is fast and its behaviour is
-pinned by earlier measurements.  ``real_knee`` is the default knee (Lenhart 2015, mesh contact):
-tests/test_real_knee.py checks it against the issue's requirements.
+nested, adequacy, design, export, studies) run on it because it is fast and its measured behaviour
+is documented.  ``real_knee`` is the default knee (Lenhart 2015, mesh contact):
+tests/test_real_knee.py checks it against its requirements.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Model adequacy (issue 7): hidden effects are found, added, and the error falls to the noise."""
+"""Model adequacy: hidden effects are found, added, and the error falls to the noise."""
 
 from __future__ import annotations
 
@@ -395,7 +395,7 @@ def test_reduced_space_fit_agrees_with_the_simultaneous_nlp(tmp_path):
 @pytest.mark.slow
 def test_much_softer_cartilage_is_named_with_its_modulus(tmp_path):
     """Set 4 data from cartilage four times softer (2.5 GN/m^3): IPOPT alone wandered for 150
-    iterations on the base fit and the refit (issue 15 benchmark); the start inside the pose
+    iterations on the base fit and the refit (benchmarks/bench_adequacy.py); the start inside the pose
     envelope, the rescue and the reduced-space refit name the contact modulus and recover it."""
     knee = kneenlp.Knee.named("synthetic")
     data = hidden(knee, "set4", {"contact.modulus": 2.5e9}, 3000, tmp_path)

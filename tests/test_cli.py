@@ -30,7 +30,7 @@ def test_noise_is_seeded_and_bounded(tmp_path):
 
 
 def test_a_signal_inside_a_compiled_kernel_is_still_an_interrupt(monkeypatch, capsys, tmp_path):
-    """SIGTERM whose handler raises inside a numba kernel surfaces as SystemError (issue 24:
+    """SIGTERM whose handler raises inside a numba kernel surfaces as SystemError (seen:
     diagnose exited 3, "CPUDispatcher(contact_expansion)"); the exit code is still 143."""
     import os
     import signal

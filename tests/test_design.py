@@ -1,4 +1,4 @@
-"""Optimal laxity protocols (issue 8)."""
+"""Optimal laxity protocols."""
 
 from __future__ import annotations
 
@@ -55,8 +55,8 @@ def test_cli_design_json(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_designed_protocol_monte_carlo(tmp_path):
-    """22 designed cases vs Set 4's 60, 100 Monte Carlo samples each (issue 8), which also checks
-    issue 5's requirement: Set 4's Monte Carlo standard deviations agree with the linearised
+    """22 designed cases vs Set 4's 60, 100 Monte Carlo samples each, which also checks
+    the noise study's requirement: Set 4's Monte Carlo standard deviations agree with the linearised
     prediction within 25 % (a sample standard deviation of 100 draws is within about 7 % of the
     true one; the worst ratio measured is 1.18; 200 samples took 10 of CI's 20 slow minutes)."""
     from kneenlp.studies.study import StudySpec, run_study
@@ -94,7 +94,7 @@ def test_protocols_round_trip_through_the_toml_writer(name, tmp_path):
 def test_designed_protocol_simulates_with_every_trial_converged(name):
     """Every candidate is checked for equilibrium (knee's values and robustness draws) on its own
     path from the unloaded pose; the designed protocol then simulates with all trials converged
-    (issue 22: the default knee's design proposed varus_10Nm_flex60, which failed in simulate)."""
+    (unchecked, the default knee's design proposed varus_10Nm_flex60, which failed in simulate)."""
     knee = kneenlp.Knee.named(name)
     r = design(knee, max_cases=22, criterion="A", robust=2)
     result = kneenlp.simulate(knee, r.protocol)

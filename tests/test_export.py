@@ -1,4 +1,4 @@
-"""Export of the identification NLP (issue 6): .nl (CasADi import, SCIP), CasADi files, C code."""
+"""Export of the identification NLP: .nl (CasADi import, SCIP), CasADi files, C code."""
 
 from __future__ import annotations
 

@@ -67,7 +67,7 @@ def test_paper_fig2_isolating_load_cases(knee, axes):
     With the loads along the joint axes all three hold.  With the paper's femoral-frame loads a
     varus moment at 30 deg flexion carries sin(30 deg) = 1/2 of itself as internal moment about the
     tibial axis, which the cruciates resist: then the ACL dominates that case (docs/model.md,
-    ``docs/scripts/fig2_axes_scan.py``: 0 of 36 knees with attachments moved by +-5 mm)."""
+    ``docs/scripts/fig2_axes_scan.py``: 1 of 36 synthetic knees with attachments moved by +-5 mm)."""
     import tomllib
 
     doc = tomllib.loads((kneenlp.base.resources.resource("protocols", "set3.toml")).read_text())

@@ -1,4 +1,4 @@
-"""Fuzz suite of issue 16: bad input never gives a traceback or a silent wrong answer.
+"""Fuzz suite: bad input never gives a traceback or a silent wrong answer.
 
 A table of hand-made cases (every case of the issue and more) runs the command line in this
 process (``kneenlp.cli.main``), each in its own copy of the synthetic knee and a measured-data
@@ -512,7 +512,7 @@ def test_case(case: Case, base: Path, tmp_path: Path, capsys, monkeypatch):
 
 
 def test_case_count():
-    """The table covers every case of issue 16; the counts go into docs/inputs.md."""
+    """The table's counts are quoted in docs/inputs.md."""
     ok = sum(c.ok for c in CASES)
     assert len({c.id for c in CASES}) == len(CASES)
     assert len(CASES) >= 114 and ok >= 10, (len(CASES), len(CASES) - ok, ok)

@@ -1,6 +1,6 @@
-"""Fuzz suite, knee section (issue 24): a researcher's own knee files load correctly or say why.
+"""Fuzz suite, knee section: a researcher's own knee files load correctly or say why.
 
-Hand-made cases (every knee-file slip of issue 24) run the command line in this process on copies
+Hand-made cases (one per knee-file slip) run the command line in this process on copies
 of two shipped mesh knees: the implant knee (millimetres, femoral frame) and the default knee
 (metres, scan coordinates, the Lenhart meshes beside it); the mutations also take the synthetic
 knee (explicit spheres).  Each must exit 2 with one stderr line
@@ -151,7 +151,7 @@ DEF_HIP = "hip_center = [0.005551, 0.374181, 0.001171]"
 DEF_ACL = "femur = [-0.001151, -0.000054, 0.005299]"
 IMP_ACL = "femur = [-3.0, 1.0, 7.0]"
 CASES = [
-    # landmarks (issue 24: silently accepted)
+    # landmarks (unchecked: silently accepted)
     Case("hip-at-the-knee", edit("default", DEF_HIP, "hip_center = [0.005551, 0.03, 0.001171]"),
          "landmarks.hip_center", "at the knee?", "default"),
     Case("hip-lateral", edit("default", DEF_HIP, "hip_center = [0.005551, 0.0, 0.374]"),
@@ -229,7 +229,7 @@ def test_knee_case(case: Case, base: Path, tmp_path: Path, capsys):
 
 
 def test_knee_case_count():
-    """Every knee-file slip of issue 24 has a case (the count only grows)."""
+    """Every knee-file slip has a case (the count only grows)."""
     assert len({c.id for c in CASES}) == len(CASES) >= 23
 
 

@@ -1,4 +1,4 @@
-"""Simultaneous identification (issue 3): recovery, optimality, model equality, diagnostics."""
+"""Simultaneous identification: recovery, optimality, model equality, diagnostics."""
 
 from __future__ import annotations
 

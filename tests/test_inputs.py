@@ -199,7 +199,7 @@ def default_copy(tmp_path):
 ])
 def test_contact_lengths_in_the_wrong_unit_or_too_fine(default_copy, old, new, field, needle):
     """A contact length written in another unit, or a distance-field grid too fine for memory, is
-    a one-line error naming the field, before any work (issue 24: a 1 um grid tried to allocate
+    a one-line error naming the field, before any work (unchecked: a 1 um grid tried to allocate
     1 PiB; femur_offset = 2.0 in a metre knee failed trials later with 'residual 867')."""
     src, dst = default_copy
     text = src.read_text()
@@ -220,7 +220,7 @@ TIBIA_LINE = 'tibia = "../lenhart2015/opensim/lenhart2015-R-tibia-cartilage.stl"
     ({TIBIA_LINE: TIBIA_LINE.replace("tibia-cartilage", "femur-subchondral-bone")}, "the same file given twice?"),
 ])
 def test_swapped_or_repeated_meshes(default_copy, swap, needle):
-    """Femoral and tibial meshes swapped, or the femur given twice (issue 24: exit 3, or silently
+    """Femoral and tibial meshes swapped, or the femur given twice (unchecked: exit 3, or silently
     wrong): one line naming contact.tibia and the slip."""
     src, dst = default_copy
     text = src.read_text()
@@ -235,7 +235,7 @@ def test_swapped_or_repeated_meshes(default_copy, swap, needle):
 
 @pytest.mark.parametrize("shift", ["anterior", "distal"])
 def test_tibia_out_of_reach(default_copy, tmp_path, shift):
-    """A tibia placed 80 mm anterior or 40 mm distal of the femur (issue 24: exit 3, "no femoral
+    """A tibia placed 80 mm anterior or 40 mm distal of the femur (unchecked: exit 3, "no femoral
     surface within reach"): one line naming contact.tibia and what to check."""
     import trimesh
 
@@ -251,7 +251,7 @@ def test_tibia_out_of_reach(default_copy, tmp_path, shift):
 
 
 def test_one_tibial_mesh_in_the_other_unit(knee_copy):
-    """One plateau's mesh in metres in a millimetre knee (issue 24: 17 mm/deg off, exit 0, since
+    """One plateau's mesh in metres in a millimetre knee (unchecked: 17 mm/deg off, exit 0, since
     the knee's size check spans both plateaus): caught on that mesh, before any work."""
     import trimesh
 
@@ -266,7 +266,7 @@ def test_one_tibial_mesh_in_the_other_unit(knee_copy):
 
 @pytest.mark.parametrize("knee", ["synthetic", "default"])
 def test_declared_side_contradicted_by_the_geometry(knee_copy, default_copy, knee):
-    """A right knee declared left (issue 24: 16.6 mm/deg off, exit 0): read as a left knee, its
+    """A right knee declared left (unchecked: 16.6 mm/deg off, exit 0): read as a left knee, its
     collateral ligaments change sides; one line naming `side` and the fix."""
     path = knee_copy if knee == "synthetic" else default_copy[1]
     text = (knee_copy if knee == "synthetic" else default_copy[0]).read_text()
@@ -290,7 +290,7 @@ def test_named_plateaus_on_the_wrong_sides(knee_copy):
 
 
 def test_flexion_beyond_the_represented_surface(tmp_path, capsys):
-    """A trial at 115 deg on a mesh knee whose femoral surface is represented to 100 deg (issue 24:
+    """A trial at 115 deg on a mesh knee whose femoral surface is represented to 100 deg (unchecked:
     diagnose failed after 300 s with a numba dispatcher error): one line naming the trial, exit 2,
     from simulate and from a fit's data alike."""
     protocol = tmp_path / "p115.toml"
@@ -313,7 +313,7 @@ def test_flexion_beyond_the_represented_surface(tmp_path, capsys):
 @pytest.mark.parametrize("depth_mm, inside", [(8.0, True), (1.0, False)])
 def test_attachment_inside_bone(default_copy, depth_mm, inside):
     """A femoral attachment moved into the femur, ``depth_mm`` above its most distal articular point
-    (issue 24: accepted silently): deeper than the tolerance it is one line naming the field and the
+    (unchecked: accepted silently): deeper than the tolerance it is one line naming the field and the
     mesh; 1 mm inside (as real attachments on a segmented surface may lie) it is accepted."""
     import numpy as np
     import trimesh
@@ -345,7 +345,7 @@ HIP_LINE = "hip_center = [0.005551, 0.374181, 0.001171]"
 ])
 def test_landmark_slips(default_copy, new, field, needle):
     """The hip centre at the knee or beside it, a scan-coordinate knee without it, a landmark in
-    the other unit (issue 24: silently accepted): one line naming the landmark."""
+    the other unit (unchecked: silently accepted): one line naming the landmark."""
     src, dst = default_copy
     text = src.read_text()
     assert HIP_LINE in text
@@ -371,7 +371,7 @@ def test_point_in_metres_in_a_millimetre_knee(knee_copy, old, new, field):
 
 
 def test_negative_femur_offset_in_import_osim(tmp_path, capsys):
-    """import-osim --femur-offset -2 (issue 24: accepted): exit 2 naming the option, nothing written."""
+    """import-osim --femur-offset -2 (unchecked: accepted): exit 2 naming the option, nothing written."""
     from kneenlp.base.resources import resource
 
     data = resource("knees", "lenhart2015", "opensim")
@@ -434,7 +434,7 @@ def _one_triangle(_mesh):
 ])
 def test_meshes_that_failed_without_naming_the_cause(default_copy, tmp_path, bone, change, field, needle):
     """Inverted femoral normals, a tibia 8 mm inside the femur at the reference pose, a one-triangle
-    tibia, a 10-face femur, all-degenerate femoral faces (issue 24: exit 1 with "residual 867/inf",
+    tibia, a 10-face femur, all-degenerate femoral faces (unchecked: exit 1 with "residual 867/inf",
     an unhelpful cylinder-fit error or exit 3): one line naming the mesh's field and the slip."""
     src, dst = default_copy
     mesh = change(_femur() if bone == "femur" else _tibia())
@@ -448,7 +448,7 @@ def test_meshes_that_failed_without_naming_the_cause(default_copy, tmp_path, bon
 
 
 def test_truncated_binary_stl(knee_copy, capsys):
-    """A binary STL cut short (issue 24: blamed on "No module named 'charset_normalizer'"): exit 2,
+    """A binary STL cut short (unchecked: blamed on "No module named 'charset_normalizer'"): exit 2,
     the file named truncated with the sizes."""
     path = knee_copy.parent / "meshes" / "tibia_medial.stl"
     data = path.read_bytes()
@@ -459,7 +459,7 @@ def test_truncated_binary_stl(knee_copy, capsys):
 
 
 def test_huge_study_refused_early(tmp_path, capsys):
-    """study --samples 1000000 (issue 24: no early message): refused at once with its estimated time
+    """study --samples 1000000 (unchecked: no early message): refused at once with its estimated time
     and disk, naming --samples and --yes; nothing written.  The estimate scales with the study."""
     import argparse
 

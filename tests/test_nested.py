@@ -1,4 +1,4 @@
-"""Nested cross-check (issue 4): the paper's Complex method around per-trial rootfinders."""
+"""Nested cross-check: the paper's Complex method around per-trial rootfinders."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""OpenSim knee models in, calibrated ligaments out (issue 14): import-osim, multi-bundle grouped
+"""OpenSim knee models in, calibrated ligaments out: import-osim, multi-bundle grouped
 ligaments, identifiability before fitting, export-osim."""
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ def test_export_osim_changes_only_the_calibrated_values(imported, tmp_path):
 ])
 def test_export_osim_bad_input(imported, tmp_path, params, out, needle):
     """A misspelt parameter, a value that is text, an output in a missing directory: one line, no
-    file written (issue 24)."""
+    file written."""
     from kneenlp.base.errors import InputError
 
     _, knee = imported

@@ -1,4 +1,4 @@
-"""A real experiment (issue 21): the S192803 knee from its Abaqus FE model, its robotic laxity
+"""A real experiment: the S192803 knee from its Abaqus FE model, its robotic laxity
 measurements, and the comparison of model and measurements before fitting.
 
 The import from the original Abaqus files needs the deposit's files beside the repository

@@ -1,5 +1,5 @@
 """The default knee is a real knee (Lenhart 2015, MRI-segmented): mesh contact, frames from cylinder
-fits, the paper's protocols, identification.  Must-shows of issue 13; the slow ones run in CI's slow
+fits, the paper's protocols, identification.  The slow ones run in CI's slow
 suite (``pytest -m slow``)."""
 
 from __future__ import annotations

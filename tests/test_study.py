@@ -1,4 +1,4 @@
-"""Noise studies (issue 5): outputs, determinism across executors, resume after a kill."""
+"""Noise studies: outputs, determinism across executors, resume after a kill."""
 
 from __future__ import annotations
 
@@ -149,7 +149,7 @@ def kneenlp_problems():
                                              ("tcp://127.0.0.1:1", "cannot connect to the Dask scheduler")])
 def test_scheduler_refused_before_any_output(tmp_path, capsys, address, needle):
     """A malformed or unreachable scheduler address is one line, exit 2, and leaves no study.json
-    or samples/ behind (issue 24)."""
+    or samples/ behind."""
     out = tmp_path / "s"
     code = main(["study", "--knee", "synthetic", "--sets", "1", "--samples", "1", "--scheduler", address,
                  "--out", str(out), "--quiet"])

@@ -1,13 +1,13 @@
 """Does the paper's Fig. 2 pattern depend on the load axes or on our attachment coordinates?
 
-Moves every ligament attachment of the default knee (both ends, each coordinate) by a uniform
-random offset of +-SPREAD mm, simulates Set 3 with the loads fixed in the femoral frame (the
-paper's choice) and along the joint axes, and counts the knees in which each of the paper's three
-isolating load cases holds (:meth:`kneenlp.simulation.SimulationResult.recruitment`): anterior
+Moves every ligament attachment of a knee (the default knee unless named; both ends, each
+coordinate) by a uniform random offset of +-SPREAD mm, simulates Set 3 with the loads fixed in the
+femoral frame (the paper's choice) and along the joint axes, and counts the knees in which each of
+the paper's three isolating load cases holds (:meth:`kneenlp.simulation.SimulationResult.recruitment`): anterior
 134 N at 0 deg -> ACL, valgus 10 N m at 0 deg -> MCL, varus 10 N m at 30 deg -> LCL.
 Knees with a trial that does not converge are counted separately.
 
-Run: python docs/scripts/fig2_axes_scan.py [KNEES=40] [SPREAD_MM=5] [SEED=0]
+Run: python docs/scripts/fig2_axes_scan.py [KNEES=40] [SPREAD_MM=5] [SEED=0] [KNEE=default]
 """
 
 import dataclasses
@@ -31,8 +31,8 @@ def set3(axes: str) -> Protocol:
     return Protocol.from_dict(doc)
 
 
-def main(knees: int = 40, spread_mm: float = 5.0, seed: int = 0) -> None:
-    base = kneenlp.Knee.default()
+def main(knees: int = 40, spread_mm: float = 5.0, seed: int = 0, knee: str = "default") -> None:
+    base = kneenlp.Knee.named(knee)
     rng = np.random.default_rng(seed)
     protocols = {axes: set3(axes) for axes in ("femoral", "joint")}
     held = {axes: dict.fromkeys([*CASES, "all"], 0) for axes in protocols}
@@ -66,4 +66,4 @@ def main(knees: int = 40, spread_mm: float = 5.0, seed: int = 0) -> None:
 
 
 if __name__ == "__main__":
-    main(*(float(a) if i == 1 else int(a) for i, a in enumerate(sys.argv[1:4])))
+    main(*(float(a) if i == 1 else int(a) for i, a in enumerate(sys.argv[1:4])), *sys.argv[4:5])

@@ -1,4 +1,4 @@
-"""Is the S192803 translation misfit a pivot in the wrong place? (issue 21)
+"""Is the S192803 translation misfit a pivot in the wrong place?
 
 Two measurements from the calibration:
 

@@ -1,4 +1,4 @@
-"""Where the S192803 calibration misses the translations, and what does not fix it (issue 21).
+"""Where the S192803 calibration misses the translations, and what does not fix it.
 
 Measurements, each from the default calibration:
 

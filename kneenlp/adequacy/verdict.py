@@ -45,7 +45,7 @@ ALPHA = 0.01
 AMBIGUOUS_BIC = 2.0
 #: The best refit must also beat every other significant refit in Vuong's non-nested test (BIC
 #: corrected) at one-sided level 0.05, z > 1.645: with many similar candidates (eight 3-parameter
-#: attachment shifts) a BIC lead of a few units is often the noise's choice (issue 15 benchmark).
+#: attachment shifts) a BIC lead of a few units is often the noise's choice (docs/adequacy.md).
 RIVAL_Z = 1.645
 #: Level of the likelihood-ratio test between nested candidates (:func:`nested_p`); Vuong's
 #: non-nested statistic does not apply to them (its variance vanishes under the null).

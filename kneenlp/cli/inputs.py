@@ -227,7 +227,7 @@ BYTES_PER_SAMPLE = 4096
 def study_size(args) -> str:
     """The study's size in fits, time and disk (estimated from :data:`SECONDS_PER_FIT` and
     :data:`BYTES_PER_SAMPLE`); an input error naming ``--samples`` beyond :data:`MAX_STUDY_FITS`
-    fits without ``--yes``, before any work (issue 24: ``--samples 1000000`` gave no early message)."""
+    fits without ``--yes``, before any work (``--samples 1000000`` is refused at once)."""
     from kneenlp.model.knee_file import resolve_knee
     from kneenlp.model.parameters import read_toml
 

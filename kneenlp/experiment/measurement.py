@@ -277,7 +277,7 @@ def registration_effects() -> list[Effect]:
     """One candidate per measured coordinate: a registration bias of that coordinate alone
     (``registration_<coordinate>``, 1 degree of freedom).  With only the 5-coordinate
     ``registration`` a bias of one coordinate was penalised for 4 parameters it does not need, and
-    3-parameter attachment shifts mimicked it (issue 15 benchmark)."""
+    3-parameter attachment shifts mimicked it (benchmarks/bench_adequacy.py)."""
     return [parameter_group(f"registration_{c}", [f"registration.{c}"],
                             f"a constant registration offset of the measured {c.replace('_', ' ')} alone")
             for c in COORDINATES]

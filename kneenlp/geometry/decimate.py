@@ -1,4 +1,4 @@
-"""Meshes finer than the contact model can use are decimated when a knee is read (issue 24).
+"""Meshes finer than the contact model can use are decimated when a knee is read.
 
 A knee's contact is resolved at the tibial mesh's vertices (its contact points) and through the
 femoral distance field, a cubic spline on a grid of ``grid_spacing`` (0.5 mm by default); the

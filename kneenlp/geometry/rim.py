@@ -5,7 +5,7 @@ component) has edges used by one face only.  Beyond such an edge the signed dist
 distance to a surface any more: it is the distance to the edge line, signed by the rim's
 pseudo-normal, so a tibial point 4-6 mm past the edge and a little below it counts as
 penetrating.  :class:`OpenEdges` finds the rim and measures how far points are from it, so that
-contact whose nearest femoral point lies on the rim can be refused (issue 22:
+contact whose nearest femoral point lies on the rim can be refused (see
 :meth:`kneenlp.model.mesh_contact.MeshContact.rim_penetration`).
 
 Lengths are in the mesh's unit (kneenlp: metres).

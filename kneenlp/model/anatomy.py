@@ -2,7 +2,7 @@
 
 The synthetic knee is a right knee in the ISB femoral frame (X anterior, Y proximal, Z lateral, mm,
 origin on the flexion axis midway between the condyle centres).  Its dimensions and their sources
-are listed in ``docs/anatomy-sources.md``; this module only turns them into meshes:
+are listed in ``docs/research/anatomy-sources.md``; this module only turns them into meshes:
 
 * femoral cartilage of each condyle: an explicit sphere of the knee file (the condyle's
   flexion-facet circle, Iwaki et al. 2000), centred on the flexion axis; :func:`condyle_mesh`

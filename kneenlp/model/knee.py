@@ -155,7 +155,7 @@ class Knee:
 
     def check_flexions(self, trials, source: str | None = None) -> None:
         """Every trial's flexion inside :attr:`flexion_range_deg`: beyond it the tibia touches femoral
-        surface the model does not represent (issue 24: diagnose at 115 deg failed after 300 s)."""
+        surface the model does not represent (a diagnose at 115 deg would run minutes and fail)."""
         span = self.flexion_range_deg
         if span is None:
             return
