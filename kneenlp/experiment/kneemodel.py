@@ -151,6 +151,15 @@ class KneeModel:
 
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
+        """The model's CasADi functions (module docstring): SX probes, balance and observation,
+        then the MX residual and details through the staged elements' surfaces."""
+        probes, balance, probe_sizes = self._build_balance()
+        self._build_residual(probes, balance, probe_sizes)
+
+    def _build_balance(self) -> tuple[ca.Function, ca.Function, list[int]]:
+        """The SX functions: the staged elements' probes ``(q, flexion, theta)``, the balance of
+        every force and the load ``(q, flexion, theta, load, staged forces, staged moments) ->
+        (r, plain outputs)``, and :attr:`observation`, :attr:`pose`, :attr:`turn`."""
         q = ca.SX.sym("q", 5)
         flexion = ca.SX.sym("flexion")
         theta = ca.SX.sym("theta", len(self.parameter_names))
@@ -201,21 +210,26 @@ class KneeModel:
         self.pose = ca.Function("pose", [q, flexion, theta], [R, p], ["q", "flexion", "theta"], ["R", "p"])
         self.staged = staged
         self._probes, self._balance = kin, balance
+        return kin, balance, [pr.numel() for pr in probes]
+
+    def _build_residual(self, kin: ca.Function, balance: ca.Function, probe_sizes: list[int]) -> None:
+        """:attr:`residual` and :attr:`details` (MX): the probes through each staged element's
+        surface function, with its slice of the working sets, into the balance."""
+        staged = self.staged
         sizes = [e.ws_width * e.n_working for e in staged]
         self.ws_slices = [slice(a, a + s) for a, s in zip(np.cumsum([0, *sizes[:-1]]), sizes, strict=True)]
         self.ws_size = int(sum(sizes))
-
         qm, flexm = ca.MX.sym("q", 5), ca.MX.sym("flexion")
         thetam, loadm = ca.MX.sym("theta", len(self.parameter_names)), ca.MX.sym("load", LOAD_SIZE)
         wsm = ca.MX.sym("ws", self.ws_size)
         pr = kin(qm, flexm, thetam) if staged else []
         pr = [pr] if isinstance(pr, ca.MX) else list(pr)
-        fm = [e.surface(probes[j].numel()).call([pr[j], wsm[self.ws_slices[j]]]) for j, e in enumerate(staged)]
+        fm = [e.surface(probe_sizes[j]).call([pr[j], wsm[self.ws_slices[j]]]) for j, e in enumerate(staged)]
         res, out_plain = balance(qm, flexm, thetam, loadm, *[o[0] for o in fm], *[o[1] for o in fm])
         names_in = ["q", "theta", "load", "flexion", "ws"]
         self.residual = ca.Function("residual", [qm, thetam, loadm, flexm, wsm], [res], names_in, ["r"])
         # outputs for tables, in the order of :attr:`outputs`
-        out_staged = {e.name: e.surface(probes[j].numel(), True).call([pr[j], wsm[self.ws_slices[j]]])[2:]
+        out_staged = {e.name: e.surface(probe_sizes[j], True).call([pr[j], wsm[self.ws_slices[j]]])[2:]
                       for j, e in enumerate(staged)}
         k = 0
         columns = []
