@@ -245,16 +245,20 @@ def test_exact_export_of_a_mesh_knee_is_kneenlps_own_residual(mesh_case, layout)
         assert np.abs(got - ref).max() <= 1e-9 * max(1.0, np.abs(ref).max())
 
 
-def test_nl_export_of_a_mesh_knee_states_its_approximation(mesh_case, tmp_path, capsys):
-    """.nl cannot hold the field: the expansion at the start poses goes in, and the file, problem.json
-    and the command's JSON say so with the error measured around the start; the exact form is
-    refused for .nl."""
+def test_nl_export_of_a_mesh_knee_is_refused_or_states_its_approximation(mesh_case, tmp_path, capsys):
+    """.nl cannot hold the field: refused (exit 2, naming the exact formats) unless --approximate;
+    then the expansion at the start poses goes in, and the file, problem.json and the command's
+    JSON say so with the error measured around the start; the exact form is refused for .nl."""
     knee, data, _, d = mesh_case
     with pytest.raises(kneenlp.base.errors.InputError, match="cannot hold mesh contact exactly"):
         write_export(export_problem(knee, data, seed=2), "nl", tmp_path / "refused")
     with pytest.raises(kneenlp.base.errors.InputError, match="needs the loop layout"):
         write_export(export_problem(knee, data, seed=2), "c", tmp_path / "refused")
     code = main(["export", str(d / "m.csv"), "--format", "nl", "--out", str(tmp_path / "nl"), "--json"])
+    assert code == 2 and not (tmp_path / "nl").exists()
+    assert "--format casadi" in capsys.readouterr().err  # refused before the work, naming the exact formats
+    code = main(["export", str(d / "m.csv"), "--format", "nl", "--approximate", "--out", str(tmp_path / "nl"),
+                 "--json"])
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     assert out["contact"] == "expansion" and out["contact_error"]["max_residual_difference"] > 0

@@ -241,11 +241,16 @@ def cmd_study(args) -> int:
 
 
 def cmd_export(args) -> int:
+    from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.io.export import export_problem, write_export
 
-    knee = knee_from_args(args)
-    check_names(knee, args)
-    prob = export_problem(knee, args.measured, free=args.free, seed=args.seed, with_effects=args.with_effect,
+    model = KneeModel.of(knee_from_args(args))
+    check_names(model, args)
+    if args.format == "nl" and model.ws_size and not args.approximate:
+        raise InputError("a mesh knee's contact cannot be written exactly as .nl (AMPL has no distance field): "
+                         "use --format casadi or --format c (exact), or add --approximate for its second-order "
+                         "expansion at the start poses", field="--format")
+    prob = export_problem(model, args.measured, free=args.free, seed=args.seed, with_effects=args.with_effect,
                           contact="expansion" if args.format == "nl" else "exact",
                           layout="loop" if args.format == "c" else "vector")
     with staged_directory(args.out) as stage:

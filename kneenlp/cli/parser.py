@@ -171,6 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also free this candidate effect's parameters (repeatable)")
     p.add_argument("--nl-common", default="defined", choices=["defined", "lifted"],
                    help="shared subexpressions as .nl defined variables (default) or lifted auxiliary variables")
+    p.add_argument("--approximate", action="store_true",
+                   help=".nl of a mesh knee: write its contact as the second-order expansion at the start poses "
+                        "(an approximation, its error in the file); without it such a .nl is refused")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(validate=True, out_kind="dir")
 
