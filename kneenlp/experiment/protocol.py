@@ -34,7 +34,7 @@ import numpy as np
 from kneenlp.base.conventions import ALL_LOAD_COMPONENTS, DIRECTIONS, LOAD_AXES, load_vector
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.resources import resource
-from kneenlp.model.parameters import number, read_toml
+from kneenlp.base.tomlfile import number, read_toml
 
 PROTOCOL_DIR = resource("protocols")
 

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from kneenlp.base.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.resources import resource
+from kneenlp.base.tomlfile import number, read_toml
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
 from kneenlp.geometry.decimate import (
     MAX_MESH_FACES,
@@ -41,7 +42,7 @@ from kneenlp.model.frames import FRAME_METHODS, Frame, angle_deg, axes_from_flex
 from kneenlp.model.kinematics import reference_transform
 from kneenlp.model.laws import DEFAULT_LAW, DEFAULT_PRESSURE_LAW, law_named
 from kneenlp.model.ligament import Bundle, Ligament
-from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, UNIT_FACTORS, ParameterSet, number, read_toml
+from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, UNIT_FACTORS, ParameterSet
 
 #: Ligament names (prefixes, upper case) on the medial and the lateral side of the knee, the
 #: evidence :meth:`KneeFile.check_side` weighs against the declared side.

@@ -8,8 +8,6 @@ names (``<effect>.<parameter>``) with their own units.
 
 from __future__ import annotations
 
-import math
-import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.tomlfile import number, read_toml
 from kneenlp.model.posterior import Posterior
 from kneenlp.model.priors import Prior
 
@@ -434,25 +433,3 @@ def plausible(value: float, kind: str, source: str | None, field: str) -> float:
         raise InputError(f"{value:g} N per unit strain is implausibly small for a ligament; kN? (declare "
                          "[units] k = \"kN\")", source=source, field=field)
     return value
-
-
-def read_toml(path: Path) -> dict:
-    """Read a TOML file, turning every failure into a one-line :class:`InputError`."""
-    if not path.is_file():
-        raise InputError("file not found", source=str(path))
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"malformed TOML ({exc})", source=str(path)) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read ({exc})", source=str(path)) from None
-
-
-def number(value: object, source: str, field: str) -> float:
-    """A finite float from a TOML value, or a one-line error naming the field."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise InputError(f"expected a number, got {value!r}", source=source, field=field)
-    if not math.isfinite(value):
-        raise InputError(f"must be finite, got {value!r}", source=source, field=field)
-    return float(value)
