@@ -148,6 +148,7 @@ def dotted(loc: Iterable[str | int]) -> str:
 
 
 def _keys(model: type[BaseModel]) -> list[str]:
+    """The keys of a table, in their declared order."""
     return list(model.model_fields)
 
 

@@ -1,6 +1,7 @@
 """Knee files: the TOML reader that turns a knee file (meshes, attachments, landmarks, contact
 settings, a parameter set) into the fields of a :class:`~kneenlp.model.knee.Knee`, in SI, with
-every check a user's file needs (one-line errors naming the file and the field); where shipped
+every check a user's file needs (one-line errors naming the file and the field): the structure by
+its schema (:mod:`kneenlp.model.knee_schema`), then the geometry against a knee's; where shipped
 knees live (:func:`available_knees`, :func:`knee_file`, :func:`resolve_knee`).  The file format is
 described in :mod:`kneenlp.model.knee` and docs/inputs.md."""
 
@@ -129,6 +130,8 @@ class KneeFile:
     """One knee TOML being read: its document, units and the map into the femoral frame."""
 
     def __init__(self, path: Path):
+        """Read ``path`` and check it against :class:`~kneenlp.model.knee_schema.KneeDocument`; the
+        file's unit (``scale`` to m), side (``mirror``) and reference pose (rad, SI)."""
         self.path, self.src = path, str(path)
         doc = read_toml(path)
         units = doc.get("units", "mm") if isinstance(doc, dict) else "mm"
@@ -693,6 +696,8 @@ class KneeFile:
         return out
 
     def parameter_set(self, parameters, ligaments: dict[str, Ligament]) -> ParameterSet:
+        """The knee's parameter set (SI): ``parameters`` (a set or its file) or the file's own,
+        checked to give exactly the properties of ``ligaments``."""
         src = self.src
         if isinstance(parameters, ParameterSet):
             params = parameters

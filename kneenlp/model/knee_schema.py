@@ -31,7 +31,7 @@ def file_name(value: object) -> str:
     return value
 
 
-def working_set(value: object) -> int:
+def to_working_set(value: object) -> int:
     """Points per compartment and trial of sphere contact (0: every point)."""
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
         raise fail(f"must be an integer >= 0 (0: every point), got {value!r}")
@@ -53,6 +53,7 @@ class CompartmentTable(Table):
 
     @model_validator(mode="after")
     def _one_femoral_surface(self) -> CompartmentTable:
+        """A femoral mesh or an explicit sphere (both its centre and radius), not both."""
         if (self.sphere_center is None) != (self.sphere_radius is None):
             raise fail("an explicit sphere needs both sphere_center and sphere_radius")
         if self.sphere_center is not None and self.femur is not None:
@@ -67,7 +68,7 @@ class ContactTable(Table):
     per compartment."""
 
     gate: Number | None = None
-    working_set: Annotated[int, BeforeValidator(working_set)] = 0
+    working_set: Annotated[int, BeforeValidator(to_working_set)] = 0
     grid_spacing: Number | None = None
     femur: MeshName | None = None
     femur_offset: Number | None = None
@@ -88,6 +89,7 @@ class ContactTable(Table):
 
     @model_validator(mode="after")
     def _tibial_cartilage(self) -> ContactTable:
+        """The tibial cartilage once (``contact.tibia``) or in every compartment's table."""
         tables = self.compartments()
         if self.tibia is not None:
             if any(t.tibia is not None for t in tables.values()):
@@ -132,6 +134,7 @@ class LigamentTable(Table):
 
     @model_validator(mode="after")
     def _attachments(self) -> LigamentTable:
+        """Both attachments of a single-bundle ligament."""
         if self.bundles is None:
             for key in ("femur", "tibia"):
                 if getattr(self, key) is None:
@@ -151,6 +154,7 @@ class CandidateTable(Table):
 
     @model_validator(mode="after")
     def _pairs(self) -> CandidateTable:
+        """One tibial point per femoral point."""
         if len(self.femur) != len(self.tibia):
             raise fail("femur and tibia must be equally long lists of [x, y, z]")
         return self
