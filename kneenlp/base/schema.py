@@ -9,7 +9,6 @@ and the field, written as the files' fields are named everywhere (``cases[0].exc
 
 from __future__ import annotations
 
-import math
 import types
 import typing
 from collections.abc import Callable, Iterable
@@ -18,7 +17,8 @@ from typing import Annotated, Any, TypeVar
 from pydantic import BaseModel, BeforeValidator, ConfigDict, TypeAdapter, ValidationError, ValidationInfo
 from pydantic_core import PydanticCustomError
 
-from kneenlp.base.errors import InputError
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.tomlfile import not_a_number
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -37,10 +37,9 @@ def fail(message: str, key: str | None = None) -> PydanticCustomError:
 
 def to_number(value: object) -> float:
     """A finite float from a TOML value (an integer too, a boolean not)."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise fail(f"expected a number, got {value!r}")
-    if not math.isfinite(value):
-        raise fail(f"must be finite, got {value!r}")
+    problem = not_a_number(value)
+    if problem:
+        raise fail(problem)
     return float(value)
 
 
@@ -74,7 +73,7 @@ def one_of(kind: str, known: Iterable[str]) -> BeforeValidator:
 
     def check(value: object) -> object:
         if not isinstance(value, str) or value not in names:
-            raise fail(f"unknown {kind} {str(value)!r}; known: {', '.join(sorted(names))}")
+            raise fail(unknown_name(kind, str(value), names).message)
         return value
     return BeforeValidator(check)
 

@@ -23,10 +23,18 @@ def read_toml(path: Path) -> dict:
         raise InputError(f"cannot read ({exc})", source=str(path)) from None
 
 
+def not_a_number(value: object) -> str | None:
+    """What keeps a TOML value from being a finite number (a boolean is none), or None."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return f"expected a number, got {value!r}"
+    if not math.isfinite(value):
+        return f"must be finite, got {value!r}"
+    return None
+
+
 def number(value: object, source: str, field: str) -> float:
     """A finite float from a TOML value, or a one-line error naming the field."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise InputError(f"expected a number, got {value!r}", source=source, field=field)
-    if not math.isfinite(value):
-        raise InputError(f"must be finite, got {value!r}", source=source, field=field)
+    problem = not_a_number(value)
+    if problem:
+        raise InputError(problem, source=source, field=field)
     return float(value)
