@@ -228,8 +228,8 @@ def study_size(args) -> str:
     """The study's size in fits, time and disk (estimated from :data:`SECONDS_PER_FIT` and
     :data:`BYTES_PER_SAMPLE`); an input error naming ``--samples`` beyond :data:`MAX_STUDY_FITS`
     fits without ``--yes``, before any work (``--samples 1000000`` is refused at once)."""
+    from kneenlp.base.tomlfile import read_toml
     from kneenlp.model.knee_file import resolve_knee
-    from kneenlp.model.parameters import read_toml
 
     fits = len(args.sets) * args.samples
     workers = args.workers or (1 if args.scheduler or args.dask else os.cpu_count() or 1)

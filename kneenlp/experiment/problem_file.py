@@ -28,9 +28,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from kneenlp.base.errors import InputError
+from kneenlp.base.tomlfile import read_toml
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.model.knee import Knee
-from kneenlp.model.parameters import Entries, read_entries, read_toml
+from kneenlp.model.parameters import Entries, read_entries
 
 #: The fit strategies a problem may name (:func:`kneenlp.estimation.identify.identify`'s).
 STRATEGIES = ("auto", "calibration", "scatter")

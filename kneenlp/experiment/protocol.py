@@ -31,10 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.base.conventions import ALL_LOAD_COMPONENTS, DIRECTIONS, LOAD_AXES, load_vector
+from kneenlp.base.conventions import DIRECTIONS, load_vector
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.resources import resource
-from kneenlp.model.parameters import number, read_toml
+from kneenlp.base.schema import validated
+from kneenlp.base.tomlfile import read_toml
+from kneenlp.experiment.protocol_schema import Case, Exclusion, ProtocolFile
 
 PROTOCOL_DIR = resource("protocols")
 
@@ -209,37 +211,23 @@ class Protocol:
 
     @classmethod
     def from_dict(cls, doc: dict, *, source: str = "<protocol>", default_name: str = "protocol") -> Protocol:
-        """Build and validate a protocol from a protocol-file document (see module docstring); every
-        field is type- and range-checked, and an error names ``source`` and the field."""
+        """Build and validate a protocol from a protocol-file document (see module docstring): the
+        document against :class:`~kneenlp.experiment.protocol_schema.ProtocolFile`, then the loads
+        and angles; an error names ``source`` and the field."""
         if not isinstance(doc, dict):
             raise InputError("expected a table", source=source)
-        unknown = sorted(set(doc) - TOP_KEYS)
-        if unknown:
-            raise InputError(f"unknown key {unknown[0]!r}; known: {', '.join(sorted(TOP_KEYS))}", source=source,
-                             field=unknown[0])
-        for key in ("name", "title", "description"):
-            if key in doc and not isinstance(doc[key], str):
-                raise InputError(f"expected a string, got {doc[key]!r}", source=source, field=key)
-        cases = doc.get("cases")
-        if not isinstance(cases, list) or not cases:
-            raise InputError("no [[cases]] given", source=source, field="cases")
-        axes = doc.get("load_axes", "femoral")
-        if axes not in LOAD_AXES:
-            raise unknown_name("load_axes", str(axes), LOAD_AXES, source=source).with_context(field="load_axes")
+        spec = validated(ProtocolFile, doc, source)
         trials: list[Trial] = []
-        for i, case in enumerate(cases):
-            trials += _case_trials(case, f"cases[{i}]", i, axes, source)
+        for i, case in enumerate(spec.cases):
+            trials += _case_trials(case, f"cases[{i}]", i, spec.load_axes, source)
         ids = [t.id for t in trials]
         dup = sorted({t for t in ids if ids.count(t) > 1})
         if dup:
             raise InputError(f"duplicate trials: {', '.join(dup)}", source=source, field="cases")
-        return cls(str(doc.get("name", default_name)), tuple(trials), str(doc.get("title", "")),
-                   str(doc.get("description", "")), source)
+        return cls(spec.name if spec.name is not None else default_name, tuple(trials), spec.title,
+                   spec.description, source)
 
 
-#: Keys of a protocol file and of one of its ``[[cases]]``.
-TOP_KEYS = {"name", "title", "description", "load_axes", "cases"}
-CASE_KEYS = {"direction", "magnitude", "flexion", "exclude", "loads", "name"}
 #: Largest load a protocol or a measured-data file may give: 1000 N and 100 N m, about ten times
 #: the largest loads of laxity tests (the paper's Table 2: 134 N, 10 N m).  Larger values are
 #: unit slips (N m as N mm, kN as N) or typing errors, and would be fitted as garbage.
@@ -259,16 +247,8 @@ def check_load(component: str, value: float, source: str | None, field: str) -> 
     return value
 
 
-def _numbers(value: object, source: str, field: str, what: str) -> list[float]:
-    """A number or a non-empty list of numbers."""
-    items = value if isinstance(value, list) else [value]
-    if not items:
-        raise InputError(f"no {what} given", source=source, field=field)
-    return [number(v, source, field) for v in items]
-
-
-def _flexions(value: object, source: str, field: str) -> list[float]:
-    flexions = _numbers(value, source, field, "flexion angles")
+def _flexions(flexions: list[float], source: str, field: str) -> list[float]:
+    """The flexion angles (deg) of a case, each within :data:`FLEXION_RANGE`."""
     lo, hi = FLEXION_RANGE
     for f in flexions:
         if not lo <= f <= hi:
@@ -276,54 +256,38 @@ def _flexions(value: object, source: str, field: str) -> list[float]:
     return flexions
 
 
-def _case_trials(case: object, fld: str, i: int, axes: str, source: str) -> list[Trial]:
-    """The trials of one ``[[cases]]`` entry."""
-    if not isinstance(case, dict):
-        raise InputError(f"expected a [[cases]] table, got {case!r}", source=source, field=fld)
-    unknown = sorted(set(case) - CASE_KEYS)
-    if unknown:
-        raise InputError(f"unknown key {unknown[0]!r}; known: {', '.join(sorted(CASE_KEYS))}", source=source,
-                         field=f"{fld}.{unknown[0]}")
-    if "flexion" not in case:
-        raise InputError("missing flexion angles (deg)", source=source, field=f"{fld}.flexion")
-    flexions = _flexions(case["flexion"], source, f"{fld}.flexion")
-    if "loads" in case:
+def _case_trials(case: Case, fld: str, i: int, axes: str, source: str) -> list[Trial]:
+    """The trials of one ``[[cases]]`` entry (loads in N and N m, flexion in deg)."""
+    flexions = _flexions(case.flexion, source, f"{fld}.flexion")
+    if case.loads is not None:
         for key in ("direction", "magnitude", "exclude"):
-            if key in case:
+            if getattr(case, key) is not None:
                 raise InputError("give either loads or direction/magnitude/exclude", source=source,
                                  field=f"{fld}.{key}")
-        loads = case["loads"]
-        if not isinstance(loads, dict) or not loads:
+        if not case.loads:
             raise InputError("must be a table of load components", source=source, field=f"{fld}.loads")
-        for k in loads:
-            if k not in ALL_LOAD_COMPONENTS:
-                raise unknown_name("load component", k, ALL_LOAD_COMPONENTS, source=source).with_context(
-                    field=f"{fld}.loads")
-        values = {k: check_load(k, number(v, source, f"{fld}.loads.{k}"), source, f"{fld}.loads.{k}")
-                  for k, v in loads.items()}
-        label = case.get("name", f"combined{i}")
-        if not isinstance(label, str) or not label.strip():
-            raise InputError(f"expected a non-empty string, got {label!r}", source=source, field=f"{fld}.name")
+        values = {k: check_load(k, v, source, f"{fld}.loads.{k}") for k, v in case.loads.items()}
+        label = case.name if case.name is not None else f"combined{i}"
         return [Trial(f"{label}_flex{f:g}", f, values, "combined", 0.0, axes) for f in flexions]
-    direction = case.get("direction")
-    if not isinstance(direction, str) or direction not in DIRECTIONS:
+    direction = case.direction
+    if direction is None:
         raise unknown_name("load direction", str(direction), DIRECTIONS, source=source).with_context(
             field=f"{fld}.direction")
     component, sign = DIRECTIONS[direction]
     if direction == "none":
-        if "magnitude" in case:
+        if case.magnitude is not None:
             raise InputError("no magnitude for direction 'none'", source=source, field=f"{fld}.magnitude")
         magnitudes = [0.0]
     else:
-        if "magnitude" not in case:
+        if case.magnitude is None:
             raise InputError("missing magnitude", source=source, field=f"{fld}.magnitude")
-        magnitudes = _numbers(case["magnitude"], source, f"{fld}.magnitude", "magnitudes")
+        magnitudes = case.magnitude
         if any(m <= 0 for m in magnitudes):
             raise InputError("magnitudes must be > 0 (the direction gives the sign)",
                              source=source, field=f"{fld}.magnitude")
         for m in magnitudes:
             check_load(component, m, source, f"{fld}.magnitude")
-    excluded = _excluded(case.get("exclude", []), direction, magnitudes, flexions, f"{fld}.exclude", source)
+    excluded = _excluded(case.exclude or [], direction, magnitudes, flexions, f"{fld}.exclude", source)
     trials = []
     for f in flexions:
         for m in magnitudes:
@@ -334,28 +298,17 @@ def _case_trials(case: object, fld: str, i: int, axes: str, source: str) -> list
     return trials
 
 
-def _excluded(value: object, direction: str, magnitudes: list[float], flexions: list[float], fld: str,
+def _excluded(entries: list[Exclusion], direction: str, magnitudes: list[float], flexions: list[float], fld: str,
               source: str) -> set[tuple[float, float]]:
     """``exclude = [{magnitude = M, flexion = F}, ...]``: each entry must name one of the case's
     trials (an entry that excludes nothing is a typo that would silently keep the trial)."""
-    if not isinstance(value, list):
-        raise InputError(f"expected a list of {{magnitude, flexion}} tables, got {value!r}", source=source,
-                         field=fld)
     out = set()
-    for j, entry in enumerate(value):
+    for j, entry in enumerate(entries):
         efld = f"{fld}[{j}]"
-        if not isinstance(entry, dict):
-            raise InputError(f"expected a {{magnitude, flexion}} table, got {entry!r}", source=source, field=efld)
-        unknown = sorted(set(entry) - {"magnitude", "flexion"})
-        if unknown:
-            raise InputError(f"unknown key {unknown[0]!r}; known: flexion, magnitude", source=source,
-                             field=f"{efld}.{unknown[0]}")
-        if "flexion" not in entry:
-            raise InputError("missing flexion (deg)", source=source, field=f"{efld}.flexion")
-        if "magnitude" not in entry and direction != "none":
+        if entry.magnitude is None and direction != "none":
             raise InputError("missing magnitude", source=source, field=f"{efld}.magnitude")
-        m = number(entry.get("magnitude", 0.0), source, f"{efld}.magnitude")
-        f = number(entry["flexion"], source, f"{efld}.flexion")
+        m = entry.magnitude if entry.magnitude is not None else 0.0
+        f = entry.flexion
         if m not in magnitudes or f not in flexions:
             raise InputError(f"excludes no trial of this case (magnitude {m:g}, flexion {f:g})", source=source,
                              field=efld)

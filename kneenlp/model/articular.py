@@ -43,10 +43,6 @@ TOUCHABLE_FLEXION_DEG = (-5.0, 100.0)
 RIM_GAP = 0.5e-3
 #: Points per chunk when the field's derivatives are evaluated at many points (memory: ~1 kB a point).
 RIM_CHUNK = 50_000
-#: Keys of the ``[contact]`` table that are settings, not compartments.
-CONTACT_SETTINGS = ("gate", "working_set", "grid_spacing", "femur", "femur_offset", "tibia", "law")
-#: Keys of a ``[contact.<compartment>]`` table.
-COMPARTMENT_KEYS = ("tibia", "femur", "sphere_center", "sphere_radius", "law")
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,7 @@
 """Knee files: the TOML reader that turns a knee file (meshes, attachments, landmarks, contact
 settings, a parameter set) into the fields of a :class:`~kneenlp.model.knee.Knee`, in SI, with
-every check a user's file needs (one-line errors naming the file and the field); where shipped
+every check a user's file needs (one-line errors naming the file and the field): the structure by
+its schema (:mod:`kneenlp.model.knee_schema`), then the geometry against a knee's; where shipped
 knees live (:func:`available_knees`, :func:`knee_file`, :func:`resolve_knee`).  The file format is
 described in :mod:`kneenlp.model.knee` and docs/inputs.md."""
 
@@ -16,6 +17,8 @@ from scipy.spatial import cKDTree
 from kneenlp.base.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.resources import resource
+from kneenlp.base.schema import validated
+from kneenlp.base.tomlfile import read_toml
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
 from kneenlp.geometry.decimate import (
     MAX_MESH_FACES,
@@ -28,8 +31,6 @@ from kneenlp.geometry.distance import MeshDistance, winding_number
 from kneenlp.geometry.rim import OpenEdges
 from kneenlp.geometry.sdf import DistanceField
 from kneenlp.model.articular import (
-    COMPARTMENT_KEYS,
-    CONTACT_SETTINGS,
     Compartment,
     FemoralSurface,
     femoral_box,
@@ -37,11 +38,12 @@ from kneenlp.model.articular import (
     split_tibia,
     tibial_samples,
 )
-from kneenlp.model.frames import FRAME_METHODS, Frame, angle_deg, axes_from_flexion, landmark_axes
+from kneenlp.model.frames import Frame, angle_deg, axes_from_flexion, landmark_axes
 from kneenlp.model.kinematics import reference_transform
+from kneenlp.model.knee_schema import BundleTable, KneeDocument
 from kneenlp.model.laws import DEFAULT_LAW, DEFAULT_PRESSURE_LAW, law_named
 from kneenlp.model.ligament import Bundle, Ligament
-from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, UNIT_FACTORS, ParameterSet, number, read_toml
+from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, UNIT_FACTORS, ParameterSet
 
 #: Ligament names (prefixes, upper case) on the medial and the lateral side of the knee, the
 #: evidence :meth:`KneeFile.check_side` weighs against the declared side.
@@ -128,21 +130,17 @@ class KneeFile:
     """One knee TOML being read: its document, units and the map into the femoral frame."""
 
     def __init__(self, path: Path):
+        """Read ``path`` and check it against :class:`~kneenlp.model.knee_schema.KneeDocument`; the
+        file's unit (``scale`` to m), side (``mirror``) and reference pose (rad, SI)."""
         self.path, self.src = path, str(path)
-        self.doc = read_toml(path)
-        doc, src = self.doc, self.src
-        side = doc.get("side", "right")
-        if side not in ("right", "left"):
-            raise InputError(f"must be 'right' or 'left', got {side!r}", source=src, field="side")
-        self.units = doc.get("units", "mm")
-        if self.units not in ("mm", "m"):
-            raise InputError(f"must be 'mm' or 'm', got {self.units!r}", source=src, field="units")
+        doc = read_toml(path)
+        units = doc.get("units", "mm") if isinstance(doc, dict) else "mm"
+        #: the file checked against its schema (:class:`~kneenlp.model.knee_schema.KneeDocument`)
+        self.spec = validated(KneeDocument, doc, self.src, context={"units": units})
+        self.units = self.spec.units
         self.scale = 1e-3 if self.units == "mm" else 1.0
-        self.mirror = np.array([1.0, 1.0, -1.0 if side == "left" else 1.0])
-        self.coordinates = doc.get("coordinates", "femoral")
-        if self.coordinates not in ("femoral", "scan"):
-            raise InputError(f"must be 'femoral' or 'scan', got {self.coordinates!r}", source=src,
-                             field="coordinates")
+        self.mirror = np.array([1.0, 1.0, -1.0 if self.spec.side == "left" else 1.0])
+        self.coordinates = self.spec.coordinates
         self.frame = Frame.identity()
         self.notes: list[str] = []
         #: attachments read so far: (field, point in the femoral frame at the reference pose, bone)
@@ -152,27 +150,16 @@ class KneeFile:
 
     def read_reference_pose(self) -> tuple[float, np.ndarray]:
         """``[reference_pose]``: the imaged pose of the tibial frame in the femoral frame, in kneenlp's
-        coordinates and signs (deg, mm; all six or none), or zero (the frames coincide)."""
-        doc = self.doc.get("reference_pose")
-        if doc is None:
+        coordinates and signs (deg, mm in the file; rad and SI returned), or zero (the frames coincide)."""
+        pose = self.spec.reference_pose
+        if pose is None:
             return 0.0, np.zeros(5)
-        keys = ["flexion_deg", *coordinate_columns()]
-        if not isinstance(doc, dict):
-            raise InputError(f"must be a table with {', '.join(keys)}", source=self.src, field="reference_pose")
-        unknown = sorted(set(doc) - set(keys))
-        if unknown:
-            raise InputError(f"unknown key {unknown[0]!r}; known: {', '.join(keys)}", source=self.src,
-                             field=f"reference_pose.{unknown[0]}")
-        missing = [k for k in keys if k not in doc]
-        if missing:
-            raise InputError(f"missing {', '.join(missing)} (give all six coordinates of the imaged pose)",
-                             source=self.src, field="reference_pose")
-        vals = {k: number(doc[k], self.src, f"reference_pose.{k}") for k in keys}
-        q_user = np.array([vals[c] for c in coordinate_columns()])
-        if np.any(np.abs(q_user) > POSE_ENVELOPE_USER) or not -30 <= vals["flexion_deg"] <= 120:
+        flexion = pose.flexion_deg
+        q_user = np.array([getattr(pose, c) for c in coordinate_columns()])
+        if np.any(np.abs(q_user) > POSE_ENVELOPE_USER) or not -30 <= flexion <= 120:
             raise InputError("beyond any knee pose (|rotations| <= 30/60 deg, |translations| <= 25 mm, flexion -30 "
                              "... 120 deg): mm and deg expected", source=self.src, field="reference_pose")
-        return float(np.radians(vals["flexion_deg"])), coords_from_user(q_user)
+        return float(np.radians(flexion)), coords_from_user(q_user)
 
     def at_reference(self, tibial_points: np.ndarray) -> np.ndarray:
         """Tibial points (tibial frame) in the femoral frame at the reference pose."""
@@ -180,35 +167,32 @@ class KneeFile:
         return np.asarray(tibial_points, float) @ R.T + p
 
     # ------------------------------------------------------------------ raw values (scan, m, right knee)
-    def raw_point(self, value: object, fld: str) -> np.ndarray:
-        if not isinstance(value, list) or len(value) != 3:
-            raise InputError(f"expected [x, y, z] in {self.units}, got {value!r}", source=self.src, field=fld)
-        return np.array([number(v, self.src, fld) for v in value]) * self.scale * self.mirror
+    def raw_point(self, value: tuple[float, float, float]) -> np.ndarray:
+        """A point of the file (its unit, its side) in scan coordinates: m, a left knee mirrored."""
+        return np.array(value) * self.scale * self.mirror
 
-    def length(self, table: dict, key: str, default_mm: float, fld: str, positive: bool = True) -> float:
+    def length(self, given: float | None, key: str, default_mm: float, fld: str, positive: bool = True) -> float:
         """A length setting in the file's unit -> m (defaults are given in mm, whatever the unit),
         checked against :data:`PLAUSIBLE_MM` (a length written in the other unit is caught)."""
-        if key not in table:
+        if given is None:
             return default_mm * 1e-3
-        value = number(table[key], self.src, fld) * self.scale
+        value = given * self.scale
         if value < 0 or (positive and value == 0):
             raise InputError(f"must be {'> 0' if positive else '>= 0'}", source=self.src, field=fld)
         lo, hi = PLAUSIBLE_MM.get(key, (0.0, np.inf))
         if value and not lo <= value * 1e3 <= hi:
-            raise InputError(f"{table[key]!r} is {value * 1e3:.4g} mm in this file's unit ({self.units!r}); "
+            raise InputError(f"{given!r} is {value * 1e3:.4g} mm in this file's unit ({self.units!r}); "
                              f"{key} is {lo:g}-{hi:g} mm (default {default_mm:g} mm): written in another unit?",
                              source=self.src, field=fld)
         return value
 
-    def mesh(self, value: object, fld: str) -> trimesh.Trimesh:
+    def mesh(self, value: str, fld: str) -> trimesh.Trimesh:
         """A mesh named in the file, in scan coordinates (m, mirrored for a left knee), its size
         checked against :data:`KNEE_SIZE_RANGE` on its own (one mesh in the other unit is caught
         before any work, not only when the knee's overall size is)."""
-        contact = self.doc.get("contact", {})
         # the contact resolution: the distance field's grid (a femur decimated to twice it changed the
         # contact force by up to 3 %, to it by less than 1 %: benchmarks/bench_decimation.py)
-        resolution = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing") \
-            if isinstance(contact, dict) else 0.5e-3
+        resolution = self.length(self.spec.contact.grid_spacing, "grid_spacing", 0.5, "contact.grid_spacing")
         mesh = read_mesh(mesh_path(self.path.parent, value, self.src, fld), self.scale, self.mirror,
                          field=fld, knee_file=self.src)
         self.check_extent(mesh.vertices, str(value), fld)
@@ -217,18 +201,16 @@ class KneeFile:
             self.notes.append(f"{fld} ({value}): {note}")
         return mesh
 
-    def point(self, value: object, fld: str) -> np.ndarray:
-        return self.frame(self.raw_point(value, fld))
+    def point(self, value: tuple[float, float, float]) -> np.ndarray:
+        """A point of the file in the femoral frame (m)."""
+        return self.frame(self.raw_point(value))
 
     # ------------------------------------------------------------------ the knee
     def fields(self, parameters) -> dict:
         """The :class:`~kneenlp.model.knee.Knee` this file describes, as its constructor's keyword
         arguments (SI), with ``parameters`` (a parameter set or its file) replacing the file's own."""
-        doc, src = self.doc, self.src
-        landmarks_raw = doc.get("landmarks", {})
-        if not isinstance(landmarks_raw, dict):
-            raise InputError("must be a table of [x, y, z] points", source=src, field="landmarks")
-        raw_landmarks = {k: self.raw_point(v, f"landmarks.{k}") for k, v in landmarks_raw.items()}
+        spec, src = self.spec, self.src
+        raw_landmarks = {k: self.raw_point(v) for k, v in spec.landmarks.items()}
         geometry = self.contact(raw_landmarks)
         self.check_size(geometry["compartments"])
         landmarks = {k: self.frame(v) for k, v in raw_landmarks.items()}
@@ -240,18 +222,14 @@ class KneeFile:
         candidates = self.candidates()
         self.check_attachments(geometry)
         params = self.parameter_set(parameters, ligaments)
-        contact = doc.get("contact", {})
-        working_set = contact.get("working_set", 0)
-        if isinstance(working_set, bool) or not isinstance(working_set, int) or working_set < 0:
-            raise InputError(f"must be an integer >= 0 (0: every point), got {working_set!r}", source=src,
-                             field="contact.working_set")
-        return dict(name=str(doc.get("name", self.path.stem)), ligaments=ligaments,
+        contact = spec.contact
+        return dict(name=spec.name if spec.name is not None else self.path.stem, ligaments=ligaments,
                     compartments=geometry["compartments"], tuberosity=landmarks["tibial_tuberosity"],
-                    parameters=params, gate=self.length(contact, "gate", 0.01, "contact.gate"),
-                    working_set=working_set, landmarks=landmarks, source=src,
-                    description=str(doc.get("description", "")), candidates=candidates, femur=geometry["femur"],
+                    parameters=params, gate=self.length(contact.gate, "gate", 0.01, "contact.gate"),
+                    working_set=contact.working_set, landmarks=landmarks, source=src,
+                    description=spec.description, candidates=candidates, femur=geometry["femur"],
                     axis=geometry["axis"], menisci=self.menisci(), notes=self.notes,
-                    reference_pose=self.reference_pose, side=self.doc.get("side", "right"))
+                    reference_pose=self.reference_pose, side=spec.side)
 
     def check_side(self, ligaments: dict[str, Ligament], compartments: dict[str, Compartment],
                    landmarks: dict[str, np.ndarray]) -> None:
@@ -270,8 +248,7 @@ class KneeFile:
             side = "medial" if z["medial"] else "lateral"
             evidence.append((f"the {side} collateral ligaments lie on the {'lateral' if side == 'medial' else 'medial'}"
                              " side", -np.mean(z[side]) if side == "medial" else np.mean(z[side])))
-        named = {n for n in self.doc.get("contact", {}) if n in ("medial", "lateral")
-                 and isinstance(self.doc["contact"][n], dict) and "tibia" in self.doc["contact"][n]}
+        named = {n for n, t in self.spec.contact.compartments().items() if t.tibia is not None}
         if named == {"medial", "lateral"}:
             evidence.append(("the file's lateral plateau ([contact.lateral]) lies medial of its medial one",
                              compartments["lateral"].points[:, 2].mean() - compartments["medial"].points[:, 2].mean()))
@@ -280,7 +257,7 @@ class KneeFile:
                              landmarks["lateral_epicondyle"][2] - landmarks["medial_epicondyle"][2]))
         wrong = [what for what, dz in evidence if dz < 0]
         if wrong:
-            side = self.doc.get("side", "right")
+            side = self.spec.side
             other = "left" if side == "right" else "right"
             raise InputError(f"the knee is declared {side!r}, but {wrong[0]} once it is read as a {side} knee: "
                              f"is it a {other} knee? (set side = {other!r})", source=self.src, field="side")
@@ -312,7 +289,7 @@ class KneeFile:
                              "trimesh's mesh.invert()) or fix the export", source=self.src, field=fld)
         depth = reference_penetration(femur, points, offset)
         if depth > MAX_REFERENCE_PENETRATION:
-            where = "its reference_pose" if "reference_pose" in self.doc else "the tibial meshes' placement"
+            where = "its reference_pose" if self.spec.reference_pose is not None else "the tibial meshes' placement"
             raise InputError(f"the tibial cartilage lies {depth * 1e3:.3g} mm inside the femoral articular surface "
                              f"at the reference pose (at most {MAX_REFERENCE_PENETRATION * 1e3:g} mm; real scans: 0.3 "
                              f"mm): check {where}, femur_offset ({offset * 1e3:g} mm) and that both bones are in the "
@@ -435,48 +412,40 @@ class KneeFile:
 
     def menisci(self) -> float | None:
         """``[menisci] stiffness`` (N/mm per compartment) -> N/m, or None (menisci not modelled)."""
-        doc = self.doc.get("menisci")
-        if doc is None:
+        if self.spec.menisci is None:
             return None
-        if not isinstance(doc, dict) or "stiffness" not in doc:
-            raise InputError("must be a table with stiffness (N/mm per compartment)", source=self.src,
-                             field="menisci")
-        k = number(doc["stiffness"], self.src, "menisci.stiffness")
+        k = self.spec.menisci.stiffness
         if k < 0:
             raise InputError("must be >= 0", source=self.src, field="menisci.stiffness")
         return k * UNIT_FACTORS["spring"]["N/mm"]
 
     def contact(self, raw_landmarks: dict[str, np.ndarray]) -> dict:
-        """Read the articular surfaces, build the femoral frame from them and map everything into it."""
-        src = self.src
-        contact = self.doc.get("contact", {})
-        if not isinstance(contact, dict):
-            raise InputError("must be a table", source=src, field="contact")
-        tables = {k: v for k, v in contact.items() if k not in CONTACT_SETTINGS}
-        for name, table in tables.items():
-            if not isinstance(table, dict):
-                raise InputError(f"unknown setting {name!r}; known: {', '.join(CONTACT_SETTINGS)}, or a "
-                                 "[contact.<compartment>] table", source=src, field=f"contact.{name}")
-            for key in table:
-                if key not in COMPARTMENT_KEYS:
-                    raise InputError(f"unknown key {key!r}; known: {', '.join(COMPARTMENT_KEYS)}", source=src,
-                                     field=f"contact.{name}.{key}")
-        # tibial cartilage, scan coordinates
-        tibiae: dict[str, trimesh.Trimesh] = {}
-        whole = None
-        if "tibia" in contact:
-            if any("tibia" in t for t in tables.values()):
-                raise InputError("give the tibial cartilage either once for both plateaus or per compartment",
-                                 source=src, field="contact.tibia")
-            whole = self.mesh(contact["tibia"], "contact.tibia")
-        for name, table in tables.items():
-            if "tibia" in table:
-                tibiae[name] = self.mesh(table["tibia"], f"contact.{name}.tibia")
-            elif whole is None:
-                raise InputError("missing mesh file", source=src, field=f"contact.{name}.tibia")
-        if whole is None and not tibiae:
-            raise InputError("no tibial cartilage: give contact.tibia or [contact.medial] and [contact.lateral]",
-                             source=src, field="contact")
+        """The articular geometry in the femoral frame (m): read the tibial cartilage and the femoral
+        surfaces (scan coordinates), fit the flexion axis, build the femoral frame from them and map
+        the compartments and the femoral surface into it.  ``raw_landmarks``: scan coordinates, m."""
+        tibiae, approx = self.read_tibiae(raw_landmarks)
+        femur_raw, sources, spheres, offset = self.read_femur(tibiae, raw_landmarks, approx)
+        axis = None
+        if femur_raw is not None:
+            axis, approx = self.fit_axis(femur_raw, tibiae, raw_landmarks.get("hip_center"), approx)
+        axis = self.map_to_frame(axis, spheres, raw_landmarks, approx, offset)
+        compartments = self.compartments(tibiae, spheres, axis)
+        mesh_compartments = [n for n in tibiae if n not in spheres]
+        femur = None
+        if femur_raw is not None and mesh_compartments:
+            femur = self.femoral_surface(femur_raw, [compartments[n] for n in mesh_compartments], axis, offset,
+                                         sources)
+        return {"compartments": compartments, "femur": femur, "axis": axis}
+
+    def read_tibiae(self, raw_landmarks: dict[str, np.ndarray]) -> tuple[dict[str, trimesh.Trimesh], np.ndarray]:
+        """The tibial cartilage per compartment (scan coordinates, m), read per compartment or once
+        and split into plateaus, each checked to carry contact, and the scan's approximate anterior,
+        proximal and lateral directions (rows; :meth:`approximate_axes`).  The landmarks (scan
+        coordinates, m) are checked against the cartilage's position."""
+        contact, tables = self.spec.contact, self.spec.contact.compartments()
+        whole = self.mesh(contact.tibia, "contact.tibia") if contact.tibia is not None else None
+        tibiae = {name: self.mesh(t.tibia, f"contact.{name}.tibia") for name, t in tables.items()
+                  if t.tibia is not None}
         for name, mesh in ({"": whole} if whole is not None else tibiae).items():
             self.check_plateau(mesh, f"contact.{name}.tibia" if name else "contact.tibia", 2 if not name else 1)
         self.check_landmarks(raw_landmarks, [m.vertices for m in ([whole] if whole is not None else tibiae.values())])
@@ -487,29 +456,23 @@ class KneeFile:
             unknown = set(tables) - set(tibiae)
             if unknown:
                 raise InputError(f"compartment {sorted(unknown)[0]!r} has no plateau; the split gives medial, lateral",
-                                 source=src, field="contact")
+                                 source=self.src, field="contact")
             for name, mesh in tibiae.items():
                 self.check_plateau(mesh, "contact.tibia", 1, f"its {name} plateau")
-        # femoral surface and explicit spheres, scan coordinates
-        spheres = {}
-        for name, table in tables.items():
-            if ("sphere_center" in table) != ("sphere_radius" in table):
-                raise InputError("an explicit sphere needs both sphere_center and sphere_radius", source=src,
-                                 field=f"contact.{name}")
-            if "sphere_center" in table:
-                if "femur" in table:
-                    raise InputError("give either a femoral mesh or an explicit sphere", source=src,
-                                     field=f"contact.{name}")
-                radius = self.length(table, "sphere_radius", 0.0, f"contact.{name}.sphere_radius")
-                spheres[name] = (self.raw_point(table["sphere_center"], f"contact.{name}.sphere_center"), radius)
-        femur_parts, sources = [], []
-        if "femur" in contact:
-            femur_parts.append(self.mesh(contact["femur"], "contact.femur"))
-            sources.append(str(contact["femur"]))
-        for name, table in tables.items():
-            if "femur" in table:
-                femur_parts.append(self.mesh(table["femur"], f"contact.{name}.femur"))
-                sources.append(str(table["femur"]))
+        return tibiae, approx
+
+    def read_femur(self, tibiae: dict[str, trimesh.Trimesh], raw_landmarks: dict[str, np.ndarray],
+                   approx: np.ndarray) -> tuple[trimesh.Trimesh | None, list[str], dict, float]:
+        """The femoral surface (scan coordinates, m; None with spheres only), its mesh files, the
+        explicit spheres (name -> (centre in scan coordinates, radius), m) and the femoral offset (m),
+        the femoral mesh checked against the tibial one (bone order, facing, penetration)."""
+        contact, tables, src = self.spec.contact, self.spec.contact.compartments(), self.src
+        spheres = {name: (self.raw_point(t.sphere_center),
+                          self.length(t.sphere_radius, "sphere_radius", 0.0, f"contact.{name}.sphere_radius"))
+                   for name, t in tables.items() if t.sphere_center is not None}
+        named = [("contact.femur", contact.femur)] + [(f"contact.{n}.femur", t.femur) for n, t in tables.items()]
+        femur_parts = [self.mesh(value, fld) for fld, value in named if value is not None]
+        sources = [value for _, value in named if value is not None]
         mesh_compartments = [n for n in tibiae if n not in spheres]
         if mesh_compartments and not femur_parts:
             raise InputError(f"compartment {mesh_compartments[0]!r} has neither a femoral mesh (contact.femur) "
@@ -521,57 +484,73 @@ class KneeFile:
                              "over-decimated file?", source=src, field="contact.femur")
         if femur_raw is not None:
             check_bone_order(femur_raw, tibiae, self.at_reference, raw_landmarks.get("hip_center"), approx[1], src)
-        offset = self.length(contact, "femur_offset", 0.0, "contact.femur_offset", positive=False)
+        offset = self.length(contact.femur_offset, "femur_offset", 0.0, "contact.femur_offset", positive=False)
         if femur_raw is not None and mesh_compartments:
             self.check_facing(femur_raw, {n: tibiae[n] for n in mesh_compartments}, offset,
-                              "contact.femur" if "femur" in contact else "contact")
-        # condyle split and flexion axis (scan coordinates), then the frame
+                              "contact.femur" if contact.femur is not None else "contact")
+        return femur_raw, sources, spheres, offset
+
+    def fit_axis(self, femur_raw: trimesh.Trimesh, tibiae: dict[str, trimesh.Trimesh], hip: np.ndarray | None,
+                 approx: np.ndarray) -> tuple[FlexionAxis, np.ndarray]:
+        """The flexion axis fitted to the femoral condyles (scan coordinates, m) and the approximate
+        axes (rows) of the last fit.  The fitted regions depend on the approximate axes, so the fit
+        is repeated with the axes of the last one until the axis settles (1e-4 deg, 1e-7 m): the
+        frame does not depend on how the scan was oriented.  ``hip``: the hip centre (m) or None."""
+        cents = {n: m.vertices.mean(axis=0) for n, m in tibiae.items()}
+        if {"medial", "lateral"} <= set(cents):
+            med, lat = cents["medial"], cents["lateral"]
+        else:
+            s = {n: c @ approx[2] for n, c in cents.items()}
+            med, lat = cents[min(s, key=s.get)], cents[max(s, key=s.get)]
         axis = split = None
-        if femur_raw is not None:
-            cents = {n: m.vertices.mean(axis=0) for n, m in tibiae.items()}
-            if {"medial", "lateral"} <= set(cents):
-                med, lat = cents["medial"], cents["lateral"]
-            else:
-                s = {n: c @ approx[2] for n, c in cents.items()}
-                med, lat = cents[min(s, key=s.get)], cents[max(s, key=s.get)]
-            # the fitted regions depend on the approximate axes: refit with the axes of the last fit
-            # until the axis settles, so the frame does not depend on how the scan was oriented
-            hip = raw_landmarks.get("hip_center")
-            for _ in range(5):
-                try:
-                    with warnings.catch_warnings(), np.errstate(all="ignore"):  # a failed fit says why below
-                        warnings.simplefilter("ignore")
-                        split = split_condyles(femur_raw, med, lat, approx[1])
-                        new = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
-                except (ValueError, np.linalg.LinAlgError, TypeError) as exc:
-                    raise InputError(f"cannot fit cylinders to the femoral condyles ({exc}; {len(femur_raw.faces)} "
-                                     "faces): check that the femoral mesh is in the file's unit (units = "
-                                     f"{self.units!r}) and covers both condyles with more than a few faces, that "
-                                     "landmarks.hip_center is the hip (it sets the proximal direction) and that the "
-                                     "tibial meshes are the tibia's", source=src, field="contact.femur") from None
-                if hip is not None:
-                    tilt = angle_deg(hip - new.point, new.direction)
-                    if min(tilt, 180 - tilt) < HIP_AXIS_ANGLE:
-                        raise InputError(f"the hip centre lies {min(tilt, 180 - tilt):.0f} deg from the flexion axis "
-                                         "fitted to the condyles (a femur's shaft is about 90 deg from it): a medial "
-                                         "or lateral point given as the hip, or the femoral mesh in another frame?",
-                                         source=src, field="landmarks.hip_center")
-                settled = axis is not None and angle_deg(new.direction, axis.direction) < 1e-4 \
-                    and np.linalg.norm(new.point - axis.point) < 1e-7
-                axis = new
-                if settled:
-                    break
-                approx = axes_from_flexion(axis.direction, hip - axis.point if hip is not None else approx[1])
-            self.notes.append(f"femoral condyles split by a {split.describe()}")
+        for _ in range(5):
+            try:
+                with warnings.catch_warnings(), np.errstate(all="ignore"):  # a failed fit says why below
+                    warnings.simplefilter("ignore")
+                    split = split_condyles(femur_raw, med, lat, approx[1])
+                    new = fit_flexion_axis(femur_raw, split, approx[1], approx[0], approx[2])
+            except (ValueError, np.linalg.LinAlgError, TypeError) as exc:
+                raise InputError(f"cannot fit cylinders to the femoral condyles ({exc}; {len(femur_raw.faces)} "
+                                 "faces): check that the femoral mesh is in the file's unit (units = "
+                                 f"{self.units!r}) and covers both condyles with more than a few faces, that "
+                                 "landmarks.hip_center is the hip (it sets the proximal direction) and that the "
+                                 "tibial meshes are the tibia's", source=self.src, field="contact.femur") from None
+            if hip is not None:
+                tilt = angle_deg(hip - new.point, new.direction)
+                if min(tilt, 180 - tilt) < HIP_AXIS_ANGLE:
+                    raise InputError(f"the hip centre lies {min(tilt, 180 - tilt):.0f} deg from the flexion axis "
+                                     "fitted to the condyles (a femur's shaft is about 90 deg from it): a medial "
+                                     "or lateral point given as the hip, or the femoral mesh in another frame?",
+                                     source=self.src, field="landmarks.hip_center")
+            settled = axis is not None and angle_deg(new.direction, axis.direction) < 1e-4 \
+                and np.linalg.norm(new.point - axis.point) < 1e-7
+            axis = new
+            if settled:
+                break
+            approx = axes_from_flexion(axis.direction, hip - axis.point if hip is not None else approx[1])
+        self.notes.append(f"femoral condyles split by a {split.describe()}")
+        return axis, approx
+
+    def map_to_frame(self, axis: FlexionAxis | None, spheres: dict, raw_landmarks: dict[str, np.ndarray],
+                     approx: np.ndarray, offset: float) -> FlexionAxis | None:
+        """Build the femoral frame (:meth:`build_frame`; scan coordinates, m) and return the flexion
+        axis in it (None without a femoral mesh), noting both (``offset``: the femoral offset, m)."""
         self.frame = self.build_frame(axis, spheres, raw_landmarks, approx)
         self.notes.append(f"frame: {self.frame.how}")
-        if axis is not None:
-            axis = axis.mapped(self.frame.rotation, self.frame.origin)
-            where = ("" if self.frame.how.startswith("cylinders") else  # else: the frame came from elsewhere
-                     f"; {angle_deg(axis.direction, [0, 0, 1]):.2f} deg from the femoral Z axis, "
-                     f"{np.linalg.norm(np.cross(axis.point, axis.direction)) * 1e3:.2f} mm from the origin")
-            self.notes.append(f"flexion axis: {axis.describe(offset)}{where}")
-        # compartments in the femoral (tibial) frame
+        if axis is None:
+            return None
+        axis = axis.mapped(self.frame.rotation, self.frame.origin)
+        where = ("" if self.frame.how.startswith("cylinders") else  # else: the frame came from elsewhere
+                 f"; {angle_deg(axis.direction, [0, 0, 1]):.2f} deg from the femoral Z axis, "
+                 f"{np.linalg.norm(np.cross(axis.point, axis.direction)) * 1e3:.2f} mm from the origin")
+        self.notes.append(f"flexion axis: {axis.describe(offset)}{where}")
+        return axis
+
+    def compartments(self, tibiae: dict[str, trimesh.Trimesh], spheres: dict,
+                     axis: FlexionAxis | None) -> dict[str, Compartment]:
+        """The compartments in the femoral frame (tibial meshes and points in the tibial frame, m;
+        condyle centres and sphere radii in m) with their pressure laws."""
+        contact, tables = self.spec.contact, self.spec.contact.compartments()
         compartments = {}
         for name, raw in tibiae.items():
             mesh = self.frame.mesh(raw)
@@ -580,27 +559,31 @@ class KneeFile:
                 centre, radius = self.frame(spheres[name][0]), spheres[name][1]
             else:
                 centre, radius = self.condyle_centre(axis, self.at_reference(points)), None
-            spec = tables.get(name, {}).get("law", contact.get("law", DEFAULT_PRESSURE_LAW))
-            where = f"contact.{name}.law" if "law" in tables.get(name, {}) else "contact.law"
-            law = law_named(spec, source=src, field=where, kind="pressure")
+            own = tables[name].law if name in tables else None
+            spec = own if own is not None else contact.law if contact.law is not None else DEFAULT_PRESSURE_LAW
+            where = f"contact.{name}.law" if own is not None else "contact.law"
+            law = law_named(spec, source=self.src, field=where, kind="pressure")
             compartments[name] = Compartment(name, mesh, points, areas, centre, radius, law)
-        femur = None
-        if femur_raw is not None and mesh_compartments:
-            fmesh = self.frame.mesh(femur_raw)
-            pts = np.vstack([compartments[n].points for n in mesh_compartments])
-            spacing = self.length(contact, "grid_spacing", 0.5, "contact.grid_spacing")
-            try:
-                box = femoral_box(fmesh, self.at_reference(pts), axis, np.degrees(self.reference_pose[0]))
-            except ValueError as exc:  # the tibia never comes near the femur over the flexion range
-                raise InputError(f"{exc} (more than 8 mm apart at every flexion): is the tibia placed in the "
-                                 "femur's frame and in the file's unit?", source=self.src,
-                                 field="contact.tibia") from None
-            try:  # before any allocation
-                DistanceField.check_memory(box, spacing)
-            except ValueError as exc:
-                raise InputError(str(exc), source=self.src, field="contact.grid_spacing") from None
-            femur = FemoralSurface(fmesh, offset, spacing, box, sources)
-        return {"compartments": compartments, "femur": femur, "axis": axis}
+        return compartments
+
+    def femoral_surface(self, femur_raw: trimesh.Trimesh, compartments: list[Compartment], axis: FlexionAxis | None,
+                        offset: float, sources: list[str]) -> FemoralSurface:
+        """The femoral surface in the femoral frame (m), moved out by ``offset`` (m), with the box
+        of its distance field (grid ``grid_spacing``, m) over the tibial points of the mesh
+        ``compartments`` across the flexion range; its memory checked before any allocation."""
+        fmesh = self.frame.mesh(femur_raw)
+        pts = np.vstack([c.points for c in compartments])
+        spacing = self.length(self.spec.contact.grid_spacing, "grid_spacing", 0.5, "contact.grid_spacing")
+        try:
+            box = femoral_box(fmesh, self.at_reference(pts), axis, np.degrees(self.reference_pose[0]))
+        except ValueError as exc:  # the tibia never comes near the femur over the flexion range
+            raise InputError(f"{exc} (more than 8 mm apart at every flexion): is the tibia placed in the "
+                             "femur's frame and in the file's unit?", source=self.src, field="contact.tibia") from None
+        try:  # before any allocation
+            DistanceField.check_memory(box, spacing)
+        except ValueError as exc:
+            raise InputError(str(exc), source=self.src, field="contact.grid_spacing") from None
+        return FemoralSurface(fmesh, offset, spacing, box, sources)
 
     def approximate_axes(self, raw_landmarks: dict[str, np.ndarray]) -> np.ndarray:
         """Anterior, proximal and lateral directions of the scan (rows), good enough to choose the
@@ -611,14 +594,14 @@ class KneeFile:
         return np.eye(3)
 
     def build_frame(self, axis: FlexionAxis | None, spheres: dict, raw_landmarks: dict, approx: np.ndarray) -> Frame:
+        """The femoral frame in scan coordinates (m): the identity for a file in the femoral frame,
+        else by ``frame``: the flexion ``axis`` and the hip (or ``approx``'s proximal row), or the
+        ISB landmarks with the origin between the condyle or sphere centres."""
         if self.coordinates == "femoral":
-            if "frame" in self.doc:
+            if self.spec.frame is not None:
                 raise InputError("only with coordinates = 'scan'", source=self.src, field="frame")
             return Frame.identity()
-        method = self.doc.get("frame", "cylinders" if axis is not None else "landmarks")
-        if method not in FRAME_METHODS:
-            raise InputError(f"must be one of {', '.join(FRAME_METHODS)}, got {method!r}", source=self.src,
-                             field="frame")
+        method = self.spec.frame or ("cylinders" if axis is not None else "landmarks")
         if method == "cylinders":
             if axis is None:
                 raise InputError("frame = 'cylinders' needs a femoral mesh (contact.femur)", source=self.src,
@@ -648,102 +631,80 @@ class KneeFile:
         return axis.lateral.centre if side >= 0 else axis.medial.centre
 
     def ligaments(self) -> dict[str, Ligament]:
-        src = self.src
-        ligs_doc = self.doc.get("ligaments")
-        if not isinstance(ligs_doc, dict) or not ligs_doc:
-            raise InputError("missing table [ligaments.<NAME>]", source=src, field="ligaments")
+        """``[ligaments.<NAME>]``: each ligament's bundles (attachments in m, femoral frame) and law."""
         ligaments = {}
-        for name, lig in ligs_doc.items():
+        for name, lig in self.spec.ligaments.items():
             fld = f"ligaments.{name}"
-            if not isinstance(lig, dict):
-                raise InputError("must be a table with femur and tibia attachments (or bundles)", source=src,
-                                 field=fld)
-            law = law_named(lig.get("law", DEFAULT_LAW), source=src, field=f"{fld}.law")
-            if "bundles" in lig:
-                ligaments[name] = Ligament(name, self.bundles(lig["bundles"], f"{fld}.bundles"),
+            law = law_named(lig.law if lig.law is not None else DEFAULT_LAW, source=self.src, field=f"{fld}.law")
+            if lig.bundles is not None:
+                ligaments[name] = Ligament(name, self.bundles(lig.bundles, f"{fld}.bundles"),
                                            reference=self.reference, law=law)
                 continue
-            for key in ("femur", "tibia"):
-                if key not in lig:
-                    raise InputError("missing attachment", source=src, field=f"{fld}.{key}")
-            femur, tibia = self.point(lig["femur"], f"{fld}.femur"), self.point(lig["tibia"], f"{fld}.tibia")
+            femur, tibia = self.point(lig.femur), self.point(lig.tibia)
             self.check_length(femur, tibia, fld)
             self.attach(femur, tibia, f"{fld}.femur", f"{fld}.tibia")
             ligaments[name] = Ligament(name, [Bundle(femur, tibia)], reference=self.reference, law=law)
         return ligaments
 
-    def bundles(self, doc: object, fld: str) -> list[Bundle]:
+    def bundles(self, tables: list[BundleTable], fld: str) -> list[Bundle]:
         """The bundles of a multi-bundle ligament: ``[[ligaments.<NAME>.bundles]]`` tables with
         ``name``, ``femur``, ``tibia``, ``stiffness`` (N per unit strain), ``slack_length`` (file
         length unit) or ``ref_strain`` (%), and ``transition_strain`` (OpenSim's, default 0.06) or
         ``lin_strain`` (%, the paper's limit = transition / 2)."""
         src = self.src
-        if not isinstance(doc, list) or not doc or not all(isinstance(b, dict) for b in doc):
-            raise InputError("must be a non-empty array of tables [[...bundles]]", source=src, field=fld)
         out = []
-        for i, b in enumerate(doc):
+        for i, b in enumerate(tables):
             f = f"{fld}[{i}]"
-            for key in ("femur", "tibia", "stiffness"):
-                if key not in b:
-                    raise InputError("missing", source=src, field=f"{f}.{key}")
-            femur, tibia = self.point(b["femur"], f"{f}.femur"), self.point(b["tibia"], f"{f}.tibia")
+            femur, tibia = self.point(b.femur), self.point(b.tibia)
             length = self.check_length(femur, tibia, f)
             self.attach(femur, tibia, f"{f}.femur", f"{f}.tibia")
-            stiffness = number(b["stiffness"], src, f"{f}.stiffness")
-            if stiffness < 0:
+            if b.stiffness < 0:
                 raise InputError("must be >= 0 (N per unit strain)", source=src, field=f"{f}.stiffness")
-            if ("slack_length" in b) == ("ref_strain" in b):
+            if (b.slack_length is None) == (b.ref_strain is None):
                 raise InputError("give slack_length or ref_strain", source=src, field=f)
-            if "slack_length" in b:
-                slack = number(b["slack_length"], src, f"{f}.slack_length") * self.scale
+            if b.slack_length is not None:
+                slack = b.slack_length * self.scale
                 if slack <= 0:
                     raise InputError("must be > 0", source=src, field=f"{f}.slack_length")
                 ref = length / slack - 1
             else:
-                ref = number(b["ref_strain"], src, f"{f}.ref_strain") / KINDS["ref_strain"].to_user
-            if "lin_strain" in b:
-                lin = number(b["lin_strain"], src, f"{f}.lin_strain") / KINDS["lin_strain"].to_user
+                ref = b.ref_strain / KINDS["ref_strain"].to_user
+            if b.lin_strain is not None:
+                lin = b.lin_strain / KINDS["lin_strain"].to_user
             else:
-                lin = number(b.get("transition_strain", 0.06), src, f"{f}.transition_strain") / 2
+                lin = (b.transition_strain if b.transition_strain is not None else 0.06) / 2
             if lin <= 0:
                 raise InputError("must be > 0", source=src, field=f"{f}.transition_strain")
-            out.append(Bundle(femur, tibia, str(b.get("name", f"{fld}{i}")), stiffness, ref, lin))
+            out.append(Bundle(femur, tibia, b.name if b.name is not None else f"{fld}{i}", b.stiffness, ref, lin))
         return out
 
     def candidates(self) -> list[Ligament]:
-        src = self.src
+        """``[candidates.<NAME>]``: candidate bundles of model adequacy (attachments in m, femoral
+        frame; the reference strain given in %, stored as a fraction)."""
         out = []
-        for cname, cdoc in self.doc.get("candidates", {}).items():
+        for cname, cand in self.spec.candidates.items():
             fld = f"candidates.{cname}"
-            if not isinstance(cdoc, dict):
-                raise InputError("must be a table with kind, femur and tibia", source=src, field=fld)
-            if cdoc.get("kind") != "bundle":
-                raise InputError(f"unknown candidate kind {cdoc.get('kind')!r}; known: bundle", source=src,
-                                 field=f"{fld}.kind")
-            fem, tib = cdoc.get("femur"), cdoc.get("tibia")
-            if not isinstance(fem, list) or not isinstance(tib, list) or len(fem) != len(tib) or not fem:
-                raise InputError("femur and tibia must be equally long lists of [x, y, z]", source=src, field=fld)
-            fem = [self.point(v, f"{fld}.femur") for v in fem]
-            tib = [self.point(v, f"{fld}.tibia") for v in tib]
+            fem = [self.point(v) for v in cand.femur]
+            tib = [self.point(v) for v in cand.tibia]
             for i, (f, t) in enumerate(zip(fem, tib, strict=True)):
                 self.check_length(f, t, fld)
                 self.attach(f, t, f"{fld}.femur[{i}]", f"{fld}.tibia[{i}]")
-            ref = number(cdoc.get("ref_strain", 0.0), src, f"{fld}.ref_strain") / KINDS["ref_strain"].to_user
+            ref = cand.ref_strain / KINDS["ref_strain"].to_user
             out.append(Ligament(cname, [Bundle(f, t) for f, t in zip(fem, tib, strict=True)], candidate=True,
-                                defaults={"ref_strain": ref}, description=str(cdoc.get("description", "")),
+                                defaults={"ref_strain": ref}, description=cand.description,
                                 reference=self.reference))
         return out
 
     def parameter_set(self, parameters, ligaments: dict[str, Ligament]) -> ParameterSet:
+        """The knee's parameter set (SI): ``parameters`` (a set or its file) or the file's own,
+        checked to give exactly the properties of ``ligaments``."""
         src = self.src
         if isinstance(parameters, ParameterSet):
             params = parameters
         elif parameters is not None:
             params = ParameterSet.load(parameters)
-        elif "parameters" in self.doc:
-            name = self.doc["parameters"]
-            if not isinstance(name, str) or not name.strip():
-                raise InputError(f"expected a parameter file name, got {name!r}", source=src, field="parameters")
+        elif self.spec.parameters is not None:
+            name = self.spec.parameters
             path = self.path.parent / name
             if not is_file(path):
                 raise InputError(f"parameter file {name!r} not found ({path})", source=src, field="parameters")

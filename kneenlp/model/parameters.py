@@ -8,8 +8,6 @@ names (``<effect>.<parameter>``) with their own units.
 
 from __future__ import annotations
 
-import math
-import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.schema import validated
+from kneenlp.base.tomlfile import read_toml
+from kneenlp.model.parameter_schema import Entries as EntrySchema
+from kneenlp.model.parameter_schema import Entry, PriorTable, parameter_file_schema
 from kneenlp.model.posterior import Posterior
 from kneenlp.model.priors import Prior
 
@@ -73,6 +75,9 @@ DISPLAY_UNITS: dict[str, str] = {k: v.unit for k, v in KINDS.items()}
 #: Every unit a parameter file may give in its ``[values]`` table, with its factor to SI (one
 #: factor per unit whatever the kind; the model checks the unit suits the parameter's kind).
 UNIT_TO_SI: dict[str, float] = {u: f for kind in KINDS.values() for u, f in kind.file_units}
+#: The parameter file's schema (:mod:`kneenlp.model.parameter_schema`), its units and ligament
+#: values from :data:`KINDS`.
+PARAMETER_FILE = parameter_file_schema(UNIT_FACTORS, LIGAMENT_KINDS)
 
 
 @dataclass(frozen=True)
@@ -258,63 +263,33 @@ class ParameterSet:
 
     @classmethod
     def load(cls, path: str | Path) -> ParameterSet:
-        """Read a parameter-set TOML file (see ``kneenlp/resources/parameters/table1.toml``)."""
+        """Read a parameter-set TOML file (see ``kneenlp/resources/parameters/table1.toml``): the
+        document against :data:`PARAMETER_FILE`, then every value in SI checked against its kind."""
         path = Path(path)
-        doc = read_toml(path)
         src = str(path)
-        units = doc.get("units", {})
-        if not isinstance(units, dict):
-            raise InputError("must be a table of units", source=src, field="units")
-        factors = {}
-        for kind, accepted in UNIT_FACTORS.items():
-            unit = units.get(kind, DISPLAY_UNITS[kind])
-            if not isinstance(unit, str) or unit not in accepted:
-                raise InputError(f"unit {unit!r} not accepted; use one of {', '.join(accepted)}",
-                                 source=src, field=f"units.{kind}")
-            factors[kind] = accepted[unit]
-        for kind in units:
-            if kind not in UNIT_FACTORS:
-                raise unknown_name("unit kind", kind, UNIT_FACTORS, source=src)
+        spec = validated(PARAMETER_FILE, read_toml(path), src)
+        factors = {kind: accepted[getattr(spec.units, kind) or DISPLAY_UNITS[kind]]
+                   for kind, accepted in UNIT_FACTORS.items()}
         values: dict[str, float] = {}
-        ligs = doc.get("ligaments", {})  # may be empty: a multi-bundle knee's bundles carry their own values
-        if not isinstance(ligs, dict):
-            raise InputError("must be a table [ligaments.<NAME>]", source=src, field="ligaments")
-        for lig, props in ligs.items():
-            if not isinstance(props, dict):
-                raise InputError("must be a table", source=src, field=f"ligaments.{lig}")
-            for key in props:
-                if key not in LIGAMENT_KINDS:
-                    raise unknown_name(f"property of ligament {lig}", key, LIGAMENT_KINDS, source=src)
+        for lig, props in spec.ligaments.items():  # may be none: a multi-bundle knee's bundles carry their own
             for kind in LIGAMENT_KINDS:
-                if kind not in props:
-                    raise InputError("missing value", source=src, field=f"ligaments.{lig}.{kind}")
-                values[f"{lig}.{kind}"] = number(props[kind], src, f"ligaments.{lig}.{kind}") * factors[kind]
+                values[f"{lig}.{kind}"] = getattr(props, kind) * factors[kind]
             if values[f"{lig}.k"] < 0:
                 raise InputError("stiffness must be >= 0", source=src, field=f"ligaments.{lig}.k")
             if values[f"{lig}.lin_strain"] <= 0:
                 raise InputError("linear strain limit must be > 0", source=src, field=f"ligaments.{lig}.lin_strain")
             for kind in LIGAMENT_KINDS:
                 plausible(values[f"{lig}.{kind}"], kind, src, f"ligaments.{lig}.{kind}")
-        entries = read_entries(doc.get("values", {}), src)
+        entries = entries_in(spec.values, src)
         values |= entries.values
-        contact = doc.get("contact", {})
-        if not isinstance(contact, dict):
-            raise InputError("must be a table with modulus", source=src, field="contact")
-        for key in contact:
-            if key != "modulus":
-                raise InputError(f"unknown key {key!r}; known: modulus", source=src, field=f"contact.{key}")
-        if "modulus" not in contact:
-            raise InputError("missing value", source=src, field="contact.modulus")
-        values["contact.modulus"] = number(contact["modulus"], src, "contact.modulus") * factors["modulus"]
+        values["contact.modulus"] = spec.contact.modulus * factors["modulus"]
         if values["contact.modulus"] <= 0:
             raise InputError("must be > 0", source=src, field="contact.modulus")
         plausible(values["contact.modulus"], "modulus", src, "contact.modulus")
-        for key in ("name", "description"):
-            if key in doc and not isinstance(doc[key], str):
-                raise InputError(f"expected a string, got {doc[key]!r}", source=src, field=key)
-        posterior = (Posterior.read(doc["posterior"], UNIT_TO_SI, set(values), src) if "posterior" in doc else None)
-        return cls(values, name=str(doc.get("name", path.stem)), source=src,
-                   description=str(doc.get("description", "")), meta=entries.units, priors=entries.priors,
+        posterior = (Posterior.read(spec.posterior, UNIT_TO_SI, set(values), src) if spec.posterior is not None
+                     else None)
+        return cls(values, name=spec.name if spec.name is not None else path.stem, source=src,
+                   description=spec.description, meta=entries.units, priors=entries.priors,
                    posterior=posterior, bounds=entries.bounds, free=entries.free)
 
 
@@ -330,11 +305,6 @@ def imported_parameter_set(program: str, carried: str) -> str:
               "groups' stiffness scales (1) and reference-strain offsets (0) are the defaults.  The",
               "elastic-foundation modulus is the laxity-noise paper's."]
     return ParameterSet({"contact.modulus": PAPER_MODULUS}, name="imported").to_toml({}, header)
-
-
-#: The keys of a ``[values]`` entry (a parameter-table row): the value and its unit, a prior, bounds
-#: and whether a fit frees it.
-ENTRY_KEYS = ("value", "unit", "prior", "bounds", "free")
 
 
 @dataclass
@@ -355,37 +325,35 @@ def read_entries(table: object, src: str, section: str = "values") -> Entries:
     ``{distribution = "lognormal", median = M, sd_log = S}``), ``bounds = [LOWER, UPPER]`` (replacing
     the kind's) and ``free = true|false`` (whether a fit frees it; :func:`declared_free`).  Without
     ``value`` the knee's own value stays.  A calibration writes the parameters it fitted so
-    (:meth:`ParameterSet.to_toml`)."""
-    if not isinstance(table, dict):
-        raise InputError('must be a table of "NAME" = {value = V, unit = "U"}', source=src, field=section)
+    (:meth:`ParameterSet.to_toml`).  The table is checked against
+    :data:`~kneenlp.model.parameter_schema.Entries`, then converted to SI."""
+    return entries_in(validated(EntrySchema, table, src, prefix=(section,)), src, section)
+
+
+def entries_in(table: dict[str, Entry], src: str, section: str = "values") -> Entries:
+    """A validated parameter table in SI (each unit known, bounds ordered, priors complete)."""
     out = Entries()
     for name, item in table.items():
         fld = f"{section}.{name}"
-        if not isinstance(item, dict) or "unit" not in item or not set(item) <= set(ENTRY_KEYS) \
-                or len(item) < 2:
+        if not item.model_fields_set - {"unit"}:
             raise InputError(f'expected {{value = V, unit = "U"}} (and optionally prior = {{...}}, bounds = [L, U], '
-                             f"free = true), got {item!r}", source=src, field=fld)
-        unit = item["unit"]
-        if unit not in UNIT_TO_SI:
-            raise InputError(f"unknown unit {unit!r}; known: {', '.join(UNIT_TO_SI)}", source=src, field=fld)
-        factor = UNIT_TO_SI[unit]
-        if "value" in item:
-            out.values[name] = number(item["value"], src, fld) * factor
-        if "prior" in item:
-            out.priors[name] = read_prior(item["prior"], factor, src, f"{fld}.prior")
-        if "bounds" in item:
-            b = item["bounds"]
-            if not isinstance(b, list) or len(b) != 2:
-                raise InputError(f"expected [LOWER, UPPER], got {b!r}", source=src, field=f"{fld}.bounds")
-            lo, hi = (number(v, src, f"{fld}.bounds") * factor for v in b)
+                             f"free = true), got {item.model_dump(exclude_unset=True)!r}", source=src, field=fld)
+        if item.unit not in UNIT_TO_SI:
+            raise InputError(f"unknown unit {item.unit!r}; known: {', '.join(UNIT_TO_SI)}", source=src, field=fld)
+        factor = UNIT_TO_SI[item.unit]
+        if item.value is not None:
+            out.values[name] = item.value * factor
+        if item.prior is not None:
+            out.priors[name] = prior_of(item.prior, factor, src, f"{fld}.prior")
+        if item.bounds is not None:
+            lo, hi = (v * factor for v in item.bounds)
             if not lo < hi:
-                raise InputError(f"lower bound {b[0]!r} not below upper {b[1]!r}", source=src, field=f"{fld}.bounds")
+                raise InputError(f"lower bound {item.bounds[0]!r} not below upper {item.bounds[1]!r}", source=src,
+                                 field=f"{fld}.bounds")
             out.bounds[name] = (lo, hi)
-        if "free" in item:
-            if not isinstance(item["free"], bool):
-                raise InputError(f"expected true or false, got {item['free']!r}", source=src, field=f"{fld}.free")
-            out.free[name] = item["free"]
-        out.units[name] = unit
+        if item.free is not None:
+            out.free[name] = item.free
+        out.units[name] = item.unit
     return out
 
 
@@ -393,24 +361,21 @@ def read_entries(table: object, src: str, section: str = "values") -> Entries:
 PRIOR_KEYS = {"normal": ("mean", "sd"), "lognormal": ("median", "sd_log")}
 
 
-def read_prior(item: object, factor: float, src: str | None, fld: str) -> Prior:
-    """A prior table of a parameter file (values in the unit whose factor to SI is ``factor``;
-    ``sd_log`` is dimensionless), or a one-line error naming the field."""
-    if not isinstance(item, dict) or item.get("distribution") not in PRIOR_KEYS:
-        raise InputError(f"expected {{distribution = \"normal\", mean = M, sd = S}} or {{distribution = "
-                         f"\"lognormal\", median = M, sd_log = S}}, got {item!r}", source=src, field=fld)
-    shape = item["distribution"]
+def prior_of(item: PriorTable, factor: float, src: str | None, fld: str) -> Prior:
+    """A validated prior table in SI: the distribution's two keys and no other, a positive width
+    (and median, for a log-normal)."""
+    shape = item.distribution
     centre, width = PRIOR_KEYS[shape]
-    extra = set(item) - {"distribution", centre, width}
-    if extra or centre not in item or width not in item:
+    extra = item.model_fields_set - {"distribution", centre, width}
+    mean, sd = getattr(item, centre), getattr(item, width)
+    if extra or mean is None or sd is None:
         raise InputError(f"a {shape} prior takes {centre} and {width}" + (f"; unknown: {', '.join(sorted(extra))}"
                                                                            if extra else ""), source=src, field=fld)
-    mean = number(item[centre], src or "", f"{fld}.{centre}") * factor
-    sd = number(item[width], src or "", f"{fld}.{width}") * (1.0 if shape == "lognormal" else factor)
+    mean, sd = mean * factor, sd * (1.0 if shape == "lognormal" else factor)
     if not sd > 0:
-        raise InputError(f"{width} must be > 0, got {item[width]!r}", source=src, field=f"{fld}.{width}")
+        raise InputError(f"{width} must be > 0, got {getattr(item, width)!r}", source=src, field=f"{fld}.{width}")
     if shape == "lognormal" and not mean > 0:
-        raise InputError(f"a log-normal prior needs a positive median, got {item[centre]!r}", source=src,
+        raise InputError(f"a log-normal prior needs a positive median, got {getattr(item, centre)!r}", source=src,
                          field=f"{fld}.{centre}")
     return Prior(shape, mean, sd, source=src or "file")
 
@@ -434,25 +399,3 @@ def plausible(value: float, kind: str, source: str | None, field: str) -> float:
         raise InputError(f"{value:g} N per unit strain is implausibly small for a ligament; kN? (declare "
                          "[units] k = \"kN\")", source=source, field=field)
     return value
-
-
-def read_toml(path: Path) -> dict:
-    """Read a TOML file, turning every failure into a one-line :class:`InputError`."""
-    if not path.is_file():
-        raise InputError("file not found", source=str(path))
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"malformed TOML ({exc})", source=str(path)) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read ({exc})", source=str(path)) from None
-
-
-def number(value: object, source: str, field: str) -> float:
-    """A finite float from a TOML value, or a one-line error naming the field."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise InputError(f"expected a number, got {value!r}", source=source, field=field)
-    if not math.isfinite(value):
-        raise InputError(f"must be finite, got {value!r}", source=source, field=field)
-    return float(value)

@@ -1,0 +1,193 @@
+"""The knee file declared as a schema: its tables, their keys, types and which go together
+(:class:`~kneenlp.model.knee_file.KneeFile` reads the meshes, fits the frame and checks the
+geometry against a knee's: a unit slip, a mirrored knee, an attachment inside a bone).  Lengths
+and points are in the file's unit (``units``), angles in degrees."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BeforeValidator, Field, PrivateAttr, create_model, model_validator
+
+from kneenlp.base.conventions import coordinate_columns
+from kneenlp.base.schema import Number, Point, Table, fail
+from kneenlp.model.frames import FRAME_METHODS
+
+#: The compartments a knee file may describe in ``[contact.<compartment>]`` tables.
+COMPARTMENTS = ("medial", "lateral")
+
+
+def mesh_name(value: object) -> str:
+    """A mesh file name (relative to the knee file)."""
+    if not isinstance(value, str) or not value:
+        raise fail(f"expected a mesh file name, got {value!r}")
+    return value
+
+
+def file_name(value: object) -> str:
+    """A parameter file name (relative to the knee file)."""
+    if not isinstance(value, str) or not value.strip():
+        raise fail(f"expected a parameter file name, got {value!r}")
+    return value
+
+
+def to_working_set(value: object) -> int:
+    """Points per compartment and trial of sphere contact (0: every point)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise fail(f"must be an integer >= 0 (0: every point), got {value!r}")
+    return value
+
+
+MeshName = Annotated[str, BeforeValidator(mesh_name)]
+
+
+class CompartmentTable(Table):
+    """``[contact.<compartment>]``: the compartment's tibial cartilage mesh, its femoral mesh or an
+    explicit sphere (centre, radius), and its pressure law."""
+
+    tibia: MeshName | None = None
+    femur: MeshName | None = None
+    sphere_center: Point | None = None
+    sphere_radius: Number | None = None
+    law: str | None = None
+
+    @model_validator(mode="after")
+    def _one_femoral_surface(self) -> CompartmentTable:
+        """A femoral mesh or an explicit sphere (both its centre and radius), not both."""
+        if (self.sphere_center is None) != (self.sphere_radius is None):
+            raise fail("an explicit sphere needs both sphere_center and sphere_radius")
+        if self.sphere_center is not None and self.femur is not None:
+            raise fail("give either a femoral mesh or an explicit sphere")
+        return self
+
+
+class ContactTable(Table):
+    """``[contact]``: the settings of contact (gate, working set, distance-field grid, femoral
+    offset: lengths in the file's unit), the meshes shared by both compartments, the pressure law,
+    and the compartments' own tables.  The tibial cartilage is given once (split into plateaus) or
+    per compartment."""
+
+    gate: Number | None = None
+    working_set: Annotated[int, BeforeValidator(to_working_set)] = 0
+    grid_spacing: Number | None = None
+    femur: MeshName | None = None
+    femur_offset: Number | None = None
+    tibia: MeshName | None = None
+    law: str | None = None
+    medial: CompartmentTable | None = None
+    lateral: CompartmentTable | None = None
+    _order: tuple[str, ...] = PrivateAttr(default=())
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _file_order(cls, data: Any, handler: Any) -> ContactTable:
+        """Keep the order of the compartments in the file (the order of the knee's elements)."""
+        table = handler(data)
+        if isinstance(data, dict):
+            table._order = tuple(k for k in data if k in COMPARTMENTS and data[k] is not None)
+        return table
+
+    @model_validator(mode="after")
+    def _tibial_cartilage(self) -> ContactTable:
+        """The tibial cartilage once (``contact.tibia``) or in every compartment's table."""
+        tables = self.compartments()
+        if self.tibia is not None:
+            if any(t.tibia is not None for t in tables.values()):
+                raise fail("give the tibial cartilage either once for both plateaus or per compartment", "tibia")
+            return self
+        for name, table in tables.items():
+            if table.tibia is None:
+                raise fail("missing mesh file", f"{name}.tibia")
+        if not tables:
+            raise fail("no tibial cartilage: give contact.tibia or [contact.medial] and [contact.lateral]")
+        return self
+
+    def compartments(self) -> dict[str, CompartmentTable]:
+        """The ``[contact.<compartment>]`` tables, in the file's order."""
+        order = self._order or COMPARTMENTS
+        return {n: getattr(self, n) for n in order if getattr(self, n) is not None}
+
+
+class BundleTable(Table):
+    """``[[ligaments.<NAME>.bundles]]``: attachments, ``stiffness`` (N per unit strain),
+    ``slack_length`` (file unit) or ``ref_strain`` (%), and ``transition_strain`` (OpenSim's,
+    default 0.06) or ``lin_strain`` (%)."""
+
+    name: str | None = None
+    femur: Point = Field(description="attachment")
+    tibia: Point = Field(description="attachment")
+    stiffness: Number = Field(description="stiffness (N per unit strain)")
+    slack_length: Number | None = None
+    ref_strain: Number | None = None
+    transition_strain: Number | None = None
+    lin_strain: Number | None = None
+
+
+class LigamentTable(Table):
+    """``[ligaments.<NAME>]``: one bundle's attachments (femur in the femoral frame, tibia in the
+    tibial one) or ``bundles``, and the law."""
+
+    femur: Point | None = None
+    tibia: Point | None = None
+    bundles: list[BundleTable] | None = Field(None, min_length=1)
+    law: str | None = None
+
+    @model_validator(mode="after")
+    def _attachments(self) -> LigamentTable:
+        """Both attachments of a single-bundle ligament."""
+        if self.bundles is None:
+            for key in ("femur", "tibia"):
+                if getattr(self, key) is None:
+                    raise fail("missing attachment", key)
+        return self
+
+
+class CandidateTable(Table):
+    """``[candidates.<NAME>]``: a candidate effect of model adequacy, a bundle (``kind =
+    "bundle"``) per pair of ``femur`` and ``tibia`` points, ``ref_strain`` (%)."""
+
+    kind: Literal["bundle"] = Field(description='kind (kind = "bundle")')
+    description: str = ""
+    femur: list[Point] = Field(min_length=1, description="attachments")
+    tibia: list[Point] = Field(min_length=1, description="attachments")
+    ref_strain: Number = 0.0
+
+    @model_validator(mode="after")
+    def _pairs(self) -> CandidateTable:
+        """One tibial point per femoral point."""
+        if len(self.femur) != len(self.tibia):
+            raise fail("femur and tibia must be equally long lists of [x, y, z]")
+        return self
+
+
+class MenisciTable(Table):
+    """``[menisci]``: the meniscus springs' stiffness (N/mm per compartment)."""
+
+    stiffness: Number = Field(description="stiffness (N/mm per compartment)")
+
+
+#: ``[reference_pose]``: the imaged pose of the tibial frame in the femoral frame (deg, mm).
+ReferencePose = create_model(
+    "ReferencePose", __base__=Table, __doc__="The imaged pose (flexion and the five coordinates; deg, mm).",
+    **{k: (Number, Field(description="(give all six coordinates of the imaged pose)"))
+       for k in ["flexion_deg", *coordinate_columns()]})
+
+
+class KneeDocument(Table):
+    """A knee file: name, side, units (of every length and point), coordinates (``femoral`` or
+    ``scan``, then mapped by ``frame``), the parameter file, the reference pose, landmarks, contact,
+    ligaments, candidate effects and menisci."""
+
+    name: str | None = None
+    description: str = ""
+    side: Literal["right", "left"] = "right"
+    units: Literal["mm", "m"] = "mm"
+    coordinates: Literal["femoral", "scan"] = "femoral"
+    frame: Literal[FRAME_METHODS] | None = None
+    parameters: Annotated[str, BeforeValidator(file_name)] | None = None
+    reference_pose: ReferencePose | None = None
+    landmarks: dict[str, Point] = Field(default_factory=dict)
+    contact: ContactTable = Field(default_factory=dict, validate_default=True)
+    ligaments: dict[str, LigamentTable] = Field(min_length=1, description="table [ligaments.<NAME>]")
+    candidates: dict[str, CandidateTable] = Field(default_factory=dict)
+    menisci: MenisciTable | None = None
