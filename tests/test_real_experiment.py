@@ -786,3 +786,46 @@ def test_frames_are_exact_or_refused():
                            (frame(ml=(0.0, 1.0)), "2 coordinates")):
         with pytest.raises(kneenlp.InputError, match=needle):
             _frame(points, 1980000, "f.inp")
+
+
+def test_abaqus_keywords_not_understood_are_refused_by_name(tmp_path):
+    """An *INCLUDE (a ligament's fibres behind it were silently dropped) and any keyword outside
+    what import-abaqus reads are refused in one line naming the keyword; the known ones are read."""
+    from kneenlp.io.abaqus import read_keywords
+
+    good = tmp_path / "good.inp"
+    good.write_text("** c\n*NODE\n1, 0., 0., 0.\n*ELEMENT, TYPE=CONN3D2, ELSET=X_1D\n1, 1, 2\n*MASS, ELSET=M\n1.\n")
+    assert [k.name for k in read_keywords(good)] == ["NODE", "ELEMENT", "MASS"]
+    for line, field in (("*INCLUDE, INPUT=fibres.inp", "*INCLUDE"), ("*BEAM SECTION, ELSET=X", "*BEAM SECTION")):
+        bad = tmp_path / "bad.inp"
+        bad.write_text(f"*NODE\n1, 0., 0., 0.\n{line}\n")
+        with pytest.raises(kneenlp.InputError) as err:
+            read_keywords(bad)
+        assert err.value.field == field and "\n" not in str(err.value)
+
+
+def test_an_abaqus_model_in_metres_is_named_as_such():
+    """The unit check comes first: a femoral cartilage 0.06 units wide is a model in metres."""
+    from kneenlp.io.import_abaqus import _check_millimetres
+
+    points = np.random.default_rng(0).uniform(-30, 30, (50, 3))
+    _check_millimetres(points, "f.inp")
+    with pytest.raises(kneenlp.InputError, match="metres"):
+        _check_millimetres(points / 1000, "f.inp")
+
+
+@needs_deposit
+def test_a_ligament_without_fibres_is_refused(tmp_path):
+    """A connector section with a law but no fibres left would make its ligament disappear: refused."""
+    import shutil
+
+    from kneenlp.io.import_abaqus import read_abaqus_knee
+
+    shutil.copytree(DEPOSIT, tmp_path / "m", ignore=shutil.ignore_patterns("laxity", "abaqus-example"))
+    lig = tmp_path / "m" / "ligaments" / "LIG-LCL-S192803L.inp"
+    text = lig.read_text()
+    assert "CONN3D2" in text.upper()
+    lig.write_text(text.replace("CONN3D2", "CONN3D2X").replace("conn3d2", "CONN3D2X"))
+    with pytest.raises(kneenlp.InputError, match="no fibres") as err:
+        read_abaqus_knee(tmp_path / "m")
+    assert "LCL" in err.value.field

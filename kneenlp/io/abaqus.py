@@ -39,6 +39,17 @@ FACES: dict[str, dict[str, tuple[int, ...]]] = {
 }
 
 
+#: The keywords import-abaqus reads: what it uses (nodes, elements, surfaces, parameters, the
+#: connectors' sections, behaviours and elasticity tables) and what it knowingly leaves aside because
+#: it changes neither the geometry nor a ligament's static law (sets, orientations, damping, mass,
+#: inertia, multi-point constraints of the frames' rigid bodies).  Any other keyword is refused by
+#: name: a model part hidden behind it (an *INCLUDE of a ligament's fibres) would otherwise be dropped.
+KNOWN_KEYWORDS = frozenset({
+    "NODE", "ELEMENT", "ELSET", "NSET", "SURFACE", "PARAMETER", "CONNECTOR SECTION", "CONNECTOR BEHAVIOR",
+    "CONNECTOR ELASTICITY", "CONNECTOR DAMPING", "MASS", "ROTARY INERTIA", "MPC", "ORIENTATION",
+})
+
+
 @dataclass
 class Keyword:
     """One keyword of an input file: its name (upper case), options and data lines (split at commas)."""
@@ -67,7 +78,15 @@ def read_keywords(path: str | Path) -> list[Keyword]:
                 if p:
                     key, _, value = p.partition("=")
                     options[key.strip().upper()] = value.strip()
-            out.append(Keyword(parts[0].upper(), options))
+            name = parts[0].upper()
+            if name == "INCLUDE":
+                raise InputError(f"*INCLUDE of {options.get('INPUT', '?')!r} is not followed: put the included "
+                                 "file's content in this file", source=str(path), field="*INCLUDE")
+            if name not in KNOWN_KEYWORDS:
+                raise InputError(f"keyword *{name} is not understood (import-abaqus reads "
+                                 f"{', '.join('*' + k for k in sorted(KNOWN_KEYWORDS))})", source=str(path),
+                                 field=f"*{name}")
+            out.append(Keyword(name, options))
         elif out:
             out[-1].data.append([v.strip() for v in line.split(",") if v.strip()])
     return out

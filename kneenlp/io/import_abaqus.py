@@ -206,6 +206,7 @@ def read_abaqus_knee(folder: str | Path) -> AbaqusKnee:
     # cartilage surfaces
     femur_file = one("geometry", "CART1-FEMUR*.inp")
     fmesh = read_mesh(femur_file)
+    _check_millimetres(fmesh.points, str(femur_file))
     femur_surface = trimesh.Trimesh(fmesh.points, triangles(fmesh.faces("CART-FEMUR")), process=True)
     notes.append(f"femoral articular surface: exterior of the femoral cartilage solid ({femur_file.name}, "
                  f"{len(femur_surface.faces)} triangles, {femur_surface.area:.0f} mm^2, closed: "
@@ -235,6 +236,21 @@ def read_abaqus_knee(folder: str | Path) -> AbaqusKnee:
     notes.append(f"{len(fibres)} ligament fibres in {len({f.group for f in fibres})} groups, laws from the "
                  "connector tables")
     return AbaqusKnee((rf, of), (rt, ot), femur_surface, tibia_surfaces, fibres, tuberosity, notes)
+
+
+#: The femoral cartilage's extent (mm) of a human knee: far outside it the file is in other units.
+FEMUR_EXTENT_MM = (20.0, 300.0)
+
+
+def _check_millimetres(points: np.ndarray, source: str) -> None:
+    """The model's lengths are millimetres: the femoral cartilage spans tens of them (checked first,
+    so that a model in metres is named as such, not by what it breaks later)."""
+    extent = float(np.ptp(np.asarray(points, float), axis=0).max()) if len(points) else 0.0
+    lo, hi = FEMUR_EXTENT_MM
+    if not lo <= extent <= hi:
+        guess = " (metres?)" if extent < lo / 100 else ""
+        raise InputError(f"the femoral cartilage spans {extent:g} length units{guess}; import-abaqus expects a "
+                         f"model in mm ({lo:g}-{hi:g} mm)", source=source, field="*NODE")
 
 
 def _tuberosity(points: np.ndarray, rt: np.ndarray, ot: np.ndarray, source: str) -> np.ndarray:
@@ -307,6 +323,11 @@ def _fibres(folder: Path) -> list[Fibre]:
                 fibres.append(Fibre(group, f"{group}_{eid}", femur, tibia, law))
     if not fibres:
         raise InputError("no ligament fibres (CONN3D2 elements in LIG-*.inp)", source=src)
+    with_fibres = {f.group.upper() + "_1D" for f in fibres} | {f.group.upper() for f in fibres}
+    empty = sorted(s for s in tables if s not in with_fibres)
+    if empty:
+        raise InputError(f"connector section {empty[0]} has a law but no fibres (CONN3D2 elements) in LIG-*.inp: "
+                         "a ligament would disappear", source=src, field=empty[0])
     return fibres
 
 
