@@ -14,3 +14,19 @@ def test_ruff_clean():
     out = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", str(ROOT)], capture_output=True,
                          text=True)
     assert out.returncode == 0, out.stdout[-3000:]
+
+
+def test_docs_are_reference_not_a_record():
+    """docs/ (research notes aside) stays a reference a user reads: at most 1600 lines in all, the
+    status file at most 60, and no text that tells when something was done instead of what it is."""
+    import re
+
+    docs = sorted((ROOT / "docs").glob("*.md"))
+    lines = {d.name: len(d.read_text().splitlines()) for d in docs}
+    assert sum(lines.values()) <= 1600, lines
+    assert lines["status.md"] <= 60
+    record = re.compile(r"\b(this|last|next|previous|earlier) (session|work period)\b|\bsession \d+|\bissue \d+\b",
+                        re.IGNORECASE)
+    found = [f"{d.name}: {m.group(0)}" for d in docs if d.name != "status.md"  # the status names open issues
+             for m in record.finditer(d.read_text())]
+    assert not found, found
