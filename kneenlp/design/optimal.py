@@ -162,7 +162,11 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
            pool: Protocol | None = None, free: list[str] | None = None, noise: str = "uniform:0.5",
            robust: int = 3, seed: int = 0, name: str | None = None,
            reference: Protocol | str = "set4") -> DesignResult:
-    """Choose at most ``max_cases`` trials of ``pool`` minimising ``criterion`` (see module doc)."""
+    """Choose at most ``max_cases`` trials of ``pool`` minimising ``criterion`` (see module doc).
+
+    Three steps: the criterion at the knee's parameters and the robustness draws, the greedy and
+    exchange selection of the cases, and the check that ``simulate`` solves every chosen case (the
+    design is made again without those it does not)."""
     from kneenlp.experiment.kneemodel import KneeModel
 
     if criterion not in CRITERIA:
@@ -174,83 +178,116 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
     pool = pool or candidate_pool(default_flexions(model))
     problem = IdentificationProblem(model, pool.trials, list(free or default_free(model)),
                                     noise=NoiseModel.parse(noise))
-    free = problem.free
-    rng = np.random.default_rng(seed)
-    thetas = [problem.theta()] + [problem.theta(problem.scatter(rng)) for _ in range(max(0, robust - 1))]
-    computed = [relative_information(problem, th) for th in thetas]
-    infos = np.array([c[0] for c in computed])  # (R, T, n, n)
-    # a candidate without equilibrium at the knee's parameters is never proposed; at a robustness draw
-    # it adds no information (and the designed protocol is checked at every draw below)
-    feasible = computed[0][1].copy()
-    n_par = len(free)
-    ridge = 1e-9 * np.eye(n_par)
-    ref_se = [None] * len(thetas)
-    if criterion == "R":
-        ref = reference if isinstance(reference, Protocol) else Protocol.load(reference)
-        ref_problem = IdentificationProblem(model, ref.trials, free, noise=problem.noise)
-        ref_se = [relative_standard_errors(relative_information(ref_problem, th)[0].sum(axis=0)) for th in thetas]
+    crit, feasible = _RobustCriterion.at_draws(problem, criterion, robust, seed, reference)
+    name = name or f"designed_{criterion}{max_cases}"
+    history: list = []
+    proto, chosen = _simulated_design(crit, problem, pool, feasible, max_cases, name, noise, history)
+    rse = predicted_rse(model, proto, problem.free, noise)
+    infeasible = [pool.trials[i].id for i in range(len(pool)) if not feasible[i]]
+    return DesignResult(proto, criterion, crit.value(chosen), rse, problem.free, history, infeasible)
 
-    def value(selected: list[int]) -> float:
+
+@dataclass(frozen=True)
+class _RobustCriterion:
+    """A design criterion averaged over parameter sets: ``thetas`` (the knee's own first, then the
+    robustness draws), the per-trial information of every pool trial at each, shape (R, T, n, n) in
+    relative parameter units, and for criterion ``R`` the reference protocol's relative standard
+    errors at each; ``ridge`` keeps a sum of few trials' information invertible."""
+
+    kind: str
+    thetas: list[np.ndarray]
+    infos: np.ndarray
+    ref_se: list[np.ndarray | None]
+    ridge: np.ndarray
+
+    @classmethod
+    def at_draws(cls, problem: IdentificationProblem, kind: str, robust: int, seed: int,
+                 reference: Protocol | str) -> tuple[_RobustCriterion, np.ndarray]:
+        """The criterion over the knee's parameters and ``robust - 1`` draws of the paper's scatter
+        (from ``seed``), and which pool trials reach equilibrium at the knee's parameters."""
+        rng = np.random.default_rng(seed)
+        thetas = [problem.theta()] + [problem.theta(problem.scatter(rng)) for _ in range(max(0, robust - 1))]
+        computed = [relative_information(problem, th) for th in thetas]
+        infos = np.array([c[0] for c in computed])  # (R, T, n, n)
+        # a candidate without equilibrium at the knee's parameters is never proposed; at a robustness draw
+        # it adds no information (and the designed protocol is checked at every draw below)
+        feasible = computed[0][1].copy()
+        ref_se: list[np.ndarray | None] = [None] * len(thetas)
+        if kind == "R":
+            ref = reference if isinstance(reference, Protocol) else Protocol.load(reference)
+            ref_problem = IdentificationProblem(problem.model, ref.trials, problem.free, noise=problem.noise)
+            ref_se = [relative_standard_errors(relative_information(ref_problem, th)[0].sum(axis=0))
+                      for th in thetas]
+        return cls(kind, thetas, infos, ref_se, 1e-9 * np.eye(len(problem.free))), feasible
+
+    def value(self, selected: list[int]) -> float:
+        """The criterion of the pool trials ``selected`` (smaller is better; inf for none)."""
         if not selected:
             return np.inf
-        tot = infos[:, selected].sum(axis=1) + ridge
-        return float(np.mean([criterion_value(m, criterion, r) for m, r in zip(tot, ref_se, strict=True)]))
+        tot = self.infos[:, selected].sum(axis=1) + self.ridge
+        return float(np.mean([criterion_value(m, self.kind, r) for m, r in zip(tot, self.ref_se, strict=True)]))
 
-    def select(candidates: list[int], history: list) -> list[int]:
-        """Greedy forward selection, then Fedorov exchanges, among ``candidates``."""
-        chosen: list[int] = []
-        while len(chosen) < min(max_cases, len(candidates)):
-            best, best_v = None, np.inf
+
+def _select(crit: _RobustCriterion, candidates: list[int], max_cases: int, pool: Protocol,
+            history: list) -> list[int]:
+    """Greedy forward selection, then Fedorov exchanges, among ``candidates`` (pool indices),
+    sorted by flexion, direction and decreasing magnitude; each step's size and criterion value is
+    appended to ``history``."""
+    value, infos = crit.value, crit.infos
+    chosen: list[int] = []
+    while len(chosen) < min(max_cases, len(candidates)):
+        best, best_v = None, np.inf
+        for c in candidates:
+            if c in chosen:
+                continue
+            v = value([*chosen, c]) if len(chosen) + 1 >= 2 else -np.trace(infos[:, c].mean(axis=0))
+            if v < best_v:
+                best, best_v = c, v
+        chosen.append(best)
+        history.append((len(chosen), value(chosen)))
+    improved, passes = True, 0
+    while improved and passes < 10:
+        improved, passes = False, passes + 1
+        current = value(chosen)
+        for i in range(len(chosen)):
             for c in candidates:
                 if c in chosen:
                     continue
-                v = value([*chosen, c]) if len(chosen) + 1 >= 2 else -np.trace(infos[:, c].mean(axis=0))
-                if v < best_v:
-                    best, best_v = c, v
-            chosen.append(best)
-            history.append((len(chosen), value(chosen)))
-        improved, passes = True, 0
-        while improved and passes < 10:
-            improved, passes = False, passes + 1
-            current = value(chosen)
-            for i in range(len(chosen)):
-                for c in candidates:
-                    if c in chosen:
-                        continue
-                    trial = [*chosen[:i], c, *chosen[i + 1 :]]
-                    v = value(trial)
-                    if v < current * (1 - 1e-9):
-                        chosen, current, improved = trial, v, True
-            history.append((len(chosen), current))
-        return sorted(chosen, key=lambda i: (pool.trials[i].flexion_deg, pool.trials[i].direction,
-                                             -pool.trials[i].magnitude))
+                trial = [*chosen[:i], c, *chosen[i + 1 :]]
+                v = value(trial)
+                if v < current * (1 - 1e-9):
+                    chosen, current, improved = trial, v, True
+        history.append((len(chosen), current))
+    return sorted(chosen, key=lambda i: (pool.trials[i].flexion_deg, pool.trials[i].direction,
+                                         -pool.trials[i].magnitude))
 
-    name = name or f"designed_{criterion}{max_cases}"
-    solver = forward_solver(model)
-    history: list = []
+
+def _simulated_design(crit: _RobustCriterion, problem: IdentificationProblem, pool: Protocol, feasible: np.ndarray,
+                      max_cases: int, name: str, noise: str, history: list) -> tuple[Protocol, list[int]]:
+    """The designed protocol and its pool indices, made again without the cases that fail as
+    ``simulate`` solves it at the knee's parameters (marked infeasible in ``feasible``), at most
+    :data:`MAX_REDESIGNS` times."""
+    solver = forward_solver(problem.model)
+    criterion = crit.kind
     for _ in range(MAX_REDESIGNS):
         candidates = [i for i in range(len(pool)) if feasible[i]]
         if not candidates:
             raise InputError("no candidate load case reaches equilibrium on this knee", field="pool")
-        chosen = select(candidates, history)
+        chosen = _select(crit, candidates, max_cases, pool, history)
         proto = Protocol(name, tuple(pool.trials[i] for i in chosen), f"{criterion}-optimal design, {len(chosen)} "
-                         "cases", f"kneenlp design: {criterion}-optimal for {len(free)} parameters, robust over "
-                         f"{len(thetas)} parameter sets, noise {noise}")
+                         "cases", f"kneenlp design: {criterion}-optimal for {len(problem.free)} parameters, robust "
+                         f"over {len(crit.thetas)} parameter sets, noise {noise}")
         # the protocol as `simulate` solves it (its own order and warm starts) at the knee's values: a
         # case that converged only warm-started from the pool's previous trial is left out, and the
         # design made again without it (at a robustness draw a case may fail: the synthetic knee's
         # 60 deg cases do, and it has no design without them that is as good as Set 4)
-        failed = {i for i, sol in zip(chosen, solver.solve(proto.trials, thetas[0]), strict=True)
+        failed = {i for i, sol in zip(chosen, solver.solve(proto.trials, crit.thetas[0]), strict=True)
                   if not sol.converged}
         if not failed:
-            break
+            return proto, chosen
         feasible[list(failed)] = False
-    else:
-        raise InputError(f"no design of this pool simulates with every trial converged after {MAX_REDESIGNS} tries",
-                         field="pool")
-    rse = predicted_rse(model, proto, free, noise)
-    infeasible = [pool.trials[i].id for i in range(len(pool)) if not feasible[i]]
-    return DesignResult(proto, criterion, value(chosen), rse, free, history, infeasible)
+    raise InputError(f"no design of this pool simulates with every trial converged after {MAX_REDESIGNS} tries",
+                     field="pool")
 
 
 def write_protocol(result: DesignResult, path: str | Path) -> Path:

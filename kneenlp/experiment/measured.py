@@ -194,6 +194,29 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     file's ``protocol`` column may name any protocol); see the module docstring."""
     path = Path(path)
     src = str(path)
+    df = _read_table(path)
+    _check_columns(df, src)
+    df = df.reset_index(drop=True)
+    if df["trial"].isna().any():
+        raise InputError(f"row {int(np.argmax(df['trial'].isna())) + 2}: empty trial id", source=src, field="trial")
+    _to_numbers(df, src)
+    dup = df["trial"][df["trial"].duplicated()].tolist()
+    if dup:
+        raise InputError(f"duplicate trial(s) {', '.join(map(str, dup))}", source=src, field="trial")
+    axes = _load_axes(df, src)
+    side = _side(df, src)
+    check_plausible(df, src)
+    trials = _trials(df, axes)
+    name = _protocol_name(df, src)
+    data = MeasuredData.from_user(trials, df[coordinate_columns()].to_numpy(dtype=float), name, src, side)
+    if name is not None and protocol is None:
+        _check_protocol_name(data, path)
+    return data
+
+
+def _read_table(path: Path) -> pd.DataFrame:
+    """The CSV file at ``path`` as read, its column names stripped of blanks."""
+    src = str(path)
     if path.is_dir():
         raise InputError("is a directory, not a measured-data CSV file", source=src)
     if not path.is_file():
@@ -206,6 +229,12 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
         first = (str(exc).splitlines() or [type(exc).__name__])[0]
         raise InputError(f"malformed CSV ({first})", source=src) from None
     df.columns = [str(c).strip() for c in df.columns]
+    return df
+
+
+def _check_columns(df: pd.DataFrame, src: str) -> None:
+    """The table's columns have the expected units, none of ours twice, all required ones, and
+    between one and :data:`MAX_TRIALS` rows (a note on the logger above :data:`LARGE_TRIALS`)."""
     expected_units = dict(zip([*COORDINATES, *ALL_LOAD_COMPONENTS, "flexion"],
                               [*[c.rsplit("_", 1)[1] for c in coordinate_columns()],
                                *[c.rsplit("_", 1)[1] for c in load_columns(extra=True)], "deg"], strict=True))
@@ -228,9 +257,11 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     if len(df) > LARGE_TRIALS:
         log.info(f"{src}: {len(df)} trials: a large identification (1000 trials took 90 s on the synthetic knee, "
                  "longer on a mesh knee)")
-    df = df.reset_index(drop=True)
-    if df["trial"].isna().any():
-        raise InputError(f"row {int(np.argmax(df['trial'].isna())) + 2}: empty trial id", source=src, field="trial")
+
+
+def _to_numbers(df: pd.DataFrame, src: str) -> None:
+    """Convert the flexion, load and coordinate columns of ``df`` to floats in place; each value
+    must be a finite number."""
     numeric = [c for c in REQUIRED + OPTIONAL_LOADS if c != "trial" and c in df.columns]
     for col in numeric:
         vals = pd.to_numeric(df[col], errors="coerce")
@@ -240,22 +271,31 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
             raise InputError(f"row {i + 2} (trial {df['trial'].iloc[i]!r}): value {df[col].iloc[i]!r} is "
                              "not a finite number", source=src, field=col)
         df[col] = vals.astype(float)
-    dup = df["trial"][df["trial"].duplicated()].tolist()
-    if dup:
-        raise InputError(f"duplicate trial(s) {', '.join(map(str, dup))}", source=src, field="trial")
+
+
+def _load_axes(df: pd.DataFrame, src: str) -> pd.Series:
+    """The load axes of each row (``femoral`` where the file says none), each a known one."""
     axes = df["load_axes"].fillna("femoral") if "load_axes" in df.columns else pd.Series(["femoral"] * len(df))
     for a in axes:
         if a not in LOAD_AXES:
             raise InputError(f"unknown load axes {a!r}; known: {', '.join(LOAD_AXES)}", source=src,
                              field="load_axes")
-    side = None
-    if "side" in df.columns:
-        sides = {str(v).strip() for v in df["side"].dropna()}
-        if not sides <= {"left", "right"} or len(sides) > 1:
-            raise InputError(f"expected one of left, right for every row, got {', '.join(sorted(sides))}",
-                             source=src, field="side")
-        side = sides.pop() if sides else None
-    check_plausible(df, src)
+    return axes
+
+
+def _side(df: pd.DataFrame, src: str) -> str | None:
+    """The knee's side the ``side`` column states (one for every row), or None."""
+    if "side" not in df.columns:
+        return None
+    sides = {str(v).strip() for v in df["side"].dropna()}
+    if not sides <= {"left", "right"} or len(sides) > 1:
+        raise InputError(f"expected one of left, right for every row, got {', '.join(sorted(sides))}",
+                         source=src, field="side")
+    return sides.pop() if sides else None
+
+
+def _trials(df: pd.DataFrame, axes: pd.Series) -> list[Trial]:
+    """One trial per row: its id, flexion (deg), nonzero loads (N, N m) and load axes."""
     trials = []
     for i, row in df.iterrows():
         loads = {c: float(row[col]) for c, col in zip(ALL_LOAD_COMPONENTS, load_columns(extra=True), strict=True)
@@ -263,17 +303,18 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
         direction, magnitude = _direction(loads)
         trials.append(Trial(str(row["trial"]), float(row["flexion_deg"]), loads, direction, magnitude,
                             str(axes.iloc[i])))
-    name = None
-    if "protocol" in df.columns:
-        names = {str(p) for p in df["protocol"].dropna().unique() if str(p).strip()}
-        if len(names) > 1:
-            raise InputError(f"several protocols in one file: {', '.join(sorted(names))}", source=src,
-                             field="protocol")
-        name = names.pop() if names else None
-    data = MeasuredData.from_user(trials, df[coordinate_columns()].to_numpy(dtype=float), name, src, side)
-    if name is not None and protocol is None:
-        _check_protocol_name(data, path)
-    return data
+    return trials
+
+
+def _protocol_name(df: pd.DataFrame, src: str) -> str | None:
+    """The protocol the ``protocol`` column names (one for the whole file), or None."""
+    if "protocol" not in df.columns:
+        return None
+    names = {str(p) for p in df["protocol"].dropna().unique() if str(p).strip()}
+    if len(names) > 1:
+        raise InputError(f"several protocols in one file: {', '.join(sorted(names))}", source=src,
+                         field="protocol")
+    return names.pop() if names else None
 
 
 def check_plausible(df: pd.DataFrame, src: str) -> None:

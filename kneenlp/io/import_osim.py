@@ -29,7 +29,7 @@ import tomli_w
 
 from kneenlp.base.atomic import write_text_atomic
 from kneenlp.base.errors import InputError
-from kneenlp.io.osim import OsimError, knee_line_elements, ligament_groups, read_osim
+from kneenlp.io.osim import LineElement, OsimError, OsimModel, knee_line_elements, ligament_groups, read_osim
 from kneenlp.model.knee_file import PLAUSIBLE_MM
 from kneenlp.model.laws import BlankevoortLaw
 from kneenlp.model.parameters import imported_parameter_set
@@ -74,21 +74,66 @@ def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | Non
     ``tuberosity``: the tibial tuberosity in the tibia body's frame (m), for a model without
     patellar-tendon bundles (:func:`_tuberosity`)."""
     osim = Path(osim)
-    src = str(osim)
+    _check_femur_offset(femur_offset)
+    model = _read_model(osim, groups, (femur_body, tibia_body))
+    keep, skipped = _straight_bundles(model, femur_body, tibia_body)
+    grouped = ligament_groups(list(keep))[groups]
+    out = Path(out)
+    (out / "meshes").mkdir(parents=True, exist_ok=True)
+    folders = ([Path(geometry)] if geometry else []) + [osim.parent]
+    meshes = {role: _copy_contact_mesh(model, role, body, femur_mesh if role == "femur" else None, folders,
+                                       str(osim), out, skipped)
+              for role, body in (("femur", femur_body), ("tibia", tibia_body))}
+    landmarks, where = _landmarks(model, femur_body, tibia_body, tuberosity, out / meshes["tibia"])
+    skipped.append(f"tibial tuberosity {where}")
+    doc: dict = {
+        "name": osim.stem, "side": "right", "units": "m", "coordinates": "scan", "frame": "cylinders",
+        "description": f"imported from {osim.name} by kneenlp import-osim ({groups} bundle groups)",
+        "parameters": "parameters.toml",
+        "landmarks": landmarks,
+        "contact": {"femur": meshes["femur"], "tibia": meshes["tibia"], "gate": 1e-5, "grid_spacing": 5e-4,
+                    **({"femur_offset": float(femur_offset)} if femur_offset else {})},
+        "ligaments": {group: _ligament_table(keep, names) for group, names in grouped.items()},
+    }
+    header = (f"# kneenlp knee imported from {osim.name} (kneenlp import-osim; {groups} bundle groups).\n"
+              f"# Coordinates: metres in the model's {femur_body} frame ({tibia_body} for tibial points).\n"
+              "# Bundles: stiffness in N per unit strain (OpenSim linear_stiffness), slack_length in m,\n"
+              "# transition_strain as OpenSim's (the paper's linear strain limit is half of it); the law is\n"
+              "# OpenSim's Blankevoort1991Ligament (law = \"blankevoort\", kneenlp.model.laws).\n")
+    knee_file = write_text_atomic(out / "knee.toml", header + tomli_w.dumps(doc))
+    write_text_atomic(out / "parameters.toml",
+                      imported_parameter_set("OpenSim", "their own stiffness and slack length"))
+    return ImportReport(knee_file, grouped, skipped)
+
+
+def _check_femur_offset(femur_offset: float) -> None:
+    """The cartilage thickness on the bone of ``--femur-mesh`` (m) is 0 or within the plausible range."""
     lo, hi = PLAUSIBLE_MM["femur_offset"]
     if not (femur_offset == 0 or max(lo, 0.1) <= femur_offset * 1e3 <= hi):
         raise InputError(f"{femur_offset * 1e3:g} mm: the cartilage thickness on the bone of --femur-mesh is 0 or "
                          f"0.1-{hi:g} mm (a negative offset puts the surface inside the bone; below 0.1 mm: given in "
                          "m?)", field="--femur-offset")
+
+
+def _read_model(osim: Path, groups: str, bodies: tuple[str, str]) -> OsimModel:
+    """The OpenSim model at ``osim``, checked to have the knee's femur and tibia ``bodies``; ``groups``
+    is the bundle grouping asked for (``fine`` or ``coarse``)."""
     try:
         model = read_osim(osim)
     except OsimError as exc:
         raise InputError(str(exc)) from None
     if groups not in ("fine", "coarse"):
         raise InputError(f"must be 'fine' or 'coarse', got {groups!r}", field="--groups")
-    for body in (femur_body, tibia_body):
+    for body in bodies:
         if body not in model.bodies:
-            raise InputError(f"no body {body!r}; bodies: {', '.join(model.bodies)}", source=src, field="BodySet")
+            raise InputError(f"no body {body!r}; bodies: {', '.join(model.bodies)}", source=str(osim),
+                             field="BodySet")
+    return model
+
+
+def _straight_bundles(model: OsimModel, femur_body: str, tibia_body: str) -> tuple[dict[str, LineElement], list[str]]:
+    """The femur-tibia bundles kneenlp represents (straight, load bearing) by name, and the notes
+    on what the import leaves out: the reader's, wrapping surfaces, bundles with points on other bodies."""
     lines = knee_line_elements(model, femur_body, tibia_body)
     skipped = [s for s in model.skipped if "PathWrap" not in s]
     wrapped = sorted({n for n, e in lines.items() if e.wraps})
@@ -102,53 +147,37 @@ def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | Non
                            "(the bundle is left out)")
         elif e.linear_stiffness > 0:
             keep[name] = e
-    grouped = ligament_groups(list(keep))[groups]
-    # meshes: the tibiofemoral contact meshes of the two bodies
-    folders = [Path(geometry)] if geometry else []
-    folders += [osim.parent]
-    out = Path(out)
-    (out / "meshes").mkdir(parents=True, exist_ok=True)
-    meshes = {}
-    for role, body in (("femur", femur_body), ("tibia", tibia_body)):
-        found = [c for c in model.contact_meshes.values() if c.body == body]
-        if role == "femur" and femur_mesh is not None:
-            path = Path(femur_mesh)
-            if not path.is_file():
-                raise InputError(f"mesh file not found: {path}", field="--femur-mesh")
-        elif not found:
-            raise InputError(f"no Smith2018ContactMesh on body {body!r}", source=src, field="ContactGeometrySet")
-        else:
-            if len(found) > 1 or np.any(found[0].X_body_mesh(model) != np.eye(4)):
-                skipped.append(f"{role}: contact mesh {found[0].name!r} used as placed in its body (offsets ignored)")
-            path = _find_mesh(found[0].mesh_file, folders, src)
-        shutil.copyfile(path, out / "meshes" / path.name)
-        meshes[role] = f"meshes/{path.name}"
-    landmarks, where = _landmarks(model, femur_body, tibia_body, tuberosity, out / meshes["tibia"])
-    skipped.append(f"tibial tuberosity {where}")
-    doc: dict = {
-        "name": osim.stem, "side": "right", "units": "m", "coordinates": "scan", "frame": "cylinders",
-        "description": f"imported from {osim.name} by kneenlp import-osim ({groups} bundle groups)",
-        "parameters": "parameters.toml",
-        "landmarks": landmarks,
-        "contact": {"femur": meshes["femur"], "tibia": meshes["tibia"], "gate": 1e-5, "grid_spacing": 5e-4,
-                    **({"femur_offset": float(femur_offset)} if femur_offset else {})},
-        "ligaments": {},
-    }
-    for group, names in grouped.items():
-        doc["ligaments"][group] = {"law": BlankevoortLaw.name, "bundles": [
-            {"name": n, "femur": [float(v) for v in keep[n].femoral_point],
-             "tibia": [float(v) for v in keep[n].tibial_point], "stiffness": float(keep[n].linear_stiffness),
-             "slack_length": float(keep[n].slack_length), "transition_strain": float(keep[n].transition_strain)}
-            for n in names]}
-    header = (f"# kneenlp knee imported from {osim.name} (kneenlp import-osim; {groups} bundle groups).\n"
-              f"# Coordinates: metres in the model's {femur_body} frame ({tibia_body} for tibial points).\n"
-              "# Bundles: stiffness in N per unit strain (OpenSim linear_stiffness), slack_length in m,\n"
-              "# transition_strain as OpenSim's (the paper's linear strain limit is half of it); the law is\n"
-              "# OpenSim's Blankevoort1991Ligament (law = \"blankevoort\", kneenlp.model.laws).\n")
-    knee_file = write_text_atomic(out / "knee.toml", header + tomli_w.dumps(doc))
-    write_text_atomic(out / "parameters.toml",
-                      imported_parameter_set("OpenSim", "their own stiffness and slack length"))
-    return ImportReport(knee_file, grouped, skipped)
+    return keep, skipped
+
+
+def _copy_contact_mesh(model: OsimModel, role: str, body: str, given: str | Path | None, folders: list[Path],
+                       source: str, out: Path, skipped: list[str]) -> str:
+    """Copy the tibiofemoral contact mesh of ``body`` (or the ``given`` file) into ``out/meshes``
+    and return its path relative to ``out``; a mesh placed with an offset in its body is noted in
+    ``skipped``."""
+    found = [c for c in model.contact_meshes.values() if c.body == body]
+    if given is not None:
+        path = Path(given)
+        if not path.is_file():
+            raise InputError(f"mesh file not found: {path}", field="--femur-mesh")
+    elif not found:
+        raise InputError(f"no Smith2018ContactMesh on body {body!r}", source=source, field="ContactGeometrySet")
+    else:
+        if len(found) > 1 or np.any(found[0].X_body_mesh(model) != np.eye(4)):
+            skipped.append(f"{role}: contact mesh {found[0].name!r} used as placed in its body (offsets ignored)")
+        path = _find_mesh(found[0].mesh_file, folders, source)
+    shutil.copyfile(path, out / "meshes" / path.name)
+    return f"meshes/{path.name}"
+
+
+def _ligament_table(keep: dict[str, LineElement], names: list[str]) -> dict:
+    """The knee-file table of one bundle group: OpenSim's law and each bundle's attachments (m),
+    stiffness (N per unit strain), slack length (m) and transition strain."""
+    return {"law": BlankevoortLaw.name, "bundles": [
+        {"name": n, "femur": [float(v) for v in keep[n].femoral_point],
+         "tibia": [float(v) for v in keep[n].tibial_point], "stiffness": float(keep[n].linear_stiffness),
+         "slack_length": float(keep[n].slack_length), "transition_strain": float(keep[n].transition_strain)}
+        for n in names]}
 
 
 def _landmarks(model, femur_body: str, tibia_body: str, tuberosity, tibial_mesh: Path) -> tuple[dict, str]:

@@ -17,7 +17,8 @@ References: D. M. Gay, "Writing .nl Files" (2005) and "Hooking Your Solver to AM
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
@@ -208,52 +209,83 @@ def write_nl(path: str | Path, fn: ca.Function, *, n_both: int, x0: Sequence[flo
         raise ValueError(f"common must be 'defined' or 'lifted', got {common!r}")
     if not fn.is_a("SXFunction"):
         fn = fn.expand()
-    n0, m0 = fn.nnz_in(0), fn.nnz_out(1)
-    graph = _Graph(fn)
-    shared = [i for i in range(len(graph.kind)) if graph.kind[i] == "o" and graph.uses[i] > 1]
-    cut = {node: n0 + j for j, node in enumerate(shared)}
-    lifted = common == "lifted"
-    n = n0 + (len(shared) if lifted else 0)
-    m = m0 + (len(shared) if lifted else 0)
-    em = _Emitter(graph, np.arange(n0), n0)
-    em.defined = dict(cut)
-    x0 = np.asarray(x0, dtype=float)
-    con_nodes = list(graph.g_nodes) + (shared if lifted else [])
-    rows = [sorted(_leaves(graph, node, cut, n0) | ({cut[node]} if lifted and i >= m0 else set()))
-            for i, node in enumerate(con_nodes)]
-    if not lifted:  # defined variables are not variables: expand their dependencies
-        dep: dict[int, set[int]] = {}
-        for node in shared:
-            d = set()
-            for v in _leaves(graph, node, cut, n0):
-                d |= dep[v] if v >= n0 else {v}
-            dep[cut[node]] = d
-
-        def expand(vs: list[int]) -> list[int]:
-            return sorted(set().union(*[dep[v] if v >= n0 else {v} for v in vs])) if vs else []
-
-        rows = [expand(r) for r in rows]
-        gcols = expand(sorted(_leaves(graph, graph.f_node, cut, n0)))
-    else:
-        gcols = sorted(_leaves(graph, graph.f_node, cut, n0))
-    col_counts = np.zeros(n, dtype=int)
-    for r in rows:
-        col_counts[r] += 1
-    if lifted:
-        x_all = np.concatenate([x0, _node_values(graph, x0)[shared]])
-        lbx = np.concatenate([lbx, np.full(len(shared), -np.inf)])
-        ubx = np.concatenate([ubx, np.full(len(shared), np.inf)])
-        lbg = np.concatenate([lbg, np.zeros(len(shared))])
-        ubg = np.concatenate([ubg, np.zeros(len(shared))])
-        var_names = [*var_names, *[f"aux_{j}" for j in range(len(shared))]]
-        con_names = [*con_names, *[f"aux_{j}_definition" for j in range(len(shared))]]
-        nlv = (n, n, n)
-    else:
-        x_all = x0
-        nlv = (n, n_both, n_both)
+    nl = _NlProblem.build(fn, n_both, common == "lifted", np.asarray(x0, dtype=float), _Bounds(lbx, ubx, lbg, ubg),
+                          var_names, con_names)
     path = Path(path)
     with atomic_target(path) as tmp, tmp.open("w") as fh:
-        w = fh.write
+        nl.write(fh.write, title)
+    write_text_atomic(path.with_suffix(".row"), "".join(f"{c}\n" for c in nl.con_names) + f"{objective_name}\n")
+    write_text_atomic(path.with_suffix(".col"), "".join(f"{v}\n" for v in nl.var_names))
+    return {"variables": nl.n, "constraints": nl.m, "common": common, "shared_subexpressions": len(nl.shared),
+            "instructions": fn.n_instructions(), "jacobian_nonzeros": int(nl.col_counts.sum())}
+
+
+@dataclass(frozen=True)
+class _Bounds:
+    """Bounds of the variables (``lbx``, ``ubx``) and of the constraints (``lbg``, ``ubg``)."""
+
+    lbx: Sequence[float]
+    ubx: Sequence[float]
+    lbg: Sequence[float]
+    ubg: Sequence[float]
+
+
+@dataclass(frozen=True)
+class _NlProblem:
+    """The NLP as the .nl file states it: the expression graph, its shared nodes (``cut``: node ->
+    .nl index of the defined or auxiliary variable standing for it), the Jacobian and gradient
+    sparsity, the start point, the bounds and the names (with the auxiliary variables and their
+    definitions when ``lifted``)."""
+
+    graph: _Graph
+    emitter: _Emitter
+    shared: list[int]
+    cut: dict[int, int]
+    lifted: bool
+    n: int
+    m: int
+    nlv: tuple[int, int, int]
+    rows: list[list[int]]
+    gcols: list[int]
+    col_counts: np.ndarray
+    x: np.ndarray
+    bounds: _Bounds
+    var_names: Sequence[str]
+    con_names: Sequence[str]
+
+    @classmethod
+    def build(cls, fn: ca.Function, n_both: int, lifted: bool, x0: np.ndarray, bounds: _Bounds,
+              var_names: Sequence[str], con_names: Sequence[str]) -> _NlProblem:
+        """The .nl statement of the SX function ``fn`` (``n_both`` variables nonlinear in both the
+        objective and the constraints, first)."""
+        n0, m0 = fn.nnz_in(0), fn.nnz_out(1)
+        graph = _Graph(fn)
+        shared = [i for i in range(len(graph.kind)) if graph.kind[i] == "o" and graph.uses[i] > 1]
+        cut = {node: n0 + j for j, node in enumerate(shared)}
+        n = n0 + (len(shared) if lifted else 0)
+        m = m0 + (len(shared) if lifted else 0)
+        em = _Emitter(graph, np.arange(n0), n0)
+        em.defined = dict(cut)
+        rows, gcols = _sparsity(graph, shared, cut, n0, m0, lifted)
+        col_counts = np.zeros(n, dtype=int)
+        for r in rows:
+            col_counts[r] += 1
+        if not lifted:
+            return cls(graph, em, shared, cut, lifted, n, m, (n, n_both, n_both), rows, gcols, col_counts, x0,
+                       bounds, var_names, con_names)
+        aux = len(shared)
+        x_all = np.concatenate([x0, _node_values(graph, x0)[shared]])
+        lifted_bounds = _Bounds(np.concatenate([bounds.lbx, np.full(aux, -np.inf)]),
+                                np.concatenate([bounds.ubx, np.full(aux, np.inf)]),
+                                np.concatenate([bounds.lbg, np.zeros(aux)]),
+                                np.concatenate([bounds.ubg, np.zeros(aux)]))
+        return cls(graph, em, shared, cut, lifted, n, m, (n, n, n), rows, gcols, col_counts, x_all, lifted_bounds,
+                   [*var_names, *[f"aux_{j}" for j in range(aux)]],
+                   [*con_names, *[f"aux_{j}_definition" for j in range(aux)]])
+
+    def write(self, w: Callable[[str], object], title: str) -> None:
+        """Write the .nl text through ``w``: header, expression segments, then the numeric ones."""
+        n, m, nlv, em, graph = self.n, self.m, self.nlv, self.emitter, self.graph
         w(f"g3 1 1 0\t# problem {title}\n")
         w(f" {n} {m} 1 0 {m} 0\t# vars, constraints, objectives, ranges, eqns, lcons\n")
         w(f" {m} 1\t# nonlinear constraints, objectives\n")
@@ -261,33 +293,58 @@ def write_nl(path: str | Path, fn: ca.Function, *, n_both: int, x0: Sequence[flo
         w(f" {nlv[0]} {nlv[1]} {nlv[2]}\t# nonlinear vars in constraints, objectives, both\n")
         w(" 0 0 0 1\t# linear network variables; functions; arith, flags\n")
         w(" 0 0 0 0 0\t# discrete variables: binary, integer, nonlinear (b,c,o)\n")
-        w(f" {int(col_counts.sum())} {len(gcols)}\t# nonzeros in Jacobian, gradients\n")
-        w(f" {max(map(len, con_names), default=0)} {max(map(len, var_names), default=0)}"
+        w(f" {int(self.col_counts.sum())} {len(self.gcols)}\t# nonzeros in Jacobian, gradients\n")
+        w(f" {max(map(len, self.con_names), default=0)} {max(map(len, self.var_names), default=0)}"
           "\t# max name lengths: constraints, variables\n")
-        w(f" {0 if lifted else len(shared)} 0 0 0 0\t# common exprs: b,c,o,c1,o1\n")
-        if not lifted:
-            for node in shared:
-                w(f"V{cut[node]} 0 0\n")
+        w(f" {0 if self.lifted else len(self.shared)} 0 0 0 0\t# common exprs: b,c,o,c1,o1\n")
+        if not self.lifted:
+            for node in self.shared:
+                w(f"V{self.cut[node]} 0 0\n")
                 w("\n".join(em.tokens(node, top=True)) + "\n")
         for i, node in enumerate(graph.g_nodes):
             w(f"C{i}\n")
             w(("\n".join(em.tokens(node)) if node is not None else "n0") + "\n")
-        if lifted:
-            for j, node in enumerate(shared):
-                w(f"C{m0 + j}\no1\nv{cut[node]}\n" + "\n".join(em.tokens(node, top=True)) + "\n")
+        if self.lifted:
+            m0 = len(graph.g_nodes)
+            for j, node in enumerate(self.shared):
+                w(f"C{m0 + j}\no1\nv{self.cut[node]}\n" + "\n".join(em.tokens(node, top=True)) + "\n")
         w("O0 0\n")
         w(("\n".join(em.tokens(graph.f_node)) if graph.f_node is not None else "n0") + "\n")
-        w(f"x{n}\n" + "".join(f"{i} {float(v)!r}\n" for i, v in enumerate(x_all)))
-        w("r\n" + "".join(_bound_line(lo, hi) for lo, hi in zip(lbg, ubg, strict=True)))
-        w("b\n" + "".join(_bound_line(lo, hi) for lo, hi in zip(lbx, ubx, strict=True)))
-        w(f"k{n - 1}\n" + "".join(f"{c}\n" for c in np.cumsum(col_counts)[: n - 1]))
-        for i, cols in enumerate(rows):
+        self._write_numbers(w)
+
+    def _write_numbers(self, w: Callable[[str], object]) -> None:
+        """Write the start point, the bounds and the Jacobian and gradient sparsity through ``w``."""
+        n, b = self.n, self.bounds
+        w(f"x{n}\n" + "".join(f"{i} {float(v)!r}\n" for i, v in enumerate(self.x)))
+        w("r\n" + "".join(_bound_line(lo, hi) for lo, hi in zip(b.lbg, b.ubg, strict=True)))
+        w("b\n" + "".join(_bound_line(lo, hi) for lo, hi in zip(b.lbx, b.ubx, strict=True)))
+        w(f"k{n - 1}\n" + "".join(f"{c}\n" for c in np.cumsum(self.col_counts)[: n - 1]))
+        for i, cols in enumerate(self.rows):
             w(f"J{i} {len(cols)}\n" + "".join(f"{c} 0\n" for c in cols))
-        w(f"G0 {len(gcols)}\n" + "".join(f"{c} 0\n" for c in gcols))
-    write_text_atomic(path.with_suffix(".row"), "".join(f"{c}\n" for c in con_names) + f"{objective_name}\n")
-    write_text_atomic(path.with_suffix(".col"), "".join(f"{v}\n" for v in var_names))
-    return {"variables": n, "constraints": m, "common": common, "shared_subexpressions": len(shared),
-            "instructions": fn.n_instructions(), "jacobian_nonzeros": int(col_counts.sum())}
+        w(f"G0 {len(self.gcols)}\n" + "".join(f"{c} 0\n" for c in self.gcols))
+
+
+def _sparsity(graph: _Graph, shared: list[int], cut: dict[int, int], n0: int, m0: int,
+              lifted: bool) -> tuple[list[list[int]], list[int]]:
+    """The variables each constraint depends on (its Jacobian row) and those the objective depends
+    on (its gradient).  Defined variables are not variables: without ``lifted`` a row lists the
+    variables behind them instead."""
+    con_nodes = list(graph.g_nodes) + (shared if lifted else [])
+    rows = [sorted(_leaves(graph, node, cut, n0) | ({cut[node]} if lifted and i >= m0 else set()))
+            for i, node in enumerate(con_nodes)]
+    if lifted:
+        return rows, sorted(_leaves(graph, graph.f_node, cut, n0))
+    dep: dict[int, set[int]] = {}
+    for node in shared:
+        d = set()
+        for v in _leaves(graph, node, cut, n0):
+            d |= dep[v] if v >= n0 else {v}
+        dep[cut[node]] = d
+
+    def expand(vs: list[int]) -> list[int]:
+        return sorted(set().union(*[dep[v] if v >= n0 else {v} for v in vs])) if vs else []
+
+    return [expand(r) for r in rows], expand(sorted(_leaves(graph, graph.f_node, cut, n0)))
 
 
 def _bound_line(lo: float, hi: float) -> str:

@@ -127,6 +127,7 @@ import math
 import numbers
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -319,25 +320,12 @@ def _f_spread(values: FloatArray) -> float:
 
 
 def minimize_complex(
-    fun: Callable[..., Any],
-    bounds: Sequence[tuple[float | None, float | None]] | Any,
-    *,
-    args: tuple[Any, ...] = (),
-    x0: ArrayLike | None = None,
-    spread: ArrayLike | None = None,
-    initial: ArrayLike | None = None,
-    n_points: int | None = None,
-    alpha: float = 1.3,
-    max_retries: int = 4,
-    rfak: float = 0.3,
-    gamma: float = 0.3,
-    xtol: float = 1e-6,
-    ftol: float = 1e-9,
-    max_evals: int = 10000,
-    max_seconds: float | None = None,
-    seed: int | np.random.Generator | None = None,
-    callback: Callable[[FloatArray, float, int], Any] | None = None,
-    refinements: bool = True,
+    fun: Callable[..., Any], bounds: Sequence[tuple[float | None, float | None]] | Any, *,
+    args: tuple[Any, ...] = (), x0: ArrayLike | None = None, spread: ArrayLike | None = None,
+    initial: ArrayLike | None = None, n_points: int | None = None, alpha: float = 1.3, max_retries: int = 4,
+    rfak: float = 0.3, gamma: float = 0.3, xtol: float = 1e-6, ftol: float = 1e-9, max_evals: int = 10000,
+    max_seconds: float | None = None, seed: int | np.random.Generator | None = None,
+    callback: Callable[[FloatArray, float, int], Any] | None = None, refinements: bool = True,
 ) -> OptimizeResult:
     """Minimise ``fun`` over a box with Box's Complex method and the Complex-RF refinements.
 
@@ -345,78 +333,42 @@ def minimize_complex(
 
     Parameters
     ----------
-    fun : callable
-        ``fun(x, *args) -> float``, where ``x`` is a copy of a float array of shape ``(n,)``.
-        NaN or infinite values are treated as ``+inf``. Exceptions propagate to the caller.
-    bounds : sequence of (lo, hi) pairs or scipy.optimize.Bounds
-        Design domain. A ``None`` or infinite entry means unbounded; ``x0`` with ``spread``,
-        or ``initial``, is then required. ``lo == hi`` fixes a variable.
-    args : tuple, optional
-        Extra positional arguments passed to ``fun``.
-    x0 : array_like, shape (n,), optional
-        Start point, which must lie within the bounds. It is point 0 of the initial complex.
-    spread : float or array_like, shape (n,), optional
-        Half-width of the uniform cloud around ``x0``, per variable, in absolute units.
-        Requires ``x0``. Without it, the other points are drawn uniformly over the bounds.
-    initial : array_like, shape (k, n), optional
-        Explicit initial complex, within the bounds. Cannot be combined with ``x0``.
-    n_points : int, optional
-        Number of points ``k`` in the complex, ``k >= n + 1``. Default ``2 n + 1`` (or the
-        number of rows of ``initial``).
-    alpha : float, default 1.3
-        Reflection coefficient (> 0).
-    max_retries : int, default 4
-        Number of retractions before a point that is still the worst is re-initialised (>= 0).
-    rfak : float, default 0.3
-        Randomisation factor of the Complex-RF random term (>= 0; 0 disables it).
-    gamma : float, default 0.3
-        Forgetting factor (>= 0; 0 disables forgetting).
-    xtol : float, default 1e-6
-        Tolerance on the relative spread of the complex in x.
-    ftol : float, default 1e-9
-        Tolerance on ``max f - min f``, relative and absolute: ``<= ftol * (1 + |f_min|)``.
-    max_evals : int, default 10000
-        Hard evaluation budget (>= ``k``). ``nfev <= max_evals`` always holds.
-    max_seconds : float, optional
-        Wall-time budget, checked before every evaluation.
-    seed : int or numpy.random.Generator, optional
-        Source of all randomness.
-    callback : callable, optional
-        ``callback(x_best, f_best, nfev)``, called after the initial complex and after each
-        iteration. Returning ``True`` stops the optimisation.
-    refinements : bool, default True
-        ``False`` runs the textbook Box method: halfway towards the centroid only, clipping
+    fun : ``fun(x, *args) -> float``, ``x`` a copy of a float array of shape ``(n,)``. NaN or
+        infinite values are treated as ``+inf``; exceptions propagate to the caller.
+    bounds : sequence of (lo, hi) pairs or scipy.optimize.Bounds. A ``None`` or infinite entry means
+        unbounded (``x0`` with ``spread``, or ``initial``, is then required); ``lo == hi`` fixes a variable.
+    args : extra positional arguments passed to ``fun``.
+    x0 : start point, shape (n,), within the bounds: point 0 of the initial complex.
+    spread : half-width of the uniform cloud around ``x0``, per variable (float or shape (n,)), in
+        the units of ``x``; requires ``x0``. Without it the other points are uniform over the bounds.
+    initial : explicit initial complex, shape (k, n), within the bounds; not combined with ``x0``.
+    n_points : number of points ``k >= n + 1`` (default ``2 n + 1``, or the rows of ``initial``).
+    alpha : reflection coefficient (> 0).
+    max_retries : retractions before a point that is still the worst is re-initialised (>= 0).
+    rfak : randomisation factor of the Complex-RF random term (>= 0; 0 disables it).
+    gamma : forgetting factor (>= 0; 0 disables forgetting).
+    xtol : tolerance on the relative spread of the complex in x.
+    ftol : tolerance on ``max f - min f``, relative and absolute: ``<= ftol * (1 + |f_min|)``.
+    max_evals : hard evaluation budget (>= ``k``); ``nfev <= max_evals`` always holds.
+    max_seconds : wall-time budget (s), checked before every evaluation.
+    seed : int or numpy.random.Generator, the source of all randomness.
+    callback : ``callback(x_best, f_best, nfev)``, called after the initial complex and after each
+        iteration; returning ``True`` stops the optimisation.
+    refinements : ``False`` runs the textbook Box method: halfway towards the centroid only, clipping
         to the bounds, no forgetting, no randomisation and no re-initialisation.
 
     Returns
     -------
-    scipy.optimize.OptimizeResult
-        Best point and value, counters, stopping reason, history and final complex:
-
-    x : ndarray, shape (n,)
-        Best point ever evaluated.
-    fun : float
-        Objective value at ``x`` (``inf`` if no finite value was ever obtained).
-    nfev : int
-        Number of objective evaluations (always ``<= max_evals``).
-    nit : int
-        Number of iterations (reflections).
-    success : bool
-        True when the convergence criterion (``xtol`` and ``ftol``) was met.
-    status : int
-        0 converged, 1 ``max_evals`` reached, 2 ``max_seconds`` elapsed, 3 stopped by callback.
-    message : str
-        Human-readable stopping reason.
-    history : ndarray, shape (nfev, 2)
-        One row ``(evaluation number, best f so far)`` per evaluation.
-    population : ndarray, shape (k, n)
-        Final complex (only the evaluated points if a budget ran out during initialisation).
-    population_f : ndarray, shape (k,)
-        Raw objective values of ``population`` (non-finite values stored as ``inf``).
-    x_spread : float
-        Final relative spread ``max_j (max_i x_ij - min_i x_ij) / s_j`` of the complex.
-    f_spread : float
-        Final spread ``max f - min f`` of the complex (``inf`` if any value is infinite).
+    scipy.optimize.OptimizeResult with the fields :data:`RESULT_FIELDS`: ``x`` (n,), the best point
+    ever evaluated, and ``fun``, its value (``inf`` if no finite value was ever obtained); ``nfev``
+    (always ``<= max_evals``) and ``nit`` (iterations, i.e. reflections); ``success``, the
+    convergence criterion (``xtol`` and ``ftol``) met; ``status`` 0 converged, 1 ``max_evals``
+    reached, 2 ``max_seconds`` elapsed, 3 stopped by callback, and ``message``, the reason in words;
+    ``history`` (nfev, 2), one row ``(evaluation number, best f so far)`` per evaluation;
+    ``population`` (k, n), the final complex (only the evaluated points if a budget ran out during
+    initialisation), and ``population_f`` (k,), its raw values (non-finite ones stored as ``inf``);
+    ``x_spread``, its relative spread ``max_j (max_i x_ij - min_i x_ij) / s_j``, and ``f_spread``,
+    ``max f - min f`` (``inf`` if any value is infinite).
 
     Raises
     ------
@@ -427,118 +379,150 @@ def minimize_complex(
     if not callable(fun):
         raise ValueError("fun must be callable")
     lo, hi = _parse_bounds(bounds)
-    n = lo.size
-    finite_box = bool(np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)))
-
-    alpha = _as_nonneg_float("alpha", alpha, allow_zero=False)
-    rfak = _as_nonneg_float("rfak", rfak)
-    gamma = _as_nonneg_float("gamma", gamma)
-    xtol = _as_nonneg_float("xtol", xtol)
-    ftol = _as_nonneg_float("ftol", ftol)
-    if max_seconds is not None:
-        max_seconds = _as_nonneg_float("max_seconds", max_seconds, allow_zero=False)
-    max_retries = _as_int("max_retries", max_retries, 0)
-    if callback is not None and not callable(callback):
-        raise ValueError("callback must be callable or None")
-
-    # Initial complex: validation.
-    x0_arr: FloatArray | None = None
-    init_arr: FloatArray | None = None
-    spread_arr: FloatArray | None = None
-    if initial is not None:
-        if x0 is not None or spread is not None:
-            raise ValueError("give either initial or x0 (with optional spread), not both")
-        init_arr = np.array(initial, dtype=float)
-        if init_arr.ndim != 2 or init_arr.shape[1] != n:
-            raise ValueError(f"initial must have shape (n_points, {n}), got {init_arr.shape}")
-        if not np.all(np.isfinite(init_arr)):
-            raise ValueError("initial must contain only finite values")
-        if np.any(init_arr < lo) or np.any(init_arr > hi):
-            raise ValueError("all points of initial must lie within the bounds")
-        if n_points is None:
-            n_points = init_arr.shape[0]
-        elif n_points != init_arr.shape[0]:
-            raise ValueError(
-                f"n_points={n_points} does not match the {init_arr.shape[0]} rows of initial"
-            )
-    if x0 is not None:
-        x0_arr = _as_vector("x0", x0, n)
-        if np.any(x0_arr < lo) or np.any(x0_arr > hi):
-            raise ValueError("x0 lies outside the bounds")
-    if spread is not None:
-        if x0_arr is None:
-            raise ValueError("spread requires x0")
-        spread_in = np.asarray(spread, dtype=float)
-        spread_arr = _as_vector(
-            "spread", np.full(n, float(spread_in)) if spread_in.ndim == 0 else spread_in, n
-        )
-        if np.any(spread_arr < 0):
-            raise ValueError("spread must be >= 0")
-    if init_arr is None and spread_arr is None and not finite_box:
-        raise ValueError(
-            "infinite bounds require an explicit initial complex or x0 together with spread"
-        )
-
-    k = _as_int("n_points", 2 * n + 1 if n_points is None else n_points, n + 1)
-    max_evals = _as_int("max_evals", max_evals, k)
-
+    options = _Options.checked(alpha=alpha, max_retries=max_retries, rfak=rfak, gamma=gamma, xtol=xtol, ftol=ftol,
+                               max_seconds=max_seconds, callback=callback, refinements=refinements)
+    start = _Start.checked(lo, hi, initial=initial, x0=x0, spread=spread, n_points=n_points)
+    max_evals = _as_int("max_evals", max_evals, start.k)
     rng = np.random.default_rng(seed)
-
-    # Initial complex: construction.
-    if init_arr is not None:
-        points = init_arr
-    else:
-        points = np.empty((k, n))
-        start = 0
-        if x0_arr is not None:
-            points[0] = x0_arr
-            start = 1
-        if x0_arr is not None and spread_arr is not None:
-            u = rng.uniform(-1.0, 1.0, size=(k - start, n))
-            points[start:] = np.clip(x0_arr + u * spread_arr, lo, hi)
-        else:
-            u = rng.uniform(0.0, 1.0, size=(k - start, n))
-            points[start:] = lo + u * (hi - lo)
-
-    x_ref = x0_arr if x0_arr is not None else points.mean(axis=0)
+    points = start.points(lo, hi, rng)
+    x_ref = start.x0 if start.x0 is not None else points.mean(axis=0)
     width = hi - lo
     scale = np.where(np.isfinite(width) & (width > 0), width, np.maximum(1.0, np.abs(x_ref)))
-
-    evaluate = _Evaluator(fun, tuple(args), max_evals, max_seconds)
-    values = np.full(k, math.inf)
+    evaluate = _Evaluator(fun, tuple(args), max_evals, options.max_seconds)
+    values = np.full(start.k, math.inf)
+    n_done, status = _evaluate_initial(evaluate, points, values)
     nit = 0
+    if status is None:
+        optimizer = _ComplexIterations(evaluate, points, values, lo, hi, scale, options, rng)
+        status = optimizer.run()
+        nit = optimizer.nit
+    return _result(evaluate, points[:n_done].copy(), values[:n_done].copy(), nit, status, scale)
+
+
+@dataclass(frozen=True)
+class _Options:
+    """The checked coefficients, tolerances, time budget (s) and callback of a run (see
+    :func:`minimize_complex`)."""
+
+    alpha: float
+    max_retries: int
+    rfak: float
+    gamma: float
+    xtol: float
+    ftol: float
+    max_seconds: float | None
+    callback: Callable[[FloatArray, float, int], Any] | None
+    refinements: bool
+
+    @classmethod
+    def checked(cls, *, alpha: Any, max_retries: Any, rfak: Any, gamma: Any, xtol: Any, ftol: Any,
+                max_seconds: Any, callback: Any, refinements: bool) -> _Options:
+        """The options after their checks; ``ValueError`` names the first invalid one."""
+        alpha = _as_nonneg_float("alpha", alpha, allow_zero=False)
+        rfak = _as_nonneg_float("rfak", rfak)
+        gamma = _as_nonneg_float("gamma", gamma)
+        xtol = _as_nonneg_float("xtol", xtol)
+        ftol = _as_nonneg_float("ftol", ftol)
+        if max_seconds is not None:
+            max_seconds = _as_nonneg_float("max_seconds", max_seconds, allow_zero=False)
+        max_retries = _as_int("max_retries", max_retries, 0)
+        if callback is not None and not callable(callback):
+            raise ValueError("callback must be callable or None")
+        return cls(alpha, max_retries, rfak, gamma, xtol, ftol, max_seconds, callback, refinements)
+
+
+@dataclass(frozen=True)
+class _Start:
+    """How the initial complex of ``k`` points is made: the explicit cloud ``initial``, or ``x0``
+    and ``k - 1`` points uniform within ``+-spread`` of it (or over the bounds without ``spread``),
+    or ``k`` points uniform over the bounds."""
+
+    k: int
+    initial: FloatArray | None
+    x0: FloatArray | None
+    spread: FloatArray | None
+
+    @classmethod
+    def checked(cls, lo: FloatArray, hi: FloatArray, *, initial: ArrayLike | None, x0: ArrayLike | None,
+                spread: ArrayLike | None, n_points: int | None) -> _Start:
+        """The start after its checks against the bounds ``lo``, ``hi``; ``ValueError`` names the
+        first inconsistency."""
+        n = lo.size
+        x0_arr: FloatArray | None = None
+        init_arr: FloatArray | None = None
+        spread_arr: FloatArray | None = None
+        if initial is not None:
+            if x0 is not None or spread is not None:
+                raise ValueError("give either initial or x0 (with optional spread), not both")
+            init_arr = np.array(initial, dtype=float)
+            if init_arr.ndim != 2 or init_arr.shape[1] != n:
+                raise ValueError(f"initial must have shape (n_points, {n}), got {init_arr.shape}")
+            if not np.all(np.isfinite(init_arr)):
+                raise ValueError("initial must contain only finite values")
+            if np.any(init_arr < lo) or np.any(init_arr > hi):
+                raise ValueError("all points of initial must lie within the bounds")
+            if n_points is None:
+                n_points = init_arr.shape[0]
+            elif n_points != init_arr.shape[0]:
+                raise ValueError(
+                    f"n_points={n_points} does not match the {init_arr.shape[0]} rows of initial"
+                )
+        if x0 is not None:
+            x0_arr = _as_vector("x0", x0, n)
+            if np.any(x0_arr < lo) or np.any(x0_arr > hi):
+                raise ValueError("x0 lies outside the bounds")
+        if spread is not None:
+            if x0_arr is None:
+                raise ValueError("spread requires x0")
+            spread_in = np.asarray(spread, dtype=float)
+            spread_arr = _as_vector(
+                "spread", np.full(n, float(spread_in)) if spread_in.ndim == 0 else spread_in, n
+            )
+            if np.any(spread_arr < 0):
+                raise ValueError("spread must be >= 0")
+        finite_box = bool(np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)))
+        if init_arr is None and spread_arr is None and not finite_box:
+            raise ValueError(
+                "infinite bounds require an explicit initial complex or x0 together with spread"
+            )
+        k = _as_int("n_points", 2 * n + 1 if n_points is None else n_points, n + 1)
+        return cls(k, init_arr, x0_arr, spread_arr)
+
+    def points(self, lo: FloatArray, hi: FloatArray, rng: np.random.Generator) -> FloatArray:
+        """The ``(k, n)`` initial complex; the random points are drawn from ``rng`` in one call."""
+        if self.initial is not None:
+            return self.initial
+        points = np.empty((self.k, lo.size))
+        start = 0
+        if self.x0 is not None:
+            points[0] = self.x0
+            start = 1
+        if self.x0 is not None and self.spread is not None:
+            u = rng.uniform(-1.0, 1.0, size=(self.k - start, lo.size))
+            points[start:] = np.clip(self.x0 + u * self.spread, lo, hi)
+        else:
+            u = rng.uniform(0.0, 1.0, size=(self.k - start, lo.size))
+            points[start:] = lo + u * (hi - lo)
+        return points
+
+
+def _evaluate_initial(evaluate: _Evaluator, points: FloatArray, values: FloatArray) -> tuple[int, int | None]:
+    """Evaluate the initial complex in order into ``values``; return how many points were
+    evaluated and the status if a budget ran out (None otherwise)."""
     n_done = 0
-    status: int | None = None
     try:
-        for i in range(k):
+        for i in range(points.shape[0]):
             values[i] = evaluate(points[i])
             n_done = i + 1
     except _Stop as stop:
-        status = stop.status
+        return n_done, stop.status
+    return n_done, None
 
-    if status is None:
-        optimizer = _ComplexIterations(
-            evaluate=evaluate,
-            points=points,
-            values=values,
-            lo=lo,
-            hi=hi,
-            scale=scale,
-            alpha=alpha,
-            max_retries=max_retries,
-            rfak=rfak,
-            k_f=forgetting_factor(alpha, gamma, k),
-            refinements=refinements,
-            xtol=xtol,
-            ftol=ftol,
-            rng=rng,
-            callback=callback,
-        )
-        status = optimizer.run()
-        nit = optimizer.nit
 
-    pop = points[:n_done].copy()
-    pop_f = values[:n_done].copy()
+def _result(evaluate: _Evaluator, pop: FloatArray, pop_f: FloatArray, nit: int, status: int,
+            scale: FloatArray) -> OptimizeResult:
+    """The result of a run (fields :data:`RESULT_FIELDS`) from its evaluator and final complex."""
+    n_done = pop.shape[0]
     best_x = evaluate.best_x.copy() if evaluate.best_x is not None else pop[0].copy()
     history = np.asarray(evaluate.history, dtype=float).reshape(-1, 2)
     return OptimizeResult(
@@ -560,25 +544,9 @@ def minimize_complex(
 class _ComplexIterations:
     """State and main loop of the iterations; updates ``points`` and ``values`` in place."""
 
-    def __init__(
-        self,
-        *,
-        evaluate: _Evaluator,
-        points: FloatArray,
-        values: FloatArray,
-        lo: FloatArray,
-        hi: FloatArray,
-        scale: FloatArray,
-        alpha: float,
-        max_retries: int,
-        rfak: float,
-        k_f: float,
-        refinements: bool,
-        xtol: float,
-        ftol: float,
-        rng: np.random.Generator,
-        callback: Callable[[FloatArray, float, int], Any] | None,
-    ) -> None:
+    def __init__(self, evaluate: _Evaluator, points: FloatArray, values: FloatArray, lo: FloatArray,
+                 hi: FloatArray, scale: FloatArray, options: _Options, rng: np.random.Generator) -> None:
+        refinements = options.refinements
         self.evaluate = evaluate
         self.points = points
         self.values = values
@@ -586,15 +554,16 @@ class _ComplexIterations:
         self.lo = lo
         self.hi = hi
         self.scale = scale
-        self.alpha = alpha
-        self.max_retries = max_retries
-        self.rfak = rfak if refinements else 0.0
+        self.alpha = options.alpha
+        self.max_retries = options.max_retries
+        self.rfak = options.rfak if refinements else 0.0
+        k_f = forgetting_factor(options.alpha, options.gamma, points.shape[0])
         self.k_f = k_f if refinements else 0.0
         self.refinements = refinements
-        self.xtol = xtol
-        self.ftol = ftol
+        self.xtol = options.xtol
+        self.ftol = options.ftol
         self.rng = rng
-        self.callback = callback
+        self.callback = options.callback
         self.nit = 0
 
     # -- helpers -------------------------------------------------------------------------

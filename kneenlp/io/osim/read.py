@@ -147,28 +147,47 @@ def _iter_components(el: ET.Element, path: str):
 def read_osim(path: str | os.PathLike) -> OsimModel:
     """Parse an .osim file (OpenSim 4.x XML, incl. OpenSim JAM components) without OpenSim.
 
+    The components are read in dependency order: bodies and offset frames, then the geometry
+    placed on them (meshes, wrap objects), then the joints and coordinates, the ligaments and the
+    contact meshes, each of which resolves frames read before.  Lengths stay the file's (m).
+
     Raises :class:`OsimError` with a one-line message naming the file and element for
     malformed XML, missing/unparseable required values, unresolvable frames or unknown
     path-point types inside a ligament."""
     path = os.fspath(path)
     ctx = _Ctx(path)
+    model_el = _model_element(ctx)
+    all_comps = list(_iter_components(model_el, ""))
+    model = OsimModel(path, model_el.get("name", ""),
+                      (model_el.findtext("length_units") or "").strip(),
+                      (model_el.findtext("force_units") or "").strip(),
+                      _read_bodies(ctx, model_el), _read_offset_frames(ctx, all_comps), {}, {}, {}, {}, {}, [])
+    _read_geometry(ctx, model, all_comps)
+    _read_joints(ctx, model, model_el)
+    _read_ligaments(ctx, model, all_comps)
+    _read_contact_meshes(ctx, model, all_comps)
+    return model
+
+
+def _model_element(ctx: _Ctx) -> ET.Element:
+    """The ``<Model>`` element of the .osim document at ``ctx.path``."""
     try:
-        root = ET.parse(path).getroot()
+        root = ET.parse(ctx.path).getroot()
     except ET.ParseError as e:
-        raise OsimError(f"{path}: malformed XML ({e})") from None
+        raise OsimError(f"{ctx.path}: malformed XML ({e})") from None
     except OSError as e:
-        raise OsimError(f"{path}: cannot read file ({e.strerror})") from None
+        raise OsimError(f"{ctx.path}: cannot read file ({e.strerror})") from None
     if root.tag != "OpenSimDocument":
         raise ctx.err(f"root element <{root.tag}> is not <OpenSimDocument>")
     model_el = root.find("Model")
     if model_el is None:
         raise ctx.err("<OpenSimDocument> has no <Model> element")
-    skipped: list[str] = []
+    return model_el
 
-    # --- pass 1: bodies, offset frames (anywhere), meshes, wraps ----------------------
-    bodies: dict[str, BodyInfo] = {}
-    frames: dict[str, OffsetFrame] = {}
-    bodies["ground"] = BodyInfo("ground", "/ground", 0.0, np.zeros(3))
+
+def _read_bodies(ctx: _Ctx, model_el: ET.Element) -> dict[str, BodyInfo]:
+    """The ground and the bodies of the ``BodySet`` by name (mass in kg, mass centre in m)."""
+    bodies: dict[str, BodyInfo] = {"ground": BodyInfo("ground", "/ground", 0.0, np.zeros(3))}
     bodyset = model_el.find("BodySet/objects")
     for b in (bodyset if bodyset is not None else []):
         if b.tag != "Body":
@@ -179,36 +198,38 @@ def read_osim(path: str | os.PathLike) -> OsimModel:
         where = f"Body '{nm}'"
         bodies[nm] = BodyInfo(nm, f"/bodyset/{nm}", ctx.float1(b, "mass", where),
                               ctx.floats(b, "mass_center", where, 3))
-    all_comps = list(_iter_components(model_el, ""))
-    for el, p in all_comps:
+    return bodies
+
+
+def _read_offset_frames(ctx: _Ctx, comps: list[tuple[ET.Element, str]]) -> dict[str, OffsetFrame]:
+    """Every ``PhysicalOffsetFrame`` of the model, wherever it is declared, by component path
+    (translation in m, orientation as body-fixed XYZ angles in rad)."""
+    frames: dict[str, OffsetFrame] = {}
+    for el, p in comps:
         if el.tag == "PhysicalOffsetFrame":
             where = f"PhysicalOffsetFrame '{p}'"
             par = ctx.text(el, "socket_parent", where)
             frames[p] = OffsetFrame(el.get("name"), p, _resolve(p, par),
                                     ctx.floats(el, "translation", where, 3),
                                     ctx.floats(el, "orientation", where, 3))
+    return frames
 
-    model = OsimModel(path, model_el.get("name", ""),
-                      (model_el.findtext("length_units") or "").strip(),
-                      (model_el.findtext("force_units") or "").strip(),
-                      bodies, frames, {}, {}, {}, {}, {}, skipped)
 
-    def owner_frame_of_geometry(comp_path: str) -> str:
-        # geometry path is <frame path>/<geom name>; socket '..' resolves to the frame.
-        return comp_path.rsplit("/", 1)[0]
-
-    for el, p in all_comps:
+def _read_geometry(ctx: _Ctx, model: OsimModel, comps: list[tuple[ET.Element, str]]) -> None:
+    """Add the display meshes to their bodies and the wrap objects (dimensions in m) to ``model``."""
+    for el, p in comps:
         if el.tag == "Mesh":
             where = f"Mesh '{p}'"
             sock = el.findtext("socket_frame") or ".."
             fr = _resolve(p, sock.strip())
             if fr == "/":
-                fr = owner_frame_of_geometry(p)
+                # a geometry's path is <frame path>/<geometry name>: socket '..' names that frame
+                fr = p.rsplit("/", 1)[0]
             body, _ = model.frame_in_body(fr)
             sf = ctx.floats(el, "scale_factors", where, 3, required=False)
             mg = MeshGeometry(el.get("name"), ctx.text(el, "mesh_file", where), fr, body,
                               np.ones(3) if sf is None else sf)
-            bodies[body].meshes.append(mg)
+            model.bodies[body].meshes.append(mg)
         elif el.tag in _WRAP_TAGS:
             where = f"{el.tag} '{p}'"
             seg = p.split("/")
@@ -224,7 +245,10 @@ def read_osim(path: str | os.PathLike) -> OsimModel:
                 el.get("name"), el.tag, body, np.zeros(3) if tr is None else tr,
                 np.zeros(3) if rot is None else rot, dims)
 
-    # --- joints & coordinates -----------------------------------------------------------
+
+def _read_joints(ctx: _Ctx, model: OsimModel, model_el: ET.Element) -> None:
+    """Add the joints of the ``JointSet`` and their coordinates to ``model``; a joint type whose
+    kinematics this reader does not evaluate is noted in ``model.skipped``."""
     jointset = model_el.find("JointSet/objects")
     for j in (jointset if jointset is not None else []):
         nm = j.get("name")
@@ -237,98 +261,133 @@ def read_osim(path: str | os.PathLike) -> OsimModel:
                 model.frame_in_body(fr)
             except OsimError:
                 raise ctx.err(f"{where}: frame '{fr}' not found") from None
-        coords: list[Coordinate] = []
-        for c in j.findall("coordinates/Coordinate"):
-            cw = f"{where} Coordinate '{c.get('name')}'"
-            rng = ctx.floats(c, "range", cw, 2, required=False)
-            dv = ctx.float1(c, "default_value", cw, required=False)
-            co = Coordinate(c.get("name"), nm, 0.0 if dv is None else dv,
-                            (-math.inf, math.inf) if rng is None else (float(rng[0]), float(rng[1])),
-                            ctx.boolean(c, "locked", cw, False), ctx.boolean(c, "clamped", cw, False))
-            coords.append(co)
+        coords = _read_coordinates(ctx, j, where)
+        for co in coords:
             model.coordinates[co.name] = co
         axes: list[TransformAxis] = []
         if j.tag == "CustomJoint":
-            st = j.find("SpatialTransform")
-            if st is None:
-                raise ctx.err(f"{where}: missing <SpatialTransform>")
-            for ta in st.findall("TransformAxis"):
-                tw = f"{where} TransformAxis '{ta.get('name')}'"
-                cn = tuple((ta.findtext("coordinates") or "").split())
-                fel = [ch for ch in ta if ch.tag not in ("coordinates", "axis")]
-                if len(fel) != 1:
-                    raise ctx.err(f"{tw}: expected exactly one function element")
-                fn, ftype = _parse_function(ctx, fel[0], tw)
-                if isinstance(fn, _Unsupported):
-                    skipped.append(fn.message)
-                if not cn and not isinstance(fn, (_Constant, _Multiplier, _Unsupported)):
-                    fn = _Constant(fn(0.0))
-                axes.append(TransformAxis(ta.get("name"), cn, ctx.floats(ta, "axis", tw, 3), fn, ftype))
-            if [a.name for a in axes] != ["rotation1", "rotation2", "rotation3",
-                                          "translation1", "translation2", "translation3"]:
-                raise ctx.err(f"{where}: SpatialTransform must have rotation1-3, translation1-3")
+            axes = _read_spatial_transform(ctx, j, where, model.skipped)
         elif j.tag not in _SUPPORTED_JOINTS:
-            skipped.append(f"{path}: {where}: joint type not supported for kinematics "
-                           f"(parsed frames/coordinates only)")
+            model.skipped.append(f"{ctx.path}: {where}: joint type not supported for kinematics "
+                                 f"(parsed frames/coordinates only)")
         model.joints[nm] = Joint(nm, j.tag, pf, cf, coords, axes)
 
-    # --- ligaments ----------------------------------------------------------------------
-    for el, p in all_comps:
+
+def _read_coordinates(ctx: _Ctx, joint: ET.Element, where: str) -> list[Coordinate]:
+    """The coordinates of a joint (default value and range in rad or m; unbounded without a range)."""
+    coords: list[Coordinate] = []
+    for c in joint.findall("coordinates/Coordinate"):
+        cw = f"{where} Coordinate '{c.get('name')}'"
+        rng = ctx.floats(c, "range", cw, 2, required=False)
+        dv = ctx.float1(c, "default_value", cw, required=False)
+        coords.append(Coordinate(c.get("name"), joint.get("name"), 0.0 if dv is None else dv,
+                                 (-math.inf, math.inf) if rng is None else (float(rng[0]), float(rng[1])),
+                                 ctx.boolean(c, "locked", cw, False), ctx.boolean(c, "clamped", cw, False)))
+    return coords
+
+
+def _read_spatial_transform(ctx: _Ctx, joint: ET.Element, where: str, skipped: list[str]) -> list[TransformAxis]:
+    """The six transform axes of a ``CustomJoint`` (rotation1-3, translation1-3); a function type
+    this reader cannot evaluate is noted in ``skipped``."""
+    st = joint.find("SpatialTransform")
+    if st is None:
+        raise ctx.err(f"{where}: missing <SpatialTransform>")
+    axes: list[TransformAxis] = []
+    for ta in st.findall("TransformAxis"):
+        tw = f"{where} TransformAxis '{ta.get('name')}'"
+        cn = tuple((ta.findtext("coordinates") or "").split())
+        fel = [ch for ch in ta if ch.tag not in ("coordinates", "axis")]
+        if len(fel) != 1:
+            raise ctx.err(f"{tw}: expected exactly one function element")
+        fn, ftype = _parse_function(ctx, fel[0], tw)
+        if isinstance(fn, _Unsupported):
+            skipped.append(fn.message)
+        if not cn and not isinstance(fn, (_Constant, _Multiplier, _Unsupported)):
+            fn = _Constant(fn(0.0))
+        axes.append(TransformAxis(ta.get("name"), cn, ctx.floats(ta, "axis", tw, 3), fn, ftype))
+    if [a.name for a in axes] != ["rotation1", "rotation2", "rotation3",
+                                  "translation1", "translation2", "translation3"]:
+        raise ctx.err(f"{where}: SpatialTransform must have rotation1-3, translation1-3")
+    return axes
+
+
+def _read_ligaments(ctx: _Ctx, model: OsimModel, comps: list[tuple[ET.Element, str]]) -> None:
+    """Add every Blankevoort1991Ligament to ``model``; the parts of their paths that are not
+    represented (moving points, wrapping) are noted in ``model.skipped``."""
+    for el, p in comps:
         if el.tag != _LIGAMENT_TAG:
             continue
         nm = el.get("name")
         where = f"{_LIGAMENT_TAG} '{nm}'"
         if nm in model.ligaments:
             raise ctx.err(f"{where}: duplicate name")
-        props: dict[str, float] = {}
-        present = []
-        for key in ("linear_stiffness", "slack_length", "transition_strain", "damping_coefficient"):
-            v = ctx.float1(el, key, where, required=key in ("linear_stiffness", "slack_length"))
-            if v is None:
-                v = BLANKEVOORT_DEFAULTS[key]
-            else:
-                present.append(key)
-            props[key] = v
-        if props["slack_length"] <= 0 or props["linear_stiffness"] < 0 or props["transition_strain"] <= 0:
-            raise ctx.err(f"{where}: non-physical property values {props}")
+        props, present = _ligament_properties(ctx, el, where)
         gp = el.find("GeometryPath")
         if gp is None:
             raise ctx.err(f"{where}: missing <GeometryPath>")
-        gpp = f"{p}/{gp.get('name') or 'geometrypath'}"
-        objs = gp.find("PathPointSet/objects")
-        pts: list[PathPoint] = []
-        notes: list[str] = []
-        for pp in (objs if objs is not None else []):
-            pw = f"{where} <{pp.tag}> '{pp.get('name')}'"
-            if pp.tag in _SKIPPED_POINT_TAGS:
-                notes.append(f"{path}: {pw}: skipped ({pp.tag} is coordinate dependent; "
-                             f"only fixed PathPoints are used)")
-                continue
-            if pp.tag != "PathPoint":
-                raise ctx.err(f"{pw}: unknown path point type")
-            fr = _resolve(f"{gpp}/{pp.get('name')}", ctx.text(pp, "socket_parent_frame", pw))
-            try:
-                body, X = model.frame_in_body(fr)
-            except OsimError:
-                raise ctx.err(f"{pw}: parent frame '{fr}' not found") from None
-            loc = ctx.floats(pp, "location", pw, 3)
-            pts.append(PathPoint(pp.get("name"), fr, body, loc, _apply(X, loc)))
-        if len(pts) < 2:
-            raise ctx.err(f"{where}: fewer than 2 fixed path points")
+        pts, notes = _read_path_points(ctx, model, gp, f"{p}/{gp.get('name') or 'geometrypath'}", where)
         wraps = [w.findtext("wrap_object", "").strip() for w in gp.findall("PathWrapSet/objects/PathWrap")]
         for w in wraps:
             wo = model.wrap_objects.get(w)
-            notes.append(f"{path}: {where}: PathWrap over '{w}'"
+            notes.append(f"{ctx.path}: {where}: PathWrap over '{w}'"
                          f"{' (' + wo.type + ' on ' + wo.body + ')' if wo else ' (wrap object not found)'}"
                          f" skipped: straight segments between fixed points are used")
-        lig = Ligament(nm, props["linear_stiffness"], props["slack_length"], props["transition_strain"],
-                       props["damping_coefficient"], ctx.boolean(el, "appliesForce", where, True),
-                       pts, wraps, notes, tuple(present))
-        model.ligaments[nm] = lig
-        skipped.extend(notes)
+        model.ligaments[nm] = Ligament(nm, props["linear_stiffness"], props["slack_length"],
+                                       props["transition_strain"], props["damping_coefficient"],
+                                       ctx.boolean(el, "appliesForce", where, True), pts, wraps, notes,
+                                       tuple(present))
+        model.skipped.extend(notes)
 
-    # --- contact meshes -------------------------------------------------------------------
-    for el, p in all_comps:
+
+def _ligament_properties(ctx: _Ctx, el: ET.Element, where: str) -> tuple[dict[str, float], list[str]]:
+    """A ligament's material properties (stiffness in N per unit strain, slack length in m,
+    transition strain, damping coefficient; OpenSim's defaults for the optional ones) and the names
+    of those the file gives."""
+    props: dict[str, float] = {}
+    present = []
+    for key in ("linear_stiffness", "slack_length", "transition_strain", "damping_coefficient"):
+        v = ctx.float1(el, key, where, required=key in ("linear_stiffness", "slack_length"))
+        if v is None:
+            v = BLANKEVOORT_DEFAULTS[key]
+        else:
+            present.append(key)
+        props[key] = v
+    if props["slack_length"] <= 0 or props["linear_stiffness"] < 0 or props["transition_strain"] <= 0:
+        raise ctx.err(f"{where}: non-physical property values {props}")
+    return props, present
+
+
+def _read_path_points(ctx: _Ctx, model: OsimModel, gp: ET.Element, gp_path: str,
+                      where: str) -> tuple[list[PathPoint], list[str]]:
+    """The fixed path points of a ligament's ``GeometryPath`` (locations in m, in their frames and
+    bodies) and notes on the coordinate-dependent points left out."""
+    objs = gp.find("PathPointSet/objects")
+    pts: list[PathPoint] = []
+    notes: list[str] = []
+    for pp in (objs if objs is not None else []):
+        pw = f"{where} <{pp.tag}> '{pp.get('name')}'"
+        if pp.tag in _SKIPPED_POINT_TAGS:
+            notes.append(f"{ctx.path}: {pw}: skipped ({pp.tag} is coordinate dependent; "
+                         f"only fixed PathPoints are used)")
+            continue
+        if pp.tag != "PathPoint":
+            raise ctx.err(f"{pw}: unknown path point type")
+        fr = _resolve(f"{gp_path}/{pp.get('name')}", ctx.text(pp, "socket_parent_frame", pw))
+        try:
+            body, X = model.frame_in_body(fr)
+        except OsimError:
+            raise ctx.err(f"{pw}: parent frame '{fr}' not found") from None
+        loc = ctx.floats(pp, "location", pw, 3)
+        pts.append(PathPoint(pp.get("name"), fr, body, loc, _apply(X, loc)))
+    if len(pts) < 2:
+        raise ctx.err(f"{where}: fewer than 2 fixed path points")
+    return pts, notes
+
+
+def _read_contact_meshes(ctx: _Ctx, model: OsimModel, comps: list[tuple[ET.Element, str]]) -> None:
+    """Add every Smith2018ContactMesh to ``model`` (location in m, orientation in rad, thickness
+    in m, elastic modulus in Pa)."""
+    for el, p in comps:
         if el.tag != "Smith2018ContactMesh":
             continue
         nm = el.get("name")
@@ -346,7 +405,6 @@ def read_osim(path: str | os.PathLike) -> OsimModel:
             ctx.float1(el, "thickness", where), ctx.float1(el, "elastic_modulus", where),
             ctx.float1(el, "poissons_ratio", where),
             ctx.boolean(el, "use_variable_thickness", where, False))
-    return model
 
 
 # --------------------------------------------------------------------------------------
