@@ -35,8 +35,6 @@ from kneenlp.model.laws import BlankevoortLaw
 from kneenlp.model.parameters import imported_parameter_set
 
 
-#: Parameter set written with an imported knee: the paper's contact modulus (the bundles carry
-#: their own properties).
 @dataclass
 class ImportReport:
     """What :func:`import_osim` did: the knee file, the groups and the skipped parts."""
