@@ -545,3 +545,18 @@ def test_api_values_pass_the_range_check_of_file_values():
     for value in (-5.0, math.nan, 2e5):
         with pytest.raises(InputError, match=r"ACL\.k = .* outside the range of a stiffness"):
             kneenlp.simulate(knee, "set1", parameters={"ACL.k": value})
+
+
+def test_forces_in_kilonewtons_are_named(tmp_path):
+    """Forces are checked in N as moments are in N m: a drawer of 0.134 'N' that moved the tibia
+    millimetres from its unloaded pose is a force in kN (exit 2 naming the column); in N it reads."""
+    from kneenlp.experiment.measured import read_measured
+
+    df = kneenlp.simulate(kneenlp.Knee.named("synthetic"), "set3").measured()
+    df.to_csv(tmp_path / "n.csv", index=False)
+    read_measured(tmp_path / "n.csv")
+    df["anterior_force_N"] = df["anterior_force_N"] / 1000
+    df.to_csv(tmp_path / "kn.csv", index=False)
+    with pytest.raises(kneenlp.InputError, match="kN in the _N columns") as err:
+        read_measured(tmp_path / "kn.csv")
+    assert err.value.field == "anterior_force_N"

@@ -42,7 +42,8 @@ the column and the row):
   translations beyond :data:`MAX_TRANSLATION_MM` (100 mm: micrometres?), or all within
   :data:`MIN_TRANSLATION_MM` (0.1 mm) although the file has loaded trials (metres?); rotations
   beyond 90 deg, or all within :data:`MIN_ROTATION_DEG` (0.2 deg) although the file has a moment
-  of at least 1 N m (radians?);
+  of at least 1 N m (radians?); a row pushed more than 1 mm from the unloaded pose of its flexion by
+  a force below 1 N and no moment (kN?);
 * at most :data:`MAX_TRIALS` rows (1000): the identification NLP has 5 pose variables and 5
   equilibrium constraints per trial, and 1000 trials took 90 s and 0.9 GB on the synthetic knee
   (a loaded 2-core machine) and take many minutes on a mesh knee (the paper's protocols have 7 to
@@ -349,6 +350,7 @@ def check_plausible(df: pd.DataFrame, src: str) -> None:
         raise InputError(f"every translation is below {MIN_TRANSLATION_MM:g} mm (largest {t.max():.3g}) although "
                          "the knee is loaded: metres in the _mm columns? Give translations in mm", source=src,
                          field=trans[int(np.argmax(t.max(axis=0)))])
+    _check_force_unit(df, src, force, moment)
     if r.max() > MAX_ROTATION_DEG:
         i, j = np.unravel_index(np.argmax(r), r.shape)
         raise InputError(f"row {i + 2}: rotation {df[rots[j]].iloc[i]:g} deg beyond {MAX_ROTATION_DEG:g} deg",
@@ -357,6 +359,28 @@ def check_plausible(df: pd.DataFrame, src: str) -> None:
         raise InputError(f"every rotation is below {MIN_ROTATION_DEG:g} deg (largest {r.max():.3g}) although "
                          "moments of 1 N m or more act: radians in the _deg columns? Give rotations in deg",
                          source=src, field=rots[int(np.argmax(r.max(axis=0)))])
+
+
+#: A trial whose anterior translation moved this far (mm) from the unloaded pose at its flexion under
+#: a force below 1 N and moments below :data:`QUIET_MOMENT_NM` had its force given in kN.
+KN_SLIP_MM = 1.0
+QUIET_MOMENT_NM = 0.1
+
+
+def _check_force_unit(df: pd.DataFrame, src: str, force: np.ndarray, moment: np.ndarray) -> None:
+    """Forces in N, as moments are checked in N m: a row pushed away from the unloaded pose of its
+    flexion (a row with every load exactly zero) by a force below 1 N and no moment is a force in kN."""
+    loads = np.abs(df[[c for c in load_columns(extra=True) if c in df.columns]].to_numpy())
+    unloaded = ~loads.any(axis=1)
+    anterior = df["anterior_translation_mm"].to_numpy()
+    flexion = df["flexion_deg"].to_numpy()
+    suspect = (force > 0) & (force < 1.0) & (moment < QUIET_MOMENT_NM)
+    for i in np.flatnonzero(suspect):
+        same = unloaded & (np.abs(flexion - flexion[i]) < 0.5)
+        if same.any() and np.abs(anterior[i] - anterior[same]).min() > KN_SLIP_MM:
+            raise InputError(f"row {i + 2}: a force of {force[i]:g} N moved the tibia "
+                             f"{np.abs(anterior[i] - anterior[same]).min():.3g} mm from its unloaded pose: kN in the "
+                             "_N columns? Give forces in N", source=src, field="anterior_force_N")
 
 
 def _check_protocol_name(data: MeasuredData, path: Path) -> None:
