@@ -37,7 +37,7 @@ def test_nested_objective_equals_simultaneous_objective(set1_fit):
 
 
 def test_nested_objective_does_not_depend_on_evaluation_order(set1_fit):
-    """Every evaluation's rootfinder starts at the reference equilibria: the objective at a point is
+    """Every evaluation's rootfinder starts from fixed reference equilibria: the objective at a point is
     the same whatever was evaluated before it (to the rootfinder's tolerance), and so are its poses
     (the same equilibrium, never another one)."""
     problem = set1_fit.problem
@@ -46,7 +46,7 @@ def test_nested_objective_does_not_depend_on_evaluation_order(set1_fit):
     points = [x_opt, *(problem.to_scaled(problem.scatter(rng)) for _ in range(4))]
     runs = []
     for order in (range(len(points)), reversed(range(len(points)))):
-        obj = NestedObjective(problem, points[1])
+        obj = NestedObjective(problem, np.array(points[1:3]))
         runs.append({i: obj.evaluate(points[i]) for i in order})
     for i in range(len(points)):
         (f_a, q_a, res_a), (f_b, q_b, res_b) = runs[0][i], runs[1][i]
