@@ -63,7 +63,7 @@ class Fit:
     prior_objective: float = 0.0
     #: a real experiment's calibration (:class:`~kneenlp.estimation.calibrate.Calibration`: the RMS
     #: before, engaged groups, outliers, predict's check) when ``identify`` calibrated; else None.
-    #: Its own ``fit`` is this fit without the link back (a frozen pair cannot point at each other)
+    #: Its ``fit`` is this fit: the fit is frozen, so ``identify`` links the (mutable) calibration to it
     calibration: object | None = field(default=None, repr=False, compare=False)
 
     @classmethod
