@@ -108,7 +108,7 @@ def run_case(knee, protocol, values: dict, noise: str, seed: int, refit: int, tm
     row = {"outcome": d.outcome, "named": d.named.effect if d.named else None,
            "top1": d.ranking[0].effect if d.ranking else None, "recommended": rec.effect if rec else None,
            "rivals": d.decision.rivals, "p_global": d.p_value, "seconds": seconds,
-           "base_starts": fit.extra.get("base_starts", 1),
+           "base_starts": fit.starts,
            "implied_noise": d.decision.implied_noise.level if d.decision.implied_noise else None}
     row |= {"named_ok": frees_truth(row["named"]), "top1_ok": frees_truth(row["top1"]),
             "recommended_ok": frees_truth(row["recommended"]),

@@ -41,10 +41,10 @@ def bench(name: str, seeds: range) -> None:
         st = get_nlp(fit.problem, "ipopt", None, 2).solver.stats()
         per_call = {fn: 1e3 * st.get(f"t_wall_{fn}", 0.0) / max(st.get(f"n_call_{fn}", 0), 1)
                     for fn in ("nlp_g", "nlp_jac_g", "nlp_hess_l")}
-        rows.append((seed, fit.success, fit.extra.get("starts", 1), fit.iterations, fit.seconds,
-                     fit.extra["start_seconds"], total, per_call))
+        rows.append((seed, fit.success, fit.starts, fit.iterations, fit.seconds,
+                     fit.result.start_seconds, total, per_call))
         print(f"  {name} seed {seed}: success {fit.success}, starts {rows[-1][2]}, {fit.iterations} iterations, "
-              f"IPOPT {fit.seconds:.2f} s, start {fit.extra['start_seconds']:.2f} s, total {total:.2f} s; "
+              f"IPOPT {fit.seconds:.2f} s, start {fit.result.start_seconds:.2f} s, total {total:.2f} s; "
               + ", ".join(f"{k} {v:.1f} ms" for k, v in per_call.items()), flush=True)
     it = np.median([r[3] for r in rows])
     sec = np.median([r[4] for r in rows])

@@ -32,7 +32,7 @@ def fit_seed(knee: kneenlp.Knee, res, seed: int, tmp: Path) -> tuple[bool, bool,
     fit = identify(knee, data, seed=seed, noise=NOISE)
     seconds = time.perf_counter() - t0
     rescued = "rescued" in (fit.message or "")
-    return fit.success, rescued, int(fit.extra.get("starts", 1)), fit.iterations, seconds
+    return fit.success, rescued, fit.starts, fit.iterations, seconds
 
 
 def main(seeds: list[int]) -> None:

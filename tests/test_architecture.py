@@ -98,7 +98,7 @@ def test_objective_is_the_weighted_residual_sum(effect, method, tmp_path):
     wsum = float(np.sum(fit.weights * r**2))
     assert fit.objective == pytest.approx(wsum, rel=1e-9)
     if method == "simultaneous":
-        assert fit.extra["solver_objective"] == pytest.approx(wsum, rel=1e-9)
+        assert fit.result.objective == pytest.approx(wsum, rel=1e-9)
 
 
 def test_worked_law(example, monkeypatch):

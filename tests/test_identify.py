@@ -189,5 +189,5 @@ def test_set4_start_that_wandered_converges_without_rescue(tmp_path):
     assert ipopt_trial_options(13) == {"obj_scaling_factor": 1.0}  # small protocols: IPOPT's own
     knee = kneenlp.Knee.default()
     fit = identify(knee, measured(knee, "set4", "uniform:0.5", 186, tmp_path), seed=186, noise="uniform:0.5")
-    assert fit.success and fit.extra["starts"] == 1 and "rescued" not in fit.message, fit.message
+    assert fit.success and fit.starts == 1 and "rescued" not in fit.message, fit.message
     assert fit.iterations <= 40

@@ -11,6 +11,7 @@ costs one solve, an inadequate model two.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from kneenlp.estimation.fit import Fit
@@ -34,7 +35,7 @@ def base_fit(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, noi
              seed: int = 0, max_starts: int = 5, agree: float = AGREE, free: list[str] | None = None) -> Fit:
     """Fit the base model (k and reference strain of every ligament, or ``free``) to ``data`` with
     the noise model ``noise`` (mm, deg), restarting as the module docstring says; the best
-    converged fit is returned, ``fit.extra["base_starts"]`` says how many starts it took."""
+    converged fit is returned, its ``starts`` say how many starts it took."""
     def solve(i: int) -> Fit:
         return identify(knee, data, seed=seed + 7919 * i, noise=noise, restarts=0, free=free,
                         solver_options={"ipopt": {"max_iter": MAX_ITER}})
@@ -48,5 +49,4 @@ def base_fit(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, noi
     fits = run_starts(solve, at_least=1, at_most=max_starts, done=done)
     converged = any(f.success for f in fits)
     best = best_fit([f for f in fits if f.success or not converged], lambda f: -f.objective)
-    best.extra["base_starts"] = len(fits)
-    return best
+    return dataclasses.replace(best, starts=len(fits))

@@ -110,7 +110,7 @@ class Diagnosis:
                 "ranking": [s.to_dict() for s in self.ranking], "tests": self.decision.to_dict() if self.decision
                 else None, "recommended": rec.effect if rec else None,
                 "estimate": estimate_words(self.fit, rec, self.refits.get(rec.effect)) if rec else None,
-                "verdict": self.verdict, "base_starts": self.fit.extra.get("base_starts", 1),
+                "verdict": self.verdict, "base_starts": self.fit.starts,
                 "detection_limits": self.limits,
                 "seconds": self.seconds}
 

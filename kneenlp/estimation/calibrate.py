@@ -321,74 +321,31 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     and ``threads`` serve the fallback (the simultaneous NLP, at most :data:`MAX_ITER` iterations
     unless ``solver_options`` say otherwise)."""
 
-    if free is not None and pivot_tolerance is not None:
-        raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
-    if free is not None and also_free:
-        raise InputError("adds to what the calibration chooses, --free names it all: give one", field="--also-free")
-    if all(t.dominant == "none" for t in data.trials):
-        raise InputError(f"every trial of {data.source or 'the data'} is unloaded: laxity under load is what "
-                         "determines the ligaments", field="data")
-    with_priors = priors not in (None, "none")
-    estimate = prior_weight == "estimate"
+    _check_calibration(data, free, pivot_tolerance, also_free)
+    with_priors, estimate = priors not in (None, "none"), prior_weight == "estimate"
     extra = also_free_names(model, also_free or [])
     before = predict(model, data)
-    fixed: list[str] = []
     theta, engaged = engaged_probe(model, data, model.theta())
-    declared = declared_free(model, [])  # the parameter table's free = true entries, if any
-    if free is None and declared:
-        free = declared
-    chosen = free is None  # the calibration chooses what to fit (a user's --free is kept as given)
-    if chosen and with_priors and pivot_tolerance is None:
-        free = [*REGISTRATION, *default_free(model)]
-    elif chosen:
-        free, fixed = calibration_free(model, data, theta, pivot_tolerance)
-        # an engaged group's offset is always fitted: the data, not the probe, decide how taut it is
-        offsets = [f"{g}.ref_strain_offset" for g in engaged]
-        free += [n for n in offsets if n not in free]
-        fixed = [n for n in fixed if n not in offsets]
-    if chosen and load_point and any(t.axes == "jcs" for t in data.trials):
-        free = [*free, LOAD_POINT]
-    if chosen:  # less what the parameter table declares fixed (free = false); in the model's order, as
-        # a parameter table's (the fit's path, and so its local minimum, depends on the order)
-        kept = declared_free(model, free)
-        fixed += [n for n in free if n not in kept]
-        free = sorted(kept, key=model.index)
+    free, fixed = calibration_choice(model, data, free, theta, engaged, with_priors=with_priors,
+                                     pivot_tolerance=pivot_tolerance, load_point=load_point)
     if with_priors and engaged and isinstance(priors, str):
         priors = engaged_priors(model, theta, engaged, free)
     extra = [n for n in extra if n not in free]
     fixed = [n for n in fixed if n not in extra]
-    # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
-    # docstring: IPOPT wandered on this problem, and from a good point made it worse)
     # the misfit is estimated from the residuals, whatever noise is declared: on a real knee the model's
     # error, not the instrument's noise, is what the parameters' and predictions' uncertainty must carry
     # (S192803: declared 0.2 mm, misfit about 1.5 mm); a declared noise serves diagnose's verdict
     options = {"noise": noise if weighted else None, "weighted": weighted, "with_effects": with_effects or (),
-               "priors": priors,
-               "prior_weight": None if estimate else float(prior_weight)}
+               "priors": priors, "prior_weight": None if estimate else float(prior_weight)}
     problem = IdentificationProblem.from_data(model, data, free, **options)
-    start = ({n: float(theta[model.index(n)]) for n in problem.free}
-             | problem.check_start(start))
-    fit = map_fit(problem, start, estimate=estimate)
-    if not fit.success:  # the simultaneous NLP, with its rescue
-        fallback = scatter_fit(fit.problem, start, seed=seed, multistart=multistart, restarts=0, solver=solver,
-                               solver_options=solver_options or {"ipopt": {"max_iter": MAX_ITER}}, threads=threads)
-        note = f"reduced-space Gauss-Newton did not converge ({fit.status}); the simultaneous NLP followed"
-        fallback.message = f"{fallback.message}; {note}" if fallback.message else note
-        if fallback.success or fallback.map_objective < fit.map_objective:
-            fit = fallback
+    # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
+    # docstring: IPOPT wandered on this problem, and from a good point made it worse)
+    start = {n: float(theta[model.index(n)]) for n in problem.free} | problem.check_start(start)
+    fit = first_fit(problem, start, estimate=estimate, seed=seed, multistart=multistart, solver=solver,
+                    solver_options=solver_options, threads=threads)
     options["prior_weight"] = fit.problem.prior_weight
     if extra:
-        # the extra parameters join from this fit, at their neutral values: from the probe, with the
-        # ligaments not yet placed, S192803's cruciate attachments ran 8-11 mm to another minimum
-        # (sum of squares 344; from the fit 296, docs/real-experiment.md)
-        problem = IdentificationProblem.from_data(model, data, [*problem.free, *extra], **options)
-        start = fit.params | {n: float(theta[model.index(n)]) for n in extra}
-        refit = map_fit(problem, start, q0=fit.q_pred, estimate=estimate)
-        if refit.map_objective <= fit.map_objective:
-            fit = refit
-        else:
-            fit.message = "; ".join(filter(None, [fit.message, f"fitting {', '.join(extra)} as well did not lower "
-                                                  "the sum of squares: they stay at the knee's values"]))
+        fit = with_also_free(fit, data, extra, theta, options, estimate=estimate)
         options["prior_weight"] = fit.problem.prior_weight
     outliers: list[Outlier] = []
     if not keep_outliers:
@@ -398,6 +355,81 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
     return Calibration(fit, before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
                        predict(model, data.subset(aside), fit.params) if outliers else None)
+
+
+def _check_calibration(data: MeasuredData, free: list[str] | None, pivot_tolerance: float | None,
+                       also_free: list[str] | None) -> None:
+    """Refuse options that contradict each other, and data without a load (:func:`calibrate`)."""
+    if free is not None and pivot_tolerance is not None:
+        raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
+    if free is not None and also_free:
+        raise InputError("adds to what the calibration chooses, --free names it all: give one", field="--also-free")
+    if all(t.dominant == "none" for t in data.trials):
+        raise InputError(f"every trial of {data.source or 'the data'} is unloaded: laxity under load is what "
+                         "determines the ligaments", field="data")
+
+
+def calibration_choice(model: KneeModel, data: MeasuredData, free: list[str] | None, probe: np.ndarray,
+                       engaged: list[str], *, with_priors: bool, pivot_tolerance: float | None,
+                       load_point: bool) -> tuple[list[str], list[str]]:
+    """(parameters to fit, parameters left at the knee's values) of :func:`calibrate`: a user's
+    ``free`` as given, else the parameter table's ``free = true`` entries, else the calibration's
+    choice: with priors every ligament parameter (unless ``pivot_tolerance``), without them those the
+    trials determine at the ``probe`` (:func:`calibration_free`) and the offsets of the ``engaged``
+    groups; the load point for joint loads (``load_point``); less what the table declares fixed."""
+    declared = declared_free(model, [])  # the parameter table's free = true entries, if any
+    if free is None and declared:
+        free = declared
+    if free is not None:  # a user's --free (or the table's) is kept as given
+        return free, []
+    fixed: list[str] = []
+    if with_priors and pivot_tolerance is None:
+        free = [*REGISTRATION, *default_free(model)]
+    else:
+        free, fixed = calibration_free(model, data, probe, pivot_tolerance)
+        # an engaged group's offset is always fitted: the data, not the probe, decide how taut it is
+        offsets = [f"{g}.ref_strain_offset" for g in engaged]
+        free += [n for n in offsets if n not in free]
+        fixed = [n for n in fixed if n not in offsets]
+    if load_point and any(t.axes == "jcs" for t in data.trials):
+        free = [*free, LOAD_POINT]
+    # less what the parameter table declares fixed (free = false); in the model's order, as a parameter
+    # table's (the fit's path, and so its local minimum, depends on the order)
+    kept = declared_free(model, free)
+    return sorted(kept, key=model.index), fixed + [n for n in free if n not in kept]
+
+
+def first_fit(problem: IdentificationProblem, start: dict[str, float], *, estimate: bool, seed: int,
+              multistart: int, solver: str, solver_options: dict | None, threads: int) -> Fit:
+    """The calibration's fit of ``problem`` from ``start`` (SI): :func:`map_fit`, and where it does not
+    converge the simultaneous NLP with the scatter strategy's rescue (at most :data:`MAX_ITER`
+    iterations unless ``solver_options`` say otherwise), kept if it converges or ends lower."""
+    fit = map_fit(problem, start, estimate=estimate)
+    if fit.success:
+        return fit
+    fallback = scatter_fit(fit.problem, start, seed=seed, multistart=multistart, restarts=0, solver=solver,
+                           solver_options=solver_options or {"ipopt": {"max_iter": MAX_ITER}}, threads=threads)
+    fallback = fallback.with_note(f"reduced-space Gauss-Newton did not converge ({fit.status}); the simultaneous "
+                                  "NLP followed")
+    return fallback if fallback.success or fallback.map_objective < fit.map_objective else fit
+
+
+def with_also_free(fit: Fit, data: MeasuredData, extra: list[str], probe: np.ndarray, options: dict, *,
+                   estimate: bool) -> Fit:
+    """``fit`` of ``data`` refitted with the parameters ``extra`` free as well, started at their values
+    in the ``probe`` (neutral) and the fit's (``options``: those of the fit's problem); the refit is
+    kept if it does not end higher."""
+    # the extra parameters join from this fit, at their neutral values: from the probe, with the
+    # ligaments not yet placed, S192803's cruciate attachments ran 8-11 mm to another minimum
+    # (sum of squares 344; from the fit 296, docs/real-experiment.md)
+    model = fit.problem.model
+    problem = IdentificationProblem.from_data(model, data, [*fit.problem.free, *extra], **options)
+    start = fit.params | {n: float(probe[model.index(n)]) for n in extra}
+    refit = map_fit(problem, start, q0=fit.q_pred, estimate=estimate)
+    if refit.map_objective <= fit.map_objective:
+        return refit
+    return fit.with_note(f"fitting {', '.join(extra)} as well did not lower the sum of squares: they stay at "
+                         "the knee's values")
 
 
 #: IPOPT iterations of the simultaneous NLP from a reduced-space fit (S192803: 52).
@@ -421,16 +453,10 @@ def polished(fit: Fit, threads: int = 2) -> Fit:
                              q0=fit.q_pred)
     start = f"reduced-space Gauss-Newton ({fit.iterations} evaluations, MAP objective {fit.map_objective:.6g})"
     if nlp.success and nlp.map_objective <= fit.map_objective * (1 + POLISH_RTOL):
-        nlp.message = "; ".join(filter(None, [nlp.message, f"started at the {start}"]))
-        nlp.seconds += fit.seconds
-        nlp.evaluations += fit.evaluations
-        nlp.extra["reduced"] = {"map_objective": fit.map_objective, "evaluations": fit.evaluations,
-                                "seconds": fit.seconds}
-        return nlp
+        return nlp.with_note(f"started at the {start}", seconds=nlp.seconds + fit.seconds,
+                             evaluations=nlp.evaluations + fit.evaluations)
     why = nlp.status if not nlp.success else f"it ended above ({nlp.map_objective:.6g})"
-    fit.message = "; ".join(filter(None, [fit.message, f"the simultaneous NLP from the {start} did not improve it "
-                                                       f"({why}): the reduced fit is kept"]))
-    return fit
+    return fit.with_note(f"the simultaneous NLP from the {start} did not improve it ({why}): the reduced fit is kept")
 
 
 def engaged_priors(model: KneeModel, probe: np.ndarray, engaged: list[str], free: list[str]) -> dict[str, Prior]:
@@ -508,7 +534,7 @@ def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
         why = ("the fit without it lost a trial's equilibrium" if not refit.max_residual <= problem.equilibrium_tol
                else "predict finds no equilibrium for it without it" if not alone.converged[0] else "")
         if why:
-            fit.message = "; ".join(filter(None, [fit.message, f"{ids[worst]} not tested as an outlier: {why}"]))
+            fit = fit.with_note(f"{ids[worst]} not tested as an outlier: {why}")
             break
         outlier = deletion_test(ids[worst], alone.errors_user[0], noise_per_observation(refit)[0],
                                 prediction_variances(refit, held, np.array([alone.solutions[0].q]))[0],

@@ -9,6 +9,7 @@ its best objective reported after 1k, 5k, 20k and 75k rootfinder solves (trial e
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from kneenlp.base.errors import InputError
@@ -72,7 +73,7 @@ def compare_calibration(model: KneeModel, data: MeasuredData, *, seed: int = 0, 
                          f"here ({2 * problem.n_free + 1} starting points x {problem.n_trials} trials)",
                          field="--max-solves")
     nested = nested_fit_of(problem, start, rng, seed, {"max_evals": evals, "max_seconds": max_seconds})
-    history = np.asarray(nested.extra["history"], float).reshape(-1, 2)
+    history = nested.result.history
     checkpoints = {}
     for solves in CHECKPOINTS:
         done = history[history[:, 0] * problem.n_trials <= solves]
@@ -84,7 +85,7 @@ def compare_calibration(model: KneeModel, data: MeasuredData, *, seed: int = 0, 
                 "evaluations": int(fit.evaluations), "evaluation_kind": kind, "seconds": fit.seconds,
                 "max_residual": fit.max_residual, "status": fit.status, "success": fit.success}
 
-    from_reduced.seconds += reduced.seconds
+    from_reduced = dataclasses.replace(from_reduced, seconds=from_reduced.seconds + reduced.seconds)
     rows = [row("reduced", reduced, "residual evaluations (each solves every trial)"),
             row("simultaneous (from the start)", direct, "IPOPT iterations"),
             row("simultaneous (from the reduced fit)", from_reduced, "IPOPT iterations after the reduced fit"),

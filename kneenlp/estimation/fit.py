@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -20,9 +21,10 @@ from kneenlp.estimation.statistics import (
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.solvers.result import SolverResult
 
 
-@dataclass
+@dataclass(frozen=True)
 class Fit:
     """Identified parameters of a knee from measured laxity data (lmfit's MinimizerResult).
 
@@ -52,16 +54,21 @@ class Fit:
     evaluations: int = 0
     message: str = ""
     solver: str = "ipopt"
-    extra: dict = field(default_factory=dict)
+    #: the solve this fit judged, as the solver left it (its objective, timings, the nested method's
+    #: history); None for a fit built from parameters and poses alone
+    result: SolverResult | None = field(default=None, repr=False, compare=False)
+    #: starts the fit took (the scatter strategy's starts and restarts, the base fit's starts)
+    starts: int = 1
     #: the priors' share of what the fit minimised (``prior_weight * sum z^2``; 0 without priors)
     prior_objective: float = 0.0
     #: a real experiment's calibration (:class:`~kneenlp.estimation.calibrate.Calibration`: the RMS
-    #: before, engaged groups, outliers, predict's check) when ``identify`` calibrated; else None
+    #: before, engaged groups, outliers, predict's check) when ``identify`` calibrated; else None.
+    #: Its ``fit`` is this fit: the fit is frozen, so ``identify`` links the (mutable) calibration to it
     calibration: object | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def build(cls, problem: IdentificationProblem, method: str, theta: np.ndarray, q: np.ndarray,
-              **kwargs) -> Fit:
+              **kwargs: object) -> Fit:
         """A fit at parameters ``theta`` and poses ``q`` (SI): objective, sensitivities and noise
         variance all from the problem's one observation function."""
         objective = problem.objective(q, theta)
@@ -70,6 +77,12 @@ class Fit:
                    q_pred=np.asarray(q, float), sensitivity=problem.sensitivities(q, theta),
                    noise_variance=variance, noise_source=source, prior_objective=problem.prior_objective(theta),
                    **kwargs)
+
+    def with_note(self, note: str, **changes) -> Fit:
+        """A new fit with ``note`` appended to the message (``"; "`` between notes) and the fields
+        ``changes`` replaced."""
+        message = "; ".join(filter(None, [self.message, note]))
+        return dataclasses.replace(self, message=message, **changes)
 
     @property
     def map_objective(self) -> float:

@@ -23,6 +23,7 @@ How a fit starts and restarts, and the solves themselves: :mod:`kneenlp.estimati
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from kneenlp.base.errors import InputError, unknown_name
@@ -91,6 +92,25 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     Returns the :class:`Fit`; a calibration's also carries its
     :class:`~kneenlp.estimation.calibrate.Calibration` as ``fit.calibration``.
     """
+    _check_names(method, strategy, calibration_options)
+    model = KneeModel.of(knee or Knee.default())
+    data = checked_data(data, protocol)
+    if resolve_strategy(strategy, data, method) == "calibration":
+        return calibrated_fit(model, data, free, fixed=fixed, priors=priors, prior_weight=prior_weight, seed=seed,
+                              noise=noise, weighted=weighted, with_effects=with_effects, start=start, solver=solver,
+                              solver_options=solver_options, multistart=multistart, threads=threads,
+                              **calibration_options)
+    _check_scatter(calibration_options, prior_weight)
+    problem = IdentificationProblem.from_data(model, data, free, noise=noise, weighted=weighted, fixed=fixed,
+                                              with_effects=with_effects or (), priors=priors,
+                                              prior_weight=prior_weight)
+    return scatter_fit(problem, problem.check_start(start), seed=seed, method=method, multistart=multistart,
+                       restarts=restarts, solver=solver, solver_options=solver_options, threads=threads,
+                       nested_options=nested_options)
+
+
+def _check_names(method: str, strategy: str, calibration_options: dict) -> None:
+    """Refuse an unknown method, strategy or keyword argument of :func:`identify`."""
     if method not in METHODS:
         raise unknown_name("method", method, METHODS)
     if strategy not in STRATEGIES:
@@ -98,29 +118,10 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     unknown = sorted(set(calibration_options) - set(CALIBRATION_OPTIONS))
     if unknown:
         raise TypeError(f"identify() got unexpected keyword argument(s): {', '.join(unknown)}")
-    model = KneeModel.of(knee or Knee.default())
-    if not isinstance(data, MeasuredData):
-        data = read_measured(data)
-    proto = protocol if isinstance(protocol, Protocol) or protocol is None else Protocol.load(protocol)
-    if proto is None and data.protocol in available_protocols():
-        proto = Protocol.load(data.protocol)
-    if proto is not None:
-        data.check_protocol(proto)
-    strategy = resolve_strategy(strategy, data, method)
-    if strategy == "calibration":
-        from kneenlp.estimation.calibrate import calibrate
 
-        if fixed:
-            raise InputError("a calibration starts from the knee's parameter file: put the values there "
-                             "(--parameters) instead of fixing them here", field="fixed")
 
-        cal = calibrate(model, data, free, seed=seed, noise=noise, weighted=weighted, with_effects=with_effects,
-                        start=start, solver=solver, solver_options=solver_options, multistart=multistart,
-                        threads=threads,
-                        **({} if priors is None else {"priors": priors}),
-                        **({} if prior_weight is None else {"prior_weight": prior_weight}), **calibration_options)
-        cal.fit.calibration = cal
-        return cal.fit
+def _check_scatter(calibration_options: dict, prior_weight: float | str | None) -> None:
+    """Refuse a calibration's own options in a fit by the scatter strategy."""
     for name, flag in CALIBRATION_OPTIONS.items():
         if name in calibration_options:
             raise InputError(f"{flag} changes what a real experiment's calibration fits; this fit is not one "
@@ -129,12 +130,35 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     if prior_weight == "estimate":
         raise InputError("'estimate' is for a real experiment's calibration; give a variance (mm^2, deg^2)",
                          field="--prior-weight")
-    problem = IdentificationProblem.from_data(model, data, free, noise=noise, weighted=weighted, fixed=fixed,
-                                              with_effects=with_effects or (), priors=priors,
-                                              prior_weight=prior_weight)
-    return scatter_fit(problem, problem.check_start(start), seed=seed, method=method, multistart=multistart,
-                       restarts=restarts, solver=solver, solver_options=solver_options, threads=threads,
-                       nested_options=nested_options)
+
+
+def checked_data(data: MeasuredData | str | Path, protocol: Protocol | str | None) -> MeasuredData:
+    """``data`` (read if a path) checked against ``protocol``, by default the one named in the data if known."""
+    if not isinstance(data, MeasuredData):
+        data = read_measured(data)
+    proto = protocol if isinstance(protocol, Protocol) or protocol is None else Protocol.load(protocol)
+    if proto is None and data.protocol in available_protocols():
+        proto = Protocol.load(data.protocol)
+    if proto is not None:
+        data.check_protocol(proto)
+    return data
+
+
+def calibrated_fit(model: KneeModel, data: MeasuredData, free: list[str] | None, *, fixed: dict[str, float] | None,
+                   priors: str | dict | None, prior_weight: float | str | None, **options) -> Fit:
+    """:func:`identify`'s calibration strategy: :func:`~kneenlp.estimation.calibrate.calibrate` (``options``
+    its keyword arguments), and its fit carrying the :class:`~kneenlp.estimation.calibrate.Calibration`,
+    which describes that very fit."""
+    from kneenlp.estimation.calibrate import calibrate
+
+    if fixed:
+        raise InputError("a calibration starts from the knee's parameter file: put the values there "
+                         "(--parameters) instead of fixing them here", field="fixed")
+    cal = calibrate(model, data, free, **options, **({} if priors is None else {"priors": priors}),
+                    **({} if prior_weight is None else {"prior_weight": prior_weight}))
+    fit = dataclasses.replace(cal.fit, calibration=cal)
+    cal.fit = fit  # the one link closed on the mutable side: fit.calibration.fit is fit
+    return fit
 
 
 def resolve_strategy(strategy: str, data: MeasuredData, method: str = "simultaneous") -> str:

@@ -16,13 +16,15 @@ prototype), and, when the noise model is given, a solve whose misfit the noise c
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy import stats
 
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.starts import best_fit, run_starts
 from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.solvers.forward import forward_solver, rim_reason
+from kneenlp.solvers.forward import rim_reason
 from kneenlp.solvers.nlp import solve_nlp
 from kneenlp.solvers.reduced import reduced_least_squares, tolerance
 
@@ -66,13 +68,11 @@ def scatter_fit(problem: IdentificationProblem, start: dict[str, float], *, seed
                       done=lambda fits: good(best_fit(fits, rank)))
     best, k = best_fit(fits, rank), len(fits)
     if best.success and at_bounds(best):
-        note = "ligament parameters at their bounds: a poor local minimum or a model that cannot fit the data"
-        best.message = f"{best.message}; {note}" if best.message else note
-    best.extra["starts"] = k
+        best = best.with_note("ligament parameters at their bounds: a poor local minimum or a model that cannot "
+                              "fit the data")
     if k > max(1, multistart):
-        note = f"{k - max(1, multistart)} restart(s) after failed solves"
-        best.message = f"{best.message}; {note}" if best.message else note
-    return best
+        best = best.with_note(f"{k - max(1, multistart)} restart(s) after failed solves")
+    return dataclasses.replace(best, starts=k)
 
 
 def reduced_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None,
@@ -81,13 +81,10 @@ def reduced_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.
     from ``q0``, SI): :func:`~kneenlp.solvers.reduced.reduced_least_squares` (``options``:
     ``max_evaluations``, ``tol``, ``threads``) as a :class:`Fit`."""
     r = reduced_least_squares(problem, start, q0=q0, **options)
-    theta = problem.theta(r.values)
-    solver = forward_solver(problem.model)
-    max_res = float(np.max(solver.residual_norms(r.q, theta, problem.trials)))
-    return Fit.build(problem, "reduced", theta, r.q, status=r.message,
-                     success=r.success and max_res <= problem.equilibrium_tol,
-                     iterations=r.evaluations, seconds=r.seconds, max_residual=max_res, start=dict(start),
-                     evaluations=r.evaluations, message="reduced-space Gauss-Newton", solver="reduced")
+    return Fit.build(problem, "reduced", problem.theta(r.values), r.q, status=r.status,
+                     success=r.success and r.max_residual <= problem.equilibrium_tol,
+                     iterations=r.evaluations, seconds=r.seconds, max_residual=r.max_residual, start=dict(start),
+                     evaluations=r.evaluations, message="reduced-space Gauss-Newton", solver=r.solver, result=r)
 
 
 def reduced_then_nlp(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None,
@@ -100,16 +97,15 @@ def reduced_then_nlp(problem: IdentificationProblem, start: dict[str, float], q0
     coarse = reduced_least_squares(problem, start, q0=q0, threads=threads,
                                    tol=max(RESCUE_TOL, tolerance(problem.model)))
     fit = solve_simultaneous(problem, coarse.values, "ipopt", solver_options, threads)
-    fit.seconds += coarse.seconds
+    fit = dataclasses.replace(fit, seconds=fit.seconds + coarse.seconds)
     if fit.success or not coarse.success:
         return fit, None, coarse.evaluations
     finished = reduced_fit(problem, coarse.values, q0=coarse.q, threads=threads)
-    finished.seconds += coarse.seconds
     evaluations = coarse.evaluations + finished.evaluations
-    finished.evaluations = finished.iterations = evaluations
+    finished = dataclasses.replace(finished, seconds=finished.seconds + coarse.seconds, evaluations=evaluations,
+                                   iterations=evaluations)
     again = solve_simultaneous(problem, problem.values(finished.theta), "ipopt", solver_options, threads)
-    again.seconds += finished.seconds
-    return again, finished, evaluations
+    return dataclasses.replace(again, seconds=again.seconds + finished.seconds), finished, evaluations
 
 
 def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fit, solver_options: dict | None,
@@ -121,10 +117,7 @@ def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fi
         return failed
     note = (f"rescued: IPOPT failed from the start ({failed.status}); a reduced-space Gauss-Newton start "
             f"({evaluations} evaluations) led it to the solution")
-    fit.message = f"{fit.message}; {note}" if fit.message else note
-    fit.seconds += failed.seconds
-    fit.iterations += failed.iterations
-    return fit
+    return fit.with_note(note, seconds=fit.seconds + failed.seconds, iterations=fit.iterations + failed.iterations)
 
 
 def implausible_misfit(fit: Fit) -> bool:
@@ -152,16 +145,12 @@ def nested_fit_of(problem: IdentificationProblem, start: dict, rng: np.random.Ge
         if start:
             initial[0].update(start)
     cloud = np.array([[c[n] for n in problem.free] for c in initial])
-    out = nested_fit(problem, cloud, seed=seed, **options)
-    theta = problem.theta(out["values"])
-    q, res = out["q"], out["result"]
-    max_res = float(np.max(out["residual"]))
-    return Fit.build(problem, "nested", theta, q, status=res.message,
-                     success=bool(res.success) and max_res <= problem.equilibrium_tol,
-                     iterations=int(res.nit), seconds=out["seconds"], max_residual=max_res,
-                     start=dict(zip(problem.free, cloud[0], strict=True)), evaluations=out["trial_solves"],
-                     message=f"{res.nfev} objective evaluations", solver="complex",
-                     extra={"objective_evaluations": res.nfev, "history": res.history})
+    r = nested_fit(problem, cloud, seed=seed, **options)
+    return Fit.build(problem, "nested", problem.theta(r.values), r.q, status=r.status,
+                     success=r.success and r.max_residual <= problem.equilibrium_tol,
+                     iterations=r.iterations, seconds=r.seconds, max_residual=r.max_residual,
+                     start=dict(zip(problem.free, cloud[0], strict=True)), evaluations=r.equilibrium_solves,
+                     message=f"{r.evaluations} objective evaluations", solver=r.solver, result=r)
 
 
 def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
@@ -172,12 +161,12 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     contact point left out of the working sets and none beyond the femoral surface's open edge."""
     r = solve_nlp(problem, start, solver, solver_options, threads, q0)
     tol = problem.equilibrium_tol
-    success = r.solver_success and r.max_residual <= tol and r.left_out <= 0 and r.rim <= 0
+    success = r.success and r.max_residual <= tol and r.left_out <= 0 and r.rim <= 0
     notes = []
     if r.started_at_data:
         notes.append(f"{r.started_at_data} trial(s) had no equilibrium inside the pose envelope at the start; "
                      "started at data")
-    if r.solver_success and r.max_residual > tol:
+    if r.success and r.max_residual > tol:
         notes.append(f"equilibrium residual {r.max_residual:.2e} above {tol:g}")
     if r.left_out > 0:
         notes.append(f"a contact point outside the working sets penetrates {1e3 * r.left_out:.3f} mm: enlarge "
@@ -187,5 +176,4 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     return Fit.build(problem, "simultaneous", problem.theta(r.values), r.q, status=r.status, success=success,
                      iterations=r.iterations, seconds=r.seconds, max_residual=r.max_residual,
                      start=dict(start), build_seconds=r.build_seconds, evaluations=r.iterations,
-                     message="; ".join(notes), solver=r.solver_name,
-                     extra={"start_seconds": r.start_seconds, "solver_objective": r.objective})
+                     message="; ".join(notes), solver=r.solver, result=r)

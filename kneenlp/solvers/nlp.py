@@ -37,6 +37,7 @@ from kneenlp.base.errors import InputError
 from kneenlp.experiment.problem import prior_rows
 from kneenlp.model.solvercache import frozen
 from kneenlp.solvers.forward import equilibrium_start
+from kneenlp.solvers.result import SolverResult
 
 if TYPE_CHECKING:
     from kneenlp.experiment.problem import IdentificationProblem
@@ -185,28 +186,8 @@ def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, t
     return problem.model.solvers.get(key, lambda: build_nlp(problem, solver, options, threads))
 
 
-@dataclass
-class NLPResult:
-    """One solve of the simultaneous NLP, as the solver left it (:mod:`kneenlp.estimation` judges it)."""
-
-    values: dict[str, float]  # free parameters, SI
-    q: np.ndarray  # poses, T x 5, SI
-    status: str  # the solver's return status
-    solver_success: bool  # the solver's own verdict
-    iterations: int
-    seconds: float  # the solve itself
-    start_seconds: float  # the equilibrium start and the NLP's build
-    max_residual: float  # largest equilibrium residual, N or N m
-    left_out: float  # deepest penetration (m) of a contact point outside the working sets; -inf: none
-    rim: float  # deepest penetration (m) beyond the femoral surface's open edge; -inf: none
-    started_at_data: int  # trials with no equilibrium inside the pose envelope at the start
-    objective: float  # the solver's objective, mm^2 + deg^2 (weighted)
-    build_seconds: float
-    solver_name: str
-
-
 def solve_nlp(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
-              solver_options: dict | None = None, threads: int = 2, q0: np.ndarray | None = None) -> NLPResult:
+              solver_options: dict | None = None, threads: int = 2, q0: np.ndarray | None = None) -> SolverResult:
     """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter), poses
     started at equilibrium (:func:`~kneenlp.solvers.forward.equilibrium_start`) or at ``q0`` (T x 5,
     SI: e.g. a reduced-space fit's, the equilibria its continuation followed, which a solve from the
@@ -235,10 +216,13 @@ def solve_nlp(problem: IdentificationProblem, start: dict[str, float], solver: s
     if model.ws_size:
         left_out = float(np.max(model.left_out_batch(q, theta, problem.flexions, threads)))
         rim = float(np.max(model.rim_batch(q, theta, problem.flexions)))
-    return NLPResult(dict(zip(problem.free, values, strict=True)), q, str(st.get("return_status", "unknown")),
-                     bool(st.get("success", False)), int(st.get("iter_count", 0)), seconds, t1 - t0,
-                     float(np.max(np.abs(g))) if g.size else 0.0, left_out, rim, started_at_data, float(sol["f"]),
-                     nlp.build_seconds, nlp.solver_name)
+    iterations = int(st.get("iter_count", 0))
+    return SolverResult(solver=nlp.solver_name, values=dict(zip(problem.free, values, strict=True)), q=q,
+                        objective=float(sol["f"]), success=bool(st.get("success", False)),
+                        status=str(st.get("return_status", "unknown")), iterations=iterations,
+                        evaluations=int(st.get("n_call_nlp_f", iterations)), seconds=seconds,
+                        max_residual=float(np.max(np.abs(g))) if g.size else 0.0, start_seconds=t1 - t0,
+                        build_seconds=nlp.build_seconds, left_out=left_out, rim=rim, started_at_data=started_at_data)
 
 
 def _with_working_sets_of_the_pose(problem: IdentificationProblem, e: NLPExpressions) -> tuple[dict, dict]:

@@ -17,6 +17,7 @@ equilibrium, so it cannot wander off.  Used to rescue a failed simultaneous solv
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -25,6 +26,7 @@ import numpy as np
 from scipy import optimize
 
 from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.result import SolverResult
 
 #: After the first point at equilibrium, the trials a step loses are retried (load ramps, fresh
 #: starts) only if they are at most this share of all trials; more lost means the step went too
@@ -49,21 +51,130 @@ def tolerance(model) -> float:
     return MESH_TOLERANCE if model.ws_size else SMOOTH_TOLERANCE
 
 
-@dataclass
-class ReducedResult:
-    """Free parameter values (SI), equilibrium poses (T x 5, SI), objective, success, counts."""
+@dataclass(frozen=True, eq=False)
+class Point:
+    """One evaluated point: scaled free parameters ``x``, every parameter ``theta`` (SI), the trials'
+    poses ``q`` (T x 5, SI), whether every trial is at equilibrium, and the weighted residual rows
+    (mm or deg times the square root of the weights, then the priors' rows)."""
 
-    values: dict[str, float]
+    x: np.ndarray
+    theta: np.ndarray
     q: np.ndarray
-    objective: float
-    success: bool
-    evaluations: int
-    seconds: float
-    message: str
+    ok: bool
+    rows: np.ndarray
+
+    @property
+    def cost(self) -> float:
+        """The weighted residual sum plus the priors' share (mm^2 + deg^2)."""
+        return float(self.rows @ self.rows)
+
+
+class ReducedSpace:
+    """The least-squares problem over the scaled free parameters alone: residual rows and their
+    Jacobian, every trial at equilibrium (module docstring).
+
+    Evaluating (:meth:`evaluate`, :meth:`differentiate`) reads what is kept between evaluations and
+    never writes it; :meth:`remember` and :meth:`remember_slope` alone write it:
+
+    * ``best``: the lowest-cost point with every trial at equilibrium so far, trf's current iterate
+      (its steps only ever lower the cost).  Every trial is solved from its poses, never from a
+      rejected trial point: a knee can have two equilibria, and a warm start from far away switched
+      branches (objective 25 -> 3221 at the same parameters);
+    * ``slope``: the best point's ``dq/dp`` (SI), whose first-order prediction of the poses starts Newton;
+    * ``last``: the last point evaluated, the one trf differentiates next.
+
+    :meth:`residuals` and :meth:`jacobian` are scipy's ``fun`` and ``jac``.
+    """
+
+    def __init__(self, problem: IdentificationProblem, q_start: np.ndarray, threads: int = 2):
+        self.problem, self.threads = problem, threads
+        self.solver = forward_solver(problem.model)
+        self.sqrt_weights = np.sqrt(problem.weights).ravel()
+        self.free_index = [problem.model.index(n) for n in problem.free]
+        self.q_start = np.asarray(q_start, float).copy()  # SI, the first solve's poses
+        self.best: Point | None = None
+        self.slope: tuple[np.ndarray, np.ndarray] | None = None  # (theta, dq/dp) of the best point
+        self.last: Point | None = None
+
+    # ------------------------------------------------------------------ evaluating
+    def evaluate(self, x: np.ndarray) -> Point:
+        """Every trial solved at the scaled parameters ``x``, from the best point's poses (the
+        start's before any), and the residual rows there."""
+        problem, trials, tol_eq = self.problem, self.problem.trials, self.problem.equilibrium_tol
+        theta = problem.theta(problem.from_scaled(x))
+        retries = None if self.best is None else int(MAX_RETRIED_SHARE * len(trials))
+        q_from = self.q_start if self.best is None else self.best.q
+        theta_from = None if self.best is None else self.best.theta
+        q, res = self.solver.solve_batch(trials, theta, q_from, self.threads, max_retries=retries,
+                                         theta0=theta_from, guess=self.predicted_poses(theta))
+        bad = np.flatnonzero(~(res <= tol_eq))
+        if len(bad) and (retries is None or len(bad) <= retries):  # try from the forward solver's own start
+            for i, sol in zip(bad, self.solver.solve([trials[i] for i in bad], theta), strict=True):
+                if sol.converged:
+                    q[i], res[i] = sol.q, sol.max_residual
+        rows = np.concatenate([problem.residuals(q, theta).ravel() * self.sqrt_weights, self.prior_rows(x)])
+        return Point(np.array(x, float), theta, q, bool(np.all(res <= tol_eq)), rows)
+
+    def predicted_poses(self, theta: np.ndarray) -> np.ndarray | None:
+        """The first-order prediction of the poses at ``theta`` (SI) from the best point's (its
+        ``dq/dp``); None while the best point has no slope."""
+        if self.slope is None or self.best is None or not np.array_equal(self.slope[0], self.best.theta):
+            return None
+        step = np.array([theta[i] - self.best.theta[i] for i in self.free_index])  # SI
+        return self.best.q + self.slope[1] @ step
+
+    def differentiate(self, point: Point) -> tuple[np.ndarray, np.ndarray]:
+        """(d rows / d x, dq/dp in SI) at ``point``: the implicit-function sensitivities, scaled and
+        weighted, then the priors' rows."""
+        problem = self.problem
+        dy_dp, dq_dp = problem.sensitivities(point.q, point.theta, with_poses=True)
+        rows = np.vstack([dy_dp * problem.scales * self.sqrt_weights[:, None], self.prior_jacobian(point.x)])
+        return rows, dq_dp
+
+    def prior_rows(self, x: np.ndarray) -> np.ndarray:
+        """The priors' rows at the scaled parameters ``x`` (none without priors)."""
+        problem = self.problem
+        return problem.prior_residuals(problem.from_scaled(x)) if problem.priors else np.zeros(0)
+
+    def prior_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """d (priors' rows) / d x (scaled)."""
+        problem = self.problem
+        if not problem.priors:
+            return np.zeros((0, len(x)))
+        return problem.prior_jacobian(dict(zip(problem.free, problem.from_scaled(x), strict=True))) * problem.scales
+
+    # ------------------------------------------------------------------ what is kept
+    def remember(self, point: Point) -> None:
+        """``point`` is the last evaluated, and the best if every trial is at equilibrium there and
+        its cost is the lowest so far."""
+        self.last = point
+        if point.ok and (self.best is None or point.cost < self.best.cost):
+            self.best = dataclasses.replace(point, q=point.q.copy())
+
+    def remember_slope(self, point: Point, dq_dp: np.ndarray) -> None:
+        """Keep ``dq/dp`` (SI) of ``point`` when it is the best point."""
+        if self.best is not None and np.array_equal(point.theta, self.best.theta):
+            self.slope = (point.theta, dq_dp)
+
+    # ------------------------------------------------------------------ scipy's fun and jac
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """The residual rows at ``x``, remembered; without equilibrium a large residual turns trf's step back."""
+        point = self.evaluate(x)
+        self.remember(point)
+        return point.rows if point.ok else point.rows + 1e3
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """The rows' Jacobian at ``x``: at the last point (trf evaluates before it differentiates),
+        else at ``x`` evaluated and remembered; the best point's ``dq/dp`` is kept."""
+        if self.last is None or not np.array_equal(x, self.last.x):
+            self.residuals(x)
+        rows, dq_dp = self.differentiate(self.last)
+        self.remember_slope(self.last, dq_dp)
+        return rows
 
 
 def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float], *, q0: np.ndarray | None = None,
-                          max_evaluations: int = 60, tol: float | None = None, threads: int = 2) -> ReducedResult:
+                          max_evaluations: int = 60, tol: float | None = None, threads: int = 2) -> SolverResult:
     """Minimise the problem's weighted residual sum over its free parameters from ``start`` (SI),
     with every trial at equilibrium (module docstring); ``q0`` warm-starts the first poses (SI,
     default the measured ones).  Parameters scaled by their scales; stops at relative cost change
@@ -71,65 +182,14 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
     ``threads`` of the trials' Newton."""
     tol = tolerance(problem.model) if tol is None else tol
     t0 = time.perf_counter()
-    solver = forward_solver(problem.model)
-    scales, tol_eq = problem.scales, problem.equilibrium_tol
-    w = np.sqrt(problem.weights).ravel()
-    trials = problem.trials
-    free_index = [problem.model.index(n) for n in problem.free]
-    # every trial is solved from the poses of the best point so far (trf's current iterate: its steps
-    # only ever lower the cost), never from a rejected trial point: a knee can have two equilibria,
-    # and a warm start from far away switched branches (objective 25 -> 3221 at the same parameters)
-    state = {"best": (np.inf, np.asarray(problem.data.q if q0 is None else q0, float).copy(), None), "last": None,
-             "slope": None}
-
-    def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
-        theta = problem.theta(problem.from_scaled(x))
-        retries = None if state["best"][0] == np.inf else int(MAX_RETRIED_SHARE * len(trials))
-        _, q_best, theta_best = state["best"]
-        guess = None
-        if state["slope"] is not None and theta_best is not None and np.array_equal(state["slope"][0], theta_best):
-            # Newton from the first-order prediction of the poses at theta (the best point's dq/dp)
-            step = np.array([theta[i] - theta_best[i] for i in free_index])  # SI
-            guess = q_best + state["slope"][1] @ step
-        q, res = solver.solve_batch(trials, theta, q_best, threads, max_retries=retries, theta0=theta_best, guess=guess)
-        bad = np.flatnonzero(~(res <= tol_eq))
-        if len(bad) and (retries is None or len(bad) <= retries):  # try from the forward solver's own start
-            for i, sol in zip(bad, solver.solve([trials[i] for i in bad], theta), strict=True):
-                if sol.converged:
-                    q[i], res[i] = sol.q, sol.max_residual
-        ok = bool(np.all(res <= tol_eq))
-        r = np.concatenate([problem.residuals(q, theta).ravel() * w, prior_rows_of(x)])
-        state["last"] = (x.copy(), q, theta, ok)
-        return r, q, theta, ok
-
-    def fun(x: np.ndarray) -> np.ndarray:
-        r, q, theta, ok = evaluate(x)
-        if ok and r @ r < state["best"][0]:
-            state["best"] = (float(r @ r), q.copy(), theta)
-        return r if ok else r + 1e3  # no equilibrium: a large residual turns the step back
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        if state["last"] is None or not np.array_equal(x, state["last"][0]):
-            fun(x)
-        _, q, theta, _ = state["last"]
-        dy_dp, dq_dp = problem.sensitivities(q, theta, with_poses=True)
-        if state["best"][2] is not None and np.array_equal(theta, state["best"][2]):
-            state["slope"] = (theta, dq_dp)
-        return np.vstack([dy_dp * scales * w[:, None], prior_jacobian_of(x)])
-
-    def prior_rows_of(x: np.ndarray) -> np.ndarray:  # the priors' rows (none without priors)
-        return problem.prior_residuals(problem.from_scaled(x)) if problem.priors else np.zeros(0)
-
-    def prior_jacobian_of(x: np.ndarray) -> np.ndarray:  # d rows / d x (scaled)
-        if not problem.priors:
-            return np.zeros((0, len(x)))
-        return problem.prior_jacobian(dict(zip(problem.free, problem.from_scaled(x), strict=True))) * scales
-
+    space = ReducedSpace(problem, problem.data.q if q0 is None else q0, threads)
     lower, upper = problem.scaled_bounds
     x0 = np.clip(problem.to_scaled(start), lower, upper)
-    out = optimize.least_squares(fun, x0, jac=jac, bounds=(lower, upper),
-                                 method="trf", x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations)
-    _, q, theta, ok = evaluate(out.x)  # from the best point's poses: out.x's own branch
-    values = dict(zip(problem.free, problem.from_scaled(out.x), strict=True))
-    return ReducedResult(values, q, problem.map_objective(q, theta), bool(out.status > 0 and ok), int(out.nfev),
-                         time.perf_counter() - t0, str(out.message))
+    out = optimize.least_squares(space.residuals, x0, jac=space.jacobian, bounds=(lower, upper), method="trf",
+                                 x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations)
+    end = space.evaluate(out.x)  # from the best point's poses: out.x's own branch
+    max_residual = float(np.max(space.solver.residual_norms(end.q, end.theta, problem.trials)))
+    return SolverResult(solver="reduced", values=dict(zip(problem.free, problem.from_scaled(out.x), strict=True)),
+                        q=end.q, objective=problem.map_objective(end.q, end.theta),
+                        success=bool(out.status > 0 and end.ok), status=str(out.message), iterations=int(out.nfev),
+                        evaluations=int(out.nfev), seconds=time.perf_counter() - t0, max_residual=max_residual)

@@ -15,7 +15,7 @@ from kneenlp.base.atomic import atomic_target, write_csv_atomic, write_text_atom
 from kneenlp.base.resources import resource
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.model.parameters import KINDS
-from kneenlp.studies.truth import study_model, study_truth
+from kneenlp.studies.truth import StudyTruths
 
 # Table 3 units by parameter kind: (unit, factor from SI): the paper's kN for stiffnesses, the
 # display units of KINDS for the rest (reference strains and their group offsets in %; group
@@ -37,14 +37,13 @@ def _write_parquet(df: pd.DataFrame, path: Path) -> bool:
         return False
 
 
-def predicted_std(study, set_name: str) -> dict[str, float]:
+def predicted_std(study, set_name: str, truths: StudyTruths) -> dict[str, float]:
     """Linearised (Gauss-Newton) standard deviation of each free parameter at the true values (SI)."""
     from kneenlp.estimation.statistics import gauss_newton_covariance
     from kneenlp.experiment.problem import IdentificationProblem, free_names
 
     spec = study.spec
-    model = study_model(spec.knee, tuple(spec.elements))
-    truth = study_truth(spec.knee, tuple(spec.elements), set_name)
+    model, truth = truths.model, truths.truth(set_name)
     free = free_names(model, spec.free, spec.with_effects)
     problem = IdentificationProblem(model, [s.trial for s in truth.solutions], free)
     theta = problem.theta()
@@ -53,16 +52,18 @@ def predicted_std(study, set_name: str) -> dict[str, float]:
     return {n: float(np.sqrt(cov[i, i])) for i, n in enumerate(free)}
 
 
-def analyse_study(study) -> dict:
+def analyse_study(study, truths: StudyTruths | None = None) -> dict:
     """Write estimates.csv/.parquet, table3.csv, failures.csv, fig3_boxplots.png,
-    fig2_set3_forces.png and summary.md into the study directory; return the Table 3 frame."""
+    fig2_set3_forces.png and summary.md into the study directory; return the Table 3 frame.
+    ``truths``: the study's model and true simulations (built here when not given)."""
     from kneenlp.figures import plots
 
     out = study.out
     df = study.load_rows()
     _write_csv(df, out / "estimates.csv")
     parquet = _write_parquet(df, out / "estimates.parquet")
-    model = study_model(study.spec.knee, tuple(study.spec.elements))
+    truths = truths or StudyTruths(study.spec.knee, tuple(study.spec.elements))
+    model = truths.model
     knee = model.knee
     truth_vals = dict(zip(model.parameter_names, model.theta(), strict=True))
     ok = df[df["success"].astype(bool)] if not df.empty else df
@@ -73,7 +74,7 @@ def analyse_study(study) -> dict:
     rows = []
     for set_name in study.spec.sets:
         sub = ok[ok["set"] == set_name]
-        pred = predicted_std(study, set_name)
+        pred = predicted_std(study, set_name, truths)
         for p in params:
             lig, kind = p.rsplit(".", 1)
             unit, f = _USER_UNITS[model.parameter(p).kind]
@@ -96,7 +97,7 @@ def analyse_study(study) -> dict:
     plots.study_boxplots(ok, table, study.spec.sets, out / "fig3_boxplots.png", factors,
                          f"{len(ok)} fits, noise {study.spec.noise}")
     fig2_set = "set3" if "set3" in study.spec.sets else study.spec.sets[0]
-    truth = study_truth(study.spec.knee, tuple(study.spec.elements), fig2_set)
+    truth = truths.truth(fig2_set)
     plots.ligament_forces(truth.table(), list(knee.ligaments), out / f"fig2_{truth.protocol.name}_forces.png",
                           f"Ligament forces, {fig2_set} (true parameters)",
                           truth.recruitment() if any(t.direction == "none" for t in truth.protocol.trials) else None)

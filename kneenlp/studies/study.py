@@ -24,17 +24,21 @@ import sys
 import time
 import zlib
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
+from tqdm import tqdm
 
 from kneenlp.base import interrupts
 from kneenlp.base.atomic import write_text_atomic
 from kneenlp.base.errors import InputError, unknown_name
+
+if TYPE_CHECKING:
+    from kneenlp.studies.truth import StudyTruths
 
 STARTS = ("scatter", "truth")
 #: Keys every sample file holds (written by :meth:`Study.record`).
@@ -80,21 +84,20 @@ def sample_seed(study_seed: int, set_name: str, index: int) -> int:
     return int(ss.generate_state(1, dtype=np.uint32)[0])
 
 
-def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2) -> dict:
+def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2, truths: StudyTruths | None = None) -> dict:
     """Simulate, add noise and identify one sample; returns one result row (never raises).
 
-    ``threads`` of the NLP's trial map: 1 in worker processes (one process per core already)."""
+    ``threads`` of the NLP's trial map: 1 in worker processes (one process per core already);
+    ``truths``: the study's model and true simulations (built here when not given)."""
     from kneenlp.base.conventions import coordinate_columns
     from kneenlp.estimation.identify import identify
     from kneenlp.experiment.measured import MeasuredData
     from kneenlp.experiment.problem import default_free
-    from kneenlp.studies.truth import study_model, study_truth
-
     row: dict = {"set": set_name, "sample": index, "seed": -1}
     t0 = time.perf_counter()
     try:
-        model = study_model(spec.knee, tuple(spec.elements))
-        truth = study_truth(spec.knee, tuple(spec.elements), set_name)
+        truths = truths or study_truths(spec)
+        model, truth = truths.model, truths.truth(set_name)
         # the protocol's name, not the path it was given by: moving the file keeps the draws
         seed = row["seed"] = sample_seed(spec.seed, truth.protocol.name, index)
         df = truth.measured(spec.noise, seed)
@@ -118,14 +121,30 @@ def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2) -> 
     return row
 
 
-def _worker_sample(spec: StudySpec, set_name: str, index: int) -> dict:
-    """:func:`run_sample` in a worker process: one process per core, so the NLP's trial map runs
-    serially (two threads per process would oversubscribe the cores)."""
-    return run_sample(spec, set_name, index, threads=1)
+#: The truths of the study this worker process serves, made by the pool's initializer
+#: (:func:`_start_worker`): set in worker processes only, once each.
+_WORKER_TRUTHS: list[StudyTruths] = []
 
 
-def _run_sample_args(args: tuple) -> dict:
-    return _worker_sample(*args)
+def _start_worker(truths: StudyTruths) -> None:
+    """A local pool's worker: Ctrl-C and SIGTERM left to the parent, and the study's truths kept
+    for every sample it solves (forked, the parent's as built so far)."""
+    interrupts.as_worker()
+    _WORKER_TRUTHS[:] = [truths]
+
+
+def _worker_sample(task: tuple[StudySpec, str, int]) -> dict:
+    """:func:`run_sample` in a local pool's worker process: one process per core, so the NLP's trial
+    map runs serially (two threads per process would oversubscribe the cores)."""
+    spec, set_name, index = task
+    return run_sample(spec, set_name, index, threads=1, truths=_WORKER_TRUTHS[0])
+
+
+def _dask_sample(spec: StudySpec, set_name: str, index: int) -> dict:
+    """:func:`run_sample` on a Dask worker (one thread each), with the truths of its worker plugin."""
+    from kneenlp.studies.dask_truths import worker_truths
+
+    return run_sample(spec, set_name, index, threads=1, truths=worker_truths())
 
 
 @dataclass
@@ -215,12 +234,22 @@ class Study:
         return list(self.spec.sets).index(s) if s in self.spec.sets else 99
 
 
+def study_truths(spec: StudySpec) -> StudyTruths:
+    """A new :class:`~kneenlp.studies.truth.StudyTruths` of ``spec``'s knee and elements."""
+    from kneenlp.studies.truth import StudyTruths
+
+    return StudyTruths(spec.knee, tuple(spec.elements))
+
+
 def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, scheduler: str | None = None,
-              dask_local: bool = False, progress: bool | None = None, analyse: bool = True) -> Study:
+              dask_local: bool = False, progress: bool | None = None, analyse: bool = True,
+              truths: StudyTruths | None = None) -> Study:
     """Run (or resume) a study into ``out``; see module docstring.
 
     ``workers`` local processes (default: all cores; 1 = in this process), or Dask: ``scheduler``
     (address ``tcp://HOST:PORT``) or ``dask_local`` (a LocalCluster with ``workers`` processes).
+    ``truths``: the model and true simulations of ``spec``'s knee (:func:`study_truths`), e.g. the
+    caller's, already built; made here when not given.
     """
     from kneenlp.experiment.protocol import Protocol
 
@@ -229,6 +258,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
     if spec.start not in STARTS:
         raise unknown_name("start", spec.start, STARTS)
     workers = workers or os.cpu_count() or 1
+    truths = truths or study_truths(spec)
     # Dask first: a missing package or an unreachable scheduler writes nothing into ``out``
     dask = _dask_client(scheduler, dask_local, workers) if scheduler or dask_local else None
     study = Study(spec, Path(out))
@@ -236,7 +266,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
     todo = study.pending()
     bar = _progress(len(spec.tasks()), len(spec.tasks()) - len(todo), progress)
     if todo:
-        for row in _execute(spec, todo, workers, dask):
+        for row in _execute(spec, todo, workers, dask, truths):
             interrupts.check()  # a sample whose solve was interrupted is not recorded
             study.record(row)
             bar.update(1)
@@ -248,7 +278,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
     if analyse:
         from kneenlp.studies.report import analyse_study
 
-        analyse_study(study)
+        analyse_study(study, truths)
     return study
 
 
@@ -269,55 +299,49 @@ def _dask_client(scheduler: str | None, dask_local: bool, workers: int):
     return Client(cluster), cluster
 
 
-def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, dask) -> Iterable[dict]:
+def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, dask,
+             truths: StudyTruths) -> Iterable[dict]:
+    """The rows of the samples ``todo`` as they finish: on Dask, in this process (``workers`` 1) or
+    in a local pool of ``workers`` processes, each keeping its own ``truths``."""
     if dask is not None:
-        from dask.distributed import as_completed as dask_completed
-
-        client, cluster = dask
-        try:
-            futures = [client.submit(_worker_sample, spec, s, i, pure=False) for s, i in todo]
-            for fut in dask_completed(futures):
-                yield fut.result()
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+        yield from _execute_dask(spec, todo, dask, truths)
         return
     if workers == 1:
         for s, i in todo:
-            yield run_sample(spec, s, i)
+            yield run_sample(spec, s, i, truths=truths)
         return
-    # fork: works from scripts and notebooks without a __main__ guard; the parent holds no CasADi
-    # threads at this point (thread maps join their threads after every evaluation)
+    # fork: works from scripts and notebooks without a __main__ guard, and the workers start with the
+    # truths built so far; the parent holds no CasADi threads at this point (thread maps join their
+    # threads after every evaluation)
     ctx = get_context("fork") if sys.platform.startswith("linux") else get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=interrupts.as_worker)
+    pool = ctx.Pool(workers, initializer=_start_worker, initargs=(truths,))
     try:
-        futures = [pool.submit(_run_sample_args, (spec, s, i)) for s, i in todo]
-        for fut in as_completed(futures):
-            yield fut.result()
+        yield from pool.imap_unordered(_worker_sample, [(spec, s, i) for s, i in todo])
     except BaseException:  # Ctrl-C, SIGTERM, or the consumer gone: stop the workers now, not after the queue
-        processes = list((getattr(pool, "_processes", None) or {}).values())
-        pool.shutdown(wait=False, cancel_futures=True)
-        for proc in processes:
-            proc.terminate()
+        pool.terminate()
         raise
-    pool.shutdown()
+    pool.close()
+    pool.join()
 
 
-class _NoBar:
-    def update(self, n: int) -> None:
-        pass
+def _execute_dask(spec: StudySpec, todo: list[tuple[str, int]], dask, truths: StudyTruths) -> Iterable[dict]:
+    from dask.distributed import as_completed as dask_completed
 
-    def close(self) -> None:
-        pass
+    from kneenlp.studies.dask_truths import TruthsPlugin
 
-
-def _progress(total: int, done: int, progress: bool | None):
-    show = sys.stderr.isatty() if progress is None else progress
-    if not show:
-        return _NoBar()
+    client, cluster = dask
     try:
-        from tqdm import tqdm
-    except ImportError:
-        return _NoBar()
-    return tqdm(total=total, initial=done, unit="fit", desc="study")
+        client.register_plugin(TruthsPlugin(truths))
+        futures = [client.submit(_dask_sample, spec, s, i, pure=False) for s, i in todo]
+        for fut in dask_completed(futures):
+            yield fut.result()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _progress(total: int, done: int, progress: bool | None) -> tqdm:
+    """The study's progress bar on stderr (``progress`` None: when stderr is a terminal)."""
+    show = sys.stderr.isatty() if progress is None else progress
+    return tqdm(total=total, initial=done, unit="fit", desc="study", disable=not show)

@@ -1,34 +1,56 @@
 """What every sample of a study shares: the knee model and each protocol's true simulation.
 
-Built once per process and study arguments (memoised on the arguments themselves, which are plain
-strings, so the memo is valid for any process that computes them).
+:class:`StudyTruths` builds them on first use and keeps them for as long as its owner keeps it:
+one per study run (:func:`~kneenlp.studies.study.run_study` makes it, or takes the caller's, and
+hands it to the samples it solves in its own process and to the analysis), one per worker process
+(made by the pool's initializer).  Nothing is memoised at module level: a knee file edited between
+two studies is read again by the next one.
 """
 
 from __future__ import annotations
-
-from functools import lru_cache
 
 from kneenlp.base.errors import InputError
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.simulation import SimulationResult
 
 
-@lru_cache(maxsize=4)
-def study_model(knee: str | None, elements: tuple[str, ...] = ()) -> KneeModel:
-    """The model of knee file ``knee`` (None: the default knee) with user ``elements`` (import paths)."""
-    from kneenlp.model.knee import Knee
-    from kneenlp.model.plugins import load_elements
+class StudyTruths:
+    """The model of knee file ``knee`` (None: the default knee) with user ``elements`` (import
+    paths, ``"module:factory"``) and its noise-free simulation of each protocol, built on first use.
 
-    k = Knee.load(knee) if knee else Knee.default()
-    return KneeModel(k, load_elements(elements)) if elements else KneeModel.of(k)
+    Pickled (for a worker process that is not forked) it carries its arguments alone; the worker
+    builds what it needs again."""
 
+    def __init__(self, knee: str | None, elements: tuple[str, ...] = ()):
+        self.knee, self.elements = knee, tuple(elements)
+        self._model: KneeModel | None = None
+        self._truths: dict[str, SimulationResult] = {}
 
-@lru_cache(maxsize=16)
-def study_truth(knee: str | None, elements: tuple[str, ...], set_name: str) -> SimulationResult:
-    """The noise-free simulation of protocol ``set_name`` at the knee's parameter set."""
-    from kneenlp.simulation import simulate
+    def __getstate__(self) -> dict:
+        return {"knee": self.knee, "elements": self.elements}
 
-    res = simulate(study_model(knee, elements), set_name)
-    if res.failed:
-        raise InputError(f"truth simulation of {set_name} failed: {', '.join(s.trial.id for s in res.failed)}")
-    return res
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["knee"], state["elements"])
+
+    @property
+    def model(self) -> KneeModel:
+        """The knee's model with the user elements."""
+        if self._model is None:
+            from kneenlp.model.knee import Knee
+            from kneenlp.model.plugins import load_elements
+
+            k = Knee.load(self.knee) if self.knee else Knee.default()
+            self._model = KneeModel(k, load_elements(self.elements)) if self.elements else KneeModel.of(k)
+        return self._model
+
+    def truth(self, set_name: str) -> SimulationResult:
+        """The noise-free simulation of protocol ``set_name`` at the knee's parameter set."""
+        if set_name not in self._truths:
+            from kneenlp.simulation import simulate
+
+            res = simulate(self.model, set_name)
+            if res.failed:
+                raise InputError(f"truth simulation of {set_name} failed: "
+                                 f"{', '.join(s.trial.id for s in res.failed)}")
+            self._truths[set_name] = res
+        return self._truths[set_name]
