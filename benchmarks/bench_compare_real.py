@@ -1,4 +1,4 @@
-"""Benchmark (issue 38): the methods on the real experiment's calibration problem (S192803, MAP
+"""Benchmark: the methods on the real experiment's calibration problem (S192803, MAP
 with the default priors, registration and load point, all 25 trials): the reduced-space fit, IPOPT
 from the calibration's start, IPOPT from the reduced fit (the calibration's solver) and the nested
 Complex method, its best MAP objective after 1k, 5k, 20k and 75k rootfinder solves.

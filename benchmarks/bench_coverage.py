@@ -1,4 +1,4 @@
-"""Benchmark (issue 38): coverage of the posterior's 95 % intervals on simulated experiments whose
+"""Benchmark: coverage of the posterior's 95 % intervals on simulated experiments whose
 truth is drawn from the prior (kneenlp.studies.coverage).  Target: 90-99 % over >= 200
 experiments.  Prints the coverage per parameter and overall, and the seconds taken.
 Run: python benchmarks/bench_coverage.py [EXPERIMENTS] [KNEE:SET ...]   (default 200 synthetic:set1 default:set1)

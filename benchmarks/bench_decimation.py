@@ -1,4 +1,4 @@
-"""Huge meshes (issue 24): the time and memory of a knee load, and the decimation's effect on contact.
+"""Huge meshes: the time and memory of a knee load, and the decimation's effect on contact.
 
 The default knee's meshes are subdivided (midpoint subdivision: the same surface, 4x the faces
 per level) to 1.23 million femoral faces (3 levels) and 2.2 million tibial faces (4 levels), and a

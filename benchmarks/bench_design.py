@@ -1,4 +1,4 @@
-"""Benchmark / figure: designed protocols vs the paper's Sets 1-4 (issue 8).
+"""Benchmark / figure: designed protocols vs the paper's Sets 1-4.
 
 Designs 22-case protocols (criteria A and R), prints the predicted relative standard errors of
 every set and design, optionally (``--mc N``) runs an N-sample Monte Carlo of the R design and Set

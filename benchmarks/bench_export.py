@@ -1,4 +1,4 @@
-"""Benchmark: the C export of a mesh knee (issue 22).  Exports the default knee's identification
+"""Benchmark: the C export of a mesh knee.  Exports the default knee's identification
 of Set 2 (uniform +-0.5, seed 2) as C, compiles it with gcc at each optimisation level given, and
 times one evaluation of every exported function; also the CasADi virtual machine's time for the
 same functions in both field layouts (``graph_field.LAYOUTS``).

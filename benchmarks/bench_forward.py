@@ -3,7 +3,7 @@
 Prints the knee load and model build times, the cold solve of all 60 trials (best of 3), a warm
 re-solve (every trial started from its previous solution, k +1 %) and the contact points per trial
 (mean and largest number of penetrating tibial points, both compartments; the synthetic knee's
-sphere contact evaluates every point).  Target (issue 13): forward Set 4 <= 1 s on 2 cores.
+sphere contact evaluates every point).  Target: forward Set 4 <= 1 s on 2 cores.
 Run: python benchmarks/bench_forward.py
 """
 

@@ -1,8 +1,8 @@
 """Benchmark: simultaneous identification of Set 4 (uniform +-0.5 noise), real default knee beside
 the synthetic one: median over 5 seeds of IPOPT iterations and seconds, with the start (forward
 solves at the scattered parameters) and where IPOPT's time goes.  Targets: Set 4 identification
-<= 1.0 s median and <= 30 iterations on 2 cores, on the default knee (issue 22; the synthetic
-knee's was 2 s, issue 13).  The first fit of a process builds the NLP and compiles nothing else
+<= 1.0 s median and <= 30 iterations on 2 cores, on the default knee (the synthetic
+knee's was 2 s).  The first fit of a process builds the NLP and compiles nothing else
 (numba's passes are cached per machine): it is timed apart, then every seed is timed.
 Run: python benchmarks/bench_identify.py [n_seeds]
 """

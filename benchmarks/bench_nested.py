@@ -1,7 +1,7 @@
 """Benchmark: nested Complex method vs simultaneous NLP on the same data (Set 1 and Set 3).
 
 Prints wall-time ratio, evaluation counts and the largest relative parameter difference, for
-one noise seed per set (issue 4).  Run: python benchmarks/bench_nested.py [seed] [max_evals]
+one noise seed per set.  Run: python benchmarks/bench_nested.py [seed] [max_evals]
 """
 
 import sys

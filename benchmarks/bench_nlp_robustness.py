@@ -1,7 +1,7 @@
 """Benchmark: robustness of the simultaneous NLP on the default (mesh) knee, Set 4 with uniform
 +-0.5 noise, one fit per seed: does IPOPT converge from the scattered start without the rescue
 (reduced-space Gauss-Newton, then IPOPT again: ``_rescued`` in :mod:`kneenlp.estimation.identify`)
-and in how many iterations and seconds.  Targets (issue 38): every seed converged without rescue,
+and in how many iterations and seconds.  Targets: every seed converged without rescue,
 at most 40 IPOPT iterations, median at most 25; the median time per fit no slower than before
 (0.4-0.8 s).  Seeds 40-49 are the development set, 100-119 the held-out one.  The first fit of a
 process (it builds the NLP) is timed apart.

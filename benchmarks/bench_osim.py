@@ -1,4 +1,4 @@
-"""Benchmark (issue 14): the OpenSim JAM Lenhart 2015 model imported as a multi-bundle knee.
+"""Benchmark: the OpenSim JAM Lenhart 2015 model imported as a multi-bundle knee.
 
 Prints: the time to import the .osim (55 Blankevoort1991Ligament bundles, coarse groups) with the
 femoral distance field cold (new cache directory) and warm; the forward solve of Set 4 and of

@@ -1,4 +1,4 @@
-"""Benchmark (issue 38): which calibration of S192803 predicts what it did not see.
+"""Benchmark: which calibration of S192803 predicts what it did not see.
 
 Cross-validates (the seven hold-outs of ``kneenlp cross-validate``: the highest flexion, and each
 load direction) four calibrations of the robot data and prints, per hold-out, the RMS of measured

@@ -1,4 +1,4 @@
-"""Benchmark (issue 21): every candidate effect refitted, one at a time, from the S192803 calibration.
+"""Benchmark: every candidate effect refitted, one at a time, from the S192803 calibration.
 
 For each of the knee's candidate effects (meniscus springs, flexion offset, load point, contact
 modulus, ligament-group stiffness and slack, every group's femoral and tibial attachments), the

@@ -1,4 +1,4 @@
-"""Benchmark (issue 21): the S192803 cadaver knee and its robotic laxity measurements.
+"""Benchmark: the S192803 cadaver knee and its robotic laxity measurements.
 
 Prints (2 cores; seconds, mm, deg):
 - the import of the Abaqus model (``import-abaqus``, needs the deposit at ../shared/data/du-s192803)

@@ -1,6 +1,6 @@
 """Benchmark: the paper's full noise study (4 sets x 20 samples, uniform +-0.5) on local processes.
 
-Target (issue 5): <= 60 s on the 2-core machine.  Also prints the per-set mean time per fit and
+Target: <= 60 s on the 2-core machine.  Also prints the per-set mean time per fit and
 the extrapolated time of 1000 samples per set.
 Run: python benchmarks/bench_study.py [samples] [workers] [scatter|truth]
 """

@@ -1,4 +1,4 @@
-"""Benchmark (issue 38): with wide priors the MAP is the paper's least squares.  Sets 1-4 on the
+"""Benchmark: with wide priors the MAP is the paper's least squares.  Sets 1-4 on the
 synthetic knee (uniform +-0.5 noise, seeds 1-4): the data-only fit and the MAP with a normal prior
 of sd 1000 times each value on every free parameter, from the same start.  Target: every estimate
 within 1 % of its standard error of the data-only one, so the paper's results stand.
