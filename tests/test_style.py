@@ -30,3 +30,20 @@ def test_docs_are_reference_not_a_record():
     found = [f"{d.name}: {m.group(0)}" for d in docs if d.name != "status.md"  # the status names open issues
              for m in record.finditer(d.read_text())]
     assert not found, found
+
+
+def test_functions_have_one_job():
+    """Every function of the package is at most 80 lines, except the command-line parser (one
+    declaration per option) and the compiled contact kernel (one numba loop)."""
+    import ast
+
+    exempt = {("cli/parser.py", "build_parser"), ("geometry/kernels.py", "wrench_expansion")}
+    long = []
+    for f in sorted((ROOT / "kneenlp").rglob("*.py")):
+        rel = f.relative_to(ROOT / "kneenlp").as_posix()
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and (rel, node.name) not in exempt:
+                size = node.end_lineno - node.lineno + 1
+                if size > 80:
+                    long.append(f"{rel}:{node.name} {size} lines")
+    assert not long, long
