@@ -40,7 +40,7 @@ class StudyTruths:
             from kneenlp.model.plugins import load_elements
 
             k = Knee.load(self.knee) if self.knee else Knee.default()
-            self._model = KneeModel(k, load_elements(self.elements)) if self.elements else KneeModel.of(k)
+            self._model = KneeModel(k, load_elements(self.elements))
         return self._model
 
     def truth(self, set_name: str) -> SimulationResult:
