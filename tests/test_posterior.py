@@ -27,7 +27,7 @@ def calibrated(tmp_path_factory):
     kneenlp.simulate(kneenlp.Knee.named("synthetic"), "set1").measured(NOISE, 5).to_csv(csv, index=False)
     fit = kneenlp.identify(kneenlp.Knee.named("synthetic"), read_measured(csv), free=FREE)
     toml = tmp / "calibrated.toml"
-    toml.write_text(Calibration(fit, None, []).to_toml())
+    toml.write_text(Calibration(None, [], fit=fit).to_toml())
     return csv, toml, fit
 
 

@@ -139,7 +139,7 @@ def cmd_identify(args) -> int:
                    noise=args.noise, weighted=args.weighted, multistart=args.multistart, solver=args.solver,
                    protocol=args.protocol, with_effects=args.with_effect, **prior_options(args),
                    **{k: v for k, v in given.items() if v is not None})
-    calibration = fit.calibration or Calibration(fit, None, [])
+    calibration = fit.calibration or Calibration(None, [], fit=fit)
     if args.held_out and fit.calibration is None:
         raise InputError("judges a real experiment's calibration (data with a declared side or joint loads)",
                          field="--held-out")

@@ -47,7 +47,7 @@ after; :meth:`Calibration.parameter_set` is the calibrated parameter file's cont
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import pandas as pd
@@ -152,11 +152,12 @@ def calibration_free(model: KneeModel, data: MeasuredData, theta: np.ndarray | N
     return free, [n for n in candidates if n not in keep]
 
 
-@dataclass
-class Calibration:
-    """A calibration: the fit, the prediction with the knee's own parameters, what was left fixed."""
+@dataclass(frozen=True)
+class CalibrationRecord:
+    """What a calibration found besides its fit: the prediction with the knee's own parameters, what
+    was left fixed, the groups engaged, predict's check, the outliers.  A calibrated
+    :class:`~kneenlp.estimation.fit.Fit` carries it (``fit.calibration`` joins the two)."""
 
-    fit: Fit
     before: Prediction | None  # None: an identification without the prediction before it
     fixed: list[str]
     #: ligament groups slack in every trial at the knee's values, engaged at the fit's start
@@ -168,6 +169,18 @@ class Calibration:
     outliers: list[Outlier] = field(default_factory=list)
     #: ``predict`` of the set-aside trials at the calibrated values (None: none set aside)
     set_aside: Prediction | None = None
+
+
+@dataclass(frozen=True)
+class Calibration(CalibrationRecord):
+    """A calibration: the fit and its :class:`CalibrationRecord`."""
+
+    fit: Fit = field(kw_only=True)
+
+    @classmethod
+    def of(cls, fit: Fit, record: CalibrationRecord) -> Calibration:
+        """``fit`` with what its calibration found."""
+        return cls(**{f.name: getattr(record, f.name) for f in fields(CalibrationRecord)}, fit=fit)
 
     @property
     def elsewhere(self) -> list[str]:
@@ -353,8 +366,9 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     if fit.method == "reduced":
         fit = polished(fit, threads)
     aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
-    return Calibration(fit, before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
-                       predict(model, data.subset(aside), fit.params) if outliers else None)
+    record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
+                               predict(model, data.subset(aside), fit.params) if outliers else None)
+    return Calibration.of(dataclasses.replace(fit, calibration_record=record), record)
 
 
 def _check_calibration(data: MeasuredData, free: list[str] | None, pivot_tolerance: float | None,

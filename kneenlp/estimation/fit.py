@@ -61,10 +61,20 @@ class Fit:
     starts: int = 1
     #: the priors' share of what the fit minimised (``prior_weight * sum z^2``; 0 without priors)
     prior_objective: float = 0.0
-    #: a real experiment's calibration (:class:`~kneenlp.estimation.calibrate.Calibration`: the RMS
-    #: before, engaged groups, outliers, predict's check) when ``identify`` calibrated; else None.
-    #: Its ``fit`` is this fit: the fit is frozen, so ``identify`` links the (mutable) calibration to it
-    calibration: object | None = field(default=None, repr=False, compare=False)
+    #: what a real experiment's calibration found besides this fit
+    #: (:class:`~kneenlp.estimation.calibrate.CalibrationRecord`: the prediction before, engaged
+    #: groups, outliers, predict's check) when ``identify`` calibrated; else None
+    calibration_record: object | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def calibration(self) -> object | None:
+        """The :class:`~kneenlp.estimation.calibrate.Calibration` of this fit (its ``fit`` is this
+        fit), or None when the fit is not a real experiment's calibration."""
+        if self.calibration_record is None:
+            return None
+        from kneenlp.estimation.calibrate import Calibration
+
+        return Calibration.of(self, self.calibration_record)
 
     @classmethod
     def build(cls, problem: IdentificationProblem, method: str, theta: np.ndarray, q: np.ndarray,

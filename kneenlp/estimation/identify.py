@@ -23,7 +23,6 @@ How a fit starts and restarts, and the solves themselves: :mod:`kneenlp.estimati
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 from kneenlp.base.errors import InputError, unknown_name
@@ -147,8 +146,7 @@ def checked_data(data: MeasuredData | str | Path, protocol: Protocol | str | Non
 def calibrated_fit(model: KneeModel, data: MeasuredData, free: list[str] | None, *, fixed: dict[str, float] | None,
                    priors: str | dict | None, prior_weight: float | str | None, **options) -> Fit:
     """:func:`identify`'s calibration strategy: :func:`~kneenlp.estimation.calibrate.calibrate` (``options``
-    its keyword arguments), and its fit carrying the :class:`~kneenlp.estimation.calibrate.Calibration`,
-    which describes that very fit."""
+    its keyword arguments): its fit, whose ``calibration`` describes that very fit."""
     from kneenlp.estimation.calibrate import calibrate
 
     if fixed:
@@ -156,9 +154,7 @@ def calibrated_fit(model: KneeModel, data: MeasuredData, free: list[str] | None,
                          "(--parameters) instead of fixing them here", field="fixed")
     cal = calibrate(model, data, free, **options, **({} if priors is None else {"priors": priors}),
                     **({} if prior_weight is None else {"prior_weight": prior_weight}))
-    fit = dataclasses.replace(cal.fit, calibration=cal)
-    cal.fit = fit  # the one link closed on the mutable side: fit.calibration.fit is fit
-    return fit
+    return cal.fit
 
 
 def resolve_strategy(strategy: str, data: MeasuredData, method: str = "simultaneous") -> str:

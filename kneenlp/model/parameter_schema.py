@@ -55,6 +55,34 @@ class ContactValues(Table):
     modulus: Number = Field(description="value")
 
 
+def to_variance(value: object) -> float:
+    """A covariance entry: a number, ``inf`` allowed (a direction nothing determined), NaN not."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise fail(f"expected a number, got {value!r}")
+    if value != value:
+        raise fail("NaN in the covariance")
+    return float(value)
+
+
+def to_distinct_names(value: object) -> list[str]:
+    """A list of distinct parameter names."""
+    if not isinstance(value, list) or not all(isinstance(n, str) for n in value) or len(set(value)) != len(value):
+        raise fail("must be a list of distinct parameter names")
+    return value
+
+
+class PosteriorTable(Table):
+    """``[posterior]``: a calibration's Laplace posterior in display units
+    (:class:`~kneenlp.model.posterior.Posterior` checks the matrix and the names against the file)."""
+
+    method: Literal["laplace"] = Field(description='method ("laplace")')
+    parameters: Annotated[list[str], BeforeValidator(to_distinct_names)] = Field(description="parameter names")
+    units: list[str] = Field(description="one unit per parameter")
+    covariance: list[list[Annotated[float, BeforeValidator(to_variance)]]] = Field(
+        description="covariance matrix (one row per parameter)")
+    noise_sd: list[Number] = Field(description="five noise sds")
+
+
 class ParameterFile(Table):
     """A parameter file.  :func:`parameter_file_schema` adds ``units`` and the ligament tables'
     keys (one value per property of the paper's law)."""
@@ -64,7 +92,7 @@ class ParameterFile(Table):
     ligaments: dict[str, Any] = Field(default_factory=dict)
     contact: ContactValues = Field(default_factory=dict, validate_default=True)
     values: Entries = Field(default_factory=dict)
-    posterior: dict[str, Any] | None = None
+    posterior: PosteriorTable | None = None
 
 
 def accepted_unit(units: Iterable[str]) -> BeforeValidator:

@@ -23,11 +23,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from kneenlp.base.conventions import coordinate_columns
 from kneenlp.base.errors import InputError
+
+if TYPE_CHECKING:
+    from kneenlp.model.parameter_schema import PosteriorTable
 
 #: Largest relative asymmetry, and most negative eigenvalue relative to the largest, of a
 #: covariance read from a file.
@@ -61,58 +65,34 @@ class Posterior:
                 "covariance": (self.covariance * np.outer(f, f)).tolist(), "noise_sd": self.noise_sd.tolist()}
 
     @classmethod
-    def read(cls, table: object, unit_to_si: Mapping[str, float], valued: set[str], src: str) -> Posterior:
-        """The ``[posterior]`` table of the file ``src`` (units and ``unit_to_si`` as :meth:`table`;
-        ``valued``: the names the file gives values), checked: every field present, a square
-        symmetric positive semi-definite covariance, five noise sds >= 0; anything else a one-line
-        :class:`InputError` naming the field."""
-        if not isinstance(table, dict):
-            raise InputError("must be a table", source=src, field="posterior")
-        known = {"method", "parameters", "units", "covariance", "noise_sd"}
-        for key in table:
-            if key not in known:
-                raise InputError(f"unknown key {key!r}; known: {', '.join(sorted(known))}", source=src,
-                                 field=f"posterior.{key}")
-        missing = sorted(known - set(table))
-        if missing:
-            raise InputError("missing " + ", ".join(missing), source=src, field="posterior")
-        if table["method"] != "laplace":
-            raise InputError(f"unknown method {table['method']!r}; known: laplace", source=src,
-                             field="posterior.method")
-        names = table["parameters"]
-        if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or len(set(names)) != len(names):
-            raise InputError("must be a list of distinct parameter names", source=src, field="posterior.parameters")
+    def read(cls, table: PosteriorTable, unit_to_si: Mapping[str, float], valued: set[str], src: str) -> Posterior:
+        """The ``[posterior]`` table of the file ``src`` (validated by its schema; units and
+        ``unit_to_si`` as :meth:`table`; ``valued``: the names the file gives values), checked against
+        the file: every name valued, one known unit each, a square symmetric positive semi-definite
+        covariance, five noise sds >= 0; anything else a one-line :class:`InputError` naming the field."""
+        names = table.parameters
         unknown = [n for n in names if n not in valued]
         if unknown:
             raise InputError(f"{unknown[0]!r} has no value in the file: a posterior describes the fitted values",
                              source=src, field="posterior.parameters")
-        cov = _matrix(table["covariance"], len(names), src)
-        sd = _numbers(table["noise_sd"], src, "posterior.noise_sd")
-        if len(sd) != 5 or not np.all(np.isfinite(sd)) or np.any(sd < 0):
+        cov = _covariance(table.covariance, len(names), src)
+        sd = np.array(table.noise_sd)
+        if len(sd) != 5 or np.any(sd < 0):
             raise InputError(f"must be five sds >= 0 ({', '.join(coordinate_columns())})", source=src,
                              field="posterior.noise_sd")
-        units = table["units"]
-        if not isinstance(units, list) or len(units) != len(names) or not all(u in unit_to_si for u in units):
+        if len(table.units) != len(names) or not all(u in unit_to_si for u in table.units):
             raise InputError(f"must be one unit per parameter, each one of {', '.join(unit_to_si)}", source=src,
                              field="posterior.units")
-        f = np.array([unit_to_si[u] for u in units])
+        f = np.array([unit_to_si[u] for u in table.units])
         return cls(tuple(names), cov * np.outer(f, f), sd)
 
 
-def _numbers(value: object, src: str, fld: str) -> np.ndarray:
-    if not isinstance(value, list) or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-        raise InputError("must be a list of numbers", source=src, field=fld)
-    return np.array(value, float)
-
-
-def _matrix(value: object, n: int, src: str) -> np.ndarray:
+def _covariance(rows: list[list[float]], n: int, src: str) -> np.ndarray:
+    """The ``n`` x ``n`` covariance, symmetric and positive semi-definite over its finite rows."""
     fld = "posterior.covariance"
-    if not isinstance(value, list) or len(value) != n:
+    if len(rows) != n or any(len(row) != n for row in rows):
         raise InputError(f"must be a {n} x {n} matrix (one row per parameter)", source=src, field=fld)
-    m = np.array([_numbers(row, src, fld) if isinstance(row, list) and len(row) == n else
-                  _bad_row(n, src) for row in value])
-    if np.any(np.isnan(m)):
-        raise InputError("NaN in the covariance", source=src, field=fld)
+    m = np.array(rows, float).reshape(n, n)
     finite = np.all(np.isfinite(m), axis=1)
     core = m[np.ix_(finite, finite)]
     scale = max(float(np.max(np.abs(np.diag(core)), initial=0.0)), 1e-300)
@@ -121,7 +101,3 @@ def _matrix(value: object, n: int, src: str) -> np.ndarray:
     if core.size and float(np.min(np.linalg.eigvalsh(core))) < -SYMMETRY_TOL * scale:
         raise InputError("the covariance is not positive semi-definite", source=src, field=fld)
     return m
-
-
-def _bad_row(n: int, src: str) -> np.ndarray:
-    raise InputError(f"must be a {n} x {n} matrix (one row per parameter)", source=src, field="posterior.covariance")
