@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import queue
 import re
 import sys
 import time
@@ -121,23 +122,25 @@ def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2, tru
     return row
 
 
-#: The truths of the study this worker process serves, made by the pool's initializer
-#: (:func:`_start_worker`): set in worker processes only, once each.
-_WORKER_TRUTHS: list[StudyTruths] = []
-
-
-def _start_worker(truths: StudyTruths) -> None:
-    """A local pool's worker: Ctrl-C and SIGTERM left to the parent, and the study's truths kept
-    for every sample it solves (forked, the parent's as built so far)."""
+def _serve(truths: StudyTruths, tasks, results) -> None:
+    """A local worker process: Ctrl-C and SIGTERM left to the parent; solves the samples of
+    ``tasks`` (until ``None``) with the study's ``truths`` (forked: the parent's as built so far,
+    kept for every sample) and puts their rows on ``results``; it stops when its parent is gone
+    (killed).  The NLP's trial map runs serially: one process per core (two threads per process
+    would oversubscribe the cores)."""
     interrupts.as_worker()
-    _WORKER_TRUTHS[:] = [truths]
-
-
-def _worker_sample(task: tuple[StudySpec, str, int]) -> dict:
-    """:func:`run_sample` in a local pool's worker process: one process per core, so the NLP's trial
-    map runs serially (two threads per process would oversubscribe the cores)."""
-    spec, set_name, index = task
-    return run_sample(spec, set_name, index, threads=1, truths=_WORKER_TRUTHS[0])
+    parent = os.getppid()
+    while True:
+        try:
+            task = tasks.get(timeout=1.0)
+        except queue.Empty:
+            if os.getppid() != parent:
+                return
+            continue
+        if task is None:
+            return
+        spec, set_name, index = task
+        results.put(run_sample(spec, set_name, index, threads=1, truths=truths))
 
 
 def _dask_sample(spec: StudySpec, set_name: str, index: int) -> dict:
@@ -312,16 +315,40 @@ def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, dask,
         return
     # fork: works from scripts and notebooks without a __main__ guard, and the workers start with the
     # truths built so far; the parent holds no CasADi threads at this point (thread maps join their
-    # threads after every evaluation)
+    # threads after every evaluation).  Plain processes, not a pool: each keeps its truths in its own
+    # loop (no per-process global), a worker that dies is noticed, and stopping them is terminate()
     ctx = get_context("fork") if sys.platform.startswith("linux") else get_context("spawn")
-    pool = ctx.Pool(workers, initializer=_start_worker, initargs=(truths,))
+    tasks, results = ctx.Queue(), ctx.Queue()
+    procs = [ctx.Process(target=_serve, args=(truths, tasks, results), daemon=True)
+             for _ in range(min(workers, len(todo)))]
     try:
-        yield from pool.imap_unordered(_worker_sample, [(spec, s, i) for s, i in todo])
-    except BaseException:  # Ctrl-C, SIGTERM, or the consumer gone: stop the workers now, not after the queue
-        pool.terminate()
-        raise
-    pool.close()
-    pool.join()
+        for p in procs:
+            p.start()
+        for s, i in todo:
+            tasks.put((spec, s, i))
+        for _ in procs:
+            tasks.put(None)
+        for _ in todo:
+            yield _next_row(results, procs)
+    finally:  # finished, Ctrl-C, SIGTERM, or the consumer gone: stop the workers now, not after the queue
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+            p.join()
+
+
+def _next_row(results, procs: list) -> dict:
+    """The next finished row; a worker that died (killed, or a crash in compiled code) is an error,
+    not a wait without end."""
+    while True:
+        try:
+            return results.get(timeout=1.0)
+        except queue.Empty:
+            dead = [p.exitcode for p in procs if p.exitcode not in (None, 0)]
+            if dead or all(p.exitcode is not None for p in procs):
+                code = dead[0] if dead else 0
+                raise RuntimeError(f"a study worker process died (exit code {code}); finished samples "
+                                   "are kept, run the study again to resume") from None
 
 
 def _execute_dask(spec: StudySpec, todo: list[tuple[str, int]], dask, truths: StudyTruths) -> Iterable[dict]:
