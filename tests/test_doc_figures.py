@@ -253,6 +253,67 @@ def test_s192803_fitted_rms(s192803, name):
                                                                                                  translations)
 
 
+@pytest.mark.slow
+def test_s192803_diagnosis():
+    """The verdict's figures of 'Where it fails, and why' (docs/scripts/diagnose_s192803.py)."""
+    text = doc("real-experiment.md")
+    m = re.search(rf"chi-square ({NUMBER}) on (\d+) degrees of freedom, with a sign per load direction \(lateral "
+                  rf"translation ({NUMBER}) mm and varus ({NUMBER}) deg in all four external-rotation trials, "
+                  rf"proximal ({NUMBER}) mm in all seven trials at 5 deg\)", text)
+    assert m, "the diagnosis sentence of docs/real-experiment.md"
+    chi2, dof, lateral, varus, proximal = (float(v) for v in m.groups())
+    r = script("diagnose_s192803.py")["diagnosis"]()
+    assert close(r["chi2"], chi2, tolerance(text, "chi-square +-")) and r["dof"] == dof
+    assert "MODEL INADEQUATE" in r["verdict"] and r["tests"]["bias_p"] < 0.01
+    means = r["pattern_means"]
+    tol = tolerance(text, "chi-square +-1 %, means")
+    quoted_means = {"lateral translation under external load": lateral, "varus rotation under external load": varus,
+                    "proximal translation at 5 deg flexion": proximal}
+    for key, quoted in quoted_means.items():
+        assert close(means[key], quoted, (tol[0], "abs")), (key, means.get(key), quoted)
+
+
+def test_deepest_attachment_of_the_shipped_knees():
+    """The deepest attachment inside a mesh of a shipped knee (docs/inputs.md, the attachment check's
+    limit is twice it)."""
+    text = doc("inputs.md")
+    m = re.search(rf"the deepest is ({NUMBER}) mm \(s192803's posterior capsule", text)
+    assert m
+    deepest = script("attachment_depths.py")["deepest"]
+    found = [deepest(k) for k in ("default", "s192803", "implant")]
+    worst = max((f for f in found if f is not None), key=lambda f: f[2])
+    assert "PCAP" in worst[0] and close(worst[2], float(m.group(1)), tolerance(text, "attachment_depths.py`"))
+
+
+# ------------------------------------------------------------------ docs/opensim.md
+
+
+def test_multibundle_study_ratios():
+    """The spread ratios quoted in the noise study of docs/opensim.md, read from its tables by
+    docs/scripts/multibundle_study.py."""
+    text = doc("opensim.md")
+    tol = (tolerance(text, "read from the tables")[0], "abs")
+    figures = script("multibundle_study.py")["figures"]
+    all12, ident10 = figures(12), figures(10)
+
+    def quoted(pattern: str) -> list[float]:
+        m = re.search(pattern, text)
+        assert m, pattern
+        return [float(v) for v in m.groups()]
+
+    checks = [(all12["capsule"], quoted(rf"does not describe such a spread \(ratios ({NUMBER})-({NUMBER})\)")),
+              ([all12["set4_pcl_k_scale"]], quoted(rf"Set 4's PCL scale \(ratio ({NUMBER})\)")),
+              (all12["others"], quoted(rf"agrees within 25 % \(ratios ({NUMBER})-({NUMBER})\)")),
+              (ident10["others"], quoted(rf"29 of 30 spreads agree .* within 25 % \(ratios ({NUMBER})-({NUMBER})\)")),
+              ([ident10["set4_pcl_k_scale"]], quoted(rf"PCL stiffness scale \(ratio ({NUMBER})\)")),
+              ([ident10["pcl_k_scale"]["set4_high_flexion"], ident10["pcl_k_scale"]["designed"]],
+               quoted(rf"high-flexion trials \(ratio ({NUMBER})\) and the designed protocol \(({NUMBER})\)"))]
+    for got, want in checks:
+        for g, w in zip(got, want, strict=True):
+            assert close(round(g, len(str(w).split(".")[1])), w, tol), (got, want)
+    assert ident10["others_within_25pct"] == 29 and ident10["rows"] == 30
+
+
 # ------------------------------------------------------------------ docs/inputs.md
 
 

@@ -371,13 +371,25 @@ class KneeFile:
                              (tibia_field, self.at_reference(tibia), "tibial")]
 
     def check_attachments(self, geometry: dict) -> None:
-        """No attachment lies more than :data:`ATTACHMENT_DEPTH` inside a mesh of the knee (the femoral
-        mesh as given, without ``femur_offset``; each tibial mesh at the reference pose).  Inside: the
-        mesh's winding number around the point exceeds 1/2 (:func:`~kneenlp.geometry.distance.
-        winding_number`), which holds for closed meshes and for open ones enclosing the point (a
-        cropped bone); a cartilage sheet encloses nothing but the points just under it."""
+        """No attachment lies more than :data:`ATTACHMENT_DEPTH` inside a mesh of the knee
+        (:meth:`attachment_depths`)."""
+        inside = self.attachment_depths(geometry, ATTACHMENT_DEPTH)
+        if inside:
+            fld, what, name, bone, depth = max(inside, key=lambda row: row[-1])
+            raise InputError(f"the {bone} attachment lies {depth * 1e3:.1f} mm inside the {what} ({name}) "
+                             "in the reference pose; attachments lie on the bone surface (at most "
+                             f"{ATTACHMENT_DEPTH * 1e3:g} mm inside): a typo or a sign slip, the femoral and "
+                             "tibial points swapped, or a point in another frame or unit?", source=self.src, field=fld)
+
+    def attachment_depths(self, geometry: dict, deeper_than: float = 0.0) -> list[tuple[str, str, str, str, float]]:
+        """The attachments more than ``deeper_than`` (m) inside a mesh of the knee (the femoral mesh
+        as given, without ``femur_offset``; each tibial mesh at the reference pose), as (field, mesh,
+        mesh source, bone, depth in m).  Inside: the mesh's winding number around the point exceeds
+        1/2 (:func:`~kneenlp.geometry.distance.winding_number`), which holds for closed meshes and
+        for open ones enclosing the point (a cropped bone); a cartilage sheet encloses nothing but
+        the points just under it."""
         if not self.attachments:
-            return
+            return []
         meshes = []
         femur = geometry["femur"]
         if femur is not None:
@@ -388,27 +400,22 @@ class KneeFile:
                 m = c.tibia_mesh.copy()
                 m.vertices = np.asarray(m.vertices) @ R.T + p
                 meshes.append((f"{c.name} tibial mesh", c.name, m, -1.0))  # tibial orientation is not used
-        fields = [f for f, _, _ in self.attachments]
         points = np.array([x for _, x, _ in self.attachments])
+        found = []
         for what, name, mesh, sign in meshes:
             lo, hi = mesh.bounds
             idx = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
             if not len(idx):
                 continue
             depth = np.abs(MeshDistance(mesh)(points[idx], certify=False)[0])
-            idx, depth = idx[depth > ATTACHMENT_DEPTH], depth[depth > ATTACHMENT_DEPTH]
+            idx, depth = idx[depth > deeper_than], depth[depth > deeper_than]
             if not len(idx):
                 continue
             w = winding_number(mesh, points[idx])
             inside = (w > 0.5) if sign > 0 else (np.abs(w) > 0.5)
-            if inside.any():
-                j = int(np.argmax(np.where(inside, depth, -1.0)))
-                bone = self.attachments[idx[j]][2]
-                raise InputError(f"the {bone} attachment lies {depth[j] * 1e3:.1f} mm inside the {what} ({name}) "
-                                 "in the reference pose; attachments lie on the bone surface (at most "
-                                 f"{ATTACHMENT_DEPTH * 1e3:g} mm inside): a typo or a sign slip, the femoral and "
-                                 "tibial points swapped, or a point in another frame or unit?", source=self.src,
-                                 field=fields[idx[j]])
+            found += [(self.attachments[i][0], what, name, self.attachments[i][2], float(d))
+                      for i, d in zip(idx[inside], depth[inside], strict=True)]
+        return found
 
     def menisci(self) -> float | None:
         """``[menisci] stiffness`` (N/mm per compartment) -> N/m, or None (menisci not modelled)."""
