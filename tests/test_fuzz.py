@@ -763,7 +763,7 @@ def test_signal_at_random_moments_of_a_real_calibration(command, tmp_path):
 
     rng = random.Random(int(os.environ.get("KNEENLP_FUZZ_SEED", "16")))
     problem = Path(__file__).resolve().parents[1] / "problems" / "s192803"
-    for k, sig in enumerate((signal.SIGINT, signal.SIGTERM) * 3):
+    for k, sig in enumerate((signal.SIGINT, signal.SIGTERM) * 2):
         out = tmp_path / f"out{k}"
         proc = subprocess.Popen([sys.executable, "-m", "kneenlp.cli", command, "--problem", str(problem), "--out",
                                  str(out)], start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
