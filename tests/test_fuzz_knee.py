@@ -345,3 +345,42 @@ def test_mutated_shipped_knees_load_or_say_why(base: Path, tmp_path_factory, dat
     if loaded is not None:  # what loads is a knee: finite, plausible lengths
         assert all(1e-3 <= b.reference_length <= 0.3 for lig in loaded.ligaments.values() for b in lig.bundles)
         assert all(np.isfinite(c.points).all() for c in loaded.compartments.values())
+
+
+def cracked(m: trimesh.Trimesh) -> trimesh.Trimesh:
+    """The same surface with T-junctions (a vertex added on an edge, on one side only) in every 20th
+    face and a zero-area face along every 30th face's edge: topologically open, geometrically not."""
+    v, f = np.asarray(m.vertices, float), np.asarray(m.faces)
+    new_v, new_f = [v], [f]
+    n = len(v)
+    for i in range(0, len(f), 20):
+        a, b, c = f[i]
+        new_v.append([0.5 * (v[a] + v[b])])
+        new_f.append([[a, n, c], [n, b, c]])
+        n += 1
+    split = set(range(0, len(f), 20))
+    base = np.array([face for i, face in enumerate(f) if i not in split])
+    slivers = []
+    for i in range(5, len(f), 30):
+        a, b, _ = f[i]
+        new_v.append([0.5 * (v[a] + v[b])])
+        slivers.append([a, b, n])
+        n += 1
+    faces = np.vstack([base, *new_f[1:], np.array(slivers).reshape(-1, 3)])
+    return trimesh.Trimesh(np.vstack(new_v), faces, process=False)
+
+
+def test_a_femur_with_cracks_and_zero_area_faces_solves_as_the_intact_one(base: Path, tmp_path: Path):
+    """T-junction cracks and zero-area faces do not open a surface: the knee solves every trial as
+    the intact one does (same surface, so the same poses to the solver's tolerance)."""
+    import kneenlp
+
+    d = tmp_path / "case"
+    shutil.copytree(base, d)
+    mesh("implant/meshes/femur_component.stl", cracked)(d)
+    assert len(trimesh.grouping.group_rows(trimesh.load(d / "implant/meshes/femur_component.stl").edges_sorted,
+                                           require_count=1)) > 100  # open, topologically
+    intact = kneenlp.simulate(kneenlp.Knee.load(base / "implant" / "knee.toml"), "set1")
+    odd = kneenlp.simulate(kneenlp.Knee.load(d / "implant" / "knee.toml"), "set1")
+    assert all(s.converged for s in odd.solutions)
+    assert np.allclose(odd.q, intact.q, atol=1e-6)

@@ -212,3 +212,36 @@ def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box, l
         assert np.array_equal(first[:54], row[:54]) and first[-1] == row[-1]  # order 1: the same wrench, Jacobian
         assert not np.any(first[54:-1])
     assert np.any(rows[2][:, 12:18]) and np.any(rows[2][:, 54:-1])  # the poses do touch
+
+
+def _split_edge(mesh: trimesh.Trimesh, face: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
+    """The mesh's vertices with the midpoint of the first edge of ``face`` added, its faces, and the
+    (a, b, midpoint) indices."""
+    v, f = np.asarray(mesh.vertices).copy(), np.asarray(mesh.faces).copy()
+    a, b, _ = f[face]
+    return np.vstack([v, 0.5 * (v[a] + v[b])]), f, (a, b, len(v))
+
+
+def test_a_rim_is_where_the_surface_ends_not_a_crack_or_a_sliver():
+    """A closed surface stays closed with a T-junction (a vertex on the next face's edge), a face with
+    a repeated vertex, or a zero-area face along an edge; a cropped surface keeps every edge of its
+    cut, and nothing else (checked against the edge count of the cut, an independent count)."""
+    from kneenlp.geometry.rim import OpenEdges
+
+    sphere = trimesh.creation.icosphere(3)
+    assert OpenEdges(sphere).closed
+    v, f, (a, b, m) = _split_edge(sphere, 0)
+    c = f[0, 2]
+    t_junction = trimesh.Trimesh(v, np.vstack([f[1:], [[a, m, c], [m, b, c]]]), process=False)
+    assert OpenEdges(t_junction).closed
+    sliver = trimesh.Trimesh(v, np.vstack([f, [[a, b, m]]]), process=False)
+    assert OpenEdges(sliver).closed
+    repeated = trimesh.Trimesh(sphere.vertices, np.vstack([sphere.faces, [[0, 0, 1]]]), process=False)
+    assert OpenEdges(repeated).closed
+    keep = sphere.triangles_center[:, 2] < 0.5
+    cropped = trimesh.Trimesh(sphere.vertices, sphere.faces[keep], process=True)
+    cut = len(trimesh.grouping.group_rows(cropped.edges_sorted, require_count=1))
+    assert len(OpenEdges(cropped)) == cut > 0
+    v, f, (a, b, m) = _split_edge(cropped, 0)  # a T-junction inside the cropped surface
+    c = f[0, 2]
+    assert len(OpenEdges(trimesh.Trimesh(v, np.vstack([f[1:], [[a, m, c], [m, b, c]]]), process=False))) == cut

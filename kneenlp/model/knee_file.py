@@ -874,12 +874,19 @@ def _checked_mesh(mesh: object, path: Path, scale: float, mirror: np.ndarray, kn
     if merge:
         mesh.process(validate=False)  # as trimesh.load(process=True): merge duplicate vertices
     area = np.asarray(mesh.area_faces)
-    flat = area <= 1e-12 * max(float(np.ptp(mesh.vertices, axis=0).max()) ** 2, 1e-300)
+    # zero area: a height below a micrometre per metre of the mesh (float32 rounding of a vertex on an
+    # edge leaves 1e-8 of it)
+    tri = np.asarray(mesh.triangles)
+    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    flat = 2 * area <= 1e-6 * max(float(np.ptp(mesh.vertices, axis=0).max()), 1e-300) * longest
     if flat.mean() > 0.5:
         raise InputError(f"mesh {path.name}: {int(flat.sum())} of {len(flat)} faces are degenerate (zero area: "
                          "repeated or collinear vertices); a broken export?", source=knee_file, field=field)
     total = float(area.sum()) * scale**2  # kept: the decimation needs it, and a large mesh's areas cost seconds
     mesh = mesh.copy()
+    if flat.any():  # zero-area faces carry no surface, and their normals are noise: dropped
+        mesh.update_faces(~flat)
+        mesh.remove_unreferenced_vertices()
     mesh.vertices = np.asarray(mesh.vertices, float) * scale * mirror
     mesh.metadata["area"] = total
     if mirror[2] < 0:
