@@ -33,10 +33,11 @@ import numpy as np
 import kneenlp
 from kneenlp.adequacy.basefit import base_fit
 from kneenlp.adequacy.diagnosis import diagnose
-from kneenlp.estimation.identify import identify
+from kneenlp.estimation.solve import scatter_fit
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.prediction.predict import predict
 from kneenlp.validation.crossval import folds
 
@@ -61,7 +62,8 @@ def held_out_error(model: KneeModel, data: MeasuredData, extra: list[str], sigma
     free beside the base model's parameters; None when a held-out trial has no equilibrium."""
     errors = []
     for _, held in folds(data):
-        fit = identify(model, data.subset(~held), strategy="scatter", with_effects=extra, noise=NOISE, seed=seed)
+        problem = IdentificationProblem.from_data(model, data.subset(~held), with_effects=extra, noise=NOISE)
+        fit = scatter_fit(problem, {}, seed=seed)  # the paper's least squares, as diagnose's base fit
         pred = predict(model, data.subset(held), fit.params)
         if not pred.converged.all():
             return None

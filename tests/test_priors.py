@@ -144,3 +144,25 @@ def test_laplace_intervals_cover_truths_drawn_from_the_prior():
     result = coverage(kneenlp.Knee.named("synthetic"), "set1", 20, seed=1)
     assert not result.failed and result.covered.shape == (20, 8)
     assert 0.85 <= result.overall() <= 0.995
+
+
+@pytest.mark.slow
+def test_a_calibration_from_several_starts_keeps_the_lowest_and_lists_them():
+    """``multistart`` on a real experiment's calibration: the first start is the single-start fit,
+    the kept one the lowest converged MAP objective, and the note lists every start's end."""
+    import re
+
+    from kneenlp.base.resources import resource
+    from kneenlp.experiment.kneemodel import KneeModel
+
+    model = KneeModel.of(kneenlp.Knee.named("s192803"))
+    data = read_measured(resource("datasets", "s192803_laxity.csv"))
+    one = identify(model, data)
+    three = identify(model, data, multistart=3)
+    m = re.search(r"3 starts .*: MAP objectives (.*); start (\d) kept", three.message)
+    assert m, three.message
+    ends = [float(v.split()[0]) for v in m.group(1).split(", ")]
+    assert math.isclose(ends[0], one.map_objective, rel_tol=1e-9)
+    converged = [e for e, text in zip(ends, m.group(1).split(", "), strict=True) if "not converged" not in text]
+    assert three.success and math.isclose(three.map_objective, min(converged), rel_tol=1e-6)
+    assert three.map_objective <= one.map_objective * (1 + 1e-9)

@@ -87,7 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the paper's start scatter")
     p.add_argument("--multistart", type=opt.integer(1, opt.MAX_STARTS), default=1,
-                   help="number of starts (best is kept)")
+                   help="number of starts, the lowest converged kept (a real experiment's calibration: the "
+                        "fit, then N-1 starts half a prior sd about it)")
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"],
                    help="simultaneous NLP (default) or the paper's nested Complex method")
     p.add_argument("--solver", default="ipopt", type=opt.solver, help="CasADi nlpsol plugin (default ipopt)")

@@ -330,7 +330,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     ``free``, e.g. attachments a segmentation may have misplaced; unless ``keep_outliers``, trials
     the outlier test flags (:mod:`~kneenlp.estimation.outliers`) are set aside one at a time and the
     fit repeated without them.  ``weighted``, ``with_effects`` and ``start`` as
-    :func:`~kneenlp.estimation.identify.identify`'s; ``solver``, ``solver_options``, ``multistart``
+    :func:`~kneenlp.estimation.identify.identify`'s; ``multistart`` > 1 refits from further starts
+    about the fit and keeps the lowest (:func:`lowest_of_starts`); ``solver``, ``solver_options``
     and ``threads`` serve the fallback (the simultaneous NLP, at most :data:`MAX_ITER` iterations
     unless ``solver_options`` say otherwise)."""
 
@@ -365,6 +366,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         fit, outliers = without_outliers(fit, options)
     if fit.method == "reduced":
         fit = polished(fit, threads)
+    if multistart > 1:
+        fit = lowest_of_starts(fit, multistart, seed, threads)
     aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
     record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
                                predict(model, data.subset(aside), fit.params) if outliers else None)
@@ -444,6 +447,35 @@ def with_also_free(fit: Fit, data: MeasuredData, extra: list[str], probe: np.nda
         return refit
     return fit.with_note(f"fitting {', '.join(extra)} as well did not lower the sum of squares: they stay at "
                          "the knee's values")
+
+
+#: Spread of the calibration's further starts about its fit, in prior standard deviations.
+START_SPREAD = 0.5
+
+
+def lowest_of_starts(fit: Fit, starts: int, seed: int, threads: int = 2) -> Fit:
+    """``fit`` or, if lower, a fit of the same problem from one of ``starts - 1`` other points: each
+    free parameter with a prior moved :data:`START_SPREAD` of its prior sd (in the prior's own scale,
+    seeded) from the fit, within its bounds; each fitted as the calibration fits (reduced space, then
+    the NLP).  The MAP objective has neighbouring minima: the starts make the choice explicit, and
+    the fit's note lists every start's end."""
+    rng = np.random.default_rng([seed, starts])
+    problem = fit.problem
+    lower, upper = problem.lower, problem.upper
+    ends = [fit]
+    for _ in range(starts - 1):
+        start = dict(fit.params)
+        for i, name in enumerate(problem.free):
+            prior = problem.priors.get(name)
+            if prior is not None:
+                moved = prior.transform(fit.params[name]) + START_SPREAD * prior.sd * rng.standard_normal()
+                start[name] = float(np.clip(np.exp(moved) if prior.log else moved, lower[i], upper[i]))
+        other = map_fit(problem, start, estimate=False)
+        ends.append(polished(other, threads) if other.success and other.method == "reduced" else other)
+    best = min((f for f in ends if f.success), key=lambda f: f.map_objective, default=fit)
+    listed = ", ".join(f"{f.map_objective:.6g}" + ("" if f.success else " (not converged)") for f in ends)
+    return best.with_note(f"{starts} starts (the fit, then {START_SPREAD:g} prior sd about it): MAP objectives "
+                          f"{listed}; start {ends.index(best) + 1} kept (the lowest converged)")
 
 
 #: IPOPT iterations of the simultaneous NLP from a reduced-space fit (S192803: 52).
