@@ -370,6 +370,7 @@ def cracked(m: trimesh.Trimesh) -> trimesh.Trimesh:
     return trimesh.Trimesh(np.vstack(new_v), faces, process=False)
 
 
+@pytest.mark.slow
 def test_a_femur_with_cracks_and_zero_area_faces_solves_as_the_intact_one(base: Path, tmp_path: Path):
     """T-junction cracks and zero-area faces do not open a surface: the knee solves every trial as
     the intact one does (same surface, so the same poses to the solver's tolerance)."""

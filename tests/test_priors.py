@@ -158,11 +158,11 @@ def test_a_calibration_from_several_starts_keeps_the_lowest_and_lists_them():
     model = KneeModel.of(kneenlp.Knee.named("s192803"))
     data = read_measured(resource("datasets", "s192803_laxity.csv"))
     one = identify(model, data)
-    three = identify(model, data, multistart=3)
-    m = re.search(r"3 starts .*: MAP objectives (.*); start (\d) kept", three.message)
-    assert m, three.message
+    several = identify(model, data, multistart=2)
+    m = re.search(r"2 starts .*: MAP objectives (.*); start (\d) kept", several.message)
+    assert m, several.message
     ends = [float(v.split()[0]) for v in m.group(1).split(", ")]
-    assert math.isclose(ends[0], one.map_objective, rel_tol=1e-9)
+    assert math.isclose(ends[0], one.map_objective, rel_tol=1e-5)  # noted to 6 digits
     converged = [e for e, text in zip(ends, m.group(1).split(", "), strict=True) if "not converged" not in text]
-    assert three.success and math.isclose(three.map_objective, min(converged), rel_tol=1e-6)
-    assert three.map_objective <= one.map_objective * (1 + 1e-9)
+    assert several.success and math.isclose(several.map_objective, min(converged), rel_tol=1e-5)
+    assert several.map_objective <= one.map_objective * (1 + 1e-9)
