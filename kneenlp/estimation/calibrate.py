@@ -170,6 +170,10 @@ class CalibrationRecord:
     #: ``predict`` of the set-aside trials at the calibrated values (None: none set aside)
     set_aside: Prediction | None = None
 
+    def joined(self, fit: Fit) -> Calibration:
+        """The :class:`Calibration` of ``fit`` with this record."""
+        return Calibration.of(fit, self)
+
 
 @dataclass(frozen=True)
 class Calibration(CalibrationRecord):

@@ -70,11 +70,7 @@ class Fit:
     def calibration(self) -> object | None:
         """The :class:`~kneenlp.estimation.calibrate.Calibration` of this fit (its ``fit`` is this
         fit), or None when the fit is not a real experiment's calibration."""
-        if self.calibration_record is None:
-            return None
-        from kneenlp.estimation.calibrate import Calibration
-
-        return Calibration.of(self, self.calibration_record)
+        return None if self.calibration_record is None else self.calibration_record.joined(self)
 
     @classmethod
     def build(cls, problem: IdentificationProblem, method: str, theta: np.ndarray, q: np.ndarray,
