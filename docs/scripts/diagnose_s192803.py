@@ -17,18 +17,11 @@ import argparse
 import contextlib
 import io
 import json
-import re
 from pathlib import Path
 
 from kneenlp.cli.main import main
 
 DATA = Path(__file__).resolve().parents[2] / "problems" / "s192803" / "laxity.csv"
-
-
-#: A sign pattern of the report: "lateral translation: model above the measurement in all 4 trials
-#: under external load (mean +2.56 mm)".
-PATTERN = re.compile(r"(?P<coordinate>[a-z ]+): model \w+ the measurement in all \d+ trials (?P<where>.+) "
-                     r"\(mean (?P<mean>[-+]\d+(?:\.\d+)?)")
 
 
 def diagnosis(held_out: int = 0) -> dict:
@@ -40,8 +33,8 @@ def diagnosis(held_out: int = 0) -> dict:
                        "--held-out", str(held_out), "--json"])
     assert status == 0, f"diagnose exited {status}"
     report = json.loads(out.getvalue())
-    found = (PATTERN.match(p) for p in report["patterns"])
-    report["pattern_means"] = {f"{m['coordinate']} {m['where']}": float(m["mean"]) for m in found if m}
+    report["pattern_means"] = {f"{p['coordinate'].replace('_', ' ')} {p['where']}": p["mean"]
+                               for p in report["pattern_means"]}
     return report
 
 

@@ -107,6 +107,8 @@ class Diagnosis:
         return {"adequate": self.adequate, "outcome": self.outcome, "p_value": self.p_value, "chi2": self.chi2,
                 "dof": self.dof, "rms": self.rms, "expected_rms": self.expected_rms, "noise": str(self.noise),
                 "flagged": self.flagged, "worst": self.worst, "patterns": [p.words() for p in self.patterns],
+                "pattern_means": [{"coordinate": p.coordinate, "where": p.where, "mean": p.mean,
+                                   "same_sign": p.same_sign, "trials": len(p.trials)} for p in self.patterns],
                 "ranking": [s.to_dict() for s in self.ranking], "tests": self.decision.to_dict() if self.decision
                 else None, "recommended": rec.effect if rec else None,
                 "estimate": estimate_words(self.fit, rec, self.refits.get(rec.effect)) if rec else None,

@@ -215,7 +215,8 @@ def cmd_compare_methods(args) -> int:
 
 
 def cmd_study(args) -> int:
-    from kneenlp.studies.study import StudySpec, run_study, study_truths
+    from kneenlp.studies.study import StudySpec, run_study
+    from kneenlp.studies.truth import StudyTruths
 
     size = study_size(args)
     if args.samples * len(args.sets) > MAX_STUDY_FITS:
@@ -224,7 +225,7 @@ def cmd_study(args) -> int:
                      method=args.method, knee=knee_reference(args.knee),
                      free=tuple(args.free) if args.free else None,
                      start=args.start, elements=tuple(args.element), with_effects=tuple(args.with_effect))
-    truths = study_truths(spec)
+    truths = StudyTruths.of(spec)
     check_names(truths.model, args)  # built once here; forked workers share it
     study = run_study(spec, args.out, workers=args.workers, scheduler=args.scheduler, dask_local=args.dask,
                       progress=False if args.quiet else None, truths=truths)

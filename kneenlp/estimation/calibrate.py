@@ -336,7 +336,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     fit repeated without them.  ``weighted``, ``with_effects`` and ``start`` as
     :func:`~kneenlp.estimation.identify.identify`'s; ``multistart`` > 1 refits from further starts
     about the fit and keeps the lowest (:func:`lowest_of_starts`); ``solver``, ``solver_options``
-    and ``threads`` serve the fallback (the simultaneous NLP, at most :data:`MAX_ITER` iterations
+    and ``threads`` serve the fallback from the start (the simultaneous NLP, at most :data:`MAX_ITER` iterations
     unless ``solver_options`` say otherwise)."""
 
     _check_calibration(data, free, pivot_tolerance, also_free)
@@ -359,8 +359,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
     # docstring: IPOPT wandered on this problem, and from a good point made it worse)
     start = {n: float(theta[model.index(n)]) for n in problem.free} | problem.check_start(start)
-    fit = first_fit(problem, start, estimate=estimate, seed=seed, multistart=multistart, solver=solver,
-                    solver_options=solver_options, threads=threads)
+    fit = first_fit(problem, start, estimate=estimate, seed=seed, solver=solver, solver_options=solver_options,
+                    threads=threads)
     options["prior_weight"] = fit.problem.prior_weight
     if extra:
         fit = with_also_free(fit, data, extra, theta, options, estimate=estimate)
@@ -421,14 +421,14 @@ def calibration_choice(model: KneeModel, data: MeasuredData, free: list[str] | N
 
 
 def first_fit(problem: IdentificationProblem, start: dict[str, float], *, estimate: bool, seed: int,
-              multistart: int, solver: str, solver_options: dict | None, threads: int) -> Fit:
+              solver: str, solver_options: dict | None, threads: int) -> Fit:
     """The calibration's fit of ``problem`` from ``start`` (SI): :func:`map_fit`, and where it does not
     converge the simultaneous NLP with the scatter strategy's rescue (at most :data:`MAX_ITER`
     iterations unless ``solver_options`` say otherwise), kept if it converges or ends lower."""
     fit = map_fit(problem, start, estimate=estimate)
     if fit.success:
         return fit
-    fallback = scatter_fit(fit.problem, start, seed=seed, multistart=multistart, restarts=0, solver=solver,
+    fallback = scatter_fit(fit.problem, start, seed=seed, restarts=0, solver=solver,
                            solver_options=solver_options or {"ipopt": {"max_iter": MAX_ITER}}, threads=threads)
     fallback = fallback.with_note(f"reduced-space Gauss-Newton did not converge ({fit.status}); the simultaneous "
                                   "NLP followed")
@@ -473,7 +473,7 @@ def lowest_of_starts(fit: Fit, starts: int, seed: int, threads: int = 2) -> Fit:
             prior = problem.priors.get(name)
             if prior is not None:
                 moved = prior.transform(fit.params[name]) + START_SPREAD * prior.sd * rng.standard_normal()
-                start[name] = float(np.clip(np.exp(moved) if prior.log else moved, lower[i], upper[i]))
+                start[name] = float(np.clip(prior.untransform(moved), lower[i], upper[i]))
         other = map_fit(problem, start, estimate=False)
         ends.append(polished(other, threads) if other.success and other.method == "reduced" else other)
     best = min((f for f in ends if f.success), key=lambda f: f.map_objective, default=fit)

@@ -29,32 +29,37 @@ NEAREST_SEGMENTS = 8
 SEALED_TOLERANCE = 1e-6
 
 
+def nearest_segments(x: np.ndarray, segments: np.ndarray, tree: cKDTree) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (N x k) from points ``x`` (N x 3) to the ``k`` segments (n x 2 x 3) whose midpoints
+    (``tree``) are nearest, and those segments' indices (N x k)."""
+    k = min(NEAREST_SEGMENTS, len(segments))
+    _, idx = tree.query(x, k)
+    idx = np.reshape(idx, (len(x), k))
+    a, b = segments[idx, 0], segments[idx, 1]  # N x k x 3
+    ab = b - a
+    t = np.clip(np.einsum("nkj,nkj->nk", x[:, None] - a, ab) / np.maximum(np.einsum("nkj,nkj->nk", ab, ab), 1e-300),
+                0.0, 1.0)
+    return np.linalg.norm(a + t[..., None] * ab - x[:, None], axis=2), idx
+
+
 def sealed(edges: np.ndarray, rim: np.ndarray) -> np.ndarray:
     """Which one-face edges ``edges[rim]`` (``edges``: every edge of the mesh, n x 2 x 3) are no rim:
     of zero length (a face with a repeated vertex), or lying along other edges (a T-junction, where
     a vertex sits on the edge of the next face, or the sides of a zero-area face: the surface goes
     on across them).  Tested at a quarter, half and three quarters of each edge, against the edges
     whose midpoints are nearest."""
-    a, b = edges[rim, 0], edges[rim, 1]
-    out = np.zeros(len(rim), dtype=bool)
     if not len(rim):
-        return out
+        return np.zeros(0, dtype=bool)
+    a, b = edges[rim, 0], edges[rim, 1]
     length = np.linalg.norm(b - a, axis=1)
     tol = SEALED_TOLERANCE * max(float(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1).max()), 1e-300)
-    k = min(NEAREST_SEGMENTS, len(edges))
     tree = cKDTree(edges.mean(axis=1))
     covered = np.ones(len(rim), dtype=bool)
     for f in (0.25, 0.5, 0.75):
-        x = a + f * (b - a)
-        _, idx = tree.query(x, k)
-        idx = np.reshape(idx, (len(x), k))
-        pa, pb = edges[idx, 0], edges[idx, 1]
-        ab = pb - pa
-        t = np.einsum("nkj,nkj->nk", x[:, None] - pa, ab) / np.maximum(np.einsum("nkj,nkj->nk", ab, ab), 1e-300)
-        d = np.linalg.norm(pa + np.clip(t, 0.0, 1.0)[..., None] * ab - x[:, None], axis=2)
+        d, idx = nearest_segments(a + f * (b - a), edges, tree)
         d[idx == rim[:, None]] = np.inf  # not itself
         covered &= d.min(axis=1) <= tol + 1e-3 * length
-    return out | (length <= tol) | covered
+    return (length <= tol) | covered
 
 
 class OpenEdges:
@@ -69,8 +74,9 @@ class OpenEdges:
         keys, counts = np.unique(edges[:, 0] * n + edges[:, 1], return_counts=True)
         pairs = np.column_stack([keys // n, keys % n])
         one_face = np.flatnonzero(counts == 1)
-        rim = pairs[one_face[~sealed(np.asarray(mesh.vertices, float)[pairs], one_face)]]
-        vertices = np.asarray(mesh.vertices, float) + offset * np.asarray(mesh.vertex_normals, float)
+        vertices = np.asarray(mesh.vertices, float)
+        rim = pairs[one_face[~sealed(vertices[pairs], one_face)]]
+        vertices = vertices + offset * np.asarray(mesh.vertex_normals, float)
         #: rim segments (n x 2 x 3)
         self.segments = vertices[rim]
         self._tree = cKDTree(self.segments.mean(axis=1)) if len(rim) else None
@@ -99,14 +105,7 @@ class OpenEdges:
             close = np.isfinite(near)
             out[close] = self.distance(x[close])
             return np.where(out <= upper, out, np.inf)
-        k = min(NEAREST_SEGMENTS, len(self.segments))
-        _, idx = self._tree.query(x, k)
-        idx = np.reshape(idx, (len(x), k))
-        a, b = self.segments[idx, 0], self.segments[idx, 1]  # N x k x 3
-        ab = b - a
-        length2 = np.maximum(np.einsum("nkj,nkj->nk", ab, ab), 1e-300)
-        t = np.clip(np.einsum("nkj,nkj->nk", x[:, None] - a, ab) / length2, 0.0, 1.0)
-        return np.linalg.norm(a + t[..., None] * ab - x[:, None], axis=2).min(axis=1)
+        return nearest_segments(x, self.segments, self._tree)[0].min(axis=1)
 
 
 def at_open_edge(field: DistanceField, rim: OpenEdges, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -64,14 +64,17 @@ class Prior:
             return value
         return ca.log(value) if isinstance(value, ca.SX | ca.MX | ca.DM) else np.log(value)
 
+    def untransform(self, x):
+        """The value (SI) whose :meth:`transform` is ``x`` (floats and arrays)."""
+        return np.exp(x) if self.log else x
+
     def z(self, value):
         """The standardised residual of ``value`` (SI): ``(transform(value) - centre) / sd``."""
         return (self.transform(value) - self.centre) / self.sd
 
     def sample(self, rng: np.random.Generator, size: int | None = None):
         """Draws (SI) from the prior: ``mean + sd N(0, 1)``, or ``exp(ln median + sd N(0, 1))``."""
-        x = self.centre + self.sd * rng.standard_normal(size)
-        return np.exp(x) if self.log else x
+        return self.untransform(self.centre + self.sd * rng.standard_normal(size))
 
     def interval(self, level: float = RANGE_LEVEL) -> tuple[float, float]:
         """The central interval (SI) holding ``level`` of the prior (default +-3 sd)."""

@@ -62,7 +62,7 @@ def analyse_study(study, truths: StudyTruths | None = None) -> dict:
     df = study.load_rows()
     _write_csv(df, out / "estimates.csv")
     parquet = _write_parquet(df, out / "estimates.parquet")
-    truths = truths or StudyTruths(study.spec.knee, tuple(study.spec.elements))
+    truths = truths or StudyTruths.of(study.spec)
     model = truths.model
     knee = model.knee
     truth_vals = dict(zip(model.parameter_names, model.theta(), strict=True))

@@ -97,7 +97,10 @@ def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2, tru
     row: dict = {"set": set_name, "sample": index, "seed": -1}
     t0 = time.perf_counter()
     try:
-        truths = truths or study_truths(spec)
+        if truths is None:
+            from kneenlp.studies.truth import StudyTruths
+
+            truths = StudyTruths.of(spec)
         model, truth = truths.model, truths.truth(set_name)
         # the protocol's name, not the path it was given by: moving the file keeps the draws
         seed = row["seed"] = sample_seed(spec.seed, truth.protocol.name, index)
@@ -237,13 +240,6 @@ class Study:
         return list(self.spec.sets).index(s) if s in self.spec.sets else 99
 
 
-def study_truths(spec: StudySpec) -> StudyTruths:
-    """A new :class:`~kneenlp.studies.truth.StudyTruths` of ``spec``'s knee and elements."""
-    from kneenlp.studies.truth import StudyTruths
-
-    return StudyTruths(spec.knee, tuple(spec.elements))
-
-
 def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, scheduler: str | None = None,
               dask_local: bool = False, progress: bool | None = None, analyse: bool = True,
               truths: StudyTruths | None = None) -> Study:
@@ -251,8 +247,9 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
 
     ``workers`` local processes (default: all cores; 1 = in this process), or Dask: ``scheduler``
     (address ``tcp://HOST:PORT``) or ``dask_local`` (a LocalCluster with ``workers`` processes).
-    ``truths``: the model and true simulations of ``spec``'s knee (:func:`study_truths`), e.g. the
-    caller's, already built; made here when not given.
+    ``truths``: the model and true simulations of ``spec``'s knee
+    (:meth:`~kneenlp.studies.truth.StudyTruths.of`), e.g. the caller's, already built; made here when
+    not given.
     """
     from kneenlp.experiment.protocol import Protocol
 
@@ -261,7 +258,10 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
     if spec.start not in STARTS:
         raise unknown_name("start", spec.start, STARTS)
     workers = workers or os.cpu_count() or 1
-    truths = truths or study_truths(spec)
+    if truths is None:
+        from kneenlp.studies.truth import StudyTruths
+
+        truths = StudyTruths.of(spec)
     # Dask first: a missing package or an unreachable scheduler writes nothing into ``out``
     dask = _dask_client(scheduler, dask_local, workers) if scheduler or dask_local else None
     study = Study(spec, Path(out))

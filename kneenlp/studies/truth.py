@@ -3,7 +3,7 @@
 :class:`StudyTruths` builds them on first use and keeps them for as long as its owner keeps it:
 one per study run (:func:`~kneenlp.studies.study.run_study` makes it, or takes the caller's, and
 hands it to the samples it solves in its own process and to the analysis), one per worker process
-(made by the pool's initializer).  Nothing is memoised at module level: a knee file edited between
+(each local worker keeps the run's, forked with it).  Nothing is memoised at module level: a knee file edited between
 two studies is read again by the next one.
 """
 
@@ -25,6 +25,12 @@ class StudyTruths:
         self.knee, self.elements = knee, tuple(elements)
         self._model: KneeModel | None = None
         self._truths: dict[str, SimulationResult] = {}
+
+    @classmethod
+    def of(cls, spec) -> StudyTruths:
+        """The truths of a study's knee and elements (``spec``: a
+        :class:`~kneenlp.studies.study.StudySpec`)."""
+        return cls(spec.knee, tuple(spec.elements))
 
     def __getstate__(self) -> dict:
         return {"knee": self.knee, "elements": self.elements}
