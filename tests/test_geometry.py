@@ -105,7 +105,8 @@ def test_compiled_kernels_equal_the_numpy_references(box):
     r = pts - [0.0, -0.02, 0.0]  # arms from a tibial origin below the plateau
     areas = rng.uniform(0.2e-6, 0.6e-6, n)
     law = ElasticFoundation()
-    for got, ref in zip(kernels.wrench_expansion(d, g, h, t3, r, areas, law.kernel, 1e-5),
+    one, zero = np.ones(n), np.zeros((n, 3, 3))
+    for got, ref in zip(kernels.wrench_expansion(d, g, h, t3, r, areas, law.kernel, 1e-5, 2, one, zero[:, 0], zero),
                         wrench_expansion(d, g, h, t3, pts, r, areas, 1e-5), strict=True):
         assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
 
@@ -157,8 +158,8 @@ from kneenlp.geometry import kernels
 from kneenlp.model.laws import ElasticFoundation
 c = np.zeros((6, 6, 6)); pts = np.zeros((1, 3)); R = np.eye(3)[None]; p = np.zeros((1, 3))
 out = np.empty((1, 271))
-kernels.contact_batch(c, c, np.zeros(3), 1e-3, np.zeros(3), np.ones(3) * 1e-3, 1e-3, pts, np.ones(1), R, p,
-                      ElasticFoundation().kernel, 1e-5, 2, 0, 1, out)
+kernels.contact_batch(c, c, np.zeros((0, 0, 0)), np.zeros(3), 1e-3, np.zeros(3), np.ones(3) * 1e-3, 1e-3, pts,
+                      np.ones(1), R, p, ElasticFoundation().kernel, 1e-5, 2, 0, 1, out)
 print(len(kernels.contact_batch.stats.cache_misses), len(kernels.contact_batch.stats.cache_hits))
 """
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
@@ -191,8 +192,8 @@ def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box, l
     rows = {}
     for order in (2, 1, 0):
         out = np.empty((T, WS_SIZE))
-        kernels.contact_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                              points, areas, R, p, law.kernel, 1e-5, order, 0, T, out)
+        kernels.contact_batch(fld.coeffs, fld.cell_min, np.zeros((0, 0, 0)), fld.origin, fld.spacing, lo, hi,
+                              0.99 * fld.depth, points, areas, R, p, law.kernel, 1e-5, order, 0, T, out)
         rows[order] = out
     for t in range(T):
         X = points @ R[t].T + p[t]
@@ -245,3 +246,106 @@ def test_a_rim_is_where_the_surface_ends_not_a_crack_or_a_sliver():
     v, f, (a, b, m) = _split_edge(cropped, 0)  # a T-junction inside the cropped surface
     c = f[0, 2]
     assert len(OpenEdges(trimesh.Trimesh(v, np.vstack([f[1:], [[a, m, c], [m, b, c]]]), process=False))) == cut
+
+
+def _half_plate(spacing: float = 0.5e-3) -> trimesh.Trimesh:
+    """A flat sheet z = 0 (outward normal +z) over x in [-10, 0] mm, y in [-8, 8] mm: a surface cropped
+    along x = 0, its rim."""
+    x, y = np.arange(-10e-3, 1e-9, spacing), np.arange(-8e-3, 8e-3 + 1e-9, spacing)
+    v = np.array([(a, b, 0.0) for a in x for b in y])
+    ny = len(y)
+    f = []
+    for i in range(len(x) - 1):
+        for j in range(ny - 1):
+            a, b, c, d = i * ny + j, (i + 1) * ny + j, (i + 1) * ny + j + 1, i * ny + j + 1
+            f += [[a, b, c], [a, c, d]]
+    return trimesh.Trimesh(v, np.array(f), process=False)
+
+
+@pytest.fixture(scope="module")
+def half_plate():
+    mesh = _half_plate()
+    fld = DistanceField.from_mesh(mesh, np.array([[-12e-3, -9e-3, -3e-3], [4e-3, 9e-3, 3e-3]]), spacing=0.5e-3)
+    return mesh, fld
+
+
+def test_a_cropped_surface_ends_at_its_rim(half_plate):
+    """The contact weight of a surface cropped along x = 0: exactly 1 two and a half spacings inside,
+    exactly 0 as far beyond, a half at the rim; within [0, 1] everywhere."""
+    _, fld = half_plate
+    assert fld.weights is not None and fld.info["rim_edges"] == 2 * (20 + 32)  # the sheet's four sides
+    x = np.linspace(-5e-3, 3e-3, 161)
+    pts = np.column_stack([x, 0.7e-3 * np.sin(40 * x), np.full_like(x, -0.4e-3)])
+    w = fld.weight_spline.evaluate(pts)[0]
+    assert np.allclose(w[x <= -2.5 * fld.spacing], 1.0, rtol=0, atol=1e-12) and np.all(w[x >= 2.5 * fld.spacing] == 0)
+    assert np.all((w >= 0) & (w <= 1 + 1e-12)) and np.all(np.diff(w) <= 1e-12)
+    assert fld.weight_spline.evaluate(np.array([[0.0, 0.0, -0.4e-3]]))[0][0] == pytest.approx(0.5, abs=0.02)
+
+
+def test_the_weighted_contact_pass_equals_the_numpy_expansion_and_its_own_derivatives(half_plate):
+    """Over a cropped surface, the compiled pass (weight included) against the NumPy expansion with the
+    weight's value, gradient and Hessian, and its Jacobian and Hessian against central differences of
+    its own wrench and Jacobian over rigid displacements of the tibia."""
+    from kneenlp.geometry import kernels
+    from kneenlp.model.kinematics import rot_x, rot_z
+    from kneenlp.model.mesh_contact import WS_SIZE, wrench_expansion
+
+    _, fld = half_plate
+    rng = np.random.default_rng(7)
+    points = np.column_stack([rng.uniform(-5e-3, 3e-3, 500), rng.uniform(-6e-3, 6e-3, 500), np.zeros(500)])
+    areas = rng.uniform(0.2e-6, 0.4e-6, 500)
+    lo, hi = fld.bounds
+
+    def rows(R: np.ndarray, p: np.ndarray, order: int = 2) -> np.ndarray:
+        out = np.empty((len(R), WS_SIZE))
+        kernels.contact_batch(fld.coeffs, fld.cell_min, fld.weights, fld.origin, fld.spacing, lo, hi,
+                              0.99 * fld.depth, points, areas, R, p, 1.0, 1e-5, order, 0, len(R), out)
+        return out
+
+    R0, p0 = np.asarray(rot_x(0.03) @ rot_z(-0.02), float), np.array([0.2e-3, 0.1e-3, -0.6e-3])
+    row = rows(R0[None], p0[None])[0]
+    X = points @ R0.T + p0
+    d = fld.evaluate(X)[0]
+    sel = (d < 0) & (d > -0.99 * fld.depth)
+    d, g, h, t3 = fld.evaluate(X[sel], order=3)
+    weight = fld.weight_spline.evaluate(X[sel], order=2)
+    W, J, H = wrench_expansion(d, g, h, t3, X[sel], X[sel] - p0, areas[sel], 1e-5, None, weight)
+    assert 0.05 < np.mean(weight[0]) < 0.95  # the contact straddles the rim
+    for got, ref in ((row[12:18], W), (row[18:54].reshape(6, 6, order="F"), J),
+                     (row[54:-1].reshape(6, 6, 6).transpose(0, 2, 1), H)):
+        assert np.allclose(got, ref, rtol=1e-10, atol=1e-10 * np.abs(ref).max())
+    # central differences over xi = (u, w): X(xi) = exp([w]x) (X - p0) + p0 + u, as the expansion
+    step = np.array([1e-7] * 3 + [1e-5] * 3)
+    for c in range(6):
+        xi = np.zeros(6)
+        xi[c] = step[c]
+        poses = [(np.asarray(trimesh.transformations.rotation_matrix(np.linalg.norm(s * xi[3:]), s * xi[3:]
+                                                                    if np.any(xi[3:]) else [1, 0, 0])[:3, :3]) @ R0,
+                  p0 + s * xi[:3]) for s in (1.0, -1.0)]
+        plus, minus = rows(np.stack([poses[0][0], poses[1][0]]), np.stack([poses[0][1], poses[1][1]]))
+        dW = (plus[12:18] - minus[12:18]) / (2 * step[c])
+        dJ = ((plus[18:54] - minus[18:54]) / (2 * step[c])).reshape(6, 6, order="F")
+        assert np.allclose(dW, J[:, c], rtol=1e-4, atol=1e-4 * np.abs(J).max())
+        Hc = np.array([H[k][:, c] for k in range(6)])  # d J[k, e] / d xi_c = H[k][e, c]
+        assert np.allclose(dJ, Hc, rtol=2e-3, atol=2e-3 * np.abs(H).max())
+
+
+def test_the_brute_force_reference_ends_a_cropped_surface_at_its_rim(half_plate):
+    """Tibial points 0.4 mm below the cropped sheet, half of them under it and half beyond its edge:
+    the exact contact counts those under it only (the closed form), and the model's weighted contact
+    (the weight's fall is symmetric about the rim) agrees with it to 1 %."""
+    from kneenlp.geometry.rim import OpenEdges
+    from kneenlp.model.mesh_contact import MeshContact
+    from kneenlp.testing.reference import reference_contact
+
+    mesh, fld = half_plate
+    gx, gy = np.meshgrid(np.arange(-4.9e-3, 5e-3, 0.2e-3), np.arange(-5e-3, 5.01e-3, 0.2e-3), indexing="ij")
+    points = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, -0.4e-3)])
+    areas = np.full(len(points), 0.04e-6)
+    K = 1e10
+    ref = reference_contact(MeshDistance(mesh), 0.0, points, areas, np.eye(3), np.zeros(3), K, 1e-5,
+                            rim=OpenEdges(mesh))
+    under = points[:, 0] < 0
+    assert ref.force[2] == pytest.approx(K * 0.4e-3 * areas[under].sum(), rel=1e-3)
+    got = MeshContact("medial", fld, points, areas, 1e-5).pressure(np.eye(3), np.zeros(3), K)
+    assert got["force"][2] == pytest.approx(ref.force[2], rel=0.01)

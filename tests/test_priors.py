@@ -166,3 +166,20 @@ def test_a_calibration_from_several_starts_keeps_the_lowest_and_lists_them():
     converged = [e for e, text in zip(ends, m.group(1).split(", "), strict=True) if "not converged" not in text]
     assert several.success and math.isclose(several.map_objective, min(converged), rel_tol=1e-5)
     assert several.map_objective <= one.map_objective * (1 + 1e-9)
+
+
+@pytest.mark.slow
+def test_a_calibration_at_a_bound_is_read_back_by_predict(tmp_path):
+    """A calibration whose meniscus stiffness ends at its bound 0 (IPOPT relaxes bounds by 1e-8,
+    so it ended at -1e-7 N/mm and predict refused the written file): the written values lie within
+    their bounds, and predict reads the calibration identify wrote."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "problems" / "s192803"
+    effects = ("tibial_origin,femoral_origin,tibial_axes,PCLal_femoral_attachment,ACLam_femoral_attachment,"
+               "PCLal_bundles,PFL_tibial_attachment,meniscus")
+    assert main(["identify", "--problem", str(root), "--also-free", effects, "--out", str(tmp_path / "cal")]) == 0
+    text = (tmp_path / "cal" / "calibrated.toml").read_text()
+    assert '[values."meniscus.k"]\nvalue = 0.0\n' in text
+    assert main(["predict", str(root / "laxity.csv"), "--knee", "s192803", "--parameters",
+                 str(tmp_path / "cal" / "calibrated.toml"), "--out", str(tmp_path / "pred")]) == 0

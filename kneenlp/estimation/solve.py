@@ -24,6 +24,7 @@ from scipy import stats
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.starts import best_fit, run_starts
 from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.model.mesh_contact import RIM_SHARE
 from kneenlp.solvers.forward import rim_reason
 from kneenlp.solvers.nlp import solve_nlp
 from kneenlp.solvers.reduced import reduced_least_squares, tolerance
@@ -158,10 +159,11 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter)
     (:func:`~kneenlp.solvers.nlp.solve_nlp`), judged: a success needs the solver's, every trial
     at equilibrium (:attr:`~kneenlp.experiment.problem.IdentificationProblem.equilibrium_tol`), no
-    contact point left out of the working sets and none beyond the femoral surface's open edge."""
+    contact point left out of the working sets and at most :data:`~kneenlp.model.mesh_contact.RIM_SHARE` of a
+    compartment's force from beyond the femoral surface's open edge."""
     r = solve_nlp(problem, start, solver, solver_options, threads, q0)
     tol = problem.equilibrium_tol
-    success = r.success and r.max_residual <= tol and r.left_out <= 0 and r.rim <= 0
+    success = r.success and r.max_residual <= tol and r.left_out <= 0 and r.rim <= RIM_SHARE
     notes = []
     if r.started_at_data:
         notes.append(f"{r.started_at_data} trial(s) had no equilibrium inside the pose envelope at the start; "
@@ -171,7 +173,7 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     if r.left_out > 0:
         notes.append(f"a contact point outside the working sets penetrates {1e3 * r.left_out:.3f} mm: enlarge "
                      "contact.working_set in the knee file (or the contact left the represented femoral surface)")
-    if r.rim > 0:
+    if r.rim > RIM_SHARE:
         notes.append(rim_reason(r.rim))
     return Fit.build(problem, "simultaneous", problem.theta(r.values), r.q, status=r.status, success=success,
                      iterations=r.iterations, seconds=r.seconds, max_residual=r.max_residual,

@@ -329,9 +329,9 @@ class KneeModel:
         return worst
 
     def rim_batch(self, q: np.ndarray, theta: np.ndarray, flexions: np.ndarray) -> np.ndarray:
-        """:meth:`rim_penetration` of the poses ``q`` (T x 5, SI) at ``flexions`` (T, rad), all at once."""
+        """:meth:`rim_share` of the poses ``q`` (T x 5, SI) at ``flexions`` (T, rad), all at once."""
         q = np.asarray(q, float).reshape(-1, 5)
-        worst = np.full(len(q), -np.inf)
+        worst = np.zeros(len(q))
         staged = [e for e in self.staged if hasattr(e, "rim_batch")]
         if staged:
             R, p = self.poses(q, theta, flexions)
@@ -339,10 +339,10 @@ class KneeModel:
                 worst = np.maximum(worst, e.rim_batch(R, p))
         return worst
 
-    def rim_penetration(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> float:
-        """Largest penetration (m) of a tibial point whose nearest femoral point lies on an open edge
-        of the femoral mesh (-inf if none): contact there is an artefact of a cropped surface
-        (:meth:`~kneenlp.model.mesh_contact.MeshContact.rim_batch`)."""
+    def rim_share(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> float:
+        """Largest share of a compartment's contact force that would come from beyond an open edge
+        of the femoral mesh (0 if none; a cropped surface ends there, the contact weighed down
+        across the edge: :meth:`~kneenlp.model.mesh_contact.MeshContact.rim_batch`)."""
         return float(self.rim_batch(np.asarray(q, float)[None], theta, np.array([flexion]))[0])
 
     def working_sets_function(self, n_trials: int, order: int = 2, threads: int = 2) -> ca.Function:
@@ -508,6 +508,15 @@ class KneeModel:
         """:attr:`exact_residual` with the field's spline as one point's function mapped over the
         points (:data:`kneenlp.geometry.graph_field.LAYOUTS`): the same values, C that compiles."""
         return self._exact_residual("loop")
+
+    def residual_given(self, q: np.ndarray, theta: np.ndarray, load: np.ndarray, flexion: float,
+                       wrenches: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """The equilibrium residual (5, N and N m) at the pose ``q`` (SI) with the staged elements'
+        force and moment given (one pair per element of :attr:`staged`, in its ``wrench_frame``, N and
+        N m about the tibial origin): another contact (e.g. the brute force of
+        :mod:`kneenlp.testing.reference`) in the model's own balance."""
+        r, _ = self._balance(q, flexion, theta, load, *[w[0] for w in wrenches], *[w[1] for w in wrenches])
+        return np.asarray(r, float).ravel()
 
     def _exact_residual(self, layout: str) -> ca.Function:
         q, flexion = ca.MX.sym("q", 5), ca.MX.sym("flexion")

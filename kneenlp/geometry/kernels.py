@@ -195,10 +195,13 @@ def field_derivatives(coeffs: np.ndarray, origin: np.ndarray, spacing: float, X:
 
 @njit(cache=True, nogil=True)
 def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray, r: np.ndarray,
-                     areas: np.ndarray, law, gate: float, order: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     areas: np.ndarray, law, gate: float, order: int, wv: np.ndarray, wg: np.ndarray,
+                     wh: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """See :func:`kneenlp.model.mesh_contact.wrench_expansion` (same arguments but ``X``, same
     results): wrench (6), Jacobian (6 x 6), Hessian (6 x 6 x 6) per unit modulus.  ``order=1``:
-    the Hessian is left zero (``t3`` is not read), at about half the cost."""
+    the Hessian is left zero (``t3`` and ``wh`` are not read), at about half the cost.  ``wv``,
+    ``wg``, ``wh`` (n, n x 3, n x 3 x 3): the rim weight's value, gradient and Hessian at the points
+    (1, 0, 0 on a surface without an open edge): the pressure is ``w(X) h(s)``."""
     W = np.zeros(6)
     J = np.zeros((6, 6))
     H = np.zeros((6, 6, 6))
@@ -220,6 +223,10 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
         if s <= 0.0:
             continue
         gam, gam1, gam2 = pressure(law, s, gate)  # the pressure law's value and depth derivatives, per unit modulus
+        # the weighted pressure w gam: the terms of w's derivatives come last, so that with w = 1 and
+        # zero derivatives every number is the unweighted one, bit for bit
+        w = wv[p]
+        gamw, gam1w, gam2w = w * gam, w * gam1, w * gam2
         gx, gy, gz = g[p, 0], g[p, 1], g[p, 2]
         rho = np.sqrt(gx * gx + gy * gy + gz * gz)
         nv[0], nv[1], nv[2] = gx / rho, gy / rho, gz / rho
@@ -240,13 +247,16 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
                                                     + nv[2] * t3[p, 2, k, l_])
                     dN[j, k, l_] = (pt - N[j, l_] * Hn[k] - nv[j] * NtH[l_, k] - N[j, k] * Hn[l_]) / rho
         for j in range(3):
-            f[j] = a * gam * nv[j]
+            f[j] = a * gamw * nv[j]
             for k in range(3):
-                Df[j, k] = a * (gam * N[j, k] - gam1 * nv[j] * g[p, k])
+                Df[j, k] = a * (gamw * N[j, k] - gam1w * nv[j] * g[p, k] + nv[j] * wg[p, k] * gam)
                 for l_ in range(3 if order >= 2 else 0):
-                    D2f[j, k, l_] = a * (gam2 * nv[j] * g[p, k] * g[p, l_]
-                                         - gam1 * (nv[j] * h[p, k, l_] + g[p, k] * N[j, l_] + g[p, l_] * N[j, k])
-                                         + gam * dN[j, k, l_])
+                    D2f[j, k, l_] = a * (gam2w * nv[j] * g[p, k] * g[p, l_]
+                                         - gam1w * (nv[j] * h[p, k, l_] + g[p, k] * N[j, l_] + g[p, l_] * N[j, k])
+                                         + gamw * dN[j, k, l_]
+                                         + nv[j] * (wh[p, k, l_] * gam
+                                                    - gam1 * (wg[p, k] * g[p, l_] + wg[p, l_] * g[p, k]))
+                                         + gam * (wg[p, k] * N[j, l_] + wg[p, l_] * N[j, k]))
         rx, ry, rz = r[p, 0], r[p, 1], r[p, 2]
         # B = [I, -[r]x]: dX/dxi (w x r = -[r]x w)
         B[:, :] = 0.0
@@ -371,8 +381,20 @@ def _cell_min_at(cmin: np.ndarray, origin: np.ndarray, spacing: float, x: np.nda
 
 
 @njit(cache=True, nogil=True)
-def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spacing: float, lo: np.ndarray,
-                  hi: np.ndarray, deepest: float, points: np.ndarray, areas: np.ndarray, R: np.ndarray,
+def _weight_derivatives(wcoeffs: np.ndarray, origin: np.ndarray, spacing: float,
+                        X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rim weight's value, gradient and Hessian at the points ``X`` (1, 0, 0 without a weight:
+    ``wcoeffs`` empty)."""
+    m = X.shape[0]
+    wv, wg, wh = np.ones(m), np.zeros((m, 3)), np.zeros((m, 3, 3))
+    if wcoeffs.shape[0]:
+        field_derivatives(wcoeffs, origin, spacing, X, wv, wg, wh, np.empty((m, 3, 3, 3)))
+    return wv, wg, wh
+
+
+@njit(cache=True, nogil=True)
+def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, wcoeffs: np.ndarray, origin: np.ndarray, spacing: float,
+                  lo: np.ndarray, hi: np.ndarray, deepest: float, points: np.ndarray, areas: np.ndarray, R: np.ndarray,
                   p: np.ndarray, law, gate: float, order: int, first: int, last: int, out: np.ndarray) -> None:
     """One compartment at the poses ``first..last-1`` of ``R`` (T x 3 x 3) and ``p`` (T x 3), fused:
     every tibial point (tibial frame) mapped to the femoral frame, passed over where the cell's
@@ -380,15 +402,17 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
     ``lo..hi`` that penetrate by less than ``deepest`` (m) make the contact.  Writes each pose's
     working-set row (``out[t]``, the layout of :data:`kneenlp.model.mesh_contact.WS_SIZE`: the pose,
     then per unit modulus the wrench, its Jacobian and Hessian (:func:`wrench_expansion`), and the
-    largest penetration).  ``law`` is the pressure law's kernel (an exponent or a compiled
-    function: module docstring), ``gate`` its gate width (m).  ``order``: the wrench's derivatives
-    written (0: none, the residual's value at the pose itself, at a fraction of the cost; 1: the
-    Jacobian, what Newton and first-order sensitivities need; 2: the Hessian too; the parts not
-    written are zero)."""
+    largest penetration).  ``wcoeffs``: the rim weight's B-spline on the same grid
+    (:attr:`kneenlp.geometry.sdf.DistanceField.weights`; an empty array: weight 1 everywhere, a
+    surface without an open edge) multiplies every point's pressure.  ``law`` is the pressure law's
+    kernel (an exponent or a compiled function: module docstring), ``gate`` its gate width (m).
+    ``order``: the wrench's derivatives written (0: none, the residual's value at the pose itself,
+    at a fraction of the cost; 1: the Jacobian, what Newton and first-order sensitivities need; 2:
+    the Hessian too; the parts not written are zero)."""
     n_pts = points.shape[0]
     X = np.empty((n_pts, 3))
     keep = np.empty(n_pts, dtype=np.int64)
-    g1 = np.empty(3)
+    g1, wx, wy, wz = np.empty(3), np.empty(4), np.empty(4), np.empty(4)
     for t in range(first, last):
         Rt, pt = R[t], p[t]
         k = 0
@@ -415,6 +439,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
         if order >= 1:
             dd, g, h, t3 = np.empty(m), np.empty((m, 3)), np.empty((m, 3, 3)), np.empty((m, 3, 3, 3))
             field_derivatives(coeffs, origin, spacing, X[:m], dd, g, h, t3)
+            wv, wg, wh = _weight_derivatives(wcoeffs, origin, spacing, X[:m])
             r = np.empty((m, 3))
             a_ = np.empty(m)
             for i in range(m):
@@ -422,7 +447,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
                     r[i, a] = X[i, a] - pt[a]
                 a_[i] = areas[keep[i]]
                 depth = max(depth, -dd[i])
-            W, J, H = wrench_expansion(dd, g, h, t3, r, a_, law, gate, order)
+            W, J, H = wrench_expansion(dd, g, h, t3, r, a_, law, gate, order, wv, wg, wh)
             for a in range(6):
                 row[12 + a] = W[a]
                 for b in range(6):
@@ -435,6 +460,8 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, origin: np.ndarray, spac
                 s = -v
                 depth = max(depth, s)
                 gam = pressure(law, s, gate)[0]
+                if wcoeffs.shape[0]:
+                    gam *= _value(wcoeffs, origin, spacing, X[i, 0], X[i, 1], X[i, 2], wx, wy, wz)
                 rho = np.sqrt(g1[0] * g1[0] + g1[1] * g1[1] + g1[2] * g1[2])
                 w = areas[keep[i]] * gam / rho
                 fx, fy, fz = w * g1[0], w * g1[1], w * g1[2]

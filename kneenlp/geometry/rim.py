@@ -3,10 +3,11 @@
 A femoral articular surface given as an open mesh (the cartilage's top surface, a cropped implant
 component) has edges used by one face only.  Beyond such an edge the signed distance is not a
 distance to a surface any more: it is the distance to the edge line, signed by the rim's
-pseudo-normal, so a tibial point 4-6 mm past the edge and a little below it counts as
-penetrating.  :class:`OpenEdges` finds the rim and measures how far points are from it, so that
-contact whose nearest femoral point lies on the rim can be refused (see
-:meth:`kneenlp.model.mesh_contact.MeshContact.rim_penetration`).
+pseudo-normal, so a tibial point 4-6 mm past the edge and a little below it would count as
+penetrating.  The surface ends where the mesh ends: :class:`OpenEdges` finds the rim and measures
+how far points are from it, and :func:`rim_weights` gives the grid nodes of the distance field a
+weight that multiplies the contact pressure (:attr:`kneenlp.geometry.sdf.DistanceField.weights`):
+1 on the surface, falling to 0 across the rim within a grid spacing, 0 beyond it.
 
 Lengths are in the mesh's unit (kneenlp: metres).
 """
@@ -17,11 +18,9 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from kneenlp.geometry.sdf import DistanceField
-
-#: A point is at the open edge when its nearest surface point lies within this many grid spacings
-#: of the edge (the spline field rounds the distance there over about a spacing).
-RIM_SPACINGS = 1.0
+#: Nodes within this many grid spacings of the rim take their weight from their lateral position
+#: (:func:`rim_weights`); farther ones are on the surface (1) or beyond the rim (0).
+WEIGHT_REACH = 3.0
 #: Segments looked at per point (nearest by midpoint): rim edges are short and of similar length.
 NEAREST_SEGMENTS = 8
 #: A one-face edge lies on other edges (a crack, not a rim) when points along it are within this
@@ -75,14 +74,33 @@ class OpenEdges:
         pairs = np.column_stack([keys // n, keys % n])
         one_face = np.flatnonzero(counts == 1)
         vertices = np.asarray(mesh.vertices, float)
-        rim = pairs[one_face[~sealed(vertices[pairs], one_face)]]
+        rim_keys = one_face[~sealed(vertices[pairs], one_face)]
+        rim = pairs[rim_keys]
         vertices = vertices + offset * np.asarray(mesh.vertex_normals, float)
         #: rim segments (n x 2 x 3)
         self.segments = vertices[rim]
+        #: per segment, the unit direction in the surface, across the segment, into its face (n x 3)
+        self.inward = self._inward(mesh, vertices, n, keys[rim_keys])
         self._tree = cKDTree(self.segments.mean(axis=1)) if len(rim) else None
         #: half the longest segment (a point within ``r`` of a segment is within ``r + reach`` of its midpoint)
         lengths = np.linalg.norm(self.segments[:, 1] - self.segments[:, 0], axis=1)
         self.reach = 0.5 * float(lengths.max()) if len(rim) else 0.0
+
+    def _inward(self, mesh: trimesh.Trimesh, vertices: np.ndarray, n: int, keys: np.ndarray) -> np.ndarray:
+        """The unit vectors across each rim segment into its one face (the face's third vertex
+        less its part along the segment)."""
+        if not len(keys):
+            return np.zeros((0, 3))
+        sorted_edges = np.asarray(mesh.edges_sorted, dtype=np.int64)
+        order = np.argsort(sorted_edges[:, 0] * n + sorted_edges[:, 1], kind="stable")
+        row = order[np.searchsorted((sorted_edges[:, 0] * n + sorted_edges[:, 1])[order], keys)]
+        faces = np.asarray(mesh.faces, dtype=np.int64)[np.asarray(mesh.edges_face)[row]]
+        a, b = self.segments[:, 0], self.segments[:, 1]
+        third = vertices[faces.sum(axis=1) - sorted_edges[row].sum(axis=1)]  # the face's vertex off the edge
+        t = (b - a) / np.maximum(np.linalg.norm(b - a, axis=1), 1e-300)[:, None]
+        u = third - a
+        u -= np.einsum("ij,ij->i", u, t)[:, None] * t
+        return u / np.maximum(np.linalg.norm(u, axis=1), 1e-300)[:, None]
 
     @property
     def closed(self) -> bool:
@@ -108,16 +126,29 @@ class OpenEdges:
         return nearest_segments(x, self.segments, self._tree)[0].min(axis=1)
 
 
-def at_open_edge(field: DistanceField, rim: OpenEdges, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(d, mask)`` for points (N x 3, the field's frame): the field's signed distance and whether
-    the nearest surface point (reached along the field's gradient) lies on the open edge, within
-    :data:`RIM_SPACINGS` grid spacings of it.  There ``d`` measures the distance to the edge, not
-    to a surface: a negative one is no penetration."""
-    x = np.asarray(points, float).reshape(-1, 3)
-    d, g = field.evaluate(x, order=1)
-    if rim.closed:
-        return d, np.zeros(len(x), dtype=bool)
-    norm = np.linalg.norm(g, axis=1)
-    n = np.divide(g, norm[:, None], out=np.zeros_like(g), where=norm[:, None] > 0)
-    reach = RIM_SPACINGS * field.spacing
-    return d, (norm > 0) & (rim.distance(x - d[:, None] * n, upper=reach) <= reach)
+def rim_weights(rim: OpenEdges, nodes: np.ndarray, unsigned: np.ndarray, spacing: float) -> np.ndarray:
+    """Contact weight (N,) of grid ``nodes`` (N x 3) whose distance to the represented surface is
+    ``unsigned`` (N,), for a grid of ``spacing``: the nodes within :data:`WEIGHT_REACH` spacings of
+    the rim take ``clip(1/2 + lam / spacing, 0, 1)``, ``lam`` their position across the nearest rim
+    segment (positive into the surface, :attr:`OpenEdges.inward`), so the weight falls from 1 to 0
+    over the spacing centred on the rim; the others are 1 where their nearest surface point is inside
+    the surface, 0 where it is on the rim (the node is then as far from the rim as from the surface)."""
+    x = np.asarray(nodes, float).reshape(-1, 3)
+    w = np.ones(len(x))
+    if rim.closed or not len(x):
+        return w
+    reach = WEIGHT_REACH * spacing
+    for start in range(0, len(x), 200_000):  # bounded memory: k segments a node
+        part = slice(start, start + 200_000)
+        d, idx = nearest_segments(x[part], rim.segments, rim._tree)
+        best = np.argmin(d, axis=1)
+        e, seg = d[np.arange(len(d)), best], idx[np.arange(len(d)), best]
+        a, b = rim.segments[seg, 0], rim.segments[seg, 1]
+        ab = b - a
+        t = np.clip(np.einsum("ij,ij->i", x[part] - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300), 0, 1)
+        lam = np.einsum("ij,ij->i", x[part] - (a + t[:, None] * ab), rim.inward[seg])
+        near = e <= reach
+        out = np.where(e - unsigned[part] <= 0.25 * spacing, 0.0, 1.0)
+        out[near] = np.clip(0.5 + lam[near] / spacing, 0.0, 1.0)
+        w[part] = out
+    return w

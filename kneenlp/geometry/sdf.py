@@ -36,9 +36,10 @@ from kneenlp.base.atomic import atomic_target
 from kneenlp.geometry.cache import cache_dir
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.kernels import cell_minimum, field_values
+from kneenlp.geometry.rim import OpenEdges, rim_weights
 
 #: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 
 
 def _weights(t: np.ndarray, order: int) -> np.ndarray:
@@ -90,6 +91,18 @@ class DistanceField:
     band: float  # clip outside the surface, m
     depth: float  # clip inside the surface, m
     info: dict = field(default_factory=dict)
+    #: the contact weight of a surface with an open edge (a cropped mesh): B-spline coefficients on
+    #: the same grid, the nodes' weights themselves (:func:`~kneenlp.geometry.rim.rim_weights`: 1 on
+    #: the surface, 0 beyond its rim), so the weight stays within [0, 1] and is exactly 1 wherever the
+    #: rim is more than two spacings away from every node of a cell; None without an open edge
+    weights: np.ndarray | None = None
+
+    @cached_property
+    def weight_spline(self) -> DistanceField | None:
+        """:attr:`weights` as a spline to evaluate (value 1 outside the grid), or None."""
+        if self.weights is None:
+            return None
+        return DistanceField(self.origin, self.spacing, self.weights, band=1.0, depth=0.0)
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -172,6 +185,11 @@ class DistanceField:
         # float32 coefficients, as stored: a field built now and one read from the cache are identical
         coeffs = spline_filter(values, order=3, mode="mirror").astype(np.float32).astype(np.float64)
         out = cls(lo, float(spacing), coeffs, float(band), float(depth))
+        rim = OpenEdges(mesh, offset)
+        if not rim.closed:  # a counted point's 64 nodes are near ones: far nodes weigh 0 (beyond a rim the
+            weights = np.zeros(len(nodes))  # far nodes' clip takes the side of a vertex normal, a fake inside)
+            weights[near] = rim_weights(rim, nodes[near], np.abs(d[near]), spacing)
+            out.weights = weights.reshape(shape).astype(np.float32).astype(np.float64)
         t1 = time.perf_counter()
         # accuracy: random points on the represented surface moved along its normal within the band
         rng = np.random.default_rng(rng_seed)
@@ -188,7 +206,9 @@ class DistanceField:
                     "error_rms_um": float(np.sqrt(np.mean(err**2)) * 1e6) if err.size else float("nan"),
                     "error_max_um": float(np.max(np.abs(err)) * 1e6) if err.size else float("nan"),
                     "checked_points": int(err.size), "build_seconds": t1 - t0,
-                    "check_seconds": time.perf_counter() - t1, "megabytes": coeffs.nbytes / 1e6}
+                    "check_seconds": time.perf_counter() - t1, "megabytes": coeffs.nbytes / 1e6,
+                    "rim_edges": len(rim), "rim_weighted_nodes": int(np.count_nonzero(out.weights.ravel()[near] < 1))
+                    if out.weights is not None else 0}
         return out
 
     # ------------------------------------------------------------------ evaluation
@@ -235,14 +255,16 @@ class DistanceField:
     def save(self, path: str | Path) -> None:
         """Write to a compressed ``.npz`` atomically (coefficients as float32: 1e-7 relative)."""
         with atomic_target(path) as tmp, open(tmp, "wb") as fh:
+            extra = {} if self.weights is None else {"weights": self.weights.astype(np.float32)}
             np.savez_compressed(fh, origin=self.origin, spacing=self.spacing, coeffs=self.coeffs.astype(np.float32),
-                                band=self.band, depth=self.depth, info=json.dumps(self.info))
+                                band=self.band, depth=self.depth, info=json.dumps(self.info), **extra)
 
     @classmethod
     def load(cls, path: str | Path) -> DistanceField:
         with np.load(path) as z:
+            weights = np.asarray(z["weights"], np.float64) if "weights" in z.files else None
             return cls(np.asarray(z["origin"], float), float(z["spacing"]), np.asarray(z["coeffs"], np.float64),
-                       float(z["band"]), float(z["depth"]), json.loads(str(z["info"])))
+                       float(z["band"]), float(z["depth"]), json.loads(str(z["info"])), weights)
 
 
 def field_key(mesh: trimesh.Trimesh, box: np.ndarray, **settings: float) -> str:

@@ -31,7 +31,7 @@ import trimesh
 from kneenlp.base.errors import InputError
 from kneenlp.geometry.axes import CondyleSplit, FlexionAxis, split_plateaus, sweep, touchable_box
 from kneenlp.geometry.distance import vertex_areas
-from kneenlp.geometry.rim import OpenEdges, at_open_edge
+from kneenlp.geometry.rim import OpenEdges
 from kneenlp.geometry.sdf import DistanceField, cached_field
 
 log = logging.getLogger("kneenlp")
@@ -41,8 +41,6 @@ TOUCHABLE_FLEXION_DEG = (-5.0, 100.0)
 #: Gap (m) within which a swept tibial point counts as reaching the femoral surface (the knee
 #: report's check of open edges, :meth:`FemoralSurface.open_edge_reached`).
 RIM_GAP = 0.5e-3
-#: Points per chunk when the field's derivatives are evaluated at many points (memory: ~1 kB a point).
-RIM_CHUNK = 50_000
 
 
 @dataclass(frozen=True)
@@ -90,18 +88,16 @@ class FemoralSurface:
         return OpenEdges(self.mesh, self.offset)
 
     def open_edge_reached(self, swept: np.ndarray) -> int:
-        """How many of the ``swept`` tibial points (femoral frame, m) come within :data:`RIM_GAP`
-        of the surface where its nearest point is on the open edge (0 for a watertight mesh)."""
-        if self.rim.closed:
+        """How many of the ``swept`` tibial points (femoral frame, m) lie within :data:`RIM_GAP` of
+        the surface (either side) beyond its open edge (the field's rim weight below a half, which
+        it is at the edge; 0 for a watertight mesh)."""
+        weight = self.field.weight_spline
+        if weight is None:
             return 0
         lo, hi = self.field.bounds
         x = swept[np.all((swept >= lo) & (swept <= hi), axis=1)]
-        x = x[self.field.evaluate(x)[0] < RIM_GAP]  # compiled, no derivatives: the near ones only
-        reached = 0
-        for start in range(0, len(x), RIM_CHUNK):  # bounded memory: derivatives gather 64 coefficients a point
-            d, at_rim = at_open_edge(self.field, self.rim, x[start:start + RIM_CHUNK])
-            reached += int(np.count_nonzero(at_rim & (d < RIM_GAP)))
-        return reached
+        x = x[np.abs(self.field.evaluate(x)[0]) < RIM_GAP]  # compiled, no derivatives
+        return int(np.count_nonzero(weight.evaluate(x)[0] < 0.5))
 
     def describe(self) -> str:
         what = (f"{' + '.join(self.sources) or 'mesh'} ({len(self.mesh.faces)} faces)"

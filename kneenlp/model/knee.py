@@ -42,7 +42,7 @@ from kneenlp.model.kinematics import reference_transform
 from kneenlp.model.knee_file import KneeFile, check_parameter_set, default_knee_file, knee_file, resolve_knee
 from kneenlp.model.laws import DEFAULT_PRESSURE_LAW
 from kneenlp.model.ligament import Ligament
-from kneenlp.model.mesh_contact import MeshContact
+from kneenlp.model.mesh_contact import RIM_SHARE, MeshContact
 from kneenlp.model.parameters import KINDS, ParameterSet
 
 
@@ -108,7 +108,7 @@ class Knee:
                                              self.working_set, c.law))
             else:
                 contact.append(MeshContact(c.name, self.femur.field, c.points, c.areas, self.gate,
-                                           self.femur.mesh.vertices, self.femur.offset, self.femur.rim, c.law))
+                                           self.femur.mesh.vertices, self.femur.offset, c.law))
         menisci = [Meniscus(self.condyle_centres(), self.menisci, self.condyle_rest())] \
             if self.menisci is not None else []
         return [*self.ligaments.values(), *contact, *menisci, *self.candidates]
@@ -178,7 +178,8 @@ class Knee:
         if not n:
             return (f"femoral mesh: open ({len(rim)} edges), but not where the tibia reaches between "
                     f"{TOUCHABLE_FLEXION_DEG[0]:g} and {TOUCHABLE_FLEXION_DEG[1]:g} deg flexion")
-        return (f"WARNING: the femoral mesh is open where the tibia reaches: {n} swept tibial points come within "
-                f"{RIM_GAP * 1e3:g} mm of its open edge between {TOUCHABLE_FLEXION_DEG[0]:g} and "
-                f"{TOUCHABLE_FLEXION_DEG[1]:g} deg flexion; a trial with contact there fails (the distance "
-                "beyond an open edge is no penetration): extend the femoral mesh or use the closed cartilage solid")
+        return (f"femoral mesh: open where the tibia reaches ({len(rim)} edges): {n} swept tibial points come within "
+                f"{RIM_GAP * 1e3:g} mm of the surface beyond its open edge between {TOUCHABLE_FLEXION_DEG[0]:g} and "
+                f"{TOUCHABLE_FLEXION_DEG[1]:g} deg flexion; the surface ends at the edge (the contact weight falls to "
+                f"0 across it within a grid spacing), and a trial is refused where more than "
+                f"{RIM_SHARE * 100:g} % of a compartment's contact force would come from beyond it")

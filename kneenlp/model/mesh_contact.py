@@ -36,7 +36,6 @@ from scipy.spatial import cKDTree
 
 from kneenlp.geometry import kernels
 from kneenlp.geometry.graph_field import field_in_graph
-from kneenlp.geometry.rim import OpenEdges, at_open_edge
 from kneenlp.geometry.sdf import DistanceField
 from kneenlp.model.contact import MODULUS
 from kneenlp.model.elements import Output, Pose, StagedElement, share_out
@@ -47,6 +46,10 @@ from kneenlp.model.parameters import Parameter
 #: (:meth:`MeshContact.candidates`; the contact sums themselves pass over every point that cannot
 #: penetrate with one look-up, :func:`kneenlp.geometry.kernels.contact_batch`).
 CANDIDATE_REACH = 2e-3
+
+#: A trial is refused when more than this share of a compartment's contact force would come from
+#: beyond the femoral surface's open edge (:meth:`MeshContact.rim_batch`).
+RIM_SHARE = 0.05
 
 #: Layout of the working-set input: expansion pose R0 (9, column-major) and p0 (3), wrench W (6),
 #: Jacobian J (36, column-major 6 x 6), Hessian H (216: H[c] 6 x 6 for each wrench component c,
@@ -74,14 +77,17 @@ def _pressure_derivatives(s: np.ndarray, law: PressureLaw, gate: float) -> tuple
 
 
 def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray, X: np.ndarray, r: np.ndarray,
-                     areas: np.ndarray, gate: float, law: PressureLaw | None = None
+                     areas: np.ndarray, gate: float, law: PressureLaw | None = None,
+                     weight: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Wrench (6), Jacobian (6 x 6) and Hessian (6 x 6 x 6) per unit modulus of the contact of the
     points with field values ``d``, gradients ``g``, Hessians ``h`` and third derivatives ``t3``
     (n, n x 3, n x 3 x 3, n x 3 x 3 x 3) at femoral-frame positions ``X``, arms ``r = X - p`` from
     the tibial origin and ``areas`` (m^2), with respect to ``xi = (u, w)`` (see module docstring).
 
-    Per point, ``f = A g(s) n`` with ``s = -d`` and ``n = grad d / |grad d|``; ``m = r x f``.  The
+    Per point, ``f = A q n`` with the weighted pressure ``q = w(X) g(s)``, ``s = -d``, ``n = grad d /
+    |grad d|``; ``m = r x f``; ``weight``: the rim weight's value, gradient and Hessian at the points
+    (n, n x 3, n x 3 x 3; default 1, a surface without an open edge).  The
     derivatives of ``f`` with respect to ``X`` follow from the field's (``dn/dX = P H / rho`` with
     ``P = I - n n'`` and ``rho = |grad d|``), those of ``X`` and ``r`` with respect to ``xi`` from
     ``X(xi) = X + u + w x r + w x (w x r) / 2``.
@@ -99,14 +105,19 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
     PT = (P @ t3.reshape(n_pts, 3, 9)).reshape(n_pts, 3, 3, 3)
     dN = (PT - N[:, :, None, :] * Hn[:, None, :, None] - n[:, :, None, None] * np.swapaxes(NtH, 1, 2)[:, None]
           - N[:, :, :, None] * Hn[:, None, None, :]) / rho[:, None, None, None]  # dN_jk/dX_l
-    A, G0, G1, G2 = areas[:, None, None], gam[:, None, None], gam1[:, None, None], gam2[:, None, None]
-    f = (areas * gam)[:, None] * n
-    ng = n[:, :, None] * g[:, None, :]  # n_j g_k
-    Df = A * (G0 * N - G1 * ng)  # df_j/dX_k
-    D2f = A[..., None] * (G2[..., None] * ng[:, :, :, None] * g[:, None, None, :]
-                          - G1[..., None] * (n[:, :, None, None] * h[:, None] + g[:, None, :, None] * N[:, :, None, :]
-                                             + g[:, None, None, :] * N[:, :, :, None])
-                          + G0[..., None] * dN)  # d2f_j/dX_k dX_l
+    wv, wg, wh = weight if weight is not None else (np.ones(n_pts), np.zeros((n_pts, 3)), np.zeros((n_pts, 3, 3)))
+    # q = w gam and its derivatives in X (ds/dX = -g)
+    q = wv * gam
+    dq = wg * gam[:, None] - (wv * gam1)[:, None] * g
+    gg = g[:, :, None] * g[:, None, :]
+    wgg = wg[:, :, None] * g[:, None, :]
+    d2q = (wh * gam[:, None, None] - gam1[:, None, None] * (wgg + np.swapaxes(wgg, 1, 2))
+           + wv[:, None, None] * (gam2[:, None, None] * gg - gam1[:, None, None] * h))
+    A, Q = areas[:, None, None], q[:, None, None]
+    f = (areas * q)[:, None] * n
+    Df = A * (Q * N + n[:, :, None] * dq[:, None, :])  # df_j/dX_k
+    D2f = A[..., None] * (n[:, :, None, None] * d2q[:, None] + dq[:, None, :, None] * N[:, :, None, :]
+                          + dq[:, None, None, :] * N[:, :, :, None] + Q[..., None] * dN)  # d2f_j/dX_k dX_l
     # X(xi) and r(xi): first derivatives B = [I, -[r]x], second derivatives (rotation block only)
     rx = _skew(r)
     B = np.concatenate([np.broadcast_to(np.eye(3), (n_pts, 3, 3)), -rx], axis=2)  # n x 3 x 6
@@ -133,9 +144,11 @@ class MeshContact(StagedElement):
 
     ``field`` femoral frame, m; ``points`` (N x 3) tibial frame, m; ``areas`` (N,) m^2; ``gate``
     m; ``femur_vertices`` (femoral frame, m) with ``offset`` (m) bound the gap of points outside
-    the field's grid; ``rim``: the surface's open edges, where contact is refused
-    (:meth:`rim_penetration`).  Parameter: ``contact.modulus``.  Outputs: contact force (N) and largest
-    penetration (mm).
+    the field's grid.  A cropped surface ends at its rim (its open edges): every
+    pressure is multiplied by the field's rim weight (:attr:`~kneenlp.geometry.sdf.DistanceField.
+    weights`, 1 on the surface, 0 beyond the rim), and a pose is refused only where more than
+    :data:`RIM_SHARE` of a compartment's force would come from beyond it (:meth:`rim_batch`).
+    Parameter: ``contact.modulus``.  Outputs: contact force (N) and largest penetration (mm).
     """
 
     ws_width = WS_SIZE
@@ -143,8 +156,7 @@ class MeshContact(StagedElement):
     working_set_size = 1  # one expansion per compartment and trial
 
     def __init__(self, compartment: str, field: DistanceField, points: np.ndarray, areas: np.ndarray, gate: float,
-                 femur_vertices: np.ndarray | None = None, offset: float = 0.0, rim: OpenEdges | None = None,
-                 law: PressureLaw | None = None):
+                 femur_vertices: np.ndarray | None = None, offset: float = 0.0, law: PressureLaw | None = None):
         self.name, self.compartment = f"contact_{compartment}", compartment
         self.law = law or ElasticFoundation()
         self.field = field
@@ -156,7 +168,6 @@ class MeshContact(StagedElement):
         reach = float(offset) + self.field.spacing + self.field.band
         self._near = ((np.min(femur_vertices, axis=0) - reach, np.max(femur_vertices, axis=0) + reach)
                       if femur_vertices is not None else (np.full(3, np.inf), np.full(3, -np.inf)))
-        self.rim = rim
 
     def parameters(self) -> list[Parameter]:
         return [MODULUS]
@@ -193,6 +204,8 @@ class MeshContact(StagedElement):
         active = inside * (d < 0) * (d > -0.99 * self.field.depth)
         rho = ca.if_else(active, ca.sqrt(ca.sum1(g * g)), 1.0)
         pressure = ca.if_else(active, self.law.pressure(-d, K, self.gate, CASADI), 0.0)
+        if self.field.weight_spline is not None:  # the surface ends at its open edge
+            pressure = pressure * field_in_graph(self.field.weight_spline, X, layout)[0]
         f = g * ca.repmat(pressure * ca.DM(self.areas).T / rho, 3, 1)
         return ca.sum2(f), ca.sum2(ca.cross(X - ca.repmat(p, 1, len(self.points)), f))
 
@@ -244,11 +257,6 @@ class MeshContact(StagedElement):
         d = self.field.evaluate(X)[0]
         return cand[(d < 0) & (d > -0.99 * self.field.depth) & self.in_field(X)]
 
-    def rim_penetration(self, R: np.ndarray, p: np.ndarray) -> float:
-        """Largest penetration (m) of a point whose nearest femoral point lies on the surface's open
-        edge (-inf if none, or without open edges): a cropped femoral mesh seen from beyond its
-        edge, where the field's sign comes from the rim's pseudo-normal and the "contact" is fake."""
-        return float(self.rim_batch(R, p)[0])
 
     def working_data_batch(self, R: np.ndarray, p: np.ndarray, values: dict, threads: int = 1,
                            order: int = 2) -> np.ndarray:
@@ -263,8 +271,10 @@ class MeshContact(StagedElement):
         lo, hi = fld.bounds
         out = np.empty((len(R), WS_SIZE))
 
+        weights = fld.weights if fld.weights is not None else np.zeros((0, 0, 0))
+
         def run(first: int, last: int) -> None:
-            kernels.contact_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
+            kernels.contact_batch(fld.coeffs, fld.cell_min, weights, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
                                   self.points, self.areas, R, p, self.law.kernel, self.gate, order, first, last, out)
 
         share_out(run, len(R), threads)
@@ -294,23 +304,29 @@ class MeshContact(StagedElement):
         return deep
 
     def rim_batch(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """:meth:`rim_penetration` at the poses ``R`` (T x 3 x 3), ``p`` (T x 3), all at once."""
+        """Per pose (``R`` T x 3 x 3, ``p`` T x 3), the share of the compartment's contact force that
+        would come from beyond the femoral surface's open edge: the force the rim weight takes away
+        over the force of every counted point unweighted (0 without an open edge or without
+        contact).  Beyond the rim the field's distance is the distance to the edge line, so that
+        share is no contact; a pose where it is above :data:`RIM_SHARE` is refused."""
         R, p = np.asarray(R, float).reshape(-1, 3, 3), np.asarray(p, float).reshape(-1, 3)
-        worst = np.full(len(R), -np.inf)
-        if self.rim is None or self.rim.closed:
-            return worst
+        share = np.zeros(len(R))
         fld = self.field
+        if fld.weight_spline is None:
+            return share
         lo, hi = fld.bounds
         counted = np.empty((len(R), len(self.points)), dtype=np.bool_)  # the points the contact counts
         kernels.counted_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
                               self.points, np.ascontiguousarray(R), np.ascontiguousarray(p), 0, len(R), counted)
         trial, point = np.nonzero(counted)
         if not len(trial):
-            return worst
+            return share
         X = np.einsum("nij,nj->ni", R[trial], self.points[point]) + p[trial]
-        d, at_rim = at_open_edge(fld, self.rim, X)
-        np.maximum.at(worst, trial[at_rim], -d[at_rim])
-        return worst
+        force = self.areas[point] * self.law.pressure(-fld.evaluate(X)[0], 1.0, self.gate, NUMPY)
+        total, removed = np.zeros(len(R)), np.zeros(len(R))
+        np.add.at(total, trial, force)
+        np.add.at(removed, trial, force * (1.0 - fld.weight_spline.evaluate(X)[0]))
+        return np.divide(removed, total, out=share, where=total > 0)
 
     def pack(self, indices, R, p, values):
         """The expansion of the contact at pose ``(R, p)`` over the points :meth:`select` chooses
@@ -329,6 +345,8 @@ class MeshContact(StagedElement):
         d, g = self.field.evaluate(X, order=1)
         pen = -d
         pres = self.law.pressure(pen, modulus, self.gate, NUMPY)
+        if self.field.weight_spline is not None:  # the surface ends at its open edge
+            pres = pres * self.field.weight_spline.evaluate(X)[0]
         norm = np.linalg.norm(g, axis=1)
         n = np.divide(g, norm[:, None], out=np.zeros_like(g), where=norm[:, None] > 0)
         f = n * (pres * self.areas)[:, None]

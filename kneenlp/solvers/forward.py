@@ -33,6 +33,7 @@ from kneenlp.base.conventions import EQUILIBRIUM_TOL, POSE_ENVELOPE_USER, coords
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.protocol import Trial
 from kneenlp.model.elements import StagedElement
+from kneenlp.model.mesh_contact import RIM_SHARE
 from kneenlp.solvers.newton import EquilibriumNewton
 
 if TYPE_CHECKING:
@@ -243,7 +244,7 @@ class ForwardSolver:
                                                                         for c in self._contact_columns):
             sol.converged, sol.strategy = False, "failed"
             sol.reason = "equilibrium found only at an implausible (dislocated) pose"
-        elif (rim := self.model.rim_penetration(q, theta, trial.flexion)) > 0:
+        elif (rim := self.model.rim_share(q, theta, trial.flexion)) > RIM_SHARE:
             sol.converged, sol.strategy = False, "failed"
             sol.reason = rim_reason(rim)
         return sol
@@ -321,10 +322,12 @@ def equilibrium_start(problem: IdentificationProblem, theta: np.ndarray, threads
                             np.where(ok[:, None], coords_to_user(q0), problem.measured), ok)
 
 
-def rim_reason(penetration: float) -> str:
-    """Why a pose with contact at the femoral mesh's open edge is refused (``penetration`` m)."""
-    return (f"contact beyond the femoral surface's open edge: a tibial point {1e3 * penetration:.2f} mm 'inside' where "
-            "the femoral mesh ends (a cropped or partial surface; the knee report says where it is open)")
+def rim_reason(share: float) -> str:
+    """Why a pose with contact at the femoral mesh's open edge is refused (``share`` of a
+    compartment's contact force from beyond the edge, above :data:`~kneenlp.model.mesh_contact.RIM_SHARE`)."""
+    return (f"contact beyond the femoral surface's open edge: {100 * share:.1f} % of a compartment's contact force "
+            f"would come from where the femoral mesh ends (more than {100 * RIM_SHARE:g} %; a cropped or partial "
+            "surface, the knee report says where it is open)")
 
 
 def _nearest_converged(loads: np.ndarray, flexions: np.ndarray, converged: np.ndarray,

@@ -41,8 +41,9 @@ class SolverResult:
     build_seconds: float = 0.0
     #: deepest penetration (m) of a contact point outside the working sets; -inf: none or not checked
     left_out: float = -np.inf
-    #: deepest penetration (m) beyond the femoral surface's open edge; -inf: none or not checked
-    rim: float = -np.inf
+    #: largest share of a compartment's contact force from beyond the femoral surface's open edge
+    #: (:data:`~kneenlp.model.mesh_contact.RIM_SHARE` refuses); 0: none or not checked
+    rim: float = 0.0
     #: trials with no equilibrium inside the pose envelope at the start (simultaneous NLP)
     started_at_data: int = 0
     #: trial equilibria solved (nested method: each objective evaluation solves every trial)

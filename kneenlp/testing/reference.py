@@ -19,11 +19,13 @@ of pressure in the femoral frame (m).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.geometry.distance import MeshDistance
+from kneenlp.geometry.rim import OpenEdges
 from kneenlp.model.laws import NUMPY, ElasticFoundation, PressureLaw
 
 
@@ -44,16 +46,23 @@ class ContactState:
 
 def reference_contact(distance: MeshDistance, offset: float, points: np.ndarray, areas: np.ndarray,
                       R: np.ndarray, p: np.ndarray, modulus: float, gate: float,
-                      law: PressureLaw | None = None) -> ContactState:
+                      law: PressureLaw | None = None, rim: OpenEdges | None = None) -> ContactState:
     """Contact of tibial ``points`` (tibial frame, m) with ``areas`` (m^2) against the surface
     ``offset`` (m) outside the mesh of ``distance``, at pose ``(R, p)``, modulus in N/m^3, gate in m,
-    pressure by ``law`` (default the paper's elastic foundation)."""
+    pressure by ``law`` (default the paper's elastic foundation).  ``rim``: the mesh's open edges
+    (:class:`~kneenlp.geometry.rim.OpenEdges` of the mesh itself, offset 0); a point whose nearest mesh
+    point lies on one presses nothing (the surface ends where the mesh ends: a sharp edge, where the
+    model's weight falls to 0 within a grid spacing)."""
     p = np.asarray(p, float).ravel()
     X = np.asarray(points, float) @ np.asarray(R, float).T + p
-    near = distance.lower_bound(X) < offset + 1e-4  # the others are certainly clear of the surface
+    # the others are certainly clear of the surface, or inside the mesh deeper than any contact (5 mm)
+    near = distance.lower_bound(X) < max(offset + 1e-4, 5e-3)
     d, normal = np.full(len(X), np.inf), np.zeros((len(X), 3))
     if np.any(near):
-        d[near], _, normal[near] = distance(X[near])
+        d[near], closest, normal[near] = distance(X[near])
+        if rim is not None and not rim.closed:  # beyond the edge: the distance is to the edge line, no contact
+            beyond = np.flatnonzero(near)[rim.distance(closest) <= 1e-9 * distance.unit]
+            d[beyond] = np.inf
     pen = offset - d
     pres = (law or ElasticFoundation()).pressure(pen, modulus, gate, NUMPY)
     w = pres * np.asarray(areas, float)
@@ -72,11 +81,12 @@ def compare_contact(knee, q: np.ndarray, theta: np.ndarray, flexion: float,
     R, p = (np.asarray(v) for v in model.pose(q, flexion, theta))
     modulus = float(theta[model.index("contact.modulus")])
     distance = distance or MeshDistance(knee.femur.mesh)
+    rim = OpenEdges(knee.femur.mesh)
     out = {}
     for e in model.staged:
         if not hasattr(e, "field"):
             continue
-        ref = reference_contact(distance, knee.femur.offset, e.points, e.areas, R, p, modulus, e.gate, e.law)
+        ref = reference_contact(distance, knee.femur.offset, e.points, e.areas, R, p, modulus, e.gate, e.law, rim)
         got = e.pressure(R, p, modulus)
         out[e.compartment] = {
             "load_N": float(np.linalg.norm(got["force"])), "reference_load_N": ref.load,
@@ -86,3 +96,53 @@ def compare_contact(knee, q: np.ndarray, theta: np.ndarray, flexion: float,
             "cop_error_mm": float(np.linalg.norm(got["cop"] - ref.cop) * 1e3) if ref.load > 0 else 0.0,
         }
     return out
+
+
+def cropped_knee_file(name: str, cut: float, directory: Path) -> Path:
+    """A copy of the shipped knee ``name``'s file in ``directory`` whose femoral mesh is cropped: the
+    faces whose centre lies more than ``cut`` (m) posterior of the femoral origin (femoral frame)
+    removed, every other mesh path made absolute.  A cropped surface to check the rim against the
+    brute force (a real knee's cartilage is often segmented only where it was imaged)."""
+    import re
+
+    import trimesh
+
+    from kneenlp.model.knee import Knee
+    from kneenlp.model.knee_file import knee_file
+
+    src = knee_file(name)
+    text = re.sub(r'(\w+) = "(\.\./[^"]+)"',
+                  lambda m: f'{m.group(1)} = "{(src.parent / m.group(2)).resolve().as_posix()}"', src.read_text())
+    raw = re.search(r'femur = "([^"]+)"', text).group(1)
+    mesh = trimesh.load(raw)
+    centres = np.asarray(Knee.named(name).femur.mesh.triangles_center)  # the file's faces, femoral frame
+    trimesh.Trimesh(mesh.vertices, mesh.faces[centres[:, 0] >= -cut], process=True).export(directory / "femur.stl")
+    out = directory / "knee.toml"
+    out.write_text(text.replace(raw, (directory / "femur.stl").as_posix()))
+    return out
+
+
+def reference_equilibrium(model: KneeModel, trial, q: np.ndarray, theta: np.ndarray, tol: float = 1e-6,
+                          max_iter: int = 30) -> tuple[np.ndarray, float]:
+    """The trial's equilibrium with the brute-force contact (:func:`reference_contact` for every
+    mesh compartment, the model's other forces as they are) near the model's own equilibrium ``q``
+    (SI): chord Newton with the model's Jacobian at ``q``.  Returns the pose (SI) and the largest
+    residual (N, N m)."""
+    knee = model.knee
+    if not all(hasattr(e, "field") for e in model.staged):
+        raise ValueError("the brute-force equilibrium needs mesh contact in every staged element")
+    distance, rim = MeshDistance(knee.femur.mesh), OpenEdges(knee.femur.mesh)
+    modulus = float(theta[model.index("contact.modulus")])
+    q = np.asarray(q, float).copy()
+    jac = np.asarray(model.pose_derivatives(1, 1)(q, theta, trial.load, trial.flexion)[1]).reshape(5, 5)
+    res = np.inf
+    for _ in range(max_iter):
+        R, p = (np.asarray(v) for v in model.pose(q, trial.flexion, theta))
+        states = [reference_contact(distance, knee.femur.offset, e.points, e.areas, R, p.ravel(), modulus, e.gate,
+                                    e.law, rim) for e in model.staged]
+        r = model.residual_given(q, theta, trial.load, trial.flexion, [(s.force, s.moment) for s in states])
+        res = float(np.max(np.abs(r)))
+        if res <= tol:
+            break
+        q -= np.linalg.solve(jac, r)
+    return q, res
