@@ -552,6 +552,23 @@ def test_twin_draws_are_stored_and_read_back(s192803, tmp_path):
         TwinStore.open(tmp_path / "twins", model, data, list(errors), {"seed": 1})
 
 
+def test_every_flexion_can_be_held_out_by_name():
+    """The default hold-outs are the highest flexion and the load directions; any other flexion is
+    held out by name (all its trials), in the order named; an unknown name lists the known ones."""
+    from kneenlp.base.errors import InputError
+    from kneenlp.validation.crossval import _chosen
+
+    data = read_measured(CSV)
+    default = [n for n, _ in _chosen(data, None)]
+    assert default[0] == "flexion 87 deg" and "flexion 36 deg" not in default and len(default) == 7
+    chosen = _chosen(data, ["flexion 36 deg", "valgus"])
+    assert [n for n, _ in chosen] == ["flexion 36 deg", "valgus"]
+    flexions = np.array([t.flexion_deg for t in data.trials])
+    assert chosen[0][1].sum() == 6 and np.all(np.abs(flexions[chosen[0][1]] - 35.8) < 2)
+    with pytest.raises(InputError, match="flexion 57 deg"):
+        _chosen(data, ["flexion 40 deg"])
+
+
 @pytest.mark.slow
 def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
     """Calibrated on 5-57 deg, the 87 deg trials are predicted: errors finite where a trial reaches

@@ -219,8 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
     _data_args(p, "measured-data CSV of a real experiment (e.g. from import-laxity)")
     _knee_args(p)
     p.add_argument("--hold-out", action="append", default=[], metavar="NAME",
-                   help="only this hold-out (repeatable): 'flexion <F> deg' (the highest flexion) or a load "
-                        "direction such as anterior or valgus; default: all of them")
+                   help="only this hold-out (repeatable): 'flexion <F> deg' (every trial at a nominal flexion: "
+                        "the highest by default, any other by name) or a load direction such as anterior or "
+                        "valgus; default: the highest flexion and every load direction")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the calibrations (default 0)")
     p.add_argument("--pivot-tolerance", type=opt.fraction, default=None, metavar="F",
                    help="the calibrations fit the ligament parameters whose pivot is at least F of the largest "

@@ -422,17 +422,25 @@ class TwinStore:
                          index=False, float_format="%.17g")
 
 
+def flexion_folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
+    """(name, held-out mask) of every flexion, all its trials held out (the highest is one of
+    :func:`folds`; the others are hold-outs a user names: checks the default ones did not choose)."""
+    nominal = flexion_groups(data.trials)
+    return [(f"flexion {f:.0f} deg", nominal == f) for f in np.unique(nominal)]
+
+
 def _chosen(data: MeasuredData, which: list[str] | None) -> list[tuple[str, np.ndarray]]:
-    """The hold-outs of :func:`folds` named in ``which`` (all if None); an unknown name is an error."""
+    """The hold-outs of :func:`folds` named in ``which`` (all of them if None), or any flexion of
+    :func:`flexion_folds`; an unknown name is an error."""
     chosen = folds(data)
     if which is not None:
-        names = [n for n, _ in chosen]
-        unknown = [w for w in which if w not in names]
+        known = dict(flexion_folds(data)) | dict(chosen)
+        unknown = [w for w in which if w not in known]
         if unknown:
             from kneenlp.base.errors import unknown_name
 
-            raise unknown_name("hold-out", unknown[0], names)
-        chosen = [(n, m) for n, m in chosen if n in which]
+            raise unknown_name("hold-out", unknown[0], list(known))
+        chosen = [(n, known[n]) for n in dict.fromkeys(which)]
     return chosen
 
 
