@@ -123,7 +123,15 @@ class OpenEdges:
             close = np.isfinite(near)
             out[close] = self.distance(x[close])
             return np.where(out <= upper, out, np.inf)
-        return nearest_segments(x, self.segments, self._tree)[0].min(axis=1)
+        return self.nearest(x)[0]
+
+    def nearest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (N,) from every point (N x 3) to its nearest rim segment, and that segment's
+        index (N,); the mesh must have a rim."""
+        d, idx = nearest_segments(np.asarray(points, float).reshape(-1, 3), self.segments, self._tree)
+        best = np.argmin(d, axis=1)
+        rows = np.arange(len(d))
+        return d[rows, best], idx[rows, best]
 
 
 def rim_weights(rim: OpenEdges, nodes: np.ndarray, unsigned: np.ndarray, spacing: float) -> np.ndarray:
@@ -140,9 +148,7 @@ def rim_weights(rim: OpenEdges, nodes: np.ndarray, unsigned: np.ndarray, spacing
     reach = WEIGHT_REACH * spacing
     for start in range(0, len(x), 200_000):  # bounded memory: k segments a node
         part = slice(start, start + 200_000)
-        d, idx = nearest_segments(x[part], rim.segments, rim._tree)
-        best = np.argmin(d, axis=1)
-        e, seg = d[np.arange(len(d)), best], idx[np.arange(len(d)), best]
+        e, seg = rim.nearest(x[part])
         a, b = rim.segments[seg, 0], rim.segments[seg, 1]
         ab = b - a
         t = np.clip(np.einsum("ij,ij->i", x[part] - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300), 0, 1)

@@ -93,8 +93,8 @@ class DistanceField:
     info: dict = field(default_factory=dict)
     #: the contact weight of a surface with an open edge (a cropped mesh): B-spline coefficients on
     #: the same grid, the nodes' weights themselves (:func:`~kneenlp.geometry.rim.rim_weights`: 1 on
-    #: the surface, 0 beyond its rim), so the weight stays within [0, 1] and is exactly 1 wherever the
-    #: rim is more than two spacings away from every node of a cell; None without an open edge
+    #: the surface, 0 beyond its rim), so the weight stays within [0, 1] and is exactly 1 in a cell
+    #: whose 64 nodes weigh 1 (more than 2.5 spacings inside the rim); None without an open edge
     weights: np.ndarray | None = None
 
     @cached_property
