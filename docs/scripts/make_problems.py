@@ -10,7 +10,8 @@
   default prior (docs/priors.md) written out; the offsets of the groups the probe engages carry
   no written prior (theirs is centred on the probe when the calibration starts, docs/priors.md);
   ``also_free`` names the effects the held-out error accepts beside the table (the experiment's
-  frames, the cruciates' femoral attachments), fitted from the table's calibration (``--also-free``).
+  frames, the cruciates' femoral attachments, PCLal's bundles, the PFL's tibial attachment), fitted
+  from the table's calibration (``--also-free``).
 
 Run: python docs/scripts/make_problems.py [ROOT]   (ROOT default: the repository's problems/)
 """
@@ -32,9 +33,10 @@ from kneenlp.experiment.problem import default_free
 
 NOISE = "uniform:0.5"
 #: What the held-out error accepts beside S192803's calibration (docs/real-experiment.md): the
-#: experiment's frames, the cruciates' femoral attachments and PCLal's bundles, each with its default prior.
-SIX = ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment", "ACLam_femoral_attachment",
-       "PCLal_bundles"]
+#: experiment's frames, the cruciates' femoral attachments, PCLal's bundles and the PFL's tibial
+#: attachment, each with its default prior.
+EFFECTS = ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment", "ACLam_femoral_attachment",
+           "PCLal_bundles", "PFL_tibial_attachment"]
 ROBOT_NOISE = "uniform:0.2"
 
 
@@ -100,7 +102,7 @@ def main(root: Path) -> None:
                    "shipped dataset: 25 trials, measured flexion, six load components), calibrated by MAP",
                    "knee": "s192803", "data": "laxity.csv", "noise": ROBOT_NOISE, "strategy": "calibration",
                    "priors": "default", "prior_weight": 1.0,
-                   "hold_outs": [], "also_free": SIX,
+                   "hold_outs": [], "also_free": EFFECTS,
                    "parameters": {m: entry(model, m, m not in probe) for m in names}},
           ["Made by docs/scripts/make_problems.py.  The robot's precision is the declared noise (diagnose);",
            "also_free: the effects the held-out error accepts (docs/real-experiment.md), default priors;",
