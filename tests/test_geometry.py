@@ -158,8 +158,9 @@ from kneenlp.geometry import kernels
 from kneenlp.model.laws import ElasticFoundation
 c = np.zeros((6, 6, 6)); pts = np.zeros((1, 3)); R = np.eye(3)[None]; p = np.zeros((1, 3))
 out = np.empty((1, 271))
-kernels.contact_batch(c, c, np.zeros((0, 0, 0)), np.zeros(3), 1e-3, np.zeros(3), np.ones(3) * 1e-3, 1e-3, pts,
-                      np.ones(1), R, p, ElasticFoundation().kernel, 1e-5, 2, 0, 1, out)
+none = np.zeros((0, 0, 0))
+kernels.contact_batch(c, c, none, none, np.zeros(3), 1e-3, np.zeros(3), np.ones(3) * 1e-3, 1e-3, pts, np.ones(1), R, p,
+                      ElasticFoundation().kernel, 1e-5, 2, 0, 1, out)
 print(len(kernels.contact_batch.stats.cache_misses), len(kernels.contact_batch.stats.cache_hits))
 """
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
@@ -192,7 +193,8 @@ def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box, l
     rows = {}
     for order in (2, 1, 0):
         out = np.empty((T, WS_SIZE))
-        kernels.contact_batch(fld.coeffs, fld.cell_min, np.zeros((0, 0, 0)), fld.origin, fld.spacing, lo, hi,
+        kernels.contact_batch(fld.coeffs, fld.cell_min, np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), fld.origin,
+                              fld.spacing, lo, hi,
                               0.99 * fld.depth, points, areas, R, p, law.kernel, 1e-5, order, 0, T, out)
         rows[order] = out
     for t in range(T):
@@ -298,7 +300,8 @@ def test_the_weighted_contact_pass_equals_the_numpy_expansion_and_its_own_deriva
 
     def rows(R: np.ndarray, p: np.ndarray, order: int = 2) -> np.ndarray:
         out = np.empty((len(R), WS_SIZE))
-        kernels.contact_batch(fld.coeffs, fld.cell_min, fld.weights, fld.origin, fld.spacing, lo, hi,
+        kernels.contact_batch(fld.coeffs, fld.cell_min, fld.weights, fld.weight_spline.cell_min, fld.origin,
+                              fld.spacing, lo, hi,
                               0.99 * fld.depth, points, areas, R, p, 1.0, 1e-5, order, 0, len(R), out)
         return out
 

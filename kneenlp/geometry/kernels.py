@@ -381,21 +381,27 @@ def _cell_min_at(cmin: np.ndarray, origin: np.ndarray, spacing: float, x: np.nda
 
 
 @njit(cache=True, nogil=True)
-def _weight_derivatives(wcoeffs: np.ndarray, origin: np.ndarray, spacing: float,
+def _weight_derivatives(wcoeffs: np.ndarray, wmin: np.ndarray, origin: np.ndarray, spacing: float,
                         X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The rim weight's value, gradient and Hessian at the points ``X`` (1, 0, 0 without a weight:
-    ``wcoeffs`` empty)."""
+    """The rim weight's value, gradient and Hessian at the points ``X``: exactly 1, 0, 0 without a
+    weight (``wcoeffs`` empty) and in a cell whose 64 coefficients are all 1 (``wmin``, the cells'
+    :func:`cell_minimum`: the surface away from its rim, no spline evaluated)."""
     m = X.shape[0]
     wv, wg, wh = np.ones(m), np.zeros((m, 3)), np.zeros((m, 3, 3))
-    if wcoeffs.shape[0]:
-        field_derivatives(wcoeffs, origin, spacing, X, wv, wg, wh, np.empty((m, 3, 3, 3)))
+    if not wcoeffs.shape[0]:
+        return wv, wg, wh
+    t3 = np.empty((1, 3, 3, 3))
+    for i in range(m):
+        if _cell_min_at(wmin, origin, spacing, X[i]) < 1.0:
+            field_derivatives(wcoeffs, origin, spacing, X[i:i + 1], wv[i:i + 1], wg[i:i + 1], wh[i:i + 1], t3)
     return wv, wg, wh
 
 
 @njit(cache=True, nogil=True)
-def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, wcoeffs: np.ndarray, origin: np.ndarray, spacing: float,
-                  lo: np.ndarray, hi: np.ndarray, deepest: float, points: np.ndarray, areas: np.ndarray, R: np.ndarray,
-                  p: np.ndarray, law, gate: float, order: int, first: int, last: int, out: np.ndarray) -> None:
+def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, wcoeffs: np.ndarray, wmin: np.ndarray, origin: np.ndarray,
+                  spacing: float, lo: np.ndarray, hi: np.ndarray, deepest: float, points: np.ndarray,
+                  areas: np.ndarray, R: np.ndarray, p: np.ndarray, law, gate: float, order: int, first: int,
+                  last: int, out: np.ndarray) -> None:
     """One compartment at the poses ``first..last-1`` of ``R`` (T x 3 x 3) and ``p`` (T x 3), fused:
     every tibial point (tibial frame) mapped to the femoral frame, passed over where the cell's
     :func:`cell_minimum` says it cannot penetrate, else its field value; the points inside the box
@@ -404,7 +410,8 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, wcoeffs: np.ndarray, ori
     then per unit modulus the wrench, its Jacobian and Hessian (:func:`wrench_expansion`), and the
     largest penetration).  ``wcoeffs``: the rim weight's B-spline on the same grid
     (:attr:`kneenlp.geometry.sdf.DistanceField.weights`; an empty array: weight 1 everywhere, a
-    surface without an open edge) multiplies every point's pressure.  ``law`` is the pressure law's
+    surface without an open edge; ``wmin`` its :func:`cell_minimum`) multiplies every point's
+    pressure.  ``law`` is the pressure law's
     kernel (an exponent or a compiled function: module docstring), ``gate`` its gate width (m).
     ``order``: the wrench's derivatives written (0: none, the residual's value at the pose itself,
     at a fraction of the cost; 1: the Jacobian, what Newton and first-order sensitivities need; 2:
@@ -439,7 +446,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, wcoeffs: np.ndarray, ori
         if order >= 1:
             dd, g, h, t3 = np.empty(m), np.empty((m, 3)), np.empty((m, 3, 3)), np.empty((m, 3, 3, 3))
             field_derivatives(coeffs, origin, spacing, X[:m], dd, g, h, t3)
-            wv, wg, wh = _weight_derivatives(wcoeffs, origin, spacing, X[:m])
+            wv, wg, wh = _weight_derivatives(wcoeffs, wmin, origin, spacing, X[:m])
             r = np.empty((m, 3))
             a_ = np.empty(m)
             for i in range(m):
@@ -460,7 +467,7 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, wcoeffs: np.ndarray, ori
                 s = -v
                 depth = max(depth, s)
                 gam = pressure(law, s, gate)[0]
-                if wcoeffs.shape[0]:
+                if wcoeffs.shape[0] and _cell_min_at(wmin, origin, spacing, X[i]) < 1.0:
                     gam *= _value(wcoeffs, origin, spacing, X[i, 0], X[i, 1], X[i, 2], wx, wy, wz)
                 rho = np.sqrt(g1[0] * g1[0] + g1[1] * g1[1] + g1[2] * g1[2])
                 w = areas[keep[i]] * gam / rho

@@ -271,11 +271,13 @@ class MeshContact(StagedElement):
         lo, hi = fld.bounds
         out = np.empty((len(R), WS_SIZE))
 
-        weights = fld.weights if fld.weights is not None else np.zeros((0, 0, 0))
+        weight = fld.weight_spline  # and its cells' smallest coefficients: the cells away from the rim weigh 1
+        weights, wmin = (weight.coeffs, weight.cell_min) if weight is not None else (np.zeros((0, 0, 0)),) * 2
 
         def run(first: int, last: int) -> None:
-            kernels.contact_batch(fld.coeffs, fld.cell_min, weights, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                                  self.points, self.areas, R, p, self.law.kernel, self.gate, order, first, last, out)
+            kernels.contact_batch(fld.coeffs, fld.cell_min, weights, wmin, fld.origin, fld.spacing, lo, hi,
+                                  0.99 * fld.depth, self.points, self.areas, R, p, self.law.kernel, self.gate, order,
+                                  first, last, out)
 
         share_out(run, len(R), threads)
         return out
