@@ -352,3 +352,25 @@ def test_the_brute_force_reference_ends_a_cropped_surface_at_its_rim(half_plate)
     assert ref.force[2] == pytest.approx(K * 0.4e-3 * areas[under].sum(), rel=1e-3)
     got = MeshContact("medial", fld, points, areas, 1e-5).pressure(np.eye(3), np.zeros(3), K)
     assert got["force"][2] == pytest.approx(ref.force[2], rel=0.01)
+
+
+@pytest.mark.parametrize("layout", ["vector", "loop"])
+def test_the_exported_contact_of_a_cropped_surface_is_the_compiled_one(half_plate, layout):
+    """The contact in the CasADi graph (what ``export`` writes) weighs by the rim weight as the
+    compiled pass does: the same wrench at a pose straddling the rim."""
+    import casadi as ca
+
+    from kneenlp.model.kinematics import rot_x
+    from kneenlp.model.mesh_contact import MeshContact
+
+    _, fld = half_plate
+    rng = np.random.default_rng(11)
+    points = np.column_stack([rng.uniform(-4e-3, 3e-3, 300), rng.uniform(-5e-3, 5e-3, 300), np.zeros(300)])
+    contact = MeshContact("medial", fld, points, np.full(300, 0.04e-6), 1e-5)
+    R, p, K = np.asarray(rot_x(0.02), float), np.array([0.1e-3, 0.0, -0.5e-3]), 1e10
+    probe = ca.MX(ca.DM(np.concatenate([R.ravel(order="F"), p, [K]])))
+    got = np.asarray(ca.evalf(ca.vertcat(*contact.exact_wrench(probe, layout)))).ravel()
+    W = K * contact.working_data(R, p, {})[12:18]
+    assert np.allclose(got, W,
+                       rtol=1e-9, atol=1e-9 * np.abs(W).max())
+    assert 0 < contact.rim_batch(R[None], p[None])[0] < 1  # the rim carries part of it
