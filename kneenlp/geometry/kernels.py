@@ -408,14 +408,12 @@ def contact_batch(coeffs: np.ndarray, cmin: np.ndarray, wcoeffs: np.ndarray, wmi
     ``lo..hi`` that penetrate by less than ``deepest`` (m) make the contact.  Writes each pose's
     working-set row (``out[t]``, the layout of :data:`kneenlp.model.mesh_contact.WS_SIZE`: the pose,
     then per unit modulus the wrench, its Jacobian and Hessian (:func:`wrench_expansion`), and the
-    largest penetration).  ``wcoeffs``: the rim weight's B-spline on the same grid
-    (:attr:`kneenlp.geometry.sdf.DistanceField.weights`; an empty array: weight 1 everywhere, a
-    surface without an open edge; ``wmin`` its :func:`cell_minimum`) multiplies every point's
-    pressure.  ``law`` is the pressure law's
-    kernel (an exponent or a compiled function: module docstring), ``gate`` its gate width (m).
-    ``order``: the wrench's derivatives written (0: none, the residual's value at the pose itself,
-    at a fraction of the cost; 1: the Jacobian, what Newton and first-order sensitivities need; 2:
-    the Hessian too; the parts not written are zero)."""
+    largest penetration).  ``wcoeffs``, ``wmin``: the rim weight (:attr:`kneenlp.geometry.sdf.
+    DistanceField.weights`, empty: 1) and its :func:`cell_minimum`; it multiplies every pressure.
+    ``law`` is the pressure law's kernel (an exponent or a compiled function: module docstring),
+    ``gate`` its gate width (m).  ``order``: the wrench's derivatives written (0: none, the
+    residual's value at the pose itself, at a fraction of the cost; 1: the Jacobian, what Newton and
+    first-order sensitivities need; 2: the Hessian too; the parts not written are zero)."""
     n_pts = points.shape[0]
     X = np.empty((n_pts, 3))
     keep = np.empty(n_pts, dtype=np.int64)
