@@ -515,8 +515,11 @@ class KneeModel:
         force and moment given (one pair per element of :attr:`staged`, in its ``wrench_frame``, N and
         N m about the tibial origin): another contact (e.g. the brute force of
         :mod:`kneenlp.testing.reference`) in the model's own balance."""
-        r, _ = self._balance(q, flexion, theta, load, *[w[0] for w in wrenches], *[w[1] for w in wrenches])
-        return np.asarray(r, float).ravel()
+        return np.asarray(self._balance_with(q, theta, load, flexion, wrenches), float).ravel()
+
+    def _balance_with(self, q, theta, load, flexion, wrenches):
+        """The balance's residual with the staged elements' wrenches given (numeric or MX)."""
+        return self._balance(q, flexion, theta, load, *[w[0] for w in wrenches], *[w[1] for w in wrenches])[0]
 
     def _exact_residual(self, layout: str) -> ca.Function:
         q, flexion = ca.MX.sym("q", 5), ca.MX.sym("flexion")
@@ -524,7 +527,7 @@ class KneeModel:
         pr = self._probes(q, flexion, theta) if self.staged else []
         pr = [pr] if isinstance(pr, ca.MX) else list(pr)
         wrenches = [e.exact_wrench(pr[j], layout) for j, e in enumerate(self.staged)]
-        r, _ = self._balance(q, flexion, theta, load, *[w[0] for w in wrenches], *[w[1] for w in wrenches])
+        r = self._balance_with(q, theta, load, flexion, wrenches)
         return ca.Function("exact_residual", [q, theta, load, flexion], [r], ["q", "theta", "load", "flexion"], ["r"])
 
     @cached_property
