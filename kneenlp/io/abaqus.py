@@ -24,6 +24,7 @@ import ast
 import contextlib
 import io
 import operator
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -112,10 +113,13 @@ def _evaluate(node: ast.AST, names: dict[str, float]) -> float:
 
 
 def evaluate_parameters(keywords: list[Keyword], names: dict[str, float] | None = None,
-                        source: str = "<inp>") -> dict[str, float]:
+                        source: str = "<inp>", scale: Mapping[str, float] | None = None) -> dict[str, float]:
     """Values of every ``*PARAMETER`` assignment in ``keywords``, evaluated in order on top of
-    ``names`` (parameters of files read before); a later assignment replaces an earlier one."""
+    ``names`` (parameters of files read before); a later assignment replaces an earlier one.
+    ``scale`` multiplies the named parameters where they are assigned (what depends on a parameter:
+    :func:`kneenlp.io.import_abaqus.dependencies`)."""
     values = dict(names or {})
+    scale = scale or {}
     for kw in keywords:
         if kw.name != "PARAMETER":
             continue
@@ -125,7 +129,8 @@ def evaluate_parameters(keywords: list[Keyword], names: dict[str, float] | None 
             if not eq:
                 continue
             try:
-                values[target.strip()] = _evaluate(ast.parse(expr.strip(), mode="eval").body, values)
+                values[target.strip()] = (_evaluate(ast.parse(expr.strip(), mode="eval").body, values)
+                                          * scale.get(target.strip(), 1.0))
             except KeyError as exc:
                 raise InputError(f"parameter {target.strip()} uses {exc.args[0]!r}, defined nowhere before",
                                  source=source, field=target.strip()) from None

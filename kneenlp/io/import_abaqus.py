@@ -40,6 +40,7 @@ error of at most 1/16 of the toe's end force over each quarter of the toe.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -145,6 +146,9 @@ class AbaqusKnee:
     fibres: list[Fibre]
     tuberosity: np.ndarray
     notes: list[str] = field(default_factory=list)
+    #: each group's FE length and reference strain (mm, %) where its slack moves as one
+    #: (:func:`group_shift`)
+    shifts: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 #: Largest angle (deg) a frame's axes may be from orthogonal: rounding in the file, made exact; more
@@ -233,9 +237,11 @@ def read_abaqus_knee(folder: str | Path) -> AbaqusKnee:
                  f"{TUBEROSITY_BAND_MM[1]:g} mm below the tibial origin within {TUBEROSITY_HALF_WIDTH_MM:g} mm of "
                  "the sagittal plane")
     fibres = _fibres(folder / "ligaments")
+    shifts, shift_notes = group_shift(folder / "ligaments", fibres)
     notes.append(f"{len(fibres)} ligament fibres in {len({f.group for f in fibres})} groups, laws from the "
-                 "connector tables")
-    return AbaqusKnee((rf, of), (rt, ot), femur_surface, tibia_surfaces, fibres, tuberosity, notes)
+                 f"connector tables; {len(shifts)} groups' slack moves by the FE's L / EREF")
+    return AbaqusKnee((rf, of), (rt, ot), femur_surface, tibia_surfaces, fibres, tuberosity, notes + shift_notes,
+                      shifts)
 
 
 #: The femoral cartilage's extent (mm) of a human knee: far outside it the file is in other units.
@@ -262,29 +268,30 @@ def _tuberosity(points: np.ndarray, rt: np.ndarray, ot: np.ndarray, source: str)
     return points[np.flatnonzero(band)[np.argmax(local[band, 0])]]
 
 
-def _fibres(folder: Path) -> list[Fibre]:
-    src = str(folder)
-    attach_file = folder / "LIGS-ATTACH.inp"
-    bone_of: dict[int, str] = {}
-    for kw in read_keywords(attach_file):
-        if kw.name == "ELEMENT":
-            for row in kw.data:
-                if len(row) >= 3 and int(row[2]) in BONE_NODES:
-                    bone_of[int(row[1])] = BONE_NODES[int(row[2])]
+def parameter_file(folder: Path) -> Path:
+    """The one ``LIG-PARAMETERS*.inp`` of a model's ligament folder."""
     params_files = sorted(folder.glob("LIG-PARAMETERS*.inp"))
     if len(params_files) != 1:
-        raise InputError(f"expected one LIG-PARAMETERS*.inp, found {len(params_files)}", source=src)
-    values = evaluate_parameters(read_keywords(params_files[0]), source=str(params_files[0]))
-    tables: dict[str, np.ndarray] = {}  # element set (upper case) -> table
+        raise InputError(f"expected one LIG-PARAMETERS*.inp, found {len(params_files)}", source=str(folder))
+    return params_files[0]
+
+
+def connector_tables(folder: Path, scale: Mapping[str, float] | None = None) -> dict[str, np.ndarray]:
+    """Each connector section's elasticity table (force N, change of length mm) by its element set
+    (upper case): the ``PROPS-*.inp`` tables with the parameters of ``LIG-PARAMETERS*.inp`` and of
+    the ``PROPS`` file itself evaluated in order; ``scale`` multiplies named parameters where they
+    are assigned (:func:`dependencies`)."""
+    params = parameter_file(folder)
+    values = evaluate_parameters(read_keywords(params), source=str(params), scale=scale)
+    tables: dict[str, np.ndarray] = {}
     for props in sorted(folder.glob("PROPS-*.inp")):
-        kws = read_keywords(props)
         behaviours: dict[str, np.ndarray] = {}
         sections: dict[str, str] = {}
         current = None
         local = dict(values)
-        for kw in kws:
+        for kw in read_keywords(props):
             if kw.name == "PARAMETER":
-                local = evaluate_parameters([kw], local, str(props))
+                local = evaluate_parameters([kw], local, str(props), scale=scale)
             elif kw.name == "CONNECTOR SECTION":
                 sections[kw.options.get("ELSET", "").upper()] = kw.options.get("BEHAVIOR", "").upper()
             elif kw.name == "CONNECTOR BEHAVIOR":
@@ -297,6 +304,82 @@ def _fibres(folder: Path) -> list[Fibre]:
                 raise InputError(f"connector section {elset} names behaviour {behaviour}, which has no elasticity "
                                  "table", source=str(props), field=elset)
             tables[elset] = behaviours[behaviour]
+    return tables
+
+
+def assignments(path: Path) -> dict[str, str]:
+    """The ``*PARAMETER`` assignments of a file as written (name -> right-hand side; the last one
+    where a name is assigned twice)."""
+    out = {}
+    for kw in read_keywords(path):
+        if kw.name == "PARAMETER":
+            for row in kw.data:
+                target, eq, expr = ",".join(row).partition("=")
+                if eq:
+                    out[target.strip()] = expr.strip()
+    return out
+
+
+#: The FE parameters of a group's law a calibration writes back (by the names' endings, as the
+#: model's files document them): its length in the imaged model, its reference strain + 1 (L / L0),
+#: its linear stiffness (N/mm) and its number of parallel fibres.
+FE_LAW_PARAMETERS = ("_L", "_EREF", "_K2", "_NUM_SP_PAR")
+
+
+def dependencies(folder: Path) -> dict[str, dict[str, list[str]]]:
+    """For each connector element set (upper case), the names of :data:`FE_LAW_PARAMETERS` its
+    table depends on, by ending: every such parameter assigned in the ligament files is perturbed
+    in turn and the tables that change are its dependants (what the files compute, including a
+    name assigned again in between, as ``PROPS-MCL`` does with ``MCL_L0``)."""
+    names = []
+    for path in [parameter_file(folder), *sorted(folder.glob("PROPS-*.inp"))]:
+        names += [n for n in assignments(path) if n.upper().endswith(FE_LAW_PARAMETERS) and n not in names]
+    base = connector_tables(folder)
+    out: dict[str, dict[str, list[str]]] = {elset: {} for elset in base}
+    for name in names:
+        moved = connector_tables(folder, {name: 1 + 1e-6})
+        for elset, table in base.items():
+            if not np.array_equal(moved[elset], table):
+                ending = next(e for e in FE_LAW_PARAMETERS if name.upper().endswith(e))
+                out[elset].setdefault(ending, []).append(name)
+    return out
+
+
+def group_shift(folder: Path, fibres: list[Fibre]) -> tuple[dict[str, dict[str, float]], list[str]]:
+    """``{group: {"length": L (mm), "ref_strain": EREF - 1 (%)}}`` for every group whose fibres'
+    slack lengths are their imaged lengths ``+ L / EREF - L`` (to 1e-9 of ``L``) with its own ``L``
+    and ``EREF`` parameters: its calibration then writes back exactly
+    (:class:`kneenlp.model.ligament.SlackShift`); and a note for each group that is not so."""
+    values = evaluate_parameters(read_keywords(parameter_file(folder)))
+    deps = dependencies(folder)
+    shifts, notes = {}, []
+    for group in dict.fromkeys(f.group for f in fibres):
+        elset = next(e for e in (group.upper() + "_1D", group.upper()) if e in deps)
+        length, eref = (deps[elset].get(e, []) for e in ("_L", "_EREF"))
+        if len(length) != 1 or len(eref) != 1 or length[0] not in values or eref[0] not in values:
+            notes.append(f"{group}: no single _L and _EREF parameter in the parameter file: its fibres' slack lengths "
+                         "move each by its own strain, and export-abaqus cannot write its reference strain")
+            continue
+        L, E = values[length[0]], values[eref[0]]
+        if not all(abs(f.law.slack_length * 1e3 - (f.law.length * 1e3 + L / E - L)) <= 1e-9 * L
+                   for f in fibres if f.group == group):
+            notes.append(f"{group}: its fibres are not slack at their imaged length + {length[0]} / {eref[0]} - "
+                         f"{length[0]} (fibres in series?): each moves by its own strain")
+            continue
+        shifts[group] = {"length": L, "ref_strain": (E - 1) * KINDS["ref_strain"].to_user}
+    return shifts, notes
+
+
+def _fibres(folder: Path) -> list[Fibre]:
+    src = str(folder)
+    attach_file = folder / "LIGS-ATTACH.inp"
+    bone_of: dict[int, str] = {}
+    for kw in read_keywords(attach_file):
+        if kw.name == "ELEMENT":
+            for row in kw.data:
+                if len(row) >= 3 and int(row[2]) in BONE_NODES:
+                    bone_of[int(row[1])] = BONE_NODES[int(row[2])]
+    tables = connector_tables(folder)
     fibres = []
     for lig_file in sorted(folder.glob("LIG-*.inp")):
         if lig_file.name.upper().startswith("LIG-PARAMETERS"):
@@ -390,10 +473,14 @@ def import_abaqus(folder: str | Path, out: str | Path, *, side: str = "left", na
             "name": f.name, "femur": _round(fem(f.femur)), "tibia": _round(tib(f.tibia)),
             "stiffness": float(f.law.stiffness), "slack_length": float(f.law.slack_length * 1e3),
             "lin_strain": float(f.law.lin_strain * KINDS["lin_strain"].to_user)})
+    for group, shift in model.shifts.items():
+        doc["ligaments"][group]["slack_shift"] = shift
     header = ["kneenlp knee description, written by `kneenlp import-abaqus` (kneenlp.io.import_abaqus).",
               "Femoral points in the model's femoral Grood-Suntay frame, tibial points in its tibial frame",
               "(X anterior, Y proximal, Z the medial-lateral axis as the frames give it); mm.",
-              "Bundles: stiffness N per unit strain, slack_length mm, lin_strain %.", *model.notes]
+              "Bundles: stiffness N per unit strain, slack_length mm, lin_strain %.",
+              "slack_shift: the group's FE length L (mm) and reference strain EREF - 1 (%): its reference-strain",
+              "offset moves every fibre's slack by the same length, as the FE's EREF does.", *model.notes]
     text = "".join(f"# {h}\n" for h in header) + tomli_w.dumps(doc)
     knee_file = out / "knee.toml"
     write_text_atomic(out / "parameters.toml", imported_parameter_set(

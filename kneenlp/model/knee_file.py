@@ -40,9 +40,9 @@ from kneenlp.model.articular import (
 )
 from kneenlp.model.frames import Frame, angle_deg, axes_from_flexion, landmark_axes
 from kneenlp.model.kinematics import reference_transform
-from kneenlp.model.knee_schema import BundleTable, KneeDocument
+from kneenlp.model.knee_schema import BundleTable, KneeDocument, SlackShiftTable
 from kneenlp.model.laws import DEFAULT_LAW, DEFAULT_PRESSURE_LAW, law_named
-from kneenlp.model.ligament import Bundle, Ligament
+from kneenlp.model.ligament import Bundle, Ligament, SlackShift
 from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, UNIT_FACTORS, ParameterSet
 
 #: Ligament names (prefixes, upper case) on the medial and the lateral side of the knee, the
@@ -645,13 +645,26 @@ class KneeFile:
             law = law_named(lig.law if lig.law is not None else DEFAULT_LAW, source=self.src, field=f"{fld}.law")
             if lig.bundles is not None:
                 ligaments[name] = Ligament(name, self.bundles(lig.bundles, f"{fld}.bundles"),
-                                           reference=self.reference, law=law)
+                                           reference=self.reference, law=law,
+                                           shift=self.slack_shift(lig.slack_shift, f"{fld}.slack_shift"))
                 continue
             femur, tibia = self.point(lig.femur), self.point(lig.tibia)
             self.check_length(femur, tibia, fld)
             self.attach(femur, tibia, f"{fld}.femur", f"{fld}.tibia")
             ligaments[name] = Ligament(name, [Bundle(femur, tibia)], reference=self.reference, law=law)
         return ligaments
+
+    def slack_shift(self, table: SlackShiftTable | None, fld: str) -> SlackShift | None:
+        """``[ligaments.<NAME>.slack_shift]``: the group's length (file unit -> m) and reference strain
+        (% -> fraction); the group's slack length ``length / (1 + ref_strain)`` must be positive."""
+        if table is None:
+            return None
+        shift = SlackShift(table.length * self.scale, table.ref_strain / KINDS["ref_strain"].to_user)
+        if not shift.length > 0:
+            raise InputError("must be > 0", source=self.src, field=f"{fld}.length")
+        if not 1 + shift.ref_strain > 0:
+            raise InputError("must be > -100 %", source=self.src, field=f"{fld}.ref_strain")
+        return shift
 
     def bundles(self, tables: list[BundleTable], fld: str) -> list[Bundle]:
         """The bundles of a multi-bundle ligament: ``[[ligaments.<NAME>.bundles]]`` tables with

@@ -123,13 +123,23 @@ class BundleTable(Table):
     lin_strain: Number | None = None
 
 
+class SlackShiftTable(Table):
+    """``[ligaments.<NAME>.slack_shift]``: the group's reference-strain offset moves every bundle's
+    slack length by one length, as the FE model's group (:class:`kneenlp.model.ligament.SlackShift`):
+    the group's reference ``length`` (file unit, Abaqus ``L``) and ``ref_strain`` (%, ``EREF - 1``)."""
+
+    length: Number = Field(description="the group's reference length (file unit)")
+    ref_strain: Number = Field(description="the group's reference strain (%)")
+
+
 class LigamentTable(Table):
     """``[ligaments.<NAME>]``: one bundle's attachments (femur in the femoral frame, tibia in the
-    tibial one) or ``bundles``, and the law."""
+    tibial one) or ``bundles`` (and how their slack moves, ``slack_shift``), and the law."""
 
     femur: Point | None = None
     tibia: Point | None = None
     bundles: list[BundleTable] | None = Field(None, min_length=1)
+    slack_shift: SlackShiftTable | None = None
     law: str | None = None
 
     @model_validator(mode="after")
@@ -139,6 +149,8 @@ class LigamentTable(Table):
             for key in ("femur", "tibia"):
                 if getattr(self, key) is None:
                     raise fail("missing attachment", key)
+            if self.slack_shift is not None:
+                raise fail("a slack shift needs [[bundles]] with their own properties", "slack_shift")
         return self
 
 

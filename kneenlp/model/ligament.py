@@ -71,6 +71,41 @@ def slack_length(reference_length, ref_strain):
 
 
 @dataclass(frozen=True)
+class SlackShift:
+    """A bundle group whose reference-strain offset moves every bundle's slack length by one length,
+    as a finite-element model's ligament group does (Abaqus: ``L0 = L / EREF``, each fibre slack at
+    its own imaged length ``+ L0 - L``): the group's reference length ``length`` (m, the FE's ``L``)
+    at its reference strain ``ref_strain`` (fraction, the FE's ``EREF - 1``)."""
+
+    length: float
+    ref_strain: float
+
+    def rest_length(self, offset=0.0):
+        """The group's slack length ``L / (1 + ref_strain + offset)`` (m; the FE's ``L0``)."""
+        return slack_length(self.length, self.ref_strain + offset)
+
+
+def bundle_law(b: Bundle, imaged: float, reference, scale, offset, shift: SlackShift | None = None):
+    """``(slack length, stiffness, linear strain limit)`` of bundle ``b`` of a group with stiffness
+    scale ``scale`` and reference-strain offset ``offset`` (numbers or CasADi expressions): the one
+    place the group parameters act.  ``imaged`` is the bundle's length in the reference pose as the
+    knee file gives it (m), ``reference`` the same length after attachment shifts.
+
+    Without ``shift``: slack ``reference / (1 + eps_r + offset)``, stiffness ``scale k``, the
+    bundle's own limit (module docstring).  With a :class:`SlackShift` (an Abaqus group, so that
+    a calibration writes back into the FE model exactly; :mod:`kneenlp.io.export_abaqus`): every
+    slack length moves by the group's ``L0(offset) - L0(0)``, the stiffness per unit length
+    ``k / s`` (N/m) is the bundle's times ``scale``, and the toe's length ``2 eps_l s`` scales with
+    ``L0`` (the FE's toe is ``2 ET L0``)."""
+    if shift is None:
+        return slack_length(reference, b.ref_strain + offset), scale * b.stiffness, b.lin_strain
+    own = slack_length(imaged, b.ref_strain)
+    rest, rest0 = shift.rest_length(offset), shift.rest_length()
+    slack = reference - imaged + own + (rest - rest0)
+    return slack, scale * b.stiffness * slack / own, b.lin_strain * own * (rest / rest0) / slack
+
+
+@dataclass(frozen=True)
 class Bundle:
     """One line element: femoral attachment (femoral frame) and tibial attachment (tibial frame), m.
 
@@ -103,7 +138,7 @@ class Ligament(ForceElement):
 
     def __init__(self, name: str, bundles: list[Bundle], *, law: LigamentLaw | None = None,
                  candidate: bool = False, defaults: dict[str, float] | None = None, description: str = "",
-                 reference: tuple[np.ndarray, np.ndarray] | None = None):
+                 reference: tuple[np.ndarray, np.ndarray] | None = None, shift: SlackShift | None = None):
         if not bundles:
             raise ValueError(f"ligament {name} has no bundles")
         self.name, self.bundles, self.law = name, list(bundles), law or ToeLinearLaw()
@@ -115,6 +150,11 @@ class Ligament(ForceElement):
         self._defaults = dict(defaults or {})
         #: a group of bundles with their own properties (parameters: k_scale, ref_strain_offset)
         self.grouped = all(b.stiffness is not None for b in self.bundles)
+        #: how the group's reference-strain offset moves its slack lengths (None: each bundle's by
+        #: its own strain; a :class:`SlackShift`: all by one length, as an FE group)
+        self.shift = shift
+        if shift is not None and not self.grouped:
+            raise ValueError(f"ligament {name}: a slack shift needs bundles with their own properties")
 
     def main_parameters(self) -> list[str]:
         """What an identification frees by default: stiffness and reference strain (of the group)."""
@@ -191,8 +231,9 @@ class Ligament(ForceElement):
             u = femur - (pose.p + arm)
             length = ca.norm_2(u)
             if self.grouped:
-                strain = length / slack_length(reference, b.ref_strain + offset) - 1
-                tension = self.law.tension(strain, scale * b.stiffness, b.lin_strain)
+                slack, k, lin = bundle_law(b, self.bundle_length(b), reference, scale, offset, self.shift)
+                strain = length / slack - 1
+                tension = self.law.tension(strain, k, lin)
             else:
                 strain = length / slack_length(reference, own["ref_strain"]) - 1
                 tension = self.law.tension(strain, own["k"], own["lin_strain"])

@@ -173,20 +173,40 @@ class ReducedSpace:
         return rows
 
 
+def forward_poses(problem: IdentificationProblem, theta: np.ndarray) -> np.ndarray:
+    """The trials' poses (SI) at ``theta`` as the forward solver finds them from the unloaded state
+    (what ``predict`` gives), the measured pose where it finds none: the branch a fit starts on.
+    Newton from the measured poses instead picked a branch by the start's last digits (S192803,
+    registration fit: objective 1800, 1949 or 4437 for starts 1e-12 apart)."""
+    q = np.array(problem.data.q, float)
+    for i, sol in enumerate(forward_solver(problem.model).solve(problem.trials, theta)):
+        if sol.converged:
+            q[i] = sol.q
+    return q
+
+
 def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float], *, q0: np.ndarray | None = None,
                           max_evaluations: int = 60, tol: float | None = None, threads: int = 2) -> SolverResult:
     """Minimise the problem's weighted residual sum over its free parameters from ``start`` (SI),
     with every trial at equilibrium (module docstring); ``q0`` warm-starts the first poses (SI,
-    default the measured ones).  Parameters scaled by their scales; stops at relative cost change
-    ``tol`` (default :func:`tolerance`) or after ``max_evaluations`` residual evaluations;
-    ``threads`` of the trials' Newton."""
+    default the forward solutions at the start, :func:`forward_poses`).  Parameters scaled by
+    their scales; stops at relative cost change ``tol`` (default :func:`tolerance`) or after
+    ``max_evaluations`` residual evaluations; ``threads`` of the trials' Newton."""
     tol = tolerance(problem.model) if tol is None else tol
     t0 = time.perf_counter()
-    space = ReducedSpace(problem, problem.data.q if q0 is None else q0, threads)
     lower, upper = problem.scaled_bounds
     x0 = np.clip(problem.to_scaled(start), lower, upper)
-    out = optimize.least_squares(space.residuals, x0, jac=space.jacobian, bounds=(lower, upper), method="trf",
-                                 x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations)
+    space = ReducedSpace(problem, forward_poses(problem, problem.theta(problem.from_scaled(x0))) if q0 is None
+                         else q0, threads)
+    # trf's first trust radius is the start's own (Jacobian-scaled) norm: a start at a neutral 0 plus
+    # rounding got a radius of 1e-12 and stopped there (S192803, registration fit: objective 4437
+    # instead of 1800).  Its variable is shifted so that the start is 1 in every scaled parameter:
+    # the first radius is then one scale of each parameter, wherever the start lies
+    shift = 1.0 - x0
+    out = optimize.least_squares(lambda y: space.residuals(y - shift), x0 + shift,
+                                 jac=lambda y: space.jacobian(y - shift), bounds=(lower + shift, upper + shift),
+                                 method="trf", x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations)
+    out.x = out.x - shift
     end = space.evaluate(out.x)  # from the best point's poses: out.x's own branch
     max_residual = float(np.max(space.solver.residual_norms(end.q, end.theta, problem.trials)))
     return SolverResult(solver="reduced", values=dict(zip(problem.free, problem.from_scaled(out.x), strict=True)),
