@@ -9,6 +9,7 @@ tested from the package itself.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -834,8 +835,6 @@ def test_an_abaqus_model_in_metres_is_named_as_such():
 @needs_deposit
 def test_a_ligament_without_fibres_is_refused(tmp_path):
     """A connector section with a law but no fibres left would make its ligament disappear: refused."""
-    import shutil
-
     from kneenlp.io.import_abaqus import read_abaqus_knee
 
     shutil.copytree(DEPOSIT, tmp_path / "m", ignore=shutil.ignore_patterns("laxity", "abaqus-example"))
@@ -846,3 +845,113 @@ def test_a_ligament_without_fibres_is_refused(tmp_path):
     with pytest.raises(kneenlp.InputError, match="no fibres") as err:
         read_abaqus_knee(tmp_path / "m")
     assert "LCL" in err.value.field
+
+
+# ------------------------------------------------------------------ export-abaqus
+
+
+def _calibration(knee, seed: int) -> dict[str, float]:
+    """Every group's stiffness scale and offset drawn (MCLa, MCLm, MCLp share MCL_K2 with different
+    scales), with a registration and an attachment shift that the FE files do not hold."""
+    rng = np.random.default_rng(seed)
+    params = {}
+    for g in knee.ligaments:
+        params[f"{g}.k_scale"] = float(rng.uniform(0.4, 2.5))
+        params[f"{g}.ref_strain_offset"] = float(rng.uniform(-0.05, 0.05))
+    return params | {"registration.varus_rotation": 0.03, "PCLal.femur_anterior": 1e-3}
+
+
+def _law(lig, b, scale, offset):
+    from kneenlp.model.ligament import bundle_law
+
+    imaged = lig.bundle_length(b)
+    return bundle_law(b, imaged, imaged, scale, offset, lig.shift)
+
+
+def _forces(law, lengths):
+    from kneenlp.model.ligament import force_strain_numpy
+
+    slack, k, lin = law
+    return force_strain_numpy(lengths / slack - 1, k, lin)
+
+
+@needs_deposit
+def test_export_abaqus_gives_the_calibrated_knee_back(s192803, tmp_path):
+    """Importing the written copy gives the calibrated knee: every bundle's force at 61 lengths
+    (slack, toe and linear) equal to 1e-9 of its largest; the files differ from the model's only in
+    the lines of the numbers written (the importer's own reading of Abaqus's formulas is the oracle)."""
+    from kneenlp.io.export_abaqus import export_abaqus
+
+    params = _calibration(s192803, 7)
+    (tmp_path / "fit.json").write_text(json.dumps({"params": params}))
+    report = export_abaqus(tmp_path / "fit.json", s192803, DEPOSIT, tmp_path / "fe")
+    written = {c.name for c in report.changes}
+    assert {"MCLA_num_sp_par", "MCLM_num_sp_par", "MCLP_num_sp_par", "ACLam_K2", "PCLal_EREF"} <= written
+    assert "MCL_K2" not in written and report.round_trip <= 1e-12
+    assert {n for n, *_ in report.not_written} == {"registration.varus_rotation", "PCLal.femur_anterior"}
+    back = kneenlp.Knee.load(import_abaqus(tmp_path / "fe", tmp_path / "k", side="left", name="back"))
+    for name, lig in s192803.ligaments.items():
+        again = back.ligaments[name]
+        for a, b in zip(lig.bundles, again.bundles, strict=True):
+            law = _law(lig, a, params[f"{name}.k_scale"], params[f"{name}.ref_strain_offset"])
+            lengths = law[0] * (1 + np.linspace(-0.05, 0.15, 61))  # slack, toe and linear
+            want, got = _forces(law, lengths), _forces(_law(again, b, 1.0, 0.0), lengths)
+            assert want.max() > 0 and np.max(np.abs(got - want)) <= 1e-9 * want.max(), name
+    for path in sorted(p for p in DEPOSIT.rglob("*") if p.is_file()):
+        copy = tmp_path / "fe" / path.relative_to(DEPOSIT)
+        old, new = path.read_bytes().splitlines(), copy.read_bytes().splitlines()
+        changed = [n.decode() for o, n in zip(old, new, strict=True) if o != n]
+        assert all(line.split("=")[0].strip() in written for line in changed), (path.name, changed)
+
+
+@needs_deposit
+def test_export_abaqus_cli_and_its_refusals(s192803, tmp_path, capsys):
+    """The CLI writes a calibrated.toml's calibration; a neutral calibration changes nothing; bad
+    input gets one line naming the parameter or file, exit 2, and no output folder."""
+    from kneenlp.model.parameters import ParameterSet
+
+    params = s192803.parameters.values | _calibration(s192803, 3)
+    model = KneeModel.of(s192803)
+    (tmp_path / "calibrated.toml").write_text(ParameterSet(params, name="cal").to_toml(
+        {n: model.parameter(n) for n in params}))
+    args = ["export-abaqus", str(tmp_path / "calibrated.toml"), "--knee", "s192803", "--model", str(DEPOSIT)]
+    assert main([*args, "--out", str(tmp_path / "fe")]) == 0
+    out = capsys.readouterr().out
+    assert "MCLA_num_sp_par" in out and "round trip" in out and "registration.varus_rotation" in out
+    assert (tmp_path / "fe" / "ligaments" / "LIG-PARAMETERS-S192803L.inp").is_file()
+    (tmp_path / "neutral.json").write_text(json.dumps({"params": {"ACLam.k_scale": 1.0}}))
+    assert main(["export-abaqus", str(tmp_path / "neutral.json"), "--knee", "s192803", "--model", str(DEPOSIT),
+                 "--out", str(tmp_path / "same")]) == 0
+    assert "no FE parameter changed" in capsys.readouterr().out
+    cases = {"ACLx.k_scale": ({"ACLx.k_scale": 1.2}, "unknown parameter"),
+             "PCAPl.k_scale": ({"PCAPl.k_scale": 0.0}, "without stiffness"),
+             "ALS.k_scale": ({"ALS.k_scale": "stiff"}, "finite number")}
+    for i, (field, (bad, needle)) in enumerate(cases.items()):
+        (tmp_path / f"bad{i}.json").write_text(json.dumps({"params": bad}))
+        code = main(["export-abaqus", str(tmp_path / f"bad{i}.json"), "--knee", "s192803", "--model", str(DEPOSIT),
+                     "--out", str(tmp_path / f"no{i}")])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and needle in err and field in err and "\n" not in err, err
+        assert not (tmp_path / f"no{i}").exists()
+    assert main([*args, "--out", str(tmp_path / "x"), "--model", str(tmp_path)]) == 2
+    assert "ligaments/" in capsys.readouterr().err
+
+
+@needs_deposit
+def test_export_abaqus_refuses_an_offset_it_cannot_write(s192803, tmp_path):
+    """A knee whose group moves each fibre's slack by its own strain (no slack_shift) cannot carry
+    its offset into one EREF: refused by name, before anything is written."""
+    from kneenlp.io.export_abaqus import export_abaqus
+
+    doc = (resource("knees", "s192803", "knee.toml")).read_text()
+    k = tmp_path / "k"
+    shutil.copytree(resource("knees", "s192803"), k)
+    text = doc.replace("[ligaments.ACLam.slack_shift]", "[unused_shift]")
+    (k / "knee.toml").write_text(text.split("[unused_shift]")[0] + "\n".join(
+        text.split("[unused_shift]")[1].splitlines()[3:]))
+    knee = kneenlp.Knee.load(k / "knee.toml")
+    assert knee.ligaments["ACLam"].shift is None and knee.ligaments["ACLpl"].shift is not None
+    (tmp_path / "fit.json").write_text(json.dumps({"params": {"ACLam.ref_strain_offset": 0.01}}))
+    with pytest.raises(kneenlp.InputError, match="slack_shift") as err:
+        export_abaqus(tmp_path / "fit.json", knee, DEPOSIT, tmp_path / "fe")
+    assert err.value.field == "ACLam.ref_strain_offset" and not (tmp_path / "fe").exists()

@@ -346,6 +346,16 @@ def cmd_export_osim(args) -> int:
     return 0
 
 
+def cmd_export_abaqus(args) -> int:
+    from kneenlp.io.export_abaqus import export_abaqus
+
+    with staged_directory(args.out) as stage:
+        report = export_abaqus(args.calibration, args.knee, args.model, stage.path)
+    report.out = Path(args.out)
+    print(report.text())
+    return 0
+
+
 def cmd_import_abaqus(args) -> int:
     from kneenlp.io.import_abaqus import import_abaqus
 
@@ -445,6 +455,7 @@ COMMANDS = {
     "predict": cmd_predict,
     "cross-validate": cmd_cross_validate,
     "export-osim": cmd_export_osim,
+    "export-abaqus": cmd_export_abaqus,
     "identifiability": cmd_identifiability,
     "design": cmd_design,
     "view": cmd_view,

@@ -249,6 +249,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="the calibrated .osim to write")
     p.set_defaults(validate=True, out_kind="file")
 
+    p = sub.add_parser("export-abaqus", help="write a calibration into a copy of the Abaqus model a knee came from")
+    p.add_argument("calibration", help="calibrated.toml (identify --out) or the fit's JSON (identify --json)")
+    p.add_argument("--knee", required=True, help="the imported knee (a name or its knee.toml)")
+    p.add_argument("--model", required=True, help="the Abaqus model's folder the knee was imported from")
+    p.add_argument("--out", required=True, help="the folder for the calibrated copy of the model")
+    p.set_defaults(validate=True, out_kind="dir")
+
     p = sub.add_parser("identifiability", help="which parameters a protocol can identify, before fitting")
     p.add_argument("--protocol", default="set4", help="protocol name or TOML file")
     p.add_argument("--free", type=opt.names,

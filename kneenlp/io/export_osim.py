@@ -14,15 +14,13 @@ slack length scaled as kneenlp's straight-line one is (wrapped paths keep their 
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.io.osim import OsimError, write_calibrated
 from kneenlp.model.knee import Knee
-from kneenlp.model.ligament import slack_length
+from kneenlp.model.ligament import bundle_law
 
 
 def calibrated_values(knee: Knee, params: dict[str, float]) -> dict[str, dict[str, float]]:
@@ -36,28 +34,26 @@ def calibrated_values(knee: Knee, params: dict[str, float]) -> dict[str, dict[st
         scale, offset = params.get(f"{name}.k_scale"), params.get(f"{name}.ref_strain_offset")
         for b in lig.bundles:
             values = {}
+            imaged = lig.bundle_length(b)
+            slack, k, _ = bundle_law(b, imaged, imaged, 1.0 if scale is None else scale,
+                                     0.0 if offset is None else offset, lig.shift)
             if scale is not None:
-                values["linear_stiffness"] = scale * b.stiffness
+                values["linear_stiffness"] = k
             if offset is not None:
-                values["slack_length"] = slack_length(lig.bundle_length(b), b.ref_strain + offset)
+                values["slack_length"] = slack
             if values:
                 out[b.name] = values
     return out
 
 
 def export_osim(fit_json: str | Path, knee: Knee | str | Path, model: str | Path, out: str | Path) -> list[tuple]:
-    """Write ``out``: ``model`` with the ligament properties of the fit in ``fit_json`` (the JSON of
-    ``kneenlp identify --json`` or ``Fit.to_json()``) for the imported ``knee``; returns the changes
-    ``(bundle, property, old, new)``."""
+    """Write ``out``: ``model`` with the ligament properties of the calibration in ``fit_json`` (the
+    JSON of ``kneenlp identify --json``, ``Fit.to_json()`` or ``calibrated.toml``) for the imported
+    ``knee``; returns the changes ``(bundle, property, old, new)``."""
+    from kneenlp.io.export_abaqus import read_calibration
+
     path = Path(fit_json)
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read the fit ({exc})", source=str(path)) from None
-    params = doc.get("params") if isinstance(doc, dict) else None
-    if not isinstance(params, dict) or not params:
-        raise InputError("no 'params' object: expected the JSON of 'kneenlp identify --json'", source=str(path),
-                         field="params")
+    params = read_calibration(path)
     if not Path(model).is_file():
         raise InputError("file not found", source=str(model), field="--model")
     if not Path(out).resolve().parent.is_dir():
@@ -66,12 +62,10 @@ def export_osim(fit_json: str | Path, knee: Knee | str | Path, model: str | Path
     known = set(KneeModel.of(knee).parameter_names)
     exported = [f"{g}.{k}" for g, lig in knee.ligaments.items() if lig.grouped
                 for k in ("k_scale", "ref_strain_offset")]
-    for name, value in params.items():
+    for name in params:
         if name not in known:  # the list names what export-osim writes (the model has many more)
             raise unknown_name("parameter", name, exported, source=str(path)).with_context(field=f"params.{name}")
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-            raise InputError(f"expected a finite number, got {value!r}", source=str(path), field=f"params.{name}")
-    values = calibrated_values(knee, {k: float(v) for k, v in params.items()})
+    values = calibrated_values(knee, params)
     if not values:
         raise InputError("the fit frees no bundle group of this knee (expected <group>.k_scale or "
                          "<group>.ref_strain_offset)", source=str(path), field="params")

@@ -236,7 +236,7 @@ def read_abaqus_knee(folder: str | Path) -> AbaqusKnee:
     notes.append(f"tibial tuberosity: the most anterior point of the tibial bone {TUBEROSITY_BAND_MM[0]:g}-"
                  f"{TUBEROSITY_BAND_MM[1]:g} mm below the tibial origin within {TUBEROSITY_HALF_WIDTH_MM:g} mm of "
                  "the sagittal plane")
-    fibres = _fibres(folder / "ligaments")
+    fibres = read_fibres(folder / "ligaments")
     shifts, shift_notes = group_shift(folder / "ligaments", fibres)
     notes.append(f"{len(fibres)} ligament fibres in {len({f.group for f in fibres})} groups, laws from the "
                  f"connector tables; {len(shifts)} groups' slack moves by the FE's L / EREF")
@@ -370,7 +370,7 @@ def group_shift(folder: Path, fibres: list[Fibre]) -> tuple[dict[str, dict[str, 
     return shifts, notes
 
 
-def _fibres(folder: Path) -> list[Fibre]:
+def read_fibres(folder: Path) -> list[Fibre]:
     src = str(folder)
     attach_file = folder / "LIGS-ATTACH.inp"
     bone_of: dict[int, str] = {}
