@@ -17,7 +17,10 @@ Multi-bundle ligaments (OpenSim's Blankevoort1991Ligament bundles, grouped): eve
 own stiffness ``k_i``, reference strain ``eps_r,i`` and linear strain limit; the group's
 parameters are a stiffness scale ``<group>.k_scale`` (bundle stiffness ``k_scale k_i``, default 1)
 and a reference-strain offset ``<group>.ref_strain_offset`` (bundle reference strain ``eps_r,i +
-offset``, default 0): the fit moves the whole group and keeps its internal pattern.
+offset``, default 0): the fit moves the whole group and keeps its internal pattern.  A group
+imported from a finite-element model moves as the FE's does (:class:`SlackShift`, the knee file's
+``slack_shift``): every bundle's slack length by one length, so that the calibration is the FE
+model's own parameters (:func:`bundle_law`, :mod:`kneenlp.io.export_abaqus`).
 
 Attachment shifts: every (non-candidate) ligament also has six parameters, neutral 0, that move
 all its femoral attachments (femoral frame) and all its tibial attachments (tibial frame) by a

@@ -173,31 +173,42 @@ class ReducedSpace:
         return rows
 
 
-def forward_poses(problem: IdentificationProblem, theta: np.ndarray) -> np.ndarray:
-    """The trials' poses (SI) at ``theta`` as the forward solver finds them from the unloaded state
-    (what ``predict`` gives), the measured pose where it finds none: the branch a fit starts on.
-    Newton from the measured poses instead picked a branch by the start's last digits (S192803,
-    registration fit: objective 1800, 1949 or 4437 for starts 1e-12 apart)."""
-    q = np.array(problem.data.q, float)
-    for i, sol in enumerate(forward_solver(problem.model).solve(problem.trials, theta)):
+def start_poses(problem: IdentificationProblem, theta: np.ndarray, threads: int = 2) -> np.ndarray:
+    """Each trial's starting equilibrium (SI) at ``theta``: of the one Newton finds from the
+    measured pose and the one the forward solver reaches from the unloaded state (``predict``'s),
+    the nearer to the measurement (weighted); the measured pose where neither converges.  Either
+    alone failed on S192803: from the measured poses, Newton picked a branch by the start's last
+    digits (registration fit: objective 1949 or 1800 for starts 1e-12 apart); from the unloaded
+    state alone, the MAP calibration followed branches far from the data (MAP objective 731, not 452)."""
+    tol = problem.equilibrium_tol
+    solver = forward_solver(problem.model)
+    measured, res = solver.solve_batch(problem.trials, theta, np.array(problem.data.q, float), threads, max_retries=0)
+    forward = np.array(problem.data.q, float)
+    reached = np.zeros(len(forward), bool)
+    for i, sol in enumerate(solver.solve(problem.trials, theta)):
         if sol.converged:
-            q[i] = sol.q
-    return q
+            forward[i], reached[i] = sol.q, True
+
+    def misfit(q: np.ndarray) -> np.ndarray:
+        return np.sum(problem.weights * problem.residuals(q, theta) ** 2, axis=1)
+
+    use_forward = reached & ((res > tol) | (misfit(forward) < misfit(measured)))
+    return np.where(use_forward[:, None], forward, np.where((res <= tol)[:, None], measured, problem.data.q))
 
 
 def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float], *, q0: np.ndarray | None = None,
                           max_evaluations: int = 60, tol: float | None = None, threads: int = 2) -> SolverResult:
     """Minimise the problem's weighted residual sum over its free parameters from ``start`` (SI),
     with every trial at equilibrium (module docstring); ``q0`` warm-starts the first poses (SI,
-    default the forward solutions at the start, :func:`forward_poses`).  Parameters scaled by
+    default :func:`start_poses`).  Parameters scaled by
     their scales; stops at relative cost change ``tol`` (default :func:`tolerance`) or after
     ``max_evaluations`` residual evaluations; ``threads`` of the trials' Newton."""
     tol = tolerance(problem.model) if tol is None else tol
     t0 = time.perf_counter()
     lower, upper = problem.scaled_bounds
     x0 = np.clip(problem.to_scaled(start), lower, upper)
-    space = ReducedSpace(problem, forward_poses(problem, problem.theta(problem.from_scaled(x0))) if q0 is None
-                         else q0, threads)
+    space = ReducedSpace(problem, start_poses(problem, problem.theta(problem.from_scaled(x0)), threads)
+                         if q0 is None else q0, threads)
     # trf's first trust radius is the start's own (Jacobian-scaled) norm: a start at a neutral 0 plus
     # rounding got a radius of 1e-12 and stopped there (S192803, registration fit: objective 4437
     # instead of 1800).  Its variable is shifted so that the start is 1 in every scaled parameter:
