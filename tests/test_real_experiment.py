@@ -955,3 +955,22 @@ def test_export_abaqus_refuses_an_offset_it_cannot_write(s192803, tmp_path):
     with pytest.raises(kneenlp.InputError, match="slack_shift") as err:
         export_abaqus(tmp_path / "fit.json", knee, DEPOSIT, tmp_path / "fe")
     assert err.value.field == "ACLam.ref_strain_offset" and not (tmp_path / "fe").exists()
+
+
+@needs_deposit
+def test_a_group_without_its_fe_parameters_moves_per_fibre(tmp_path):
+    """The import finds each group's L and EREF by perturbing the FE parameters (MCLa/m/p share
+    MCL_L and MCL_K2, each its own EREF); a group whose reference length is not a parameter of
+    that name keeps kneenlp's per-fibre offset, and the import says so."""
+    from kneenlp.io.import_abaqus import dependencies, group_shift, read_fibres
+
+    lig = tmp_path / "ligaments"
+    shutil.copytree(DEPOSIT / "ligaments", lig)
+    deps = dependencies(lig)
+    assert deps["MCLM_1D"] == {"_L": ["MCL_L"], "_EREF": ["MCLM_EREF"], "_K2": ["MCL_K2"],
+                               "_NUM_SP_PAR": ["MCLM_num_sp_par"]}
+    for path in (lig / "LIG-PARAMETERS-S192803L.inp", lig / "PROPS-ALS-S192803L.inp"):
+        path.write_text(path.read_text().replace("ALS_L", "ALS_LENGTH").replace("ALS_LENGTH0", "ALS_L0"))
+    shifts, notes = group_shift(lig, read_fibres(lig))
+    assert "ALS" not in shifts and len(shifts) == 13 and shifts["MCLa"]["length"] == 103.518
+    assert any(n.startswith("ALS:") for n in notes)

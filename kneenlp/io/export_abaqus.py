@@ -252,13 +252,14 @@ def not_written(model: KneeModel, values: dict[str, float]) -> list[tuple[str, f
     """The calibrated parameters the FE model's ligament numbers do not hold, where the calibration
     moved them from the knee's own values: ``(name, value in its user unit, unit, why)``."""
     own = model.theta()
+    experiment = {p.name for part in model.measurement.parts for p in part.parameters()}
     out = []
     for name in model.parameter_names:
         value = values[name]
         if name.endswith((".k_scale", ".ref_strain_offset")) or value == own[model.index(name)]:
             continue
         kind = KINDS[model.parameter(name).kind]
-        why = ("the experiment's frames and loads, not the model's" if name.startswith(("registration.", "load_point."))
+        why = ("the experiment's frames and loads, not the FE model's" if name in experiment
                else "an attachment shift: the FE's nodes would move by it" if name.split(".")[-1].startswith(
                    ("femur_", "tibia_")) else "not among the FE model's ligament numbers")
         out.append((name, value * kind.to_user, kind.unit, why))
