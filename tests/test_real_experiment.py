@@ -974,3 +974,21 @@ def test_a_group_without_its_fe_parameters_moves_per_fibre(tmp_path):
     shifts, notes = group_shift(lig, read_fibres(lig))
     assert "ALS" not in shifts and len(shifts) == 13 and shifts["MCLa"]["length"] == 103.518
     assert any(n.startswith("ALS:") for n in notes)
+
+
+def test_a_fit_does_not_depend_on_its_starts_rounding(s192803):
+    """The reduced fit of the registration and load point (the 'source values' calibration) ends in
+    the same minimum from its start and from the start moved by 1e-12 (starting poses: the
+    equilibrium nearer each measurement; first trust radius: one scale per parameter).  Newton
+    from the measured poses with a trust radius of the start's own norm ended them at 1949 and 4437."""
+    from kneenlp.estimation.calibrate import LOAD_POINT, MAX_EVALUATIONS, REGISTRATION
+    from kneenlp.estimation.solve import reduced_fit
+    from kneenlp.experiment.problem import IdentificationProblem
+
+    model = KneeModel.of(s192803)
+    data = read_measured(CSV)
+    free = [*REGISTRATION, LOAD_POINT]
+    problem = IdentificationProblem.from_data(model, data, free, priors="none")
+    ends = [reduced_fit(problem, dict.fromkeys(free, shift), max_evaluations=MAX_EVALUATIONS).objective
+            for shift in (0.0, 1e-12)]
+    assert ends[0] == pytest.approx(ends[1], rel=1e-6) and ends[0] < 1850, ends
