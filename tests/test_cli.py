@@ -49,3 +49,42 @@ def test_a_signal_inside_a_compiled_kernel_is_still_an_interrupt(monkeypatch, ca
     monkeypatch.setitem(COMMANDS, "simulate", command)
     code = main(["simulate", "--knee", "synthetic", "--no-plots", "--out", str(tmp_path / "o")])
     assert code == 143 and "terminated (SIGTERM)" in capsys.readouterr().err
+
+
+def test_a_signal_inside_the_working_set_callback_is_held_and_still_wins(monkeypatch, capfd, tmp_path):
+    """SIGINT arriving while CasADi runs the working-set callback (Python called from compiled code)
+    is held there, never raised inside it (CasADi printed the exception's traceback to stderr), and
+    raised by the Newton evaluation that called it: exit 130, one line, no traceback.  A signal held
+    past every check still wins when the command ends."""
+    import os
+    import signal
+
+    from kneenlp.experiment.kneemodel import KneeModel
+
+    original = KneeModel.working_data_batch
+    calls = []
+
+    def with_signal(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+            calls.append("held")  # not raised inside the callback
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(KneeModel, "working_data_batch", with_signal)
+    code = main(["simulate", "--knee", "default", "--protocol", "set1", "--no-plots", "--out", str(tmp_path / "o")])
+    err = capfd.readouterr().err.strip()
+    assert code == 130 and "held" in calls and err.splitlines() == ["kneenlp: interrupted (Ctrl-C); finished work "
+                                                                   "is kept"], err
+
+    from kneenlp.cli.commands import COMMANDS
+
+    def held_to_the_end(args):
+        from kneenlp.base.interrupts import held
+
+        with held():
+            os.kill(os.getpid(), signal.SIGTERM)
+        return 0
+
+    monkeypatch.setitem(COMMANDS, "simulate", held_to_the_end)
+    assert main(["simulate", "--knee", "synthetic", "--no-plots", "--out", str(tmp_path / "p")]) == 143

@@ -97,6 +97,23 @@ def deferred() -> Iterator[None]:
     check()
 
 
+@contextlib.contextmanager
+def held() -> Iterator[None]:
+    """Inside a Python callback that compiled code calls (CasADi's working sets): a signal is only
+    remembered, never raised there (CasADi would print the exception's traceback and go on); the
+    caller's next :func:`check` (each Newton evaluation), the end of a :func:`deferred` block or
+    the command line's end raises it."""
+    handler = signal.getsignal(signal.SIGINT)
+    if not isinstance(handler, _Handler):
+        yield
+        return
+    handler.deferring += 1
+    try:
+        yield
+    finally:
+        handler.deferring -= 1
+
+
 def as_worker() -> None:
     """In a worker process: leave Ctrl-C and SIGTERM to the parent, SIGINT ignored (the parent stops
     its workers), SIGTERM back to its default (a handler inherited by fork would keep them alive)."""

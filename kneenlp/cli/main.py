@@ -78,7 +78,10 @@ def main(argv: list[str] | None = None) -> int:
             as_json = bool(getattr(args, "json", False))
             _announce_long_steps()
             check_inputs(args)
-            return int(COMMANDS[args.command](args))
+            code = int(COMMANDS[args.command](args))
+            if pending() is not None:  # a signal a callback held past its last check: it still wins
+                return _interrupted(pending(), as_json)
+            return code
         except InputError as exc:
             return _fail(f"error: {exc}", EXIT_INPUT, as_json, exc.to_dict())
         except ConvergenceError as exc:

@@ -25,6 +25,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from kneenlp.base import interrupts
+
 
 class WorkingSets(ca.Callback):
     """``(q, theta, flexion) -> ws`` for ``n_trials`` trials of ``model`` (see module docstring)."""
@@ -67,7 +69,8 @@ class WorkingSets(ca.Callback):
         flexion = np.frombuffer(arg[2], dtype=np.float64)
         key = q.tobytes() + theta.tobytes() + flexion.tobytes()
         if key != self._key:
-            self._value = self.model.working_data_batch(q, theta, flexion, self.threads, self.order).ravel()
+            with interrupts.held():  # a signal here is raised by the caller, not printed by CasADi
+                self._value = self.model.working_data_batch(q, theta, flexion, self.threads, self.order).ravel()
             self._key = key
         np.frombuffer(res[0], dtype=np.float64)[:] = self._value
         return 0

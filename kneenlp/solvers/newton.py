@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kneenlp.base import interrupts
 from kneenlp.base.conventions import EQUILIBRIUM_TOL, LOAD_SIZE, TO_USER
 
 #: Largest Newton step (mm for translations, deg for rotations).
@@ -50,6 +51,7 @@ class EquilibriumNewton:
         (:meth:`KneeModel.pose_derivatives`)."""
         n = len(q)
         r, jac = self.model.pose_derivatives(n, min(threads, n))(q.T, theta, loads.T, flexions[None, :])
+        interrupts.check()  # a signal the working-set callback held
         r = np.asarray(r).T
         jac = np.asarray(jac).reshape(5, n, 5).transpose(1, 0, 2)
         return r, jac
