@@ -243,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(validate=True, out_kind="dir")
 
     p = sub.add_parser("export-osim", help="write a fit of an imported knee into a copy of its OpenSim model")
-    p.add_argument("fit", help="the fit's JSON (kneenlp identify --json)")
+    p.add_argument("fit", help="the fit's JSON (kneenlp identify --json) or calibrated.toml (identify --out)")
     p.add_argument("--knee", required=True, help="the imported knee's knee.toml")
     p.add_argument("--model", required=True, help="the OpenSim model the knee was imported from")
     p.add_argument("--out", required=True, help="the calibrated .osim to write")
