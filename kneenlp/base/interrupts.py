@@ -85,15 +85,8 @@ def check() -> None:
 def deferred() -> Iterator[None]:
     """Around a solver call that swallows exceptions: a signal is only remembered, and raised by
     :func:`check` when the block ends."""
-    handler = signal.getsignal(signal.SIGINT)
-    if not isinstance(handler, _Handler):
+    with held():
         yield
-        return
-    handler.deferring += 1
-    try:
-        yield
-    finally:
-        handler.deferring -= 1
     check()
 
 

@@ -45,11 +45,10 @@ from kneenlp.io.import_abaqus import (
     Fibre,
     assignments,
     dependencies,
-    evaluate_parameters,
     law_force,
     parameter_file,
+    parameter_values,
     read_fibres,
-    read_keywords,
 )
 from kneenlp.model.knee import Knee
 from kneenlp.model.ligament import Bundle, Ligament, bundle_law, force_strain_numpy
@@ -156,9 +155,7 @@ def planned_changes(knee: Knee, values: dict[str, float], ligaments: Path) -> li
     of the knee's groups into the model's ligament folder ``ligaments`` (module docstring)."""
     src = str(ligaments)
     deps = dependencies(ligaments)
-    fe = evaluate_parameters(read_keywords(parameter_file(ligaments)))
-    for props in sorted(ligaments.glob("PROPS-*.inp")):
-        fe = evaluate_parameters(read_keywords(props), fe)
+    fe = parameter_values(ligaments)
     groups = {g: lig for g, lig in knee.ligaments.items() if lig.grouped}
     uses: dict[str, list[str]] = {}  # FE parameter -> the knee's groups whose table depends on it
     for g in groups:

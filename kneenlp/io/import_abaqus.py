@@ -276,6 +276,17 @@ def parameter_file(folder: Path) -> Path:
     return params_files[0]
 
 
+def parameter_values(folder: Path) -> dict[str, float]:
+    """The ``*PARAMETER`` values of a model's ligament folder: ``LIG-PARAMETERS*.inp``'s, and each
+    ``PROPS-*.inp``'s own evaluated on top of them (as :func:`connector_tables` reads each file)."""
+    params = parameter_file(folder)
+    base = evaluate_parameters(read_keywords(params), source=str(params))
+    values = dict(base)
+    for props in sorted(folder.glob("PROPS-*.inp")):
+        values.update(evaluate_parameters(read_keywords(props), base, str(props)))
+    return values
+
+
 def connector_tables(folder: Path, scale: Mapping[str, float] | None = None) -> dict[str, np.ndarray]:
     """Each connector section's elasticity table (force N, change of length mm) by its element set
     (upper case): the ``PROPS-*.inp`` tables with the parameters of ``LIG-PARAMETERS*.inp`` and of
@@ -350,7 +361,7 @@ def group_shift(folder: Path, fibres: list[Fibre]) -> tuple[dict[str, dict[str, 
     slack lengths are their imaged lengths ``+ L / EREF - L`` (to 1e-9 of ``L``) with its own ``L``
     and ``EREF`` parameters: its calibration then writes back exactly
     (:class:`kneenlp.model.ligament.SlackShift`); and a note for each group that is not so."""
-    values = evaluate_parameters(read_keywords(parameter_file(folder)))
+    values = parameter_values(folder)
     deps = dependencies(folder)
     shifts, notes = {}, []
     for group in dict.fromkeys(f.group for f in fibres):
