@@ -202,3 +202,21 @@ def test_load_point_shift_adds_the_virtual_work_of_the_moved_force(model):
     femoral = load_vector({"anterior_force": 150.0, "internal_moment": 1.0}, axes="femoral")
     assert np.allclose(np.asarray(model.residual(q, moved, femoral, flexion, ws)).ravel(),
                        np.asarray(model.residual(q, theta0, femoral, flexion, ws)).ravel(), atol=1e-12)
+
+
+def test_a_repeated_newton_solve_is_answered_from_memory(model, monkeypatch):
+    """The single-trial Newton solve is a function of its inputs: asked again (a retry repeating a
+    ramp), the solver answers from memory, bit for bit, without solving; other inputs solve."""
+    solver = ForwardSolver(model)
+    trial = Trial("anterior_134N_flex30", 30.0, {"anterior_force": 134.0}, "anterior", 134.0)
+    theta, start = model.theta(), solver.cold_start(trial.flexion, model.theta())
+    calls = []
+    solve = solver.newton.solve
+    monkeypatch.setattr(solver.newton, "solve", lambda *a, **k: calls.append(1) or solve(*a, **k))
+    q1, res1 = solver._newton(start, theta, trial)
+    q1[:] = np.nan  # a caller's changes do not reach the memory
+    q2, res2 = solver._newton(start.copy(), theta.copy(), trial)
+    assert len(calls) == 1 and res2 == res1 and res1 <= solver.tol
+    assert np.array_equal(q2, ForwardSolver(model)._newton(start, theta, trial)[0])
+    solver._newton(start, theta, trial, 0.5)  # another load: solved
+    assert len(calls) == 2
