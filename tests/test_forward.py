@@ -220,3 +220,39 @@ def test_a_repeated_newton_solve_is_answered_from_memory(model, monkeypatch):
     assert np.array_equal(q2, ForwardSolver(model)._newton(start, theta, trial)[0])
     solver._newton(start, theta, trial, 0.5)  # another load: solved
     assert len(calls) == 2
+
+
+def one_at_a_time(solver, trials, theta):
+    """The forward solve's rule, one trial at a time: no-load trials first, each warm-started from the
+    last converged trial at its flexion, else its flexion's no-load pose (solved first where missing)."""
+    unloaded, last, out = {}, {}, {}
+    for i in sorted(range(len(trials)), key=lambda i: (bool(trials[i].loads), i)):
+        t, key = trials[i], round(trials[i].flexion_deg, 9)
+        q0 = last.get(key, unloaded.get(key))
+        if key not in unloaded and t.loads:
+            sol0 = solver.solve_trial(Trial("none", t.flexion_deg, {}, "none", 0.0), theta, q0)
+            if sol0.converged:
+                unloaded[key] = q0 = sol0.q
+        out[i] = solver.solve_trial(t, theta, q0, unloaded.get(key))
+        if out[i].converged:
+            last[key] = out[i].q
+            if not t.loads:
+                unloaded[key] = out[i].q
+    return [out[i] for i in range(len(trials))]
+
+
+@pytest.mark.parametrize("knee_name,protocol", [("default", "set3"), ("s192803", None)])
+def test_the_batched_forward_solve_is_the_one_at_a_time_solve(knee_name, protocol):
+    """Trials go in waves whose first Newton solves are batched: the poses are those of solving one
+    trial at a time, bit for bit (set 3: several trials per flexion; S192803: one flexion each)."""
+    model = kneenlp.experiment.kneemodel.KneeModel.of(kneenlp.Knee.named(knee_name))
+    if protocol:
+        trials = list(Protocol.load(protocol).trials)
+    else:
+        from kneenlp.experiment.measured import read_measured
+        trials = list(read_measured(kneenlp.base.resources.resource("datasets", "s192803_laxity.csv")).trials)
+    theta = model.theta()
+    batched = ForwardSolver(model).solve(trials, theta)
+    single = one_at_a_time(ForwardSolver(model), trials, theta)
+    assert [s.converged for s in batched] == [s.converged for s in single]
+    assert all(np.array_equal(a.q, b.q) and a.strategy == b.strategy for a, b in zip(batched, single, strict=True))

@@ -217,22 +217,36 @@ class ForwardSolver:
     def _newton(self, q0: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0):
         """Newton from ``q0``: the pose and its residual (:meth:`residual_norm`).  A deterministic
         function of its inputs, so a solve asked for again (a retry repeating a ramp, a cold start's
-        step) is answered from the last :data:`NEWTON_MEMORY` solves, to the bit what it would compute."""
-        q0, theta, load = (np.ascontiguousarray(v, dtype=float) for v in (q0, theta, scale * trial.load))
-        key = b"".join((q0.tobytes(), theta.tobytes(), load.tobytes(), np.float64(trial.flexion).tobytes()))
+        step) or solved ahead in a batch (:meth:`_newton_batch`) is answered from the last
+        :data:`NEWTON_MEMORY` solves, to the bit what it would compute."""
+        return self._newton_batch(np.asarray(q0, float)[None, :], theta, [trial], scale)[0]
+
+    def _newton_batch(self, q0: np.ndarray, theta: np.ndarray, trials: list[Trial],
+                      scale: float = 1.0) -> list[tuple[np.ndarray, float]]:
+        """:meth:`_newton` of every trial of ``trials`` from its row of ``q0`` (T x 5, SI): those not
+        remembered in one batched Newton (each trial's iteration is its own, so the numbers are those
+        of one solve at a time), remembered."""
+        theta = np.ascontiguousarray(theta, dtype=float)
+        q0 = np.ascontiguousarray(q0, dtype=float).reshape(-1, 5)
+        loads = np.array([scale * t.load for t in trials], float).reshape(len(trials), -1)
+        flexions = np.array([t.flexion for t in trials], float)
+        keys = [b"".join((q.tobytes(), theta.tobytes(), load.tobytes(), f.tobytes()))
+                for q, load, f in zip(q0, loads, flexions, strict=True)]
         with self._solved_lock:
-            known = self._solved.get(key)
-        if known is not None:
-            return known[0].copy(), known[1]
-        out = self.newton.solve(q0[None, :], theta, load[None, :], np.array([trial.flexion]), self.tol, self.max_iter)
-        q, res = out.q[0], float(out.residual[0])
-        if res <= self.tol and self.model.left_out_penetration(q, theta, trial.flexion) > 0:
-            res = np.inf  # the pose's working sets left a penetrating point out
-        with self._solved_lock:
-            while self._solved and len(self._solved) >= NEWTON_MEMORY:
-                del self._solved[next(iter(self._solved))]  # the oldest
-            self._solved[key] = (q.copy(), res)
-        return q, res
+            known = [self._solved.get(k) for k in keys]
+        todo = [i for i, k in enumerate(known) if k is None]
+        if todo:
+            out = self.newton.solve(q0[todo], theta, loads[todo], flexions[todo], self.tol, self.max_iter)
+            res = out.residual.copy()
+            ok = np.flatnonzero(res <= self.tol)
+            if self.model.ws_size and len(ok):  # the pose's working sets left a penetrating point out
+                res[ok[self.model.left_out_batch(out.q[ok], theta, flexions[todo][ok]) > 0]] = np.inf
+            with self._solved_lock:
+                for j, i in enumerate(todo):
+                    while self._solved and len(self._solved) >= NEWTON_MEMORY:
+                        del self._solved[next(iter(self._solved))]  # the oldest
+                    known[i] = self._solved[keys[i]] = (out.q[j].copy(), float(res[j]))
+        return [(q.copy(), res) for q, res in known]
 
     def solve_trial(self, trial: Trial, theta: np.ndarray, q0: np.ndarray | None = None,
                     q_unloaded: np.ndarray | None = None) -> TrialSolution:
@@ -281,29 +295,55 @@ class ForwardSolver:
               q_start: dict[str, np.ndarray] | None = None) -> list[TrialSolution]:
         """Solve all ``trials``; no-load trials first so that loaded ones warm-start from them.
 
-        ``q_start`` optionally maps trial ids to starting poses (e.g. a previous solution).
+        ``q_start`` optionally maps trial ids to starting poses (e.g. a previous solution).  A trial
+        warm-starts from the trials before it at its flexion alone, so the trials go in waves (the
+        first of every flexion, then the second, ...), each wave's first Newton solves in one batch
+        (:meth:`_newton_batch`); the result is that of solving them one at a time.
         """
         q_start = q_start or {}
         unloaded: dict[float, np.ndarray] = {}
         last: dict[float, np.ndarray] = {}
         order = sorted(range(len(trials)), key=lambda i: (not _is_unloaded(trials[i]), i))
         out: dict[int, TrialSolution] = {}
-        for i in order:
-            t = trials[i]
-            key = round(t.flexion_deg, 9)
-            q0 = q_start.get(t.id, last.get(key, unloaded.get(key)))
-            if key not in unloaded and not _is_unloaded(t):
-                sol0 = self.solve_trial(_unloaded(t), theta, q0)
+        for wave in _waves(order, [round(t.flexion_deg, 9) for t in trials]):
+            keys = {i: round(trials[i].flexion_deg, 9) for i in wave}
+            starts = {i: q_start.get(trials[i].id, last.get(keys[i], unloaded.get(keys[i]))) for i in wave}
+            first = [i for i in wave if keys[i] not in unloaded and not _is_unloaded(trials[i])]
+            self._prime([_unloaded(trials[i]) for i in first], theta, [starts[i] for i in first])
+            for i in first:
+                sol0 = self.solve_trial(_unloaded(trials[i]), theta, starts[i])
                 if sol0.converged:
-                    unloaded[key] = sol0.q
-                    q0 = q_start.get(t.id, sol0.q)
-            sol = self.solve_trial(t, theta, q0, unloaded.get(key))
-            if sol.converged:
-                last[key] = sol.q
-                if _is_unloaded(t):
-                    unloaded[key] = sol.q
-            out[i] = sol
+                    unloaded[keys[i]] = sol0.q
+                    starts[i] = q_start.get(trials[i].id, sol0.q)
+            self._prime([trials[i] for i in wave], theta, [starts[i] for i in wave])
+            for i in wave:
+                t = trials[i]
+                sol = self.solve_trial(t, theta, starts[i], unloaded.get(keys[i]))
+                if sol.converged:
+                    last[keys[i]] = sol.q
+                    if _is_unloaded(t):
+                        unloaded[keys[i]] = sol.q
+                out[i] = sol
         return [out[i] for i in range(len(trials))]
+
+    def _prime(self, trials: list[Trial], theta: np.ndarray, starts: list[np.ndarray | None]) -> None:
+        """The first Newton solve :meth:`solve_trial` makes for each of ``trials`` from ``starts``
+        (its cold start where None), solved ahead in one batch and remembered."""
+        if len(trials) > 1:
+            q0 = [self.cold_start(t.flexion, theta) if q is None else q for t, q in zip(trials, starts, strict=True)]
+            self._newton_batch(np.array(q0, float), theta, trials)
+
+
+def _waves(order: list[int], keys: list) -> list[list[int]]:
+    """``order`` split into waves: the k-th wave holds the k-th of ``order``'s items of every key."""
+    seen: dict = {}
+    waves: list[list[int]] = []
+    for i in order:
+        k = seen[keys[i]] = seen.get(keys[i], -1) + 1
+        if k == len(waves):
+            waves.append([])
+        waves[k].append(i)
+    return waves
 
 
 @dataclass
