@@ -166,6 +166,8 @@ def test_a_calibration_from_several_starts_keeps_the_lowest_and_lists_them():
     converged = [e for e, text in zip(ends, m.group(1).split(", "), strict=True) if "not converged" not in text]
     assert several.success and math.isclose(several.map_objective, min(converged), rel_tol=1e-5)
     assert several.map_objective <= one.map_objective * (1 + 1e-9)
+    shared = identify(model, data, multistart=2, workers=2)  # the starts in two processes: the same ends
+    assert shared.message == several.message and shared.map_objective == several.map_objective
 
 
 @pytest.mark.slow

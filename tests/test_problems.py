@@ -89,6 +89,9 @@ def test_free_flags_and_bounds_of_the_table_act(tmp_path, capsys):
     (lambda t: t.replace('"ACL.k" = {value = 10000.0,', '"ACL.k" = {value = -1.0,'), "outside the range"),
     (lambda t: t.replace('"PCL.ref_strain" = {value = -6.0,', '"PCL.ref_strain" = {value = 400.0,'),
      "PCL.ref_strain: value 400 % outside"),
+    (lambda t: "multistart = 0\n" + t, "multistart: expected a whole number of starts from 1 to 1000, got 0"),
+    (lambda t: "multistart = 2.5\n" + t, "multistart"),
+    (lambda t: "multistart = true\n" + t, "multistart"),
 ])
 def test_bad_problem_file_is_refused(tmp_path, capsys, edit, needle):
     folder = _copy(tmp_path)

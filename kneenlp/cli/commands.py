@@ -37,7 +37,7 @@ def cmd_diagnose(args) -> int:
     d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear")
     n = (HELD_OUT_CANDIDATES if args.held_out is None else args.held_out) if real else 0
     judged = crossval.judge(KneeModel.of(knee), data, [[s.effect] for s in d.ranking[:n]], seed=args.seed,
-                            workers=hold_out_workers(args)) if n else []
+                            workers=worker_count(args)) if n else []
     extra = {"held_out": [j.record() for j in judged],
              "held_out_recommended": (best.name if (best := crossval.judged_best(judged)) else None)} if judged else {}
     if args.out:
@@ -105,11 +105,22 @@ def prior_options(args) -> dict:
     return {k: v for k, v in (("priors", args.priors), ("prior_weight", args.prior_weight)) if v is not None}
 
 
-def hold_out_workers(args) -> int:
-    """``--workers``, by default every core: the processes the hold-outs' calibrations share."""
+def worker_count(args) -> int:
+    """``--workers``, by default every core: the processes independent calibrations share (the
+    hold-outs', a calibration's further starts)."""
     import os
 
     return args.workers or os.cpu_count() or 1
+
+
+def start_workers(args) -> dict:
+    """``identify``'s ``workers`` option: a calibration's further starts (``--multistart``) share
+    :func:`worker_count` processes; a fit by the scatter strategy takes no such option."""
+    from kneenlp.estimation.identify import resolve_strategy
+
+    if args.multistart > 1 and resolve_strategy(args.strategy, args.measured, args.method) == "calibration":
+        return {"workers": worker_count(args)}
+    return {}
 
 
 def held_out_judgements(knee, args) -> list:
@@ -121,7 +132,7 @@ def held_out_judgements(knee, args) -> list:
     options = {k: v for k, v in (("pivot_tolerance", args.pivot_tolerance), ("keep_outliers", args.keep_outliers))
                if v} | prior_options(args)
     return crossval.judge(KneeModel.of(knee), args.measured, [args.also_free] if args.also_free else [],
-                          noise=args.noise, seed=args.seed, workers=hold_out_workers(args), **options)
+                          noise=args.noise, seed=args.seed, workers=worker_count(args), **options)
 
 
 def cmd_identify(args) -> int:
@@ -137,6 +148,7 @@ def cmd_identify(args) -> int:
              "keep_outliers": args.keep_outliers or None}
     fit = identify(knee, args.measured, args.method, strategy=args.strategy, free=args.free, seed=args.seed,
                    noise=args.noise, weighted=args.weighted, multistart=args.multistart, solver=args.solver,
+                   **start_workers(args),
                    protocol=args.protocol, with_effects=args.with_effect, **prior_options(args),
                    **{k: v for k, v in given.items() if v is not None})
     calibration = fit.calibration or Calibration(None, [], fit=fit)
@@ -403,9 +415,10 @@ def cmd_cross_validate(args) -> int:
     model = KneeModel.of(knee_from_args(args))
     store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
     results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, store,
-                                      workers=hold_out_workers(args), seed=args.seed,
+                                      workers=worker_count(args), seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
-                                      keep_outliers=args.keep_outliers, **prior_options(args))
+                                      keep_outliers=args.keep_outliers, multistart=args.multistart,
+                                      **prior_options(args))
     table = crossval.table(results)
     written = []
     if args.out:

@@ -91,8 +91,8 @@ def check_inputs(args) -> None:
 #: What a command takes from a problem file when its option is not given (option attribute: the
 #: problem's field), and the defaults without either.
 FROM_PROBLEM = {"noise": "noise", "strategy": "strategy", "priors": "priors", "prior_weight": "prior_weight",
-                "hold_out": "hold_outs", "also_free": "also_free"}
-DEFAULTS = {"strategy": "auto"}
+                "hold_out": "hold_outs", "also_free": "also_free", "multistart": "multistart"}
+DEFAULTS = {"strategy": "auto", "multistart": 1}
 DIAGNOSE_NOISE = "uniform:0.5"
 
 

@@ -28,7 +28,14 @@ def _data_args(p: argparse.ArgumentParser, help: str) -> None:
 
 def _workers_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=opt.integer(1, opt.MAX_WORKERS), default=None,
-                   help="processes the hold-outs' calibrations share (default: all cores)")
+                   help="processes independent calibrations share: the hold-outs', a calibration's "
+                        "further starts (default: all cores)")
+
+
+def _multistart_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--multistart", type=opt.integer(1, opt.MAX_STARTS), default=None, metavar="N",
+                   help="number of starts, the lowest converged kept (a real experiment's calibration: the "
+                        "fit, then N-1 starts half a prior sd about it; default: the problem's, else 1)")
 
 
 def _prior_args(p: argparse.ArgumentParser) -> None:
@@ -86,9 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=opt.noise_level, help="noise model of the data for the covariance, e.g. uniform:0.5")
     p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the paper's start scatter")
-    p.add_argument("--multistart", type=opt.integer(1, opt.MAX_STARTS), default=1,
-                   help="number of starts, the lowest converged kept (a real experiment's calibration: the "
-                        "fit, then N-1 starts half a prior sd about it)")
+    _multistart_arg(p)
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"],
                    help="simultaneous NLP (default) or the paper's nested Complex method")
     p.add_argument("--solver", default="ipopt", type=opt.solver, help="CasADi nlpsol plugin (default ipopt)")
@@ -223,6 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "the highest by default, any other by name) or a load direction such as anterior or "
                         "valgus; default: the highest flexion and every load direction")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the calibrations (default 0)")
+    _multistart_arg(p)
     p.add_argument("--pivot-tolerance", type=opt.fraction, default=None, metavar="F",
                    help="the calibrations fit the ligament parameters whose pivot is at least F of the largest "
                         "(default 0.02, see 'kneenlp identify')")

@@ -55,6 +55,7 @@ import scipy.linalg
 
 from kneenlp.base.conventions import COORDINATES
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.forked import forked_map
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.outliers import (
     MAX_OUTLIER_SHARE,
@@ -315,7 +316,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
               also_free: list[str] | None = None, keep_outliers: bool = False, priors="default",
               prior_weight: float | str = PRIOR_WEIGHT, weighted: bool = False,
               with_effects: list[str] | tuple = (), start: dict[str, float] | None = None, solver: str = "ipopt",
-              solver_options: dict | None = None, multistart: int = 1, threads: int = 2) -> Calibration:
+              solver_options: dict | None = None, multistart: int = 1, threads: int = 2,
+              workers: int = 1) -> Calibration:
     """Fit ``free`` to the real experiment ``data``: reduced-space Gauss-Newton from the knee's
     values (or the probe), then the simultaneous NLP from there (:func:`polished`); the NLP with the
     scatter strategy's rescue where the reduced fit fails.  ``free`` defaults to the parameter
@@ -335,7 +337,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     the outlier test flags (:mod:`~kneenlp.estimation.outliers`) are set aside one at a time and the
     fit repeated without them.  ``weighted``, ``with_effects`` and ``start`` as
     :func:`~kneenlp.estimation.identify.identify`'s; ``multistart`` > 1 refits from further starts
-    about the fit and keeps the lowest (:func:`lowest_of_starts`); ``solver``, ``solver_options``
+    about the fit and keeps the lowest (:func:`lowest_of_starts`, its starts shared out over
+    ``workers`` processes); ``solver``, ``solver_options``
     and ``threads`` serve the fallback from the start (the simultaneous NLP, at most :data:`MAX_ITER` iterations
     unless ``solver_options`` say otherwise)."""
 
@@ -371,7 +374,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     if fit.method == "reduced":
         fit = polished(fit, threads)
     if multistart > 1:
-        fit = lowest_of_starts(fit, multistart, seed, threads)
+        fit = lowest_of_starts(fit, multistart, seed, threads, workers)
     aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
     record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
                                predict(model, data.subset(aside), fit.params) if outliers else None)
@@ -457,16 +460,17 @@ def with_also_free(fit: Fit, data: MeasuredData, extra: list[str], probe: np.nda
 START_SPREAD = 0.5
 
 
-def lowest_of_starts(fit: Fit, starts: int, seed: int, threads: int = 2) -> Fit:
+def lowest_of_starts(fit: Fit, starts: int, seed: int, threads: int = 2, workers: int = 1) -> Fit:
     """``fit`` or, if lower, a fit of the same problem from one of ``starts - 1`` other points: each
     free parameter with a prior moved :data:`START_SPREAD` of its prior sd (in the prior's own scale,
     seeded) from the fit, within its bounds; each fitted as the calibration fits (reduced space, then
-    the NLP).  The MAP objective has neighbouring minima: the starts make the choice explicit, and
-    the fit's note lists every start's end."""
+    the NLP), the starts shared out over ``workers`` processes (the same ends as one after another).
+    The MAP objective has neighbouring minima: the starts make the choice explicit, and the fit's
+    note lists every start's end."""
     rng = np.random.default_rng([seed, starts])
-    problem = fit.problem
+    problem, model = fit.problem, fit.problem.model
     lower, upper = problem.lower, problem.upper
-    ends = [fit]
+    points = []
     for _ in range(starts - 1):
         start = dict(fit.params)
         for i, name in enumerate(problem.free):
@@ -474,8 +478,21 @@ def lowest_of_starts(fit: Fit, starts: int, seed: int, threads: int = 2) -> Fit:
             if prior is not None:
                 moved = prior.transform(fit.params[name]) + START_SPREAD * prior.sd * rng.standard_normal()
                 start[name] = float(np.clip(prior.untransform(moved), lower[i], upper[i]))
+        points.append(start)
+
+    def solve(start: dict[str, float]) -> Fit:
         other = map_fit(problem, start, estimate=False)
-        ends.append(polished(other, threads) if other.success and other.method == "reduced" else other)
+        return polished(other, threads) if other.success and other.method == "reduced" else other
+
+    def pack(f: Fit) -> Fit:
+        f.problem.model = None  # not picklable; the parent's is put back
+        return f
+
+    def unpack(f: Fit) -> Fit:
+        f.problem.model = model
+        return f
+
+    ends = [fit, *forked_map(solve, points, workers, pack=pack, unpack=unpack)]
     best = min((f for f in ends if f.success), key=lambda f: f.map_objective, default=fit)
     listed = ", ".join(f"{f.map_objective:.6g}" + ("" if f.success else " (not converged)") for f in ends)
     return best.with_note(f"{starts} starts (the fit, then {START_SPREAD:g} prior sd about it): MAP objectives "

@@ -39,7 +39,7 @@ from kneenlp.model.knee import Knee
 METHODS = ("simultaneous", "nested")
 #: Options only a calibration takes (:func:`~kneenlp.estimation.calibrate.calibrate`), by CLI flag.
 CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--also-free",
-                       "keep_outliers": "--keep-outliers", "load_point": "--no-load-point"}
+                       "keep_outliers": "--keep-outliers", "load_point": "--no-load-point", "workers": "--workers"}
 
 
 def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: str = "simultaneous", *,
@@ -86,7 +86,8 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         also ``"estimate"`` (:func:`~kneenlp.estimation.calibrate.map_fit`).
     strategy : ``"auto"``, ``"calibration"`` or ``"scatter"`` (module docstring).
     calibration_options : a calibration's own (``pivot_tolerance``, ``also_free``,
-        ``keep_outliers``, ``load_point``; :func:`~kneenlp.estimation.calibrate.calibrate`).
+        ``keep_outliers``, ``load_point``, ``workers``: the processes its further starts share;
+        :func:`~kneenlp.estimation.calibrate.calibrate`).
 
     Returns the :class:`Fit`; a calibration's also carries its
     :class:`~kneenlp.estimation.calibrate.Calibration` as ``fit.calibration``.

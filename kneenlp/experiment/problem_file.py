@@ -14,6 +14,7 @@ so that identify, cross-validate, diagnose and predict run the same problem::
     prior_weight = 1.0            # optional: mm^2, deg^2
     hold_outs = ["anterior"]      # optional: cross-validate's hold-outs (default: all)
     also_free = ["tibial_origin"] # optional: effects a calibration fits beside its table (--also-free)
+    multistart = 4                # optional: a calibration's starts, the lowest kept (--multistart)
 
     [parameters]                  # the parameter table, as a parameter file's [values]
     "PFL.k_scale" = {value = 1.0, unit = "1", free = true, bounds = [0.1, 10],
@@ -39,7 +40,10 @@ STRATEGIES = ("auto", "calibration", "scatter")
 FILE = "problem.toml"
 #: The keys of a problem file: required, then optional.
 REQUIRED = ("name", "knee", "data")
-OPTIONAL = ("description", "noise", "strategy", "priors", "prior_weight", "hold_outs", "also_free", "parameters")
+OPTIONAL = ("description", "noise", "strategy", "priors", "prior_weight", "hold_outs", "also_free", "multistart",
+            "parameters")
+#: The most starts a problem may ask for (as the command line's --multistart, docs/inputs.md).
+MAX_STARTS = 1000
 
 
 @dataclass(frozen=True)
@@ -58,6 +62,7 @@ class ProblemFile:
     hold_outs: tuple[str, ...] = ()
     entries: Entries | None = None
     also_free: tuple[str, ...] = ()
+    multistart: int | None = None
 
     @classmethod
     def load(cls, path: str | Path) -> ProblemFile:
@@ -108,10 +113,15 @@ class ProblemFile:
         for key, names in (("hold_outs", holds), ("also_free", extra)):
             if not isinstance(names, list) or not all(isinstance(h, str) and h for h in names):
                 raise InputError(f"expected a list of names, got {names!r}", source=src, field=key)
+        starts = doc.get("multistart")
+        if starts is not None and (isinstance(starts, bool) or not isinstance(starts, int)
+                                   or not 1 <= starts <= MAX_STARTS):
+            raise InputError(f"expected a whole number of starts from 1 to {MAX_STARTS}, got {starts!r}", source=src,
+                             field="multistart")
         entries = read_entries(doc["parameters"], src, "parameters") if "parameters" in doc else None
         return cls(path, text["name"], knee, data, text.get("description", ""), text.get("noise"),
                    text.get("strategy"), text.get("priors"), None if weight is None else float(weight), tuple(holds),
-                   entries, tuple(extra))
+                   entries, tuple(extra), starts)
 
     def knee_with_parameters(self, knee: Knee | None = None) -> Knee:
         """The problem's knee (or ``knee``) with the parameter table over its own parameter set."""

@@ -47,6 +47,7 @@ import pandas as pd
 from scipy import stats
 
 from kneenlp.base.conventions import coordinate_columns
+from kneenlp.base.forked import forked_map
 from kneenlp.estimation.calibrate import Calibration, calibrate, noise_per_observation, prediction_variances
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
@@ -306,57 +307,20 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
 
 def hold_outs(model: KneeModel, data: MeasuredData, chosen: list[tuple[str, np.ndarray]], workers: int = 1,
               **calibrate_options) -> list[HeldOut]:
-    """:func:`hold_out` of every ``chosen`` (name, mask), in order.  With ``workers`` > 1 (Linux:
-    fork) the hold-outs are shared out over that many processes, each inheriting the model (its
-    compiled functions are not picklable) and sending its results back without it; the results are
-    the sequential ones (every calibration is deterministic and independent of the others)."""
-    import sys
+    """:func:`hold_out` of every ``chosen`` (name, mask), in order, shared out over ``workers``
+    forked processes (:func:`~kneenlp.base.forked.forked_map`; each calibration is deterministic
+    and independent of the others, so the results are the sequential ones)."""
 
-    if workers <= 1 or len(chosen) <= 1 or not sys.platform.startswith("linux"):
-        return [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
-    from multiprocessing import get_context
+    def pack(r: HeldOut) -> HeldOut:
+        r.calibration.fit.problem.model = None  # not picklable; the parent's is put back
+        return r
 
-    ctx = get_context("fork")
-    parts = [chosen[i::workers] for i in range(min(workers, len(chosen)))]
-    running = []
-    try:
-        for part in parts:
-            receive, send = ctx.Pipe(duplex=False)
-            proc = ctx.Process(target=_hold_out_worker, args=(model, data, part, calibrate_options, send),
-                               daemon=True)
-            proc.start()
-            send.close()
-            running.append((proc, receive))
-        done: dict[str, HeldOut] = {}
-        for proc, receive in running:
-            status, payload = receive.recv()
-            proc.join()
-            if status == "error":
-                raise payload
-            for r in payload:
-                r.calibration.fit.problem.model = model  # sent without it
-                done[r.name] = r
-    finally:
-        for proc, _ in running:
-            if proc.is_alive():
-                proc.terminate()
-    return [done[name] for name, _ in chosen]
+    def unpack(r: HeldOut) -> HeldOut:
+        r.calibration.fit.problem.model = model
+        return r
 
-
-def _hold_out_worker(model: KneeModel, data: MeasuredData, part: list, options: dict, send) -> None:
-    """A forked process's hold-outs, sent back as ("ok", results without the model) or ("error", exc)."""
-    from kneenlp.base import interrupts
-
-    interrupts.as_worker()
-    try:
-        out = [hold_out(model, data, mask, name, **options) for name, mask in part]
-        for r in out:
-            r.calibration.fit.problem.model = None
-        send.send(("ok", out))
-    except Exception as exc:  # sent to the parent, which raises it
-        send.send(("error", exc))
-    finally:
-        send.close()
+    return forked_map(lambda item: hold_out(model, data, item[1], item[0], **calibrate_options), chosen, workers,
+                      pack=pack, unpack=unpack)
 
 
 def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[str],
