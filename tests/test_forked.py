@@ -22,6 +22,23 @@ def test_pack_strips_before_sending_and_unpack_restores():
     assert out == [{"i": 1, "model": unpicklable}, {"i": 2, "model": unpicklable}]
 
 
+def test_packing_waits_for_every_job_of_the_worker():
+    """Jobs may share what ``pack`` strips (a calibration's starts share its problem and model): a
+    worker packs its results only after its last job."""
+    shared = {"model": "compiled"}
+
+    def work(i):
+        assert shared["model"] == "compiled", "a job ran after the packing stripped the shared model"
+        return {"i": i, "problem": shared}
+
+    def pack(r):
+        r["problem"]["model"] = None
+        return r
+
+    out = forked_map(work, [1, 2, 3, 4], workers=2, pack=pack)
+    assert [r["i"] for r in out] == [1, 2, 3, 4]
+
+
 def test_a_workers_error_is_raised_here():
     def work(i):
         if i == 3:

@@ -60,7 +60,8 @@ def _worker(work: Callable, items: list, pack: Callable, send) -> None:
     """A forked process's jobs, sent back as ("ok", packed results) or ("error", exception)."""
     interrupts.as_worker()
     try:
-        send.send(("ok", [pack(work(item)) for item in items]))
+        results = [work(item) for item in items]  # every job before any packing: a job may share what pack strips
+        send.send(("ok", [pack(r) for r in results]))
     except Exception as exc:  # sent to the parent, which raises it
         send.send(("error", exc))
     finally:
