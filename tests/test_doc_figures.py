@@ -228,14 +228,15 @@ def test_s192803_before_fitting(s192803):
 CALIBRATIONS = {
     "source values": ({"free": "source"}, 1),
     "MAP calibration": ({}, 2),
-    "seven effects": ({"also_free": ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment",
-                                     "ACLam_femoral_attachment", "PCLal_bundles", "PFL_tibial_attachment"]}, 3),
+    "problems/s192803": ({"also_free": ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment",
+                                        "ACLam_femoral_attachment", "PCLal_bundles", "PFL_tibial_attachment"],
+                          "multistart": 4, "workers": 2}, 3),
 }
 
 
 @pytest.mark.parametrize("name", [pytest.param("source values"),
                                   pytest.param("MAP calibration", marks=pytest.mark.slow),
-                                  pytest.param("seven effects", marks=pytest.mark.slow)])
+                                  pytest.param("problems/s192803", marks=pytest.mark.slow)])
 def test_s192803_fitted_rms(s192803, name):
     """The fitted RMS of the 'In short' table (benchmarks/bench_priors.py's calibrations)."""
     from kneenlp.estimation.calibrate import LOAD_POINT, REGISTRATION, calibrate

@@ -493,10 +493,10 @@ def lowest_of_starts(fit: Fit, starts: int, seed: int, threads: int = 2, workers
         return f
 
     ends = [fit, *forked_map(solve, points, workers, pack=pack, unpack=unpack)]
-    best = min((f for f in ends if f.success), key=lambda f: f.map_objective, default=fit)
+    kept = min((i for i, f in enumerate(ends) if f.success), key=lambda i: ends[i].map_objective, default=0)
     listed = ", ".join(f"{f.map_objective:.6g}" + ("" if f.success else " (not converged)") for f in ends)
-    return best.with_note(f"{starts} starts (the fit, then {START_SPREAD:g} prior sd about it): MAP objectives "
-                          f"{listed}; start {ends.index(best) + 1} kept (the lowest converged)")
+    return ends[kept].with_note(f"{starts} starts (the fit, then {START_SPREAD:g} prior sd about it): MAP "
+                                f"objectives {listed}; start {kept + 1} kept (the lowest converged)")
 
 
 #: IPOPT iterations of the simultaneous NLP from a reduced-space fit (S192803: 52).
