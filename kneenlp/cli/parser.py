@@ -28,8 +28,8 @@ def _data_args(p: argparse.ArgumentParser, help: str) -> None:
 
 def _workers_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=opt.integer(1, opt.MAX_WORKERS), default=None,
-                   help="processes independent calibrations share: the hold-outs', a calibration's "
-                        "further starts (default: all cores)")
+                   help="processes that independent calibrations share: the hold-outs' (each hold-out's own "
+                        "starts then run in turn), identify's further starts (default: all cores)")
 
 
 def _multistart_arg(p: argparse.ArgumentParser) -> None:
