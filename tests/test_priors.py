@@ -183,5 +183,8 @@ def test_a_calibration_at_a_bound_is_read_back_by_predict(tmp_path):
     assert main(["identify", "--problem", str(root), "--also-free", effects, "--out", str(tmp_path / "cal")]) == 0
     text = (tmp_path / "cal" / "calibrated.toml").read_text()
     assert '[values."meniscus.k"]\nvalue = 0.0\n' in text
+    # read, not refused (exit 2); exit 1 when a trial has no equilibrium there (the outlier the
+    # calibration set aside may have none)
     assert main(["predict", str(root / "laxity.csv"), "--knee", "s192803", "--parameters",
-                 str(tmp_path / "cal" / "calibrated.toml"), "--out", str(tmp_path / "pred")]) == 0
+                 str(tmp_path / "cal" / "calibrated.toml"), "--out", str(tmp_path / "pred")]) in (0, 1)
+    assert (tmp_path / "pred" / "predicted.csv").is_file()
