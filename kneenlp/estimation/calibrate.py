@@ -480,9 +480,11 @@ def lowest_of_starts(fit: Fit, starts: int, seed: int, threads: int = 2, workers
                 start[name] = float(np.clip(prior.untransform(moved), lower[i], upper[i]))
         points.append(start)
 
+    inner = max(1, threads // min(max(workers, 1), max(starts - 1, 1)))  # the cores the processes share
+
     def solve(start: dict[str, float]) -> Fit:
-        other = map_fit(problem, start, estimate=False)
-        return polished(other, threads) if other.success and other.method == "reduced" else other
+        other = map_fit(problem, start, estimate=False, threads=inner)
+        return polished(other, inner) if other.success and other.method == "reduced" else other
 
     def pack(f: Fit) -> Fit:
         f.problem.model = None  # not picklable; the parent's is put back
@@ -549,7 +551,7 @@ WEIGHT_TOL = 0.2
 
 
 def map_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None,
-            estimate: bool = True) -> Fit:
+            estimate: bool = True, threads: int = 2) -> Fit:
     """The reduced-space fit of ``problem`` from ``start``; with priors, ``estimate`` and no declared noise, the
     prior weight (the misfit variance per unit weight, :attr:`IdentificationProblem.prior_weight`)
     is the fit's own residual variance over its effective degrees of freedom
@@ -558,7 +560,7 @@ def map_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndar
     weighed against the misfit the model actually has, which on a real knee is the model's error
     more than the instrument's noise."""
 
-    fit = reduced_fit(problem, start, q0=q0, max_evaluations=MAX_EVALUATIONS)
+    fit = reduced_fit(problem, start, q0=q0, max_evaluations=MAX_EVALUATIONS, threads=threads)
     if not problem.priors or problem.noise is not None or not estimate:
         return fit
     for _ in range(WEIGHT_ROUNDS - 1):
@@ -566,7 +568,7 @@ def map_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndar
         if abs(weight / problem.prior_weight - 1) < WEIGHT_TOL:
             break
         problem = dataclasses.replace(problem, prior_weight=weight)
-        refit = reduced_fit(problem, fit.params, q0=fit.q_pred, max_evaluations=MAX_EVALUATIONS)
+        refit = reduced_fit(problem, fit.params, q0=fit.q_pred, max_evaluations=MAX_EVALUATIONS, threads=threads)
         if not refit.success and fit.success:
             break
         fit = refit
