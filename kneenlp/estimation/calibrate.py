@@ -55,8 +55,7 @@ import scipy.linalg
 
 from kneenlp.base.conventions import COORDINATES
 from kneenlp.base.errors import InputError, unknown_name
-from kneenlp.base.forked import forked_map
-from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.estimation.outliers import (
     MAX_OUTLIER_SHARE,
     SCREEN_ALPHA,
@@ -468,7 +467,7 @@ def lowest_of_starts(fit: Fit, starts: int, seed: int, threads: int = 2, workers
     The MAP objective has neighbouring minima: the starts make the choice explicit, and the fit's
     note lists every start's end."""
     rng = np.random.default_rng([seed, starts])
-    problem, model = fit.problem, fit.problem.model
+    problem = fit.problem
     lower, upper = problem.lower, problem.upper
     points = []
     for _ in range(starts - 1):
@@ -480,21 +479,14 @@ def lowest_of_starts(fit: Fit, starts: int, seed: int, threads: int = 2, workers
                 start[name] = float(np.clip(prior.untransform(moved), lower[i], upper[i]))
         points.append(start)
 
-    inner = max(1, threads // min(max(workers, 1), max(starts - 1, 1)))  # the cores the processes share
+    processes = min(workers, len(points))
+    inner = max(1, threads // processes) if processes > 1 else threads  # the processes share the cores
 
     def solve(start: dict[str, float]) -> Fit:
         other = map_fit(problem, start, estimate=False, threads=inner)
         return polished(other, inner) if other.success and other.method == "reduced" else other
 
-    def pack(f: Fit) -> Fit:
-        f.problem.model = None  # not picklable; the parent's is put back
-        return f
-
-    def unpack(f: Fit) -> Fit:
-        f.problem.model = model
-        return f
-
-    ends = [fit, *forked_map(solve, points, workers, pack=pack, unpack=unpack)]
+    ends = [fit, *forked_fits(solve, points, workers, problem.model)]
     kept = min((i for i, f in enumerate(ends) if f.success), key=lambda i: ends[i].map_objective, default=0)
     listed = ", ".join(f"{f.map_objective:.6g}" + ("" if f.success else " (not converged)") for f in ends)
     return ends[kept].with_note(f"{starts} starts (the fit, then {START_SPREAD:g} prior sd about it): MAP "

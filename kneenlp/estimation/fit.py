@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TypeVar
 
 import numpy as np
 import pandas as pd
 
 from kneenlp.base.conventions import COORDINATE_UNITS, COORDINATES, coordinate_columns
+from kneenlp.base.forked import forked_map
 from kneenlp.estimation.statistics import (
     chi_square_test,
     gauss_newton_covariance,
@@ -373,3 +376,21 @@ class Fit:
         if self.message:
             lines.append(f"[[Message]] {self.message}")
         return "\n".join(lines)
+
+
+Item = TypeVar("Item")
+Result = TypeVar("Result")
+
+
+def forked_fits(work: Callable[[Item], Result], items: list[Item], workers: int, model: KneeModel,
+                fit_of: Callable[[Result], Fit] = lambda r: r) -> list[Result]:
+    """``[work(item) for item in items]`` over ``workers`` forked processes
+    (:func:`~kneenlp.base.forked.forked_map`), each result holding a :class:`Fit` (``fit_of(result)``)
+    of ``model``: the fit's problem is sent without the model (compiled functions, not picklable)
+    and gets ``model`` back here."""
+
+    def with_model(result: Result, value: KneeModel | None) -> Result:
+        fit_of(result).problem.model = value
+        return result
+
+    return forked_map(work, items, workers, pack=lambda r: with_model(r, None), unpack=lambda r: with_model(r, model))

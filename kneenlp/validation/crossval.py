@@ -47,8 +47,8 @@ import pandas as pd
 from scipy import stats
 
 from kneenlp.base.conventions import coordinate_columns
-from kneenlp.base.forked import forked_map
 from kneenlp.estimation.calibrate import Calibration, calibrate, noise_per_observation, prediction_variances
+from kneenlp.estimation.fit import forked_fits
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
@@ -308,19 +308,10 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
 def hold_outs(model: KneeModel, data: MeasuredData, chosen: list[tuple[str, np.ndarray]], workers: int = 1,
               **calibrate_options) -> list[HeldOut]:
     """:func:`hold_out` of every ``chosen`` (name, mask), in order, shared out over ``workers``
-    forked processes (:func:`~kneenlp.base.forked.forked_map`; each calibration is deterministic
+    forked processes (:func:`~kneenlp.estimation.fit.forked_fits`; each calibration is deterministic
     and independent of the others, so the results are the sequential ones)."""
-
-    def pack(r: HeldOut) -> HeldOut:
-        r.calibration.fit.problem.model = None  # not picklable; the parent's is put back
-        return r
-
-    def unpack(r: HeldOut) -> HeldOut:
-        r.calibration.fit.problem.model = model
-        return r
-
-    return forked_map(lambda item: hold_out(model, data, item[1], item[0], **calibrate_options), chosen, workers,
-                      pack=pack, unpack=unpack)
+    return forked_fits(lambda item: hold_out(model, data, item[1], item[0], **calibrate_options), chosen, workers,
+                       model, fit_of=lambda r: r.calibration.fit)
 
 
 def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[str],
