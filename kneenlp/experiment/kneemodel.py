@@ -41,6 +41,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
+from kneenlp.base.compiled import compiled
 from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.experiment.measurement import ExperimentPart, Measurement, registration_effects
@@ -266,7 +267,8 @@ class KneeModel:
         (T x 3 x 3, tibial -> femoral) and origins (T x 3, femoral frame, m), in one mapped call."""
         q = np.asarray(q, float).reshape(-1, 5)
         n = len(q)
-        R, p = self.pose.map(n)(q.T, np.asarray(flexions, float).reshape(1, n), theta)
+        R, p = self.solvers.get(("poses", n), lambda: self.pose.map(n))(q.T, np.asarray(flexions, float).reshape(1, n),
+                                                                          theta)
         return np.asarray(R).reshape(3, n, 3).transpose(1, 0, 2), np.asarray(p).T
 
     def working_data_batch(self, q: np.ndarray, theta: np.ndarray, flexions: np.ndarray, threads: int = 1,
@@ -359,10 +361,13 @@ class KneeModel:
         ``wrt_theta`` ``-> (dr/dq, dr/dtheta 5 x (n_theta T))``: the residual and its first derivatives at
         ``T = n_trials`` poses (SI), each with the working sets of its own pose (taken inside the call,
         zero-copy), :attr:`jacobians` (or its ``(r, dr/dq)`` twin) mapped over ``threads`` threads.
-        What Newton's iteration and the implicit-function sensitivities evaluate; built once per size."""
+        What Newton's iteration and the implicit-function sensitivities evaluate; built once per size.
+        A compiled function (:func:`~kneenlp.base.compiled.compiled`) is mapped serially: a trial takes
+        it microseconds, and two threads did not pay up to 64 trials (S192803, 2 cores)."""
         def build() -> ca.Function:
             one = self.jacobians if wrt_theta else self._residual_and_jacobian
-            mapped = one.map(n_trials, "thread", threads) if threads > 1 else one.map(n_trials)
+            vm = one.is_a("SXFunction") or one.is_a("MXFunction")
+            mapped = one.map(n_trials, "thread", threads) if threads > 1 and vm else one.map(n_trials)
             Q, TH = ca.MX.sym("q", 5, n_trials), ca.MX.sym("theta", len(self.parameter_names))
             L, F = ca.MX.sym("loads", LOAD_SIZE, n_trials), ca.MX.sym("flexions", 1, n_trials)
             W = (self.working_sets_function(n_trials, order=1, threads=threads)(Q, TH, F) if self.ws_size
@@ -484,15 +489,16 @@ class KneeModel:
     def _trial_derivatives(self, name: str, wrt_theta: bool) -> ca.Function:
         """One trial's ``(dr/dq, dr/dtheta)`` or ``(r, dr/dq)``: SX where contact uses working sets
         (a few operations on their data: ~1.5x faster than MX), MX without them (contact over every
-        surface point as constants: expanded, 474k operations a trial on the synthetic knee, 5x slower)."""
+        surface point as constants: expanded, 474k operations a trial on the synthetic knee, 5x slower);
+        an SX one compiled to C where the machine allows (:func:`~kneenlp.base.compiled.compiled`)."""
         sym = ca.SX.sym if self.ws_size else ca.MX.sym
         residual = self.residual.expand() if self.ws_size else self.residual
         q, theta = sym("q", 5), sym("theta", len(self.parameter_names))
         load, flexion, ws = sym("load", LOAD_SIZE), sym("flexion"), sym("ws", self.ws_size)
         r = residual(q, theta, load, flexion, ws)
         outs = [ca.jacobian(r, q), ca.jacobian(r, theta)] if wrt_theta else [r, ca.jacobian(r, q)]
-        return ca.Function(name, [q, theta, load, flexion, ws], outs, ["q", "theta", "load", "flexion", "ws"],
-                           ["jac_r_q", "jac_r_theta"] if wrt_theta else ["r", "jac_r_q"])
+        return compiled(ca.Function(name, [q, theta, load, flexion, ws], outs, ["q", "theta", "load", "flexion", "ws"],
+                                    ["jac_r_q", "jac_r_theta"] if wrt_theta else ["r", "jac_r_q"]))
 
     @cached_property
     def exact_residual(self) -> ca.Function:

@@ -6,7 +6,7 @@ The same mathematics as the NumPy reference implementations
 :func:`kneenlp.model.mesh_contact.wrench_expansion`), fused into one loop over points so that no
 per-point tensor is ever materialised: ~20x faster, which is what makes identification on a real
 knee take seconds.  Tests compare the two to 1e-12.  Compiled once per machine (``cache=True``:
-numba keeps the machine code in the user's cache, :mod:`kneenlp.geometry.cache`, or in
+numba keeps the machine code in the user's cache, :mod:`kneenlp.base.cache`, or in
 ``$NUMBA_CACHE_DIR``; never in the package directory).
 
 The passes take the pressure law's ``kernel`` (:class:`kneenlp.model.laws.PressureLaw`) as an
@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit, types
 from numba.extending import overload
 
-from kneenlp.geometry.cache import cache_dir
+from kneenlp.base.cache import cache_dir
 from kneenlp.geometry.ramp import gate_derivatives
 
 # numba keeps compiled loops next to the module unless told otherwise: into the user's cache

@@ -33,7 +33,7 @@ from scipy.ndimage import spline_filter
 from scipy.spatial import cKDTree
 
 from kneenlp.base.atomic import atomic_target
-from kneenlp.geometry.cache import cache_dir
+from kneenlp.base.cache import cache_dir
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.kernels import cell_minimum, field_values
 from kneenlp.geometry.rim import OpenEdges, rim_weights

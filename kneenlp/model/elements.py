@@ -109,11 +109,13 @@ class ForceElement(Part):
         return []
 
 
-def share_out(run: Callable[[int, int], None], n: int, threads: int) -> None:
+def share_out(run: Callable[[int, int], None], n: int, threads: int, min_share: int = 1) -> None:
     """Call ``run(first, last)`` on ``threads`` contiguous shares of ``range(n)`` at once (compiled
-    loops that release the GIL): the calling thread takes the first share, one new thread each of
-    the others (no pool is kept between calls); an exception in any share is raised here."""
-    shares = max(1, min(int(threads), n))
+    loops that release the GIL), each share at least ``min_share`` long (a thread costs ~0.1 ms to
+    start and join: a share smaller than that much work is done by the caller): the calling thread
+    takes the first share, one new thread each of the others (no pool is kept between calls); an
+    exception in any share is raised here."""
+    shares = max(1, min(int(threads), n // max(1, int(min_share))))
     bounds = np.linspace(0, n, shares + 1).round().astype(int)
     errors: list[BaseException] = []
 

@@ -55,6 +55,11 @@ RIM_SHARE = 0.05
 #: Jacobian J (36, column-major 6 x 6), Hessian H (216: H[c] 6 x 6 for each wrench component c,
 #: column-major), largest penetration (1).  W, J and H are per unit modulus.
 WS_SIZE = 9 + 3 + 6 + 36 + 216 + 1
+#: Points times poses of the smallest share of a compiled pass that gets a thread of its own
+#: (:func:`~kneenlp.model.elements.share_out`): below it, starting the thread costs more than it saves
+#: (2 cores: S192803's 362-point tibia gains from two threads from ~20 poses on, the default knee's
+#: 2201 points from ~5; benchmarks/bench_forward.py).
+SHARE_POINTS = 8192
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -258,6 +263,11 @@ class MeshContact(StagedElement):
         return cand[(d < 0) & (d > -0.99 * self.field.depth) & self.in_field(X)]
 
 
+    @property
+    def min_share(self) -> int:
+        """The fewest poses of a compiled pass's share that get a thread (:data:`SHARE_POINTS`)."""
+        return max(1, SHARE_POINTS // len(self.points))
+
     def working_data_batch(self, R: np.ndarray, p: np.ndarray, values: dict, threads: int = 1,
                            order: int = 2) -> np.ndarray:
         """The working-set rows (T x :data:`WS_SIZE`) at the poses ``R`` (T x 3 x 3), ``p`` (T x 3):
@@ -279,7 +289,7 @@ class MeshContact(StagedElement):
                                   0.99 * fld.depth, self.points, self.areas, R, p, self.law.kernel, self.gate, order,
                                   first, last, out)
 
-        share_out(run, len(R), threads)
+        share_out(run, len(R), threads, self.min_share)
         return out
 
     def left_out_batch(self, R: np.ndarray, p: np.ndarray, threads: int = 1) -> np.ndarray:
@@ -296,7 +306,7 @@ class MeshContact(StagedElement):
             kernels.left_out_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
                                    self.points, R, p, first, last, *self._near, deep, outside)
 
-        share_out(run, len(R), threads)
+        share_out(run, len(R), threads, self.min_share)
         trial, point = np.nonzero(outside)
         if len(trial) and self._outside is not None:  # all poses' outside points in one bounded tree query
             X = np.einsum("nij,nj->ni", R[trial], self.points[point]) + p[trial]

@@ -1,0 +1,136 @@
+"""CasADi functions compiled to C once per machine, with the same numbers as CasADi's own.
+
+The per-trial functions every solver evaluates thousands of times (Newton's residual and Jacobian,
+the implicit-function sensitivities, the simultaneous NLP's per-trial objective, constraint and
+Hessian) are SX functions.  CasADi evaluates them in its virtual machine; the same operations as C,
+compiled by the system's C compiler, take about half the time (S192803's calibration, one start:
+15.1 -> 12.3 s; benchmarks/bench_compiled.py).
+
+:func:`compiled` returns the function's library from the cache (:func:`~kneenlp.base.cache.cache_dir`,
+``compiled/``), keyed by the SHA-256 of its generated C code and the compiler's flags.  The flags
+(``-O1 -ffp-contract=off``, no fast-math) keep every operation as the virtual machine does it, in
+the same order: a library is used only if it gives the function's own values bit for bit at a seeded
+probe input, so a result does not depend on whether the cache holds the library.
+
+``$KNEENLP_COMPILE`` chooses when to compile:
+
+* ``auto`` (the default): the cached library if there is one; otherwise the function itself, and
+  the library is compiled in a detached, lowest-priority process for the next run (a first run
+  never waits on a compiler, and one compile of a knee's functions takes 10-30 s);
+* ``wait``: compile now if the cache lacks it (benchmarks, long studies);
+* ``off``: never (the test suite, which builds many small models once each).
+
+Without a C compiler (``$CC``, else ``cc``), a writable cache or a POSIX system, the function is
+used as it is.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shlex
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from kneenlp.base.cache import cache_dir
+
+#: The compiler's flags: optimised, but no contraction into fused multiply-adds and no fast-math, so
+#: the library computes what CasADi's virtual machine computes, to the bit.
+FLAGS = ("-shared", "-fPIC", "-O1", "-ffp-contract=off")
+MODES = ("auto", "wait", "off")
+
+
+def mode() -> str:
+    """``$KNEENLP_COMPILE`` (module docstring), ``auto`` if unset or unknown."""
+    value = os.environ.get("KNEENLP_COMPILE", "auto").strip().lower()
+    return value if value in MODES else "auto"
+
+
+def compiler() -> str | None:
+    """The C compiler's path (``$CC``, else ``cc``), ``None`` without one."""
+    return shutil.which(os.environ.get("CC", "cc")) if os.name == "posix" else None
+
+
+def compiled(function: ca.Function) -> ca.Function:
+    """``function`` as a compiled library where that is possible and gives its values bit for bit,
+    otherwise ``function`` itself (module docstring).  Only SX functions are compiled."""
+    how, cc = mode(), compiler()
+    if how == "off" or cc is None or not function.is_a("SXFunction"):
+        return function
+    where = cache_dir("compiled")
+    if where is None:
+        return function
+    name = function.name()
+    with tempfile.TemporaryDirectory() as tmp:  # CasADi names the C file after the function
+        cwd = os.getcwd()
+        try:
+            os.chdir(tmp)
+            source = Path(function.generate(f"{name}.c")).read_bytes()
+        finally:
+            os.chdir(cwd)
+    key = hashlib.sha256(source + " ".join(FLAGS).encode() + ca.__version__.encode()).hexdigest()[:24]
+    library = where / f"{name}_{key}.so"
+    if not library.exists():
+        src = where / f"{name}_{key}.c"
+        _write(src, source)
+        if how == "auto":
+            _compile_detached(cc, src, library)
+            return function
+        _compile(cc, src, library)
+    return _loaded(function, library)
+
+
+def _write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (another process may write the same)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(fd, "wb") as out:
+        out.write(data)
+    os.replace(tmp, path)
+
+
+def _command(cc: str, src: Path, library: Path) -> str:
+    """The shell command compiling ``src`` into ``library`` atomically (a temporary, then renamed)."""
+    tmp, src_q, lib_q = shlex.quote(f"{library}.{os.getpid()}.tmp"), shlex.quote(str(src)), shlex.quote(str(library))
+    return f"{shlex.quote(cc)} {' '.join(FLAGS)} {src_q} -o {tmp} -lm && mv -f {tmp} {lib_q}; rm -f {tmp} {src_q}"
+
+
+def _compile(cc: str, src: Path, library: Path) -> None:
+    """Compile now; a failure leaves no library (the function is then used as it is)."""
+    subprocess.run(["sh", "-c", _command(cc, src, library)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                   check=False)
+
+
+def _compile_detached(cc: str, src: Path, library: Path) -> None:
+    """Compile in a process of its own session at the lowest priority, not waited for (it outlives
+    the caller, and takes almost no CPU from a solve that runs meanwhile)."""
+    nice = shutil.which("nice")
+    command = ([nice, "-n", "19"] if nice else []) + ["sh", "-c", _command(cc, src, library)]
+    subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                     close_fds=True)
+
+
+def _loaded(function: ca.Function, library: Path) -> ca.Function:
+    """The library's function if it loads and gives ``function``'s values bit for bit at a seeded
+    probe input, else ``function``."""
+    if not library.exists():
+        return function
+    try:
+        external = ca.external(function.name(), str(library))
+    except RuntimeError:
+        return function
+    rng = np.random.default_rng(0)
+    args = [rng.uniform(-1.0, 1.0, function.sparsity_in(i).shape) for i in range(function.n_in())]
+    ours, theirs = function(*args), external(*args)
+    ours, theirs = (ours, theirs) if isinstance(ours, (list, tuple)) else ([ours], [theirs])
+    same = all(np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True) for a, b in zip(ours, theirs, strict=True))
+    if not same:
+        warnings.warn(f"the compiled {function.name()} differs from CasADi's own; it is not used ({library})",
+                      stacklevel=3)
+        return function
+    return external

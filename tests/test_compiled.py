@@ -1,0 +1,99 @@
+"""Compiled CasADi functions (kneenlp.base.compiled): the same numbers as CasADi's own, or not used.
+
+The oracle is CasADi's virtual machine evaluating the same function: a compiled library must agree
+with it bit for bit, on a small function here and on a real knee's forward solve (slow).
+"""
+
+from __future__ import annotations
+
+import time
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from kneenlp.base import compiled as cmod
+from kneenlp.base.compiled import compiled
+
+pytestmark = pytest.mark.skipif(cmod.compiler() is None, reason="no C compiler")
+
+
+def small(name: str = "small", cos: bool = False) -> ca.Function:
+    x, y = ca.SX.sym("x", 3), ca.SX.sym("y")
+    f = ca.cos(x) if cos else ca.sin(x) * y + ca.sqrt(x * x + 1) / (y * y + 2) - ca.fmax(x, 0.3 * y)
+    return ca.Function(name, [x, y], [f, ca.jacobian(f, x)])
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("KNEENLP_CACHE", str(tmp_path))
+    return tmp_path / "compiled"
+
+
+def test_a_compiled_function_gives_casadis_values_bit_for_bit(cache, monkeypatch):
+    monkeypatch.setenv("KNEENLP_COMPILE", "wait")
+    f = small()
+    g = compiled(f)
+    assert not g.is_a("SXFunction")  # the library, not the function
+    assert len(list(cache.glob("small_*.so"))) == 1 and not list(cache.glob("*.c"))
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        x, y = rng.normal(size=3) * 10, rng.normal() * 10
+        for a, b in zip(f(x, y), g(x, y), strict=True):
+            assert np.array_equal(np.asarray(a), np.asarray(b))
+    assert compiled(small()).is_a("SXFunction") is False  # from the cache
+
+
+def test_auto_compiles_in_the_background_for_the_next_call(cache, monkeypatch):
+    monkeypatch.setenv("KNEENLP_COMPILE", "auto")
+    f = small("later")
+    assert compiled(f) is f  # nobody waits on the compiler
+    deadline = time.monotonic() + 120
+    while not list(cache.glob("later_*.so")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    g = compiled(small("later"))
+    assert not g.is_a("SXFunction")
+
+
+def test_off_no_compiler_and_mx_functions_are_left_as_they_are(cache, monkeypatch):
+    monkeypatch.setenv("KNEENLP_COMPILE", "off")
+    f = small()
+    assert compiled(f) is f
+    monkeypatch.setenv("KNEENLP_COMPILE", "wait")
+    monkeypatch.setenv("CC", "/nonexistent/cc")
+    assert compiled(f) is f
+    monkeypatch.delenv("CC")
+    x = ca.MX.sym("x")
+    h = ca.Function("h", [x], [2 * x])
+    assert compiled(h) is h
+    assert not cache.exists() or not list(cache.iterdir())
+
+
+def test_a_library_that_differs_is_not_used(cache, monkeypatch):
+    monkeypatch.setenv("KNEENLP_COMPILE", "wait")
+    other = compiled(small("same_name", cos=True))  # a library of another function of the same name
+    assert not other.is_a("SXFunction")
+    library = next(cache.glob("same_name_*.so"))
+    f = small("same_name")
+    with pytest.warns(UserWarning, match="differs from CasADi's own"):
+        assert cmod._loaded(f, library) is f
+
+
+@pytest.mark.slow
+def test_a_real_knee_solves_the_same_with_its_compiled_functions(cache, monkeypatch):
+    """S192803's 25 trials: the forward solve with compiled residuals is CasADi's own, to the bit."""
+    import kneenlp
+    from kneenlp.base.resources import resource
+    from kneenlp.experiment.kneemodel import KneeModel
+    from kneenlp.experiment.measured import read_measured
+    from kneenlp.solvers.forward import ForwardSolver
+
+    trials = read_measured(resource("datasets", "s192803_laxity.csv")).trials
+    knee = kneenlp.Knee.named("s192803")
+    poses = {}
+    for how in ("off", "wait"):
+        monkeypatch.setenv("KNEENLP_COMPILE", how)
+        model = KneeModel(knee)
+        assert model._residual_and_jacobian.is_a("SXFunction") == (how == "off")
+        poses[how] = np.array([s.q for s in ForwardSolver(model).solve(trials, model.theta())])
+    assert np.array_equal(poses["off"], poses["wait"])
