@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 import kneenlp
 from kneenlp.cli import main
 
@@ -52,13 +54,17 @@ def test_a_signal_inside_a_compiled_kernel_is_still_an_interrupt(monkeypatch, ca
 
 
 def test_a_signal_inside_the_working_set_callback_is_held_and_still_wins(monkeypatch, capfd, tmp_path):
-    """SIGINT arriving while CasADi runs the working-set callback (Python called from compiled code)
-    is held there, never raised inside it (CasADi printed the exception's traceback to stderr), and
-    raised by the Newton evaluation that called it: exit 130, one line, no traceback.  A signal held
-    past every check still wins when the command ends."""
+    """SIGINT arriving while Newton takes the working sets (Python): exit 130, one line, no traceback.
+    Arriving while CasADi runs the working-set callback (Python called from compiled code: the
+    NLP's), it is held there, never raised inside it (CasADi printed the exception's traceback to
+    stderr), and raised by the check after.  A signal held past every check still wins when the
+    command ends."""
     import os
     import signal
 
+    import numpy as np
+
+    from kneenlp.base.interrupts import Interrupted, catching_signals, check
     from kneenlp.experiment.kneemodel import KneeModel
 
     original = KneeModel.working_data_batch
@@ -68,14 +74,24 @@ def test_a_signal_inside_the_working_set_callback_is_held_and_still_wins(monkeyp
         calls.append(1)
         if len(calls) == 3:
             os.kill(os.getpid(), signal.SIGINT)
-            calls.append("held")  # not raised inside the callback
+            calls.append("held")  # reached only where the signal is held
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(KneeModel, "working_data_batch", with_signal)
     code = main(["simulate", "--knee", "default", "--protocol", "set1", "--no-plots", "--out", str(tmp_path / "o")])
     err = capfd.readouterr().err.strip()
-    assert code == 130 and "held" in calls and err.splitlines() == ["kneenlp: interrupted (Ctrl-C); finished work "
-                                                                   "is kept"], err
+    assert code == 130 and "held" not in calls and err.splitlines() == ["kneenlp: interrupted (Ctrl-C); finished "
+                                                                        "work is kept"], err
+
+    model = KneeModel(kneenlp.Knee.default())
+    callback = model.working_sets_function(1, order=0)
+    calls.clear()
+    calls += [1, 1]  # the callback's call is the third
+    with catching_signals():
+        callback(model.knee.reference_pose[1], model.theta(), np.zeros(1))
+        assert "held" in calls
+        with pytest.raises(Interrupted):
+            check()
 
     from kneenlp.cli.commands import COMMANDS
 

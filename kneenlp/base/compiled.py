@@ -32,6 +32,7 @@ import shlex
 import shutil
 import subprocess
 import tempfile
+import threading
 import warnings
 from pathlib import Path
 
@@ -134,3 +135,34 @@ def _loaded(function: ca.Function, library: Path) -> ca.Function:
                       stacklevel=3)
         return function
     return external
+
+
+class BufferedCall:
+    """Numeric calls of a CasADi function through its :meth:`casadi.Function.buffer`: the inputs are
+    copied into preallocated arrays and the outputs read from others, without CasADi's conversions
+    of every argument (a small function's call: ~80 -> ~5 us).  The same evaluation as calling the
+    function, so the same numbers.  Arguments and results are flat arrays in CasADi's (column-major)
+    order of each input and output; calls are serialised (one buffer)."""
+
+    def __init__(self, function: ca.Function):
+        dense = [function.sparsity_in(i).is_dense() for i in range(function.n_in())]
+        dense += [function.sparsity_out(i).is_dense() for i in range(function.n_out())]
+        if not all(dense):
+            raise ValueError(f"{function.name()}: a buffered call needs dense inputs and outputs")
+        self.function = function
+        self._buffer, self._evaluate = function.buffer()
+        self._args = [np.zeros(function.nnz_in(i)) for i in range(function.n_in())]
+        self._results = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
+        for i, a in enumerate(self._args):
+            self._buffer.set_arg(i, memoryview(a))
+        for i, r in enumerate(self._results):
+            self._buffer.set_res(i, memoryview(r))
+        self._lock = threading.Lock()
+
+    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
+        """The outputs (flat copies) at the inputs ``args`` (each flat in CasADi's order, or broadcast)."""
+        with self._lock:
+            for mine, a in zip(self._args, args, strict=True):
+                mine[:] = np.ravel(a)
+            self._evaluate()
+            return [r.copy() for r in self._results]

@@ -94,8 +94,8 @@ def deferred() -> Iterator[None]:
 def held() -> Iterator[None]:
     """Inside a Python callback that compiled code calls (CasADi's working sets): a signal is only
     remembered, never raised there (CasADi would print the exception's traceback and go on); the
-    caller's next :func:`check` (each Newton evaluation), the end of a :func:`deferred` block or
-    the command line's end raises it."""
+    caller's next :func:`check`, the end of a :func:`deferred` block (the NLP's solve) or the
+    command line's end raises it."""
     handler = signal.getsignal(signal.SIGINT)
     if not isinstance(handler, _Handler):
         yield

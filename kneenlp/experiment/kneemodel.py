@@ -41,7 +41,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from kneenlp.base.compiled import compiled
+from kneenlp.base.compiled import BufferedCall, compiled
 from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.experiment.measurement import ExperimentPart, Measurement, registration_effects
@@ -267,9 +267,9 @@ class KneeModel:
         (T x 3 x 3, tibial -> femoral) and origins (T x 3, femoral frame, m), in one mapped call."""
         q = np.asarray(q, float).reshape(-1, 5)
         n = len(q)
-        R, p = self.solvers.get(("poses", n), lambda: self.pose.map(n))(q.T, np.asarray(flexions, float).reshape(1, n),
-                                                                          theta)
-        return np.asarray(R).reshape(3, n, 3).transpose(1, 0, 2), np.asarray(p).T
+        call = self.solvers.get(("poses", n), lambda: BufferedCall(self.pose.map(n)))
+        R, p = call(q, flexions, np.tile(theta, n))  # column-major: trial by trial
+        return R.reshape(n, 3, 3).transpose(0, 2, 1), p.reshape(n, 3)
 
     def working_data_batch(self, q: np.ndarray, theta: np.ndarray, flexions: np.ndarray, threads: int = 1,
                            order: int = 2) -> np.ndarray:
@@ -356,25 +356,30 @@ class KneeModel:
         return self.solvers.get(("working_sets", n_trials, order, threads), lambda: WorkingSets(
             self, n_trials, f"working_sets_{n_trials}_order{order}_{threads}", threads=threads, order=order))
 
-    def pose_derivatives(self, n_trials: int, threads: int = 2, wrt_theta: bool = False) -> ca.Function:
-        """``(q 5 x T, theta, loads LOAD_SIZE x T, flexions 1 x T) -> (r 5 x T, dr/dq 5 x 5T)``, or with
-        ``wrt_theta`` ``-> (dr/dq, dr/dtheta 5 x (n_theta T))``: the residual and its first derivatives at
-        ``T = n_trials`` poses (SI), each with the working sets of its own pose (taken inside the call,
-        zero-copy), :attr:`jacobians` (or its ``(r, dr/dq)`` twin) mapped over ``threads`` threads.
-        What Newton's iteration and the implicit-function sensitivities evaluate; built once per size.
-        A compiled function (:func:`~kneenlp.base.compiled.compiled`) is mapped serially: a trial takes
-        it microseconds, and two threads did not pay up to 64 trials (S192803, 2 cores)."""
-        def build() -> ca.Function:
+    def trial_derivatives(self, q: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
+                          threads: int = 2, wrt_theta: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The residuals (T x 5) and dr/dq (T x 5 x 5), or with ``wrt_theta`` dr/dq and dr/dtheta (T x 5 x
+        n_theta), at the poses ``q`` (T x 5, SI), ``loads`` (T x LOAD_SIZE), ``flexions`` (T, rad), each
+        with the working sets of its own pose (order 1, :meth:`working_data_batch`): what Newton's
+        iteration and the implicit-function sensitivities evaluate.  One buffered call
+        (:class:`~kneenlp.base.compiled.BufferedCall`) of :attr:`jacobians` (or its ``(r, dr/dq)`` twin)
+        mapped over the trials, built once per size: on ``threads`` threads, serially where the function
+        is compiled (:func:`~kneenlp.base.compiled.compiled`: a trial takes it microseconds, and two
+        threads did not pay up to 64 trials; S192803, 2 cores)."""
+        q = np.ascontiguousarray(q, dtype=float).reshape(-1, 5)
+        n, threads = len(q), min(threads, len(q))
+        ws = self.working_data_batch(q, theta, flexions, threads, order=1)
+
+        def build() -> BufferedCall:
             one = self.jacobians if wrt_theta else self._residual_and_jacobian
             vm = one.is_a("SXFunction") or one.is_a("MXFunction")
-            mapped = one.map(n_trials, "thread", threads) if threads > 1 and vm else one.map(n_trials)
-            Q, TH = ca.MX.sym("q", 5, n_trials), ca.MX.sym("theta", len(self.parameter_names))
-            L, F = ca.MX.sym("loads", LOAD_SIZE, n_trials), ca.MX.sym("flexions", 1, n_trials)
-            W = (self.working_sets_function(n_trials, order=1, threads=threads)(Q, TH, F) if self.ws_size
-                 else ca.MX(0, n_trials))
-            return ca.Function(f"pose_derivatives_{n_trials}", [Q, TH, L, F], mapped(Q, TH, L, F, W))
+            return BufferedCall(one.map(n, "thread", threads) if threads > 1 and vm else one.map(n))
 
-        return self.solvers.get(("pose_derivatives", n_trials, threads, wrt_theta), build)
+        first, second = self.solvers.get(("trial_derivatives", n, threads, wrt_theta), build)(
+            q, np.tile(theta, n), loads, flexions, ws)  # column-major: trial by trial
+        width = len(self.parameter_names) if wrt_theta else 5
+        first = first.reshape(n, 5, 5).transpose(0, 2, 1) if wrt_theta else first.reshape(n, 5)
+        return first, second.reshape(n, width, 5).transpose(0, 2, 1)
 
     def evaluate(self, q: np.ndarray, theta: np.ndarray, load: np.ndarray, flexion: float) -> np.ndarray:
         """The equilibrium residual (5) at a pose with the working sets of that pose (numeric)."""
@@ -496,7 +501,8 @@ class KneeModel:
         q, theta = sym("q", 5), sym("theta", len(self.parameter_names))
         load, flexion, ws = sym("load", LOAD_SIZE), sym("flexion"), sym("ws", self.ws_size)
         r = residual(q, theta, load, flexion, ws)
-        outs = [ca.jacobian(r, q), ca.jacobian(r, theta)] if wrt_theta else [r, ca.jacobian(r, q)]
+        outs = [ca.densify(v) for v in ([ca.jacobian(r, q), ca.jacobian(r, theta)] if wrt_theta else
+                                        [r, ca.jacobian(r, q)])]
         return compiled(ca.Function(name, [q, theta, load, flexion, ws], outs, ["q", "theta", "load", "flexion", "ws"],
                                     ["jac_r_q", "jac_r_theta"] if wrt_theta else ["r", "jac_r_q"]))
 

@@ -446,8 +446,7 @@ class IdentificationProblem:
         idx = [model.index(n) for n in (self.free if names is None else names)]
         q = np.asarray(q, dtype=float).reshape(-1, 5)
         T = len(q)
-        dq, dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2) for v in
-                   model.pose_derivatives(T, wrt_theta=True)(q.T, theta, self.loads.T, self.flexions[None, :]))
+        dq, dth = model.trial_derivatives(q, theta, self.loads, self.flexions, wrt_theta=True)
         dy_dq, dy_dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
                          for v in model.observation_jacobians.map(T)(q.T, theta, self.flexions[None, :]))
         dr_dp = dth[:, :, idx]

@@ -114,9 +114,9 @@ class DistanceField:
         m): a lower bound of the field in the cell, derived once from :attr:`coeffs`."""
         return cell_minimum(self.coeffs)
 
-    @property
+    @cached_property
     def bounds(self) -> np.ndarray:
-        """Box (2 x 3, m) in which the field is evaluated (one node inside the outer layer)."""
+        """Box (2 x 3, m) in which the field is evaluated (one node inside the outer layer; read only)."""
         lo = self.origin + self.spacing
         return np.array([lo, self.origin + self.spacing * (np.array(self.shape) - 2)])
 

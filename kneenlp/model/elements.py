@@ -116,6 +116,9 @@ def share_out(run: Callable[[int, int], None], n: int, threads: int, min_share: 
     takes the first share, one new thread each of the others (no pool is kept between calls); an
     exception in any share is raised here."""
     shares = max(1, min(int(threads), n // max(1, int(min_share))))
+    if shares == 1:
+        run(0, n)
+        return
     bounds = np.linspace(0, n, shares + 1).round().astype(int)
     errors: list[BaseException] = []
 

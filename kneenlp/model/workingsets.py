@@ -11,7 +11,7 @@ third derivatives of the femoral distance field (piecewise constant in a cubic s
 forward Newton iteration and IPOPT work on the exact contact model without re-solves.
 
 ``order`` (:meth:`KneeModel.working_data_batch`): the derivatives the data serve, 1 for Newton's
-iteration and the sensitivities (:meth:`KneeModel.pose_derivatives`), 2 for IPOPT.
+iteration and the sensitivities (:meth:`KneeModel.trial_derivatives`), 2 for IPOPT.
 
 The last evaluation is memoised: a solver evaluates value, Jacobian and Hessian at the same point,
 so IPOPT's data are taken with the Hessian's expansion (``order=2``) even for a value: IPOPT evaluates

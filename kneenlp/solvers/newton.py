@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kneenlp.base import interrupts
 from kneenlp.base.conventions import EQUILIBRIUM_TOL, LOAD_SIZE, TO_USER
 
 #: Largest Newton step (mm for translations, deg for rotations).
@@ -46,15 +45,9 @@ class EquilibriumNewton:
     def evaluate(self, q: np.ndarray, theta: np.ndarray, loads: np.ndarray,
                  flexions: np.ndarray, threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
         """Residuals (T x 5) and Jacobians dr/dq (T x 5 x 5) at poses ``q`` (T x 5, SI); the
-        trials are mapped over ``threads`` threads (CasADi ``thread`` map; 1 in study workers,
-        which run one process per core), each with the working sets of its own pose
-        (:meth:`KneeModel.pose_derivatives`)."""
-        n = len(q)
-        r, jac = self.model.pose_derivatives(n, min(threads, n))(q.T, theta, loads.T, flexions[None, :])
-        interrupts.check()  # a signal the working-set callback held
-        r = np.asarray(r).T
-        jac = np.asarray(jac).reshape(5, n, 5).transpose(1, 0, 2)
-        return r, jac
+        trials are mapped over ``threads`` threads (1 in study workers, which run one process per
+        core), each with the working sets of its own pose (:meth:`KneeModel.trial_derivatives`)."""
+        return self.model.trial_derivatives(q, theta, loads, flexions, threads)
 
     def solve(self, q0: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
               tol: float = EQUILIBRIUM_TOL, max_iter: int = 60, threads: int = 2) -> NewtonResult:

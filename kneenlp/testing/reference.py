@@ -134,7 +134,7 @@ def reference_equilibrium(model: KneeModel, trial, q: np.ndarray, theta: np.ndar
     distance, rim = MeshDistance(knee.femur.mesh), OpenEdges(knee.femur.mesh)
     modulus = float(theta[model.index("contact.modulus")])
     q = np.asarray(q, float).copy()
-    jac = np.asarray(model.pose_derivatives(1, 1)(q, theta, trial.load, trial.flexion)[1]).reshape(5, 5)
+    jac = model.trial_derivatives(q[None], theta, np.asarray(trial.load)[None], np.array([trial.flexion]), 1)[1][0]
     res = np.inf
     for _ in range(max_iter):
         R, p = (np.asarray(v) for v in model.pose(q, trial.flexion, theta))
