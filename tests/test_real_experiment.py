@@ -992,3 +992,27 @@ def test_a_fit_does_not_depend_on_its_starts_rounding(s192803):
     ends = [reduced_fit(problem, dict.fromkeys(free, shift), max_evaluations=MAX_EVALUATIONS).objective
             for shift in (0.0, 1e-12)]
     assert ends[0] == pytest.approx(ends[1], rel=1e-6) and ends[0] < 1850, ends
+
+
+def test_what_the_held_out_trials_teach_brings_their_prediction_closer(s192803):
+    """cross_validate(explain=True) names, per hold-out, the parameters whose move to the all-trial
+    calibration's values removes most of the held-out squared error (linearised).  Oracle: predict
+    (nonlinear, each trial at equilibrium) the held-out trials with the hold-out's values and the
+    first lesson's parameter moved: their squared error falls; and the report prints the lessons."""
+    from kneenlp.prediction.predict import predict
+    from kneenlp.validation import crossval
+
+    model, data = KneeModel.of(s192803), read_measured(CSV)
+    (r,) = crossval.cross_validate(model, data, ["external"], explain=True)
+    assert 1 <= len(r.taught) <= crossval.LESSONS
+    shares = [x.share for x in r.taught]
+    assert shares == sorted(shares, reverse=True) and all(crossval.LESSON_SHARE <= s <= 1 for s in shares)
+    first = r.taught[0]
+    assert first.without == r.calibration.fit.params[first.name] and first.with_them != first.without
+    held = data.subset(r.held)
+    moved = predict(model, held, r.calibration.fit.params | {first.name: first.with_them})
+    assert moved.converged.all() and r.prediction.converged.all()
+    assert np.sum(moved.errors_user**2) < np.sum(r.prediction.errors_user**2)
+    text = crossval.report([r])
+    assert "alone teach" in text and first.name in text and "prior sd" in text
+    assert first.name in crossval.table([r]).loc[0, "taught"]

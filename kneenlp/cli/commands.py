@@ -415,7 +415,7 @@ def cmd_cross_validate(args) -> int:
     model = KneeModel.of(knee_from_args(args))
     store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
     results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, store,
-                                      workers=worker_count(args), seed=args.seed,
+                                      workers=worker_count(args), explain=True, seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
                                       keep_outliers=args.keep_outliers, multistart=args.multistart,
                                       **prior_options(args))

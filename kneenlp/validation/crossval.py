@@ -20,7 +20,9 @@ parameters' covariance carried to the held-out trials
 a model that cannot be bent to what was held out; an expected error as large as the error is a
 calibration that says itself it cannot predict that (the held-out loads were the only ones to
 determine some of its parameters).  :func:`consistency` turns the comparison into a p-value: small,
-the held-out errors are larger than the calibration's own uncertainty allows.
+the held-out errors are larger than the calibration's own uncertainty allows.  :func:`lessons` says
+which parameters: those the held-out trials move, when they join the calibration, in the direction
+that brings their predictions closest to them (``cross_validate(explain=True)``, the CLI's report).
 
 That expectation is linear and counts the parameters a hold-out leaves at the knee's values as
 exact.  The *twin* (:func:`twin`, ``cross_validate(reference_draws=N)``) measures instead: the
@@ -48,10 +50,11 @@ from scipy import stats
 
 from kneenlp.base.conventions import coordinate_columns
 from kneenlp.estimation.calibrate import Calibration, calibrate, noise_per_observation, prediction_variances
-from kneenlp.estimation.fit import forked_fits
+from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import flexion_groups
 from kneenlp.prediction.predict import Prediction, predict, rms_by_coordinate
 
@@ -86,6 +89,8 @@ class HeldOut:
     #: the same hold-out's errors on each twin of the experiment (:func:`twin`; T x 5 each, mm and
     #: deg, NaN without equilibrium; empty: none drawn)
     reference: list[np.ndarray] = field(default_factory=list)
+    #: what the held-out trials teach the calibration (:func:`lessons`; empty: not asked)
+    taught: list[Lesson] = field(default_factory=list)
 
     def rms(self) -> dict[str, float]:
         """RMS of measured minus predicted per coordinate column (mm, deg), held-out trials."""
@@ -129,12 +134,72 @@ class HeldOut:
                **{f"rms_{c}": v for c, v in self.rms().items()},
                **{f"expected_rms_{c}": v for c, v in self.expected_rms().items()},
                "p_within_expected": self.p_value()}
+        if self.taught:
+            out["taught"] = "; ".join(f"{x.name} {x.prior_sds:+.1f} prior sd {100 * x.share:.0f} %"
+                                      for x in self.taught)
         if self.reference:
             out |= {"twins": len(self.reference),
                     "twin_converged": len(self.reference_errors()),
                     **{f"twin_rms_{c}": v for c, v in self.reference_rms().items()},
                     "p_against_twin": self.p_reference()}
         return out
+
+
+@dataclass(frozen=True)
+class Lesson:
+    """A parameter the held-out trials teach (:func:`lessons`): its value calibrated without them and
+    with them (SI), that move in its prior's standard deviations (NaN without a prior), and the share
+    of the held-out trials' squared error (mm^2 + deg^2) the move alone removes, linearised."""
+
+    name: str
+    without: float
+    with_them: float
+    prior_sds: float
+    share: float
+
+    def text(self, model: KneeModel) -> str:
+        """E.g. ``PFL.k_scale 0.86 -> 0.32 (-3.2 prior sd): 23 %`` in the parameter's display unit."""
+        p = model.parameter(self.name)
+        unit = f" {p.unit}" if p.unit not in ("", "1") else ""
+        sds = f" ({self.prior_sds:+.1f} prior sd)" if np.isfinite(self.prior_sds) else ""
+        return (f"{self.name} {self.without * p.to_user:.3g} -> {self.with_them * p.to_user:.3g}{unit}{sds}: "
+                f"{100 * self.share:.0f} %")
+
+
+#: :func:`lessons` names at most this many parameters per hold-out ...
+LESSONS = 3
+#: ... each removing at least this share of the held-out squared error.
+LESSON_SHARE = 0.05
+
+
+def lessons(result: HeldOut, full: Fit, data: MeasuredData) -> list[Lesson]:
+    """What the trials ``result`` held out teach the calibration: the parameters whose move from the
+    hold-out's calibrated value to ``full``'s (the calibration of every trial of ``data``) brings the
+    held-out predictions closest to the measurements, linearised (the held-out trials' sensitivities
+    at the hold-out's values times the move), each removing at least :data:`LESSON_SHARE` of their
+    squared error; at most :data:`LESSONS`, the largest first.  A parameter the other trials leave
+    to its prior and these trials move by prior standard deviations is why a hold-out misses:
+    S192803's external rotation trials alone move the PFL's stiffness and tibial attachment
+    (docs/real-experiment.md)."""
+    fit, ok = result.calibration.fit, result.prediction.converged
+    names = [n for n in fit.free if n in full.params]
+    errors = result.prediction.errors_user[ok]
+    total = float(np.sum(errors**2))
+    if not names or not ok.any() or total == 0:
+        return []
+    q = np.array([s.q for s in result.prediction.solutions])[ok]
+    held = data.subset(result.held).subset(ok)
+    sens = IdentificationProblem.from_data(fit.problem.model, held, names).sensitivities(q, fit.theta)
+    out = []
+    for i, name in enumerate(names):
+        move = (sens[:, i] * (full.params[name] - fit.params[name])).reshape(-1, 5)
+        share = (total - float(np.sum((errors - move) ** 2))) / total
+        prior = fit.problem.priors.get(name)
+        sds = ((prior.transform(full.params[name]) - prior.transform(fit.params[name])) / prior.sd
+               if prior is not None else np.nan)
+        if share >= LESSON_SHARE:
+            out.append(Lesson(name, fit.params[name], full.params[name], float(sds), share))
+    return sorted(out, key=lambda lesson: -lesson.share)[:LESSONS]
 
 
 def normalised_error(rms: dict[str, float]) -> float:
@@ -280,17 +345,20 @@ def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str =
 
 def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None = None,
                    reference_draws: int = 0, store: Path | None = None, workers: int = 1,
-                   **calibrate_options) -> list[HeldOut]:
+                   explain: bool = False, **calibrate_options) -> list[HeldOut]:
     """Every hold-out of :func:`folds` (or those named in ``which``), in order; with
     ``reference_draws`` N, each also on N twins of the experiment (:func:`twin_draw`), each draw
     written to ``store`` as it finishes and read back from there on a rerun (:class:`TwinStore`).
-    ``workers`` > 1 calibrates the hold-outs in that many forked processes (:func:`hold_outs`)."""
+    ``workers`` > 1 calibrates the hold-outs in that many forked processes (:func:`hold_outs`).
+    ``explain``: each hold-out's :func:`lessons` too (one more calibration, of every trial)."""
     chosen = _chosen(data, which)
     names = [n for n, _ in chosen]
     # the store is checked before the first calibration: a store of another run stops at once
     saved = TwinStore.open(store, model, data, names, calibrate_options) if store and reference_draws else None
     results = hold_outs(model, data, chosen, workers, **calibrate_options)
-    fit = None
+    fit = calibrate(model, data, **calibrate_options).fit if explain else None
+    for r in results if explain else ():
+        r.taught.extend(lessons(r, fit, data))
     for draw in range(reference_draws):
         errors = saved.load(draw) if saved else None
         if errors is None:
@@ -433,6 +501,12 @@ def report(results: list[HeldOut]) -> str:
              "(in brackets: what the calibration expects it to be, its noise and its parameters' uncertainty;",
              " p: how likely errors this large are if that expectation is right)",
              *header, *rows(HeldOut.expected_rms, HeldOut.p_value)]
+    taught = [r for r in results if r.taught]
+    if taught:
+        lines += ["", "What the held-out trials alone teach the calibration: the parameters whose move, when they",
+                  "join it, removes most of their squared error (linearised; SI -> display units):",
+                  *(line for r in taught for line in [f"  {r.name}:", *(
+                      f"    {x.text(r.calibration.fit.problem.model)}" for x in r.taught)])]
     twins = max((len(r.reference) for r in results), default=0)
     if twins:
         lines += ["", "The same errors beside, in brackets, those of the same hold-out on the experiment's twin "
