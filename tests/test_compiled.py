@@ -97,3 +97,19 @@ def test_a_real_knee_solves_the_same_with_its_compiled_functions(cache, monkeypa
         assert model._residual_and_jacobian.is_a("SXFunction") == (how == "off")
         poses[how] = np.array([s.q for s in ForwardSolver(model).solve(trials, model.theta())])
     assert np.array_equal(poses["off"], poses["wait"])
+
+
+def test_a_buffered_call_is_the_functions_call():
+    """BufferedCall: the same numbers as calling the function (flat, column-major), and a function
+    with sparse outputs refused (its flat results would not be the dense matrices)."""
+    from kneenlp.base.compiled import BufferedCall
+
+    xs, ys = ca.SX.sym("x", 3), ca.SX.sym("y")
+    f = ca.Function("dense", [xs, ys], [ca.densify(v) for v in small()(xs, ys)]).map(4)
+    x, y = np.arange(12.0).reshape(3, 4) / 7, np.linspace(-1, 2, 4)
+    value, jac = BufferedCall(f)(x.ravel(order="F"), y)
+    assert np.array_equal(value, np.asarray(f(x, y)[0]).ravel(order="F"))
+    assert np.array_equal(jac, np.asarray(f(x, y)[1]).ravel(order="F"))
+    s = ca.SX.sym("s", 3)
+    with pytest.raises(ValueError, match="dense"):
+        BufferedCall(ca.Function("sparse", [s], [ca.jacobian(ca.sin(s), s)]))

@@ -57,8 +57,8 @@ RIM_SHARE = 0.05
 WS_SIZE = 9 + 3 + 6 + 36 + 216 + 1
 #: Points times poses of the smallest share of a compiled pass that gets a thread of its own
 #: (:func:`~kneenlp.model.elements.share_out`): below it, starting the thread costs more than it saves
-#: (2 cores: S192803's 362-point tibia gains from two threads from ~20 poses on, the default knee's
-#: 2201 points from ~5; benchmarks/bench_forward.py).
+#: (a pass timed on one thread and on two, 2 cores: S192803's 362-point tibia gains from two threads
+#: from ~20 poses on, the default knee's 2201 points from ~5).
 SHARE_POINTS = 8192
 
 
@@ -261,7 +261,6 @@ class MeshContact(StagedElement):
         X = self.points[cand] @ np.asarray(R).T + np.asarray(p).ravel()
         d = self.field.evaluate(X)[0]
         return cand[(d < 0) & (d > -0.99 * self.field.depth) & self.in_field(X)]
-
 
     @property
     def min_share(self) -> int:
