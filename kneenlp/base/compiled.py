@@ -68,13 +68,9 @@ def compiled(function: ca.Function) -> ca.Function:
     if where is None:
         return function
     name = function.name()
-    with tempfile.TemporaryDirectory() as tmp:  # CasADi names the C file after the function
-        cwd = os.getcwd()
-        try:
-            os.chdir(tmp)
-            source = Path(function.generate(f"{name}.c")).read_bytes()
-        finally:
-            os.chdir(cwd)
+    generator = ca.CodeGenerator(f"{name}.c")
+    generator.add(function)
+    source = generator.dump().encode()
     key = hashlib.sha256(source + " ".join(FLAGS).encode() + ca.__version__.encode()).hexdigest()[:24]
     library = where / f"{name}_{key}.so"
     if not library.exists():
