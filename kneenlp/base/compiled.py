@@ -1,10 +1,11 @@
 """CasADi functions compiled to C once per machine, with the same numbers as CasADi's own.
 
-The per-trial functions every solver evaluates thousands of times (Newton's residual and Jacobian,
-the implicit-function sensitivities, the simultaneous NLP's per-trial objective, constraint and
-Hessian) are SX functions.  CasADi evaluates them in its virtual machine; the same operations as C,
-compiled by the system's C compiler, take about half the time (S192803's calibration, one start:
-15.1 -> 12.3 s; benchmarks/bench_compiled.py).
+A knee's per-trial functions that Newton's iteration and the implicit-function sensitivities
+evaluate thousands of times (:meth:`~kneenlp.experiment.kneemodel.KneeModel.trial_derivatives`) are
+SX functions.  CasADi evaluates them in its virtual machine; the same operations as C, compiled by
+the system's C compiler, take a fraction of the time (S192803's calibration, one start: 8.8 -> 5.1
+s; benchmarks/bench_compiled.py).  The NLP's per-trial blocks stay in CasADi: they change with the
+free parameters, and IPOPT's share of a calibration is small.
 
 :func:`compiled` returns the function's library from the cache (:func:`~kneenlp.base.cache.cache_dir`,
 ``compiled/``), keyed by the SHA-256 of its generated C code and the compiler's flags.  The flags
