@@ -113,3 +113,20 @@ def test_a_buffered_call_is_the_functions_call():
     s = ca.SX.sym("s", 3)
     with pytest.raises(ValueError, match="dense"):
         BufferedCall(ca.Function("sparse", [s], [ca.jacobian(ca.sin(s), s)]))
+
+
+def test_libraries_unused_for_a_month_are_removed_when_another_is_compiled(cache, monkeypatch):
+    """An upgrade changes the code and so the key: the old library would stay forever.  A library
+    loaded within KEEP_DAYS is kept (loading touches it); an older one goes when another compiles."""
+    import os
+
+    monkeypatch.setenv("KNEENLP_COMPILE", "wait")
+    compiled(small("kept"))
+    compiled(small("old"))
+    kept, old = next(cache.glob("kept_*.so")), next(cache.glob("old_*.so"))
+    month = time.time() - (cmod.KEEP_DAYS + 1) * 86400
+    for path in (kept, old):
+        os.utime(path, (month, month))
+    assert not compiled(small("kept")).is_a("SXFunction")  # loaded: touched
+    compiled(small("new"))
+    assert kept.exists() and not old.exists() and list(cache.glob("new_*.so"))

@@ -27,6 +27,7 @@ used as it is.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import shlex
@@ -34,6 +35,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -46,6 +48,9 @@ from kneenlp.base.cache import cache_dir
 #: the library computes what CasADi's virtual machine computes, to the bit.
 FLAGS = ("-shared", "-fPIC", "-O1", "-ffp-contract=off")
 MODES = ("auto", "wait", "off")
+#: A library not loaded for this many days is removed when another is compiled (an upgrade of the
+#: package or of CasADi changes the code, and so the key: the old libraries would stay forever).
+KEEP_DAYS = 30
 
 
 def mode() -> str:
@@ -75,6 +80,7 @@ def compiled(function: ca.Function) -> ca.Function:
     key = hashlib.sha256(source + " ".join(FLAGS).encode() + ca.__version__.encode()).hexdigest()[:24]
     library = where / f"{name}_{key}.so"
     if not library.exists():
+        _prune(where)
         src = where / f"{name}_{key}.c"
         _write(src, source)
         if how == "auto":
@@ -82,6 +88,16 @@ def compiled(function: ca.Function) -> ca.Function:
             return function
         _compile(cc, src, library)
     return _loaded(function, library)
+
+
+def _prune(where: Path) -> None:
+    """Remove the libraries in ``where`` not loaded for :data:`KEEP_DAYS` days (:func:`_loaded`
+    touches a library it loads)."""
+    cutoff = time.time() - KEEP_DAYS * 86400
+    for old in where.glob("*.so"):
+        with contextlib.suppress(OSError):
+            if old.stat().st_mtime < cutoff:
+                old.unlink()
 
 
 def _write(path: Path, data: bytes) -> None:
@@ -131,6 +147,8 @@ def _loaded(function: ca.Function, library: Path) -> ca.Function:
         warnings.warn(f"the compiled {function.name()} differs from CasADi's own; it is not used ({library})",
                       stacklevel=3)
         return function
+    with contextlib.suppress(OSError):
+        os.utime(library)  # in use: kept by _prune
     return external
 
 
