@@ -504,7 +504,7 @@ def report(results: list[HeldOut]) -> str:
     taught = [r for r in results if r.taught]
     if taught:
         lines += ["", "What the held-out trials alone teach the calibration: the parameters whose move, when they",
-                  "join it, removes most of their squared error (linearised; SI -> display units):",
+                  "join it, removes most of their squared error (linearised; display units):",
                   *(line for r in taught for line in [f"  {r.name}:", *(
                       f"    {x.text(r.calibration.fit.problem.model)}" for x in r.taught)])]
     twins = max((len(r.reference) for r in results), default=0)
