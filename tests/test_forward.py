@@ -256,3 +256,24 @@ def test_the_batched_forward_solve_is_the_one_at_a_time_solve(knee_name, protoco
     single = one_at_a_time(ForwardSolver(model), trials, theta)
     assert [s.converged for s in batched] == [s.converged for s in single]
     assert all(np.array_equal(a.q, b.q) and a.strategy == b.strategy for a, b in zip(batched, single, strict=True))
+
+
+class _SingularAtStart:
+    """r = 1000 (q - 1e-3) in four coordinates and 1e6 (q4^2 - 1e-6) in the fifth (SI; steps of a
+    millimetre or a milliradian): the Jacobian is singular at q4 = 0."""
+
+    def trial_derivatives(self, q, theta, loads, flexions, threads):
+        r = np.column_stack([1e3 * (q[:, :4] - 1e-3), 1e6 * (q[:, 4] ** 2 - 1e-6)])
+        jac = np.zeros((len(q), 5, 5))
+        jac[:, range(4), range(4)] = 1e3
+        jac[:, 4, 4] = 2e6 * q[:, 4]
+        return r, jac
+
+
+def test_a_singular_jacobian_stops_its_trial_only():
+    from kneenlp.solvers.newton import EquilibriumNewton
+
+    q0 = np.array([[0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 5e-4]])
+    out = EquilibriumNewton(_SingularAtStart()).solve(q0, None, np.zeros((2, LOAD_SIZE)), np.zeros(2), max_iter=30)
+    assert out.residual[1] <= 1e-6 and np.allclose(out.q[1], 1e-3)  # its neighbour converges
+    assert out.residual[0] >= 0.99 and np.allclose(out.q[0, :4], 1e-3)  # the singular one moves where it can

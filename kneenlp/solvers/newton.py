@@ -28,6 +28,16 @@ MAX_STEP = 5.0
 MIN_DAMPING = 1.0 / 1024
 
 
+def newton_steps(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``J^-1 r`` of every trial (``jac`` T x 5 x 5, ``r`` T x 5); where a Jacobian is singular (a
+    trial whose pose leaves a coordinate free, e.g. no ligament and no contact engaged), the
+    least-squares step of that trial instead, so that one such trial cannot stop the others."""
+    try:
+        return np.linalg.solve(jac, r[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:
+        return np.stack([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in zip(jac, r, strict=True)])
+
+
 @dataclass
 class NewtonResult:
     q: np.ndarray  # (T, 5) SI
@@ -69,10 +79,7 @@ class EquilibriumNewton:
             idx = np.flatnonzero(active)
             if not len(idx):
                 break
-            try:
-                dq = -np.linalg.solve(jac[idx], r[idx][:, :, None])[:, :, 0]
-            except np.linalg.LinAlgError:
-                dq = -np.stack([np.linalg.lstsq(jac[i], r[i], rcond=None)[0] for i in idx])
+            dq = -newton_steps(jac[idx], r[idx])
             cap = np.minimum(1.0, MAX_STEP / np.maximum(np.max(np.abs(dq * w), axis=1), 1e-300))
             norm = np.linalg.norm(dq * w, axis=1)
             pending = np.arange(len(idx))
@@ -85,8 +92,7 @@ class EquilibriumNewton:
                 finite = np.all(np.isfinite(rt), axis=1)
                 bar = np.full(len(j), np.inf)
                 if np.any(finite):
-                    bar[finite] = np.linalg.norm(np.linalg.solve(jac[j[finite]], rt[finite][:, :, None])[:, :, 0] * w,
-                                                 axis=1)
+                    bar[finite] = np.linalg.norm(newton_steps(jac[j[finite]], rt[finite]) * w, axis=1)
                 ok = finite & ((bar <= (1 - step / 4) * norm[pending]) | (np.max(np.abs(rt), axis=1) <= tol))
                 q[j[ok]], r[j[ok]], jac[j[ok]] = qt[ok], rt[ok], jt[ok]
                 lam[j[ok]] = np.minimum(1.0, 2 * lam[j[ok]])
