@@ -277,3 +277,14 @@ def test_a_singular_jacobian_stops_its_trial_only():
     out = EquilibriumNewton(_SingularAtStart()).solve(q0, None, np.zeros((2, LOAD_SIZE)), np.zeros(2), max_iter=30)
     assert out.residual[1] <= 1e-6 and np.allclose(out.q[1], 1e-3)  # its neighbour converges
     assert out.residual[0] >= 0.99 and np.allclose(out.q[0, :4], 1e-3)  # the singular one moves where it can
+
+
+def test_newton_steps_beside_a_singular_jacobian_are_the_batch_without_it():
+    from kneenlp.solvers.newton import newton_steps
+
+    rng = np.random.default_rng(0)
+    jac, r = rng.standard_normal((16, 5, 5)), rng.standard_normal((16, 5))
+    singular = jac.copy()
+    singular[7] = 0.0
+    assert np.array_equal(np.delete(newton_steps(singular, r), 7, 0), np.delete(newton_steps(jac, r), 7, 0))
+    assert np.array_equal(newton_steps(singular, r)[7], np.zeros(5))  # least squares: no step where nothing acts

@@ -31,11 +31,19 @@ MIN_DAMPING = 1.0 / 1024
 def newton_steps(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
     """``J^-1 r`` of every trial (``jac`` T x 5 x 5, ``r`` T x 5); where a Jacobian is singular (a
     trial whose pose leaves a coordinate free, e.g. no ligament and no contact engaged), the
-    least-squares step of that trial instead, so that one such trial cannot stop the others."""
+    least-squares step of that trial instead, so that one such trial cannot stop the others (whose
+    steps are those of a batch without it, bit for bit)."""
     try:
         return np.linalg.solve(jac, r[:, :, None])[:, :, 0]
     except np.linalg.LinAlgError:
-        return np.stack([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in zip(jac, r, strict=True)])
+        return np.stack([_step(a, b) for a, b in zip(jac, r, strict=True)])
+
+
+def _step(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.solve(jac[None], r[None, :, None])[0, :, 0]
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(jac, r, rcond=None)[0]
 
 
 @dataclass
