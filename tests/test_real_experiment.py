@@ -514,6 +514,28 @@ def test_held_out_errors_against_the_twins():
     assert np.isnan(against_reference(rng.normal(size=(4, 5)), np.empty((0, 5))))
 
 
+def test_hold_outs_within_target_on_each_twin():
+    """``twin_verdict``: per twin draw, the hold-outs whose errors meet 2 mm and 5 deg, counted by
+    hand from the errors (oracle: RMS per coordinate of each draw's finite rows, 5 deg / 2 mm);
+    a twin's trial without equilibrium is left out; no line when the draws do not match."""
+    from types import SimpleNamespace
+
+    from kneenlp.validation.crossval import HeldOut, twin_verdict
+
+    def held(rms, draws):
+        prediction = SimpleNamespace(rms=lambda: dict(zip(coordinate_columns(), rms, strict=True)))
+        return HeldOut("h", np.ones(2, bool), None, prediction, np.zeros((2, 5)), [np.array(d) for d in draws])
+
+    ok, far = [[1.0, 1.0, 0.5, 0.5, 0.5]] * 2, [[6.0, 1.0, 0.5, 0.5, 0.5]] * 2
+    unsolved = [[1.0, 1.0, 0.5, 0.5, 0.5], [np.nan] * 5]
+    a = held([1.0, 4.0, 1.0, 1.0, 1.0], [ok, far, unsolved])
+    b = held([1.0, 1.0, 3.0, 1.0, 1.0], [ok, ok, far])
+    assert a.reference_normalised() == pytest.approx([0.25, 1.2, 0.25])  # 0.5 mm / 2 mm; 6 deg / 5 deg
+    (line,) = twin_verdict([a, b])
+    assert "1 of 2 hold-outs here; on the twins 1-2 (median 1; per draw 2, 1, 1)" in line
+    assert twin_verdict([a, held([1.0] * 5, [ok])]) == [] and twin_verdict([held([1.0] * 5, [])]) == []
+
+
 def test_twin_is_the_knees_own_prediction_plus_noise(s192803):
     """``twin``: without noise, each trial's pose is predict's at the given values (registration
     included); with noise of standard deviation ``sd`` per coordinate, the poses move by the seeded
@@ -624,6 +646,9 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
     assert main(args[:-1]) == 0  # the report as text this time, the table from --out
     text = capsys.readouterr().out
     assert "the same hold-out on the experiment's twin (1 noise draw)" in text
+    twin_met = max(row[f"twin_rms_{c}"] / (5.0 if c.endswith("_deg") else 2.0) for c in coordinate_columns()) <= 1
+    assert row["twins_within_target"] == int(twin_met)
+    assert f"hold-outs here; on the twins {int(twin_met)}-{int(twin_met)}" in text
     (again,) = pd.read_csv(tmp_path / "cv" / "cross_validation.csv").to_dict(orient="records")
     for c in coordinate_columns():
         assert again[f"twin_rms_{c}"] == pytest.approx(10 * row[f"twin_rms_{c}"], rel=1e-5)

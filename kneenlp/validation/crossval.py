@@ -126,6 +126,15 @@ class HeldOut:
         """:func:`against_reference` of the held-out errors at equilibrium (NaN without twins)."""
         return against_reference(self.prediction.errors_user[self.prediction.converged], self.reference_errors())
 
+    def reference_normalised(self) -> list[float]:
+        """:meth:`normalised` on each twin (NaN for a twin none of whose held-out trials reached
+        equilibrium): whether a model that is exactly right meets the targets here, draw by draw."""
+        out = []
+        for errors in self.reference:
+            finite = errors[np.isfinite(errors).all(axis=1)]
+            out.append(normalised_error(rms_by_coordinate(finite)) if len(finite) else float("nan"))
+        return out
+
     def row(self) -> dict:
         out = {"held_out": self.name, "trials_fitted": int((~self.held).sum()),
                "trials_predicted": int(self.held.sum()),
@@ -141,7 +150,8 @@ class HeldOut:
             out |= {"twins": len(self.reference),
                     "twin_converged": len(self.reference_errors()),
                     **{f"twin_rms_{c}": v for c, v in self.reference_rms().items()},
-                    "p_against_twin": self.p_reference()}
+                    "p_against_twin": self.p_reference(),
+                    "twins_within_target": sum(v <= 1 for v in self.reference_normalised())}
         return out
 
 
@@ -514,5 +524,20 @@ def report(results: list[HeldOut]) -> str:
                   "the calibrated knee's own predictions of every trial plus noise at the calibration's level, i.e.",
                   "the error of a model that is exactly right, calibrated the same way (p: how likely errors this",
                   "large are for it)",
-                  *header, *rows(HeldOut.reference_rms, HeldOut.p_reference)]
+                  *header, *rows(HeldOut.reference_rms, HeldOut.p_reference), *twin_verdict(results)]
     return "\n".join(lines)
+
+
+def twin_verdict(results: list[HeldOut]) -> list[str]:
+    """How many hold-outs meet the targets here and on each twin: the second is what these trials
+    allow a model that is exactly right, at the calibration's misfit (nothing when the twins do not
+    hold every hold-out the same number of times)."""
+    draws = {len(r.reference) for r in results}
+    if len(draws) != 1 or not draws.pop():
+        return []
+    per_draw = [sum(v <= 1 for v in column) for column in zip(*(r.reference_normalised() for r in results),
+                                                               strict=True)]
+    met = sum(r.normalised() <= 1 for r in results)
+    return [f"Within {TRANSLATION_TARGET:g} mm and {ROTATION_TARGET:g} deg: {met} of {len(results)} hold-outs here; on "
+            f"the twins {min(per_draw)}-{max(per_draw)} (median {np.median(per_draw):g}; per draw "
+            f"{', '.join(map(str, per_draw))}): what these trials allow a model that is exactly right"]
