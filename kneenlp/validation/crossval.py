@@ -540,4 +540,4 @@ def twin_verdict(results: list[HeldOut]) -> list[str]:
     met = sum(r.normalised() <= 1 for r in results)
     return [f"Within {TRANSLATION_TARGET:g} mm and {ROTATION_TARGET:g} deg: {met} of {len(results)} hold-outs here; on "
             f"the twins {min(per_draw)}-{max(per_draw)} (median {np.median(per_draw):g}; per draw "
-            f"{', '.join(map(str, per_draw))}): what these trials allow a model that is exactly right"]
+            f"{', '.join(map(str, per_draw))}):", "what these trials allow a model that is exactly right"]
