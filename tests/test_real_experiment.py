@@ -531,8 +531,8 @@ def test_hold_outs_within_target_on_each_twin():
     a = held([1.0, 4.0, 1.0, 1.0, 1.0], [ok, far, unsolved])
     b = held([1.0, 1.0, 3.0, 1.0, 1.0], [ok, ok, far])
     assert a.reference_normalised() == pytest.approx([0.25, 1.2, 0.25])  # 0.5 mm / 2 mm; 6 deg / 5 deg
-    (line,) = twin_verdict([a, b])
-    assert "1 of 2 hold-outs here; on the twins 1-2 (median 1; per draw 2, 1, 1)" in line
+    line, why = twin_verdict([a, b])
+    assert "1 of 2 hold-outs here; on the twins 1-2 (median 1; per draw 2, 1, 1)" in line and "exactly right" in why
     assert twin_verdict([a, held([1.0] * 5, [ok])]) == [] and twin_verdict([held([1.0] * 5, [])]) == []
 
 
