@@ -31,7 +31,6 @@ from kneenlp.estimation.calibrate import calibrate, noise_per_observation
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.problem_file import ProblemFile
-from kneenlp.prediction.predict import rms_by_coordinate
 from kneenlp.validation import crossval
 
 PROBLEM = Path(__file__).resolve().parents[1] / "problems" / "s192803"
@@ -53,9 +52,8 @@ def with_half_loads(data: MeasuredData) -> MeasuredData:
 
 def judged(result: crossval.HeldOut, data: MeasuredData) -> float:
     """The hold-out's normalised error over its held-out trials at equilibrium, half-load ones aside."""
-    ids = [t.id for t in data.subset(result.held).trials]
-    keep = result.prediction.converged & ~np.array([i.endswith(HALF) for i in ids])
-    return crossval.normalised_error(rms_by_coordinate(result.prediction.errors_user[keep]))
+    full_load = np.array([not t.id.endswith(HALF) for t in data.subset(result.held).trials])
+    return crossval.normalised_error(result.prediction.rms(full_load))
 
 
 def main() -> None:
@@ -67,8 +65,7 @@ def main() -> None:
     problem = ProblemFile.load(PROBLEM)
     model = KneeModel.of(problem.knee_with_parameters(kneenlp.Knee.named(problem.knee)))
     data = read_measured(problem.data)
-    options = dict(also_free=list(problem.also_free), multistart=problem.multistart, priors=problem.priors,
-                   prior_weight=problem.prior_weight, workers=2)
+    options = problem.calibrate_options() | {"workers": 2}
     fit = calibrate(model, data, **options).fit
     sd = np.sqrt(noise_per_observation(fit)[0]) * args.misfit
     protocol = with_half_loads(data) if args.half_loads else data

@@ -108,6 +108,20 @@ def test_data_and_problem_together_or_neither_are_refused(capsys):
     assert "--problem" in capsys.readouterr().err
 
 
+def test_a_problem_names_its_calibration_options():
+    """``calibrate_options``: what the file says, as keywords ``calibrate`` takes; left-out fields
+    are not given (the calibration's defaults stand)."""
+    import inspect
+
+    from kneenlp.estimation.calibrate import calibrate
+
+    s192803 = ProblemFile.load(PROBLEMS / "s192803")
+    options = s192803.calibrate_options()
+    assert options == {"also_free": list(s192803.also_free), "multistart": 4, "priors": "default", "prior_weight": 1.0}
+    assert set(options) <= set(inspect.signature(calibrate).parameters)
+    assert ProblemFile.load(PROBLEMS / "set1").calibrate_options() == {"priors": "none"}
+
+
 @pytest.mark.slow
 def test_s192803_problem_is_the_calibration_with_what_the_held_out_error_accepts(capsys):
     """The shipped problem's parameter table is the calibration's default written out, its

@@ -83,9 +83,7 @@ def main() -> None:
     problem = ProblemFile.load(PROBLEM)
     model = KneeModel.of(problem.knee_with_parameters(kneenlp.Knee.named(problem.knee)))
     data = read_measured(problem.data)
-    results = crossval.cross_validate(model, data, workers=2, also_free=list(problem.also_free),
-                                      multistart=problem.multistart, priors=problem.priors,
-                                      prior_weight=problem.prior_weight)
+    results = crossval.cross_validate(model, data, workers=2, **problem.calibrate_options())
     scores: dict[str, list[float]] = {"none": [], "flexion": [], "flexion x load": []}
     for r in results:
         fitted, held = r.calibration.fit.data, data.subset(r.held)

@@ -123,6 +123,13 @@ class ProblemFile:
                    text.get("strategy"), text.get("priors"), None if weight is None else float(weight), tuple(holds),
                    entries, tuple(extra), starts)
 
+    def calibrate_options(self) -> dict:
+        """The options of :func:`~kneenlp.estimation.calibrate.calibrate` the problem names (its
+        effects, starts, priors and their weight; those it leaves out are not given)."""
+        options = {"also_free": list(self.also_free) or None, "multistart": self.multistart, "priors": self.priors,
+                   "prior_weight": self.prior_weight}
+        return {k: v for k, v in options.items() if v is not None}
+
     def knee_with_parameters(self, knee: Knee | None = None) -> Knee:
         """The problem's knee (or ``knee``) with the parameter table over its own parameter set."""
         knee = knee or Knee.load(self.knee)
