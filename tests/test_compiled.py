@@ -130,3 +130,26 @@ def test_libraries_unused_for_a_month_are_removed_when_another_is_compiled(cache
     assert not compiled(small("kept")).is_a("SXFunction")  # loaded: touched
     compiled(small("new"))
     assert kept.exists() and not old.exists() and list(cache.glob("new_*.so"))
+
+
+def test_processes_asking_at_once_compile_a_library_once(cache, tmp_path, monkeypatch):
+    """Three processes that need the same library at the same moment: one compiler runs (the others
+    wait on its lock, then load its library), every one gets the library, and no source is left."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    log = tmp_path / "compiler.log"
+    wrapper = tmp_path / "cc"
+    wrapper.write_text(f"#!/bin/sh\necho run >> {log}\nsleep 1\nexec {shutil.which('cc')} \"$@\"\n")
+    wrapper.chmod(0o755)
+    code = ("import casadi as ca; from kneenlp.base.compiled import compiled; x = ca.SX.sym('x', 3); "
+            "f = ca.Function('shared', [x], [ca.sin(x) * x]); print(compiled(f).is_a('SXFunction'))")
+    env = os.environ | {"KNEENLP_CACHE": str(tmp_path), "KNEENLP_COMPILE": "wait", "CC": str(wrapper)}
+    procs = [subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
+             for _ in range(3)]
+    outs = [p.communicate(timeout=120)[0].strip() for p in procs]
+    assert outs == ["False"] * 3  # every process loaded the library
+    assert log.read_text().count("run") == 1
+    assert len(list(cache.glob("shared_*.so"))) == 1 and not list(cache.glob("*.c"))

@@ -81,7 +81,7 @@ def compiled(function: ca.Function) -> ca.Function:
     library = where / f"{name}_{key}.so"
     if not library.exists():
         _prune(where)
-        src = where / f"{name}_{key}.c"
+        src = where / f"{name}_{key}.{os.getpid()}.c"  # this process's copy: removed by its own command
         _write(src, source)
         if how == "auto":
             _compile_detached(cc, src, library)
@@ -94,7 +94,7 @@ def _prune(where: Path) -> None:
     """Remove the libraries in ``where`` not loaded for :data:`KEEP_DAYS` days (:func:`_loaded`
     touches a library it loads)."""
     cutoff = time.time() - KEEP_DAYS * 86400
-    for old in where.glob("*.so"):
+    for old in [*where.glob("*.so"), *where.glob("*.lock")]:
         with contextlib.suppress(OSError):
             if old.stat().st_mtime < cutoff:
                 old.unlink()
@@ -108,23 +108,33 @@ def _write(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
-def _command(cc: str, src: Path, library: Path) -> str:
-    """The shell command compiling ``src`` into ``library`` atomically (a temporary, then renamed)."""
+def _command(cc: str, src: Path, library: Path, wait: bool) -> str:
+    """The shell command compiling ``src`` into ``library`` atomically (a temporary, then renamed),
+    once per library however many processes ask at once: under an exclusive lock on the library's
+    lock file (``flock``; waited for if ``wait``, else given up: another process compiles it), and
+    only if the library is still missing when the lock is taken.  ``src`` is removed in every case."""
     tmp, src_q, lib_q = shlex.quote(f"{library}.{os.getpid()}.tmp"), shlex.quote(str(src)), shlex.quote(str(library))
-    return f"{shlex.quote(cc)} {' '.join(FLAGS)} {src_q} -o {tmp} -lm && mv -f {tmp} {lib_q}; rm -f {tmp} {src_q}"
+    build = f"test -e {lib_q} || {{ {shlex.quote(cc)} {' '.join(FLAGS)} {src_q} -o {tmp} -lm && mv -f {tmp} {lib_q}; }}"
+    flock = shutil.which("flock")
+    if flock is not None:
+        lock = shlex.quote(str(library.with_suffix(".lock")))
+        build = f"{shlex.quote(flock)} {'' if wait else '-n '}{lock} sh -c {shlex.quote(build)}"
+    return f"{build}; rm -f {tmp} {src_q}"
 
 
 def _compile(cc: str, src: Path, library: Path) -> None:
-    """Compile now; a failure leaves no library (the function is then used as it is)."""
-    subprocess.run(["sh", "-c", _command(cc, src, library)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                   check=False)
+    """Compile now (or wait for the process that does); a failure leaves no library (the function
+    is then used as it is)."""
+    subprocess.run(["sh", "-c", _command(cc, src, library, wait=True)], stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL, check=False)
 
 
 def _compile_detached(cc: str, src: Path, library: Path) -> None:
     """Compile in a process of its own session at the lowest priority, not waited for (it outlives
-    the caller, and takes almost no CPU from a solve that runs meanwhile)."""
+    the caller, and takes almost no CPU from a solve that runs meanwhile); nothing if another
+    process is compiling the same library."""
     nice = shutil.which("nice")
-    command = ([nice, "-n", "19"] if nice else []) + ["sh", "-c", _command(cc, src, library)]
+    command = ([nice, "-n", "19"] if nice else []) + ["sh", "-c", _command(cc, src, library, wait=False)]
     subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                      close_fds=True)
 

@@ -114,13 +114,19 @@ def worker_count(args) -> int:
 
 
 def start_workers(args) -> dict:
-    """``identify``'s ``workers`` option: a calibration's further starts (``--multistart``) share
-    :func:`worker_count` processes; a fit by the scatter strategy takes no such option."""
+    """``identify``'s calibration options of its starts: a calibration's further starts (``--multistart``)
+    or its global search's (``--starts``, its finished solves kept in ``--out``/search) share
+    :func:`worker_count` processes; a fit by the scatter strategy takes no such option (``--starts``
+    there is refused by ``identify``)."""
     from kneenlp.estimation.identify import resolve_strategy
 
-    if args.multistart > 1 and resolve_strategy(args.strategy, args.measured, args.method) == "calibration":
-        return {"workers": worker_count(args)}
-    return {}
+    out = {}
+    if args.starts > 1:
+        out = {"starts": args.starts} | ({"store": str(Path(args.out) / "search")} if args.out else {})
+    calibration = resolve_strategy(args.strategy, args.measured, args.method) == "calibration"
+    if calibration and (args.multistart > 1 or args.starts > 1):
+        out["workers"] = worker_count(args)
+    return out
 
 
 def held_out_judgements(knee, args) -> list:
@@ -139,6 +145,7 @@ def cmd_identify(args) -> int:
     from kneenlp.estimation.calibrate import Calibration, posterior
     from kneenlp.estimation.identify import identify
     from kneenlp.estimation.profile import profile, profile_lines
+    from kneenlp.figures.plots import waterfall
     from kneenlp.io import inferencedata
     from kneenlp.validation import crossval
 
@@ -165,6 +172,9 @@ def cmd_identify(args) -> int:
             write_csv_atomic(fit.table(), stage.path / "fit_trials.csv", index=False, float_format="%.10g")
             write_text_atomic(stage.path / "fit.json", summary)
             write_text_atomic(stage.path / "calibrated.toml", calibration.to_toml())
+            if calibration.search is not None:
+                waterfall(calibration.search.objectives(), calibration.search.best.hits,
+                          stage.path / "waterfall.png")
             if calibration.set_aside is not None:  # the trials the outlier test set aside, predicted
                 write_csv_atomic(calibration.set_aside.table(), stage.path / "set_aside.csv", index=False,
                                  float_format="%.10g")
@@ -418,6 +428,7 @@ def cmd_cross_validate(args) -> int:
                                       workers=worker_count(args), explain=True, seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
                                       keep_outliers=args.keep_outliers, multistart=args.multistart,
+                                      **({"starts": args.starts} if args.starts > 1 else {}),
                                       **prior_options(args))
     table = crossval.table(results)
     written = []

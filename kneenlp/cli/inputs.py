@@ -91,8 +91,9 @@ def check_inputs(args) -> None:
 #: What a command takes from a problem file when its option is not given (option attribute: the
 #: problem's field), and the defaults without either.
 FROM_PROBLEM = {"noise": "noise", "strategy": "strategy", "priors": "priors", "prior_weight": "prior_weight",
-                "hold_out": "hold_outs", "also_free": "also_free", "multistart": "multistart"}
-DEFAULTS = {"strategy": "auto", "multistart": 1}
+                "hold_out": "hold_outs", "also_free": "also_free", "multistart": "multistart",
+                "starts": "starts"}
+DEFAULTS = {"strategy": "auto", "multistart": 1, "starts": 1}
 DIAGNOSE_NOISE = "uniform:0.5"
 
 

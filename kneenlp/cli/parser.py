@@ -38,6 +38,15 @@ def _multistart_arg(p: argparse.ArgumentParser) -> None:
                         "fit, then N-1 starts half a prior sd about it; default: the problem's, else 1)")
 
 
+def _starts_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--starts", type=opt.integer(1, opt.MAX_STARTS), default=None, metavar="N",
+                   help="a real experiment's calibration by the global search: N starts (the knee's values and "
+                        "Sobol points over the priors' central 95 %%), each screened, the best refined by the NLP, "
+                        "the lowest deepened; its minima are reported and, with --out, waterfall.png and the "
+                        "finished solves (search/, a rerun resumes them) written (docs/real-experiment.md); "
+                        "default: the problem's, else 1 (the local calibration from the knee's values)")
+
+
 def _prior_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--priors", choices=["default", "none"], default=None,
                    help="default: the MAP estimate, every free parameter with its prior (from the parameter file "
@@ -94,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weighted", action="store_true", help="weight coordinates by inverse noise variance")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the paper's start scatter")
     _multistart_arg(p)
+    _starts_arg(p)
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"],
                    help="simultaneous NLP (default) or the paper's nested Complex method")
     p.add_argument("--solver", default="ipopt", type=opt.solver, help="CasADi nlpsol plugin (default ipopt)")
@@ -229,6 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "valgus; default: the highest flexion and every load direction")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the calibrations (default 0)")
     _multistart_arg(p)
+    _starts_arg(p)
     p.add_argument("--pivot-tolerance", type=opt.fraction, default=None, metavar="F",
                    help="the calibrations fit the ligament parameters whose pivot is at least F of the largest "
                         "(default 0.02, see 'kneenlp identify')")

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -65,6 +66,7 @@ from kneenlp.estimation.outliers import (
     residual_factors,
     screen,
 )
+from kneenlp.estimation.search import SCREEN_EVALUATIONS, Search, search
 from kneenlp.estimation.solve import reduced_fit, scatter_fit, solve_simultaneous
 from kneenlp.estimation.statistics import effective_parameters, gauss_newton_covariance
 from kneenlp.experiment.kneemodel import KneeModel
@@ -169,6 +171,8 @@ class CalibrationRecord:
     outliers: list[Outlier] = field(default_factory=list)
     #: ``predict`` of the set-aside trials at the calibrated values (None: none set aside)
     set_aside: Prediction | None = None
+    #: the global search that found the fit, its competing minima (None: a local calibration)
+    search: Search | None = None
 
     def joined(self, fit: Fit) -> Calibration:
         """The :class:`Calibration` of ``fit`` with this record."""
@@ -193,9 +197,8 @@ class Calibration(CalibrationRecord):
         continuation in the parameters, on a branch a loading from neutral need not follow."""
         if self.check is None:
             return []
-        gap = np.abs(self.check.observed_user - self.fit.predicted_user).max(axis=1)
-        return [t.id for t, g, ok in zip(self.fit.data.trials, gap, self.check.converged, strict=True)
-                if not ok or not g <= SAME_POSE]
+        return [t.id for t, off in zip(self.fit.data.trials, off_loading_path(self.fit, self.check), strict=True)
+                if off]
 
     @property
     def rms_before(self) -> dict[str, float] | None:
@@ -246,6 +249,8 @@ class Calibration(CalibrationRecord):
         if self.before is not None:
             out |= {"rms_before": self.rms_before, "fixed": self.fixed, "engaged": self.engaged,
                     "converged_before": int(self.before.converged.sum())}
+        if self.search is not None:
+            out["search"] = self.search.summary()
         return out
 
     def report(self) -> str:
@@ -264,7 +269,8 @@ class Calibration(CalibrationRecord):
                  *laxity_lines(self.laxity(), "    laxity after calibration (mm, deg):"),
                  f"    left at the knee's values (the trials do not determine them): {', '.join(self.fixed) or 'none'}",
                  "    slack in every trial at the knee's values, engaged at the start: "
-                 f"{', '.join(self.engaged) or 'none'}"]
+                 f"{', '.join(self.engaged) or 'none'}",
+                 *(self.search.lines() if self.search is not None else [])]
         return "\n".join(lines)
 
     def _outlier_lines(self, row) -> list[str]:
@@ -316,7 +322,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
               prior_weight: float | str = PRIOR_WEIGHT, weighted: bool = False,
               with_effects: list[str] | tuple = (), start: dict[str, float] | None = None, solver: str = "ipopt",
               solver_options: dict | None = None, multistart: int = 1, threads: int = 2,
-              workers: int = 1) -> Calibration:
+              workers: int = 1, starts: int = 1, store: str | Path | None = None) -> Calibration:
     """Fit ``free`` to the real experiment ``data``: reduced-space Gauss-Newton from the knee's
     values (or the probe), then the simultaneous NLP from there (:func:`polished`); the NLP with the
     scatter strategy's rescue where the reduced fit fails.  ``free`` defaults to the parameter
@@ -337,7 +343,9 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     fit repeated without them.  ``weighted``, ``with_effects`` and ``start`` as
     :func:`~kneenlp.estimation.identify.identify`'s; ``multistart`` > 1 refits from further starts
     about the fit and keeps the lowest (:func:`lowest_of_starts`, its starts shared out over
-    ``workers`` processes); ``solver``, ``solver_options``
+    ``workers`` processes).  ``starts`` > 1 replaces that chain of local steps by the global search
+    (:func:`global_fit`; ``store``: where its finished solves are kept, and a rerun resumes them).
+    ``solver``, ``solver_options``
     and ``threads`` serve the fallback from the start (the simultaneous NLP, at most :data:`MAX_ITER` iterations
     unless ``solver_options`` say otherwise)."""
 
@@ -357,6 +365,13 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     # (S192803: declared 0.2 mm, misfit about 1.5 mm); a declared noise serves diagnose's verdict
     options = {"noise": noise if weighted else None, "weighted": weighted, "with_effects": with_effects or (),
                "priors": priors, "prior_weight": None if estimate else float(prior_weight)}
+    if starts > 1:
+        fit, outliers, found = global_fit(model, data, [*free, *extra], theta, start, options, keep_outliers,
+                                          starts=starts, seed=seed, workers=workers, threads=threads, store=store)
+        aside = np.array([t.id in found.set_aside for t in data.trials])
+        record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
+                                   predict(model, data.subset(aside), fit.params) if aside.any() else None, found)
+        return Calibration.of(dataclasses.replace(fit, calibration_record=record), record)
     problem = IdentificationProblem.from_data(model, data, free, **options)
     # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
     # docstring: IPOPT wandered on this problem, and from a good point made it worse)
@@ -378,6 +393,72 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
                                predict(model, data.subset(aside), fit.params) if outliers else None)
     return Calibration.of(dataclasses.replace(fit, calibration_record=record), record)
+
+
+def global_fit(model: KneeModel, data: MeasuredData, free: list[str], probe: np.ndarray,
+               start: dict[str, float] | None, options: dict, keep_outliers: bool, *, starts: int, seed: int,
+               workers: int, threads: int, store: str | Path | None) -> tuple[Fit, list[Outlier], Search]:
+    """(the fit, the outliers set aside, the search) of :func:`calibrate`'s global search
+    (:func:`~kneenlp.estimation.search.search`): ``free`` (the also-free parameters among them) from
+    the ``probe`` (and ``start`` over it) and Sobol points over the priors; the outlier test at the
+    search's lowest minimum unless ``keep_outliers``; ``options`` the problem's (a weight
+    ``None`` in them: estimated once from the probe's fit, :func:`map_fit`, then held)."""
+    problem = IdentificationProblem.from_data(model, data, sorted(free, key=model.index), **options)
+    centre = {n: float(probe[model.index(n)]) for n in problem.free} | problem.check_start(start)
+    if options["prior_weight"] is None and problem.priors:
+        problem = map_fit(problem, centre, estimate=True, threads=threads).problem
+        options = options | {"prior_weight": problem.prior_weight}
+    outliers: list[Outlier] = []
+
+    def outlier_test(fit: Fit) -> IdentificationProblem:
+        nonlocal outliers
+        refit, outliers = without_outliers(fit, options)
+        return refit.problem
+
+    found = search(problem, centre, screen=screened, refine=hopped, hop=hopped, starts=starts, seed=seed,
+                   workers=workers, threads=threads, on_minimum=None if keep_outliers else outlier_test, store=store)
+    fit = found.best.fit.with_note(f"global search: {found.advice()}")
+    return fit, [o for o in outliers if o.trial in found.set_aside], found
+
+
+def screened(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None, threads: int) -> Fit:
+    """A start's screen in the global search: :data:`~kneenlp.estimation.search.SCREEN_EVALUATIONS`
+    reduced-space evaluations (every iterate at equilibrium)."""
+    return reduced_fit(problem, start, q0=q0, max_evaluations=SCREEN_EVALUATIONS, threads=threads)
+
+
+def hopped(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None, threads: int) -> Fit:
+    """A solve of the global search to convergence (a screened start, a hop, a minimum without the
+    set-aside trials): the simultaneous NLP from ``start`` and the poses ``q0``; where it fails, the
+    reduced-space fit from the same point and the NLP from its end (:func:`polished`)."""
+    fit = solve_simultaneous(problem, start, "ipopt", {"ipopt": {"max_iter": POLISH_ITER}}, threads, q0=q0)
+    if not fit.success:
+        fit = polished(reduced_fit(problem, start, q0=q0, max_evaluations=MAX_EVALUATIONS, threads=threads), threads)
+    return on_loading_path(fit) if fit.success else fit
+
+
+def on_loading_path(fit: Fit) -> Fit:
+    """``fit`` with the trials whose fitted equilibrium is not the one ``predict`` reaches by loading
+    from the unloaded state (:func:`off_loading_path`) named in its ``off_path``.
+
+    A laxity trial has several equilibria where the knee is bistable; the simultaneous NLP, whose
+    poses are free, may put a trial on any of them, and may fit its data better there.  Each choice
+    of branches is a minimum of its own: on S192803 the global search found 21 distinct minima in
+    28 solves, and the lowest four had 2-4 trials each on equilibria no loading from neutral
+    reaches (so that ``predict`` of the very trials fitted differs from the fit).  The trial was
+    loaded from neutral: the search ranks the minima with every trial on the loading path first
+    (:mod:`~kneenlp.estimation.search`).  Solving again from the loading path's poses did not help:
+    the NLP went back to another branch in every case tried."""
+    check = predict(fit.problem.model, fit.data, fit.params)
+    off = tuple(t.id for t, o in zip(fit.data.trials, off_loading_path(fit, check), strict=True) if o)
+    return dataclasses.replace(fit, off_path=off)
+
+
+def off_loading_path(fit: Fit, check: Prediction) -> np.ndarray:
+    """Per trial of ``fit``: its fitted equilibrium is not what ``check`` (``predict`` at the fit's
+    values) reaches from the unloaded state (none, or one more than :data:`SAME_POSE` away)."""
+    gap = np.abs(check.observed_user - fit.predicted_user).max(axis=1)
+    return ~check.converged | ~(gap <= SAME_POSE)
 
 
 def _check_calibration(data: MeasuredData, free: list[str] | None, pivot_tolerance: float | None,

@@ -68,6 +68,9 @@ class Fit:
     #: (:class:`~kneenlp.estimation.calibrate.CalibrationRecord`: the prediction before, engaged
     #: groups, outliers, predict's check) when ``identify`` calibrated; else None
     calibration_record: object | None = field(default=None, repr=False, compare=False)
+    #: trials whose fitted equilibrium is not the one ``predict`` reaches by loading from the
+    #: unloaded state (a calibration's global search checks every end; empty: none, or not checked)
+    off_path: tuple[str, ...] = ()
 
     @property
     def calibration(self) -> object | None:

@@ -39,7 +39,8 @@ from kneenlp.model.knee import Knee
 METHODS = ("simultaneous", "nested")
 #: Options only a calibration takes (:func:`~kneenlp.estimation.calibrate.calibrate`), by CLI flag.
 CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--also-free",
-                       "keep_outliers": "--keep-outliers", "load_point": "--no-load-point", "workers": "--workers"}
+                       "keep_outliers": "--keep-outliers", "load_point": "--no-load-point", "workers": "--workers",
+                       "starts": "--starts", "store": "--out"}
 
 
 def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: str = "simultaneous", *,
@@ -87,6 +88,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
     strategy : ``"auto"``, ``"calibration"`` or ``"scatter"`` (module docstring).
     calibration_options : a calibration's own (``pivot_tolerance``, ``also_free``,
         ``keep_outliers``, ``load_point``, ``workers``: the processes its further starts share;
+        ``starts`` > 1: the global search, ``store`` the directory of its finished solves;
         :func:`~kneenlp.estimation.calibrate.calibrate`).
 
     Returns the :class:`Fit`; a calibration's also carries its

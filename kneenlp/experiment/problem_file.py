@@ -15,6 +15,7 @@ so that identify, cross-validate, diagnose and predict run the same problem::
     hold_outs = ["anterior"]      # optional: cross-validate's hold-outs (default: all)
     also_free = ["tibial_origin"] # optional: effects a calibration fits beside its table (--also-free)
     multistart = 4                # optional: a calibration's starts, the lowest kept (--multistart)
+    starts = 32                   # optional: a calibration's global search, its starts (--starts)
 
     [parameters]                  # the parameter table, as a parameter file's [values]
     "PFL.k_scale" = {value = 1.0, unit = "1", free = true, bounds = [0.1, 10],
@@ -41,7 +42,7 @@ FILE = "problem.toml"
 #: The keys of a problem file: required, then optional.
 REQUIRED = ("name", "knee", "data")
 OPTIONAL = ("description", "noise", "strategy", "priors", "prior_weight", "hold_outs", "also_free", "multistart",
-            "parameters")
+            "starts", "parameters")
 #: The most starts a problem may ask for (as the command line's --multistart, docs/inputs.md).
 MAX_STARTS = 1000
 
@@ -63,6 +64,7 @@ class ProblemFile:
     entries: Entries | None = None
     also_free: tuple[str, ...] = ()
     multistart: int | None = None
+    starts: int | None = None
 
     @classmethod
     def load(cls, path: str | Path) -> ProblemFile:
@@ -113,20 +115,17 @@ class ProblemFile:
         for key, names in (("hold_outs", holds), ("also_free", extra)):
             if not isinstance(names, list) or not all(isinstance(h, str) and h for h in names):
                 raise InputError(f"expected a list of names, got {names!r}", source=src, field=key)
-        starts = doc.get("multistart")
-        if starts is not None and (isinstance(starts, bool) or not isinstance(starts, int)
-                                   or not 1 <= starts <= MAX_STARTS):
-            raise InputError(f"expected a whole number of starts from 1 to {MAX_STARTS}, got {starts!r}", source=src,
-                             field="multistart")
+        starts = {key: _starts(doc, key, src) for key in ("multistart", "starts")}
         entries = read_entries(doc["parameters"], src, "parameters") if "parameters" in doc else None
         return cls(path, text["name"], knee, data, text.get("description", ""), text.get("noise"),
                    text.get("strategy"), text.get("priors"), None if weight is None else float(weight), tuple(holds),
-                   entries, tuple(extra), starts)
+                   entries, tuple(extra), starts["multistart"], starts["starts"])
 
     def calibrate_options(self) -> dict:
         """The options of :func:`~kneenlp.estimation.calibrate.calibrate` the problem names (its
         effects, starts, priors and their weight; those it leaves out are not given)."""
-        options = {"also_free": list(self.also_free) or None, "multistart": self.multistart, "priors": self.priors,
+        options = {"also_free": list(self.also_free) or None, "multistart": self.multistart, "starts": self.starts,
+                   "priors": self.priors,
                    "prior_weight": self.prior_weight}
         return {k: v for k, v in options.items() if v is not None}
 
@@ -136,6 +135,16 @@ class ProblemFile:
         if self.entries is None:
             return knee
         return knee.with_parameters(knee.parameters.with_entries(self.entries, source=str(self.path)))
+
+
+def _starts(doc: dict, key: str, src: str) -> int | None:
+    """A number of starts (``multistart``, ``starts``), None if not given."""
+    starts = doc.get(key)
+    if starts is not None and (isinstance(starts, bool) or not isinstance(starts, int)
+                               or not 1 <= starts <= MAX_STARTS):
+        raise InputError(f"expected a whole number of starts from 1 to {MAX_STARTS}, got {starts!r}", source=src,
+                         field=key)
+    return starts
 
 
 def _string(doc: dict, key: str, src: str) -> str:

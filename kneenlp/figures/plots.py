@@ -223,3 +223,18 @@ def _save(fig, path: str | Path) -> Path:
 
     fig.tight_layout()
     return save_figure_atomic(fig, path, dpi=110)
+
+
+def waterfall(objectives: np.ndarray, best_hits: int, path: str | Path, title: str = "") -> Path:
+    """The global search's waterfall (as pyPESTO draws it): the MAP objective of every converged
+    solve, sorted, against its rank; the lowest minimum's solves marked."""
+    fig, ax = _subplots(figsize=(6, 4))
+    values = np.sort(np.asarray(objectives, float))
+    ranks = np.arange(1, len(values) + 1)
+    ax.plot(ranks, values, "o-", color="0.4", markersize=4)
+    ax.plot(ranks[:best_hits], values[:best_hits], "o", color="C3", label=f"lowest minimum ({best_hits} solves)")
+    ax.set_xlabel("solve, sorted by its end")
+    ax.set_ylabel("MAP objective [mm^2 + deg^2, weighted]")
+    ax.set_title(title or "global search: every solve's end")
+    legend(ax)
+    return _save(fig, path)

@@ -91,6 +91,15 @@ class HeldOut:
     reference: list[np.ndarray] = field(default_factory=list)
     #: what the held-out trials teach the calibration (:func:`lessons`; empty: not asked)
     taught: list[Lesson] = field(default_factory=list)
+    #: the normalised held-out error at each of the calibration's :data:`SPREAD_MINIMA` lowest minima
+    #: (its global search's; empty: a local calibration): the spread the search leaves
+    at_minima: list[float] = field(default_factory=list)
+
+    def spread(self) -> float:
+        """Largest minus smallest of :attr:`at_minima` (NaN with fewer than two): a candidate effect
+        whose held-out error moves by less is a tie, not an improvement."""
+        values = [v for v in self.at_minima if np.isfinite(v)]
+        return float(max(values) - min(values)) if len(values) > 1 else float("nan")
 
     def rms(self) -> dict[str, float]:
         """RMS of measured minus predicted per coordinate column (mm, deg), held-out trials."""
@@ -143,6 +152,9 @@ class HeldOut:
                **{f"rms_{c}": v for c, v in self.rms().items()},
                **{f"expected_rms_{c}": v for c, v in self.expected_rms().items()},
                "p_within_expected": self.p_value()}
+        if self.at_minima:
+            out |= {"normalised_at_minima": " / ".join(f"{v:.3f}" for v in self.at_minima),
+                    "minima_spread": self.spread()}
         if self.taught:
             out["taught"] = "; ".join(f"{x.name} {x.prior_sds:+.1f} prior sd {100 * x.share:.0f} %"
                                       for x in self.taught)
@@ -335,6 +347,10 @@ def twin(model: KneeModel, data: MeasuredData, parameters: dict[str, float], sd:
     return MeasuredData.from_user(trials, q, data.protocol, f"twin of {data.source}", data.side)
 
 
+#: Minima of a hold-out's global search at which its held-out error is measured (:attr:`HeldOut.at_minima`).
+SPREAD_MINIMA = 3
+
+
 def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str = "held out",
              **calibrate_options) -> HeldOut:
     """Calibrate ``model`` on the trials ``held`` leaves and predict those it holds out."""
@@ -344,13 +360,15 @@ def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str =
     cal = calibrate(model, data.subset(~held), **calibrate_options)
     predicted = data.subset(held)
     pred = predict(model, predicted, cal.fit.params)
+    minima = cal.search.minima[:SPREAD_MINIMA] if cal.search is not None else []
+    at_minima = [normalised_error(predict(model, predicted, m.fit.params).rms()) for m in minima]
     expected = np.full((len(predicted), 5), np.nan)
     ok = pred.converged
     if ok.any():
         fit = cal.fit
         variance = prediction_variances(fit, predicted.subset(ok), np.array([s.q for s in pred.solutions])[ok])
         expected[ok] = np.sqrt(variance + noise_per_observation(fit)[0])
-    return HeldOut(name, held, cal, pred, expected)
+    return HeldOut(name, held, cal, pred, expected, at_minima=at_minima)
 
 
 def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None = None,
@@ -511,6 +529,12 @@ def report(results: list[HeldOut]) -> str:
              "(in brackets: what the calibration expects it to be, its noise and its parameters' uncertainty;",
              " p: how likely errors this large are if that expectation is right)",
              *header, *rows(HeldOut.expected_rms, HeldOut.p_value)]
+    spread = [r for r in results if r.at_minima]
+    if spread:
+        lines += ["", f"Held-out error (normalised, 1 = on target) at the global search's {SPREAD_MINIMA} lowest "
+                  "minima, and their spread (a difference smaller than it is a tie):",
+                  *(f"  {r.name:<{width}}  {' / '.join(f'{v:.3f}' for v in r.at_minima)}  spread "
+                    f"{_number(r.spread(), '.3f')}" for r in spread)]
     taught = [r for r in results if r.taught]
     if taught:
         lines += ["", "What the held-out trials alone teach the calibration: the parameters whose move, when they",

@@ -1,0 +1,420 @@
+"""The global calibration: a search of the whole prior for the MAP estimate, its competing minima shown.
+
+A real knee's MAP objective has many local minima close together (S192803: on 24 trials, minima at
+296.7, 299.8, 301.0, 302.2, 302.8, 315 and 334 within a few prior sd of each other; the point-sampled
+cartilage contact ripples the landscape), so a chain of local steps from one start ends in one of
+them by the last digits of its arithmetic (the BLAS thread count moved it from 298.6 to 368.6).
+The search (:func:`search`) makes the choice a property of the model and the data:
+
+1. **Starts** (:func:`prior_starts`): the prior's centre (the knee's values, the probe's offsets)
+   and ``starts - 1`` scrambled Sobol points over every free parameter's central
+   :data:`CENTRAL` of its prior (in the prior's own scale; clipped to the bounds), seeded.
+2. **Screen**: :data:`SCREEN_EVALUATIONS` reduced-space Gauss-Newton evaluations from each start
+   (every iterate at equilibrium): cheap, and it ranks starts by where they lead, not where they are.
+3. **Refine**: the :data:`REFINED` best screened starts to convergence by the simultaneous NLP
+   from the screen's end (its poses too).  The NLP's MAP objective is the one compared and reported.
+4. **Deepen** (monotone basin hopping): from the lowest minimum, :data:`HOPS_PER_ROUND` hops per
+   round, each every free parameter moved by :data:`HOP_STEP` prior sd in a seeded random direction
+   and solved by the NLP from the minimum's poses; the lowest hop is taken if it is lower by more
+   than :data:`SAME_OBJECTIVE` (relative); it stops after :data:`PATIENCE` rounds without one, or
+   :data:`MAX_ROUNDS`.  The number of hops per round is fixed, so the workers change the wall time only.
+5. **Outliers** (``on_minimum``): the caller's test at the lowest minimum may set trials aside;
+   the :data:`REFINED` lowest distinct minima are then re-converged without them (the NLP from
+   their own parameters and poses) and deepened again, so the choice among minima is made on the
+   data the fit keeps.
+6. **Minima** (:func:`distinct_minima`): every converged end clustered by objective
+   (:data:`SAME_OBJECTIVE`) and parameters (:data:`SAME_PARAMETERS` prior sd); each minimum with how
+   many solves reached it.  Fewer than :data:`ENOUGH_HITS` for the lowest is reported: the search
+   may not have found the global MAP.
+
+Everything is a function of the problem, the seed and the number of starts; the jobs of a stage are
+independent and shared out over ``workers`` forked processes (:mod:`kneenlp.base.forked`) in a
+fixed order.  With a ``store`` directory each finished solve is written there at once (atomic JSON,
+keyed by the problem's fingerprint, the stage and the start), and a rerun with the same problem,
+seed and starts takes the finished ones from it (an interrupted search resumes).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib.metadata import version
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+from scipy.stats import qmc
+
+from kneenlp.base.atomic import write_text_atomic
+from kneenlp.base.errors import InputError
+from kneenlp.base.forked import forked_map
+from kneenlp.estimation.fit import Fit
+from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.experiment.problem_file import MAX_STARTS
+from kneenlp.prediction.predict import rms_by_coordinate
+
+#: Share of each prior the starts cover (its central quantiles).
+CENTRAL = 0.95
+#: Starts of a calibration by default: on S192803 (51 free parameters) ... (docs/real-experiment.md).
+DEFAULT_STARTS = 32
+#: Reduced-space evaluations of a start's screen.
+SCREEN_EVALUATIONS = 8
+#: Screened starts refined to convergence.
+REFINED = 4
+#: Hops per round of the deepening (fixed: the workers do not change what is computed).
+HOPS_PER_ROUND = 2
+#: Step of a hop, in prior sd of every free parameter.
+HOP_STEP = 0.3
+#: Rounds of the deepening without a lower minimum before it stops, and its most rounds.
+PATIENCE = 4
+MAX_ROUNDS = 12
+#: Two ends are one minimum when their MAP objectives differ by at most this share ...
+SAME_OBJECTIVE = 1e-6
+#: ... and no free parameter differs by more than this many prior sd.
+SAME_PARAMETERS = 1e-2
+#: Solves that should reach the lowest minimum before it is called found.
+ENOUGH_HITS = 3
+#: Relative MAP objective within which two ranked solves count as equal (the ranking then goes by
+#: start index, so that the last digits of the arithmetic never choose).
+TIE = 1e-9
+
+
+@dataclass(frozen=True)
+class Minimum:
+    """One distinct minimum of a search: its lowest end and the solves that reached it."""
+
+    fit: Fit
+    #: labels of the solves that ended here (``start 3``, ``hop 2.1``)
+    reached_by: tuple[str, ...]
+
+    @property
+    def objective(self) -> float:
+        return self.fit.map_objective
+
+    @property
+    def hits(self) -> int:
+        return len(self.reached_by)
+
+
+@dataclass(frozen=True)
+class Search:
+    """What :func:`search` did: every start's screen, the ends, the distinct minima (lowest first)."""
+
+    starts: int
+    seed: int
+    #: MAP objective of every start after its screen (NaN: its screen failed), in start order
+    screened: np.ndarray
+    #: every converged or failed end, labelled
+    ends: list[tuple[str, Fit]] = field(repr=False)
+    minima: list[Minimum] = field(repr=False)
+    #: trials set aside inside the search (the caller's outlier test at the lowest refined minimum)
+    set_aside: tuple[str, ...] = ()
+
+    @property
+    def best(self) -> Minimum:
+        return self.minima[0]
+
+    @property
+    def found(self) -> bool:
+        """The lowest minimum reached by at least :data:`ENOUGH_HITS` solves."""
+        return self.best.hits >= ENOUGH_HITS
+
+    def advice(self) -> str:
+        """One line on whether the search may have missed the global MAP."""
+        if self.found:
+            return (f"the lowest minimum was reached by {self.best.hits} solves (of {len(self.ends)}): the search "
+                    "finds it repeatedly")
+        return (f"the lowest minimum was reached by {self.best.hits} solve(s) only (fewer than {ENOUGH_HITS}): the "
+                f"search may not have found the global MAP; try --starts {min(4 * self.starts, MAX_STARTS)}")
+
+    def objectives(self) -> np.ndarray:
+        """The MAP objective of every converged end, sorted (the waterfall's points)."""
+        return np.sort([f.map_objective for _, f in self.ends if f.success])
+
+    def records(self, held_out: list[float] | None = None) -> list[dict]:
+        """The minima table as records (mm, deg): objective, solves that reached it, fitted RMS per
+        coordinate, its distance from the lowest (largest, in prior sd) and, given, held-out error."""
+        best = self.best.fit
+        out = []
+        for i, m in enumerate(self.minima):
+            row = {"minimum": i + 1, "map_objective": m.objective, "hits": m.hits,
+                   "distance_sd": parameter_distance(best, m.fit), "off_loading_path": list(m.fit.off_path),
+                   "rms": rms_by_coordinate(m.fit.data.q_user - m.fit.predicted_user)}
+            if held_out is not None and i < len(held_out):
+                row["held_out"] = held_out[i]
+            out.append(row)
+        return out
+
+    def summary(self) -> dict:
+        return {"starts": self.starts, "seed": self.seed, "solves": len(self.ends), "found": self.found,
+                "advice": self.advice(), "set_aside": list(self.set_aside), "minima": self.records(),
+                "objectives": [float(v) for v in self.objectives()]}
+
+    def lines(self, limit: int = 6) -> list[str]:
+        """The report's lines: the minima table (lowest first, up to ``limit``) and the advice."""
+        header = (f"    {'minimum':>7} {'MAP objective':>14} {'reached by':>10} {'distance':>9} {'off path':>8}   "
+                  "fitted RMS varus, internal (deg) | lateral, anterior, proximal (mm)")
+        lines = [f"[[Global search]] {self.starts} starts (seed {self.seed}), {len(self.ends)} solves, "
+                 f"{len(self.minima)} distinct minima", header]
+        for row in self.records()[:limit]:
+            rms = " ".join(f"{v:.2f}" for v in row["rms"].values())
+            lines.append(f"    {row['minimum']:>7} {row['map_objective']:>14.4f} {row['hits']:>10} "
+                         f"{row['distance_sd']:>6.2f} sd {len(row['off_loading_path']):>8}   {rms}")
+        if len(self.minima) > limit:
+            lines.append(f"    ... {len(self.minima) - limit} more (--json lists them all)")
+        lines += [f"    {self.advice()}",
+                  "    (off path: trials whose fitted equilibrium predict does not reach by loading from the unloaded "
+                  "state; minima with none rank first)"]
+        return lines
+
+
+def parameter_distance(a: Fit, b: Fit) -> float:
+    """Largest difference of a free parameter between two fits of one problem, in prior sd (the
+    parameter's scale where it has no prior)."""
+    return float(np.max(np.abs(standardised(a.problem, a.params) - standardised(a.problem, b.params)), initial=0.0))
+
+
+def standardised(problem: IdentificationProblem, values: dict[str, float]) -> np.ndarray:
+    """The free parameters of ``values`` in prior sd from the prior's centre (``z``); a parameter
+    without a prior in units of its scale."""
+    out = []
+    for name, scale in zip(problem.free, problem.scales, strict=True):
+        prior = problem.priors.get(name)
+        out.append(float(prior.z(values[name])) if prior is not None else values[name] / scale)
+    return np.array(out)
+
+
+def from_standardised(problem: IdentificationProblem, z: np.ndarray) -> dict[str, float]:
+    """:func:`standardised` inverted, clipped to the problem's bounds."""
+    out = {}
+    for i, (name, scale) in enumerate(zip(problem.free, problem.scales, strict=True)):
+        prior = problem.priors.get(name)
+        value = prior.untransform(prior.centre + prior.sd * z[i]) if prior is not None else z[i] * scale
+        out[name] = float(np.clip(value, problem.lower[i], problem.upper[i]))
+    return out
+
+
+def check_sampleable(problem: IdentificationProblem) -> None:
+    """Refuse a free parameter that has neither a prior nor finite bounds: the starts cannot cover it."""
+    for i, name in enumerate(problem.free):
+        if name not in problem.priors and not (np.isfinite(problem.lower[i]) and np.isfinite(problem.upper[i])):
+            raise InputError(f"{name} is free without a prior and without finite bounds, so the global search cannot "
+                             "draw starts for it: give it a prior (a 'prior' in the problem's [parameters] table, "
+                             "or --priors default), finite bounds, or --starts 1", field=name)
+
+
+def prior_starts(problem: IdentificationProblem, centre: dict[str, float], starts: int, seed: int) -> list[dict]:
+    """``centre`` and ``starts - 1`` scrambled Sobol points over the central :data:`CENTRAL` of every
+    free parameter's prior (uniform between the bounds for one without a prior), seeded."""
+    if starts > 1:
+        check_sampleable(problem)
+    points = [dict(centre)]
+    if starts <= 1:
+        return points
+    sobol = qmc.Sobol(problem.n_free, scramble=True, seed=np.random.default_rng([seed, starts]))
+    u = sobol.random_base2(int(np.ceil(np.log2(starts - 1))))[:starts - 1]  # the first of a balanced 2^m
+    u = (1 - CENTRAL) / 2 + CENTRAL * u
+    for row in u:
+        point = {}
+        for i, name in enumerate(problem.free):
+            prior = problem.priors.get(name)
+            if prior is not None:
+                value = prior.untransform(prior.centre + prior.sd * stats.norm.ppf(row[i]))
+            else:
+                value = problem.lower[i] + row[i] * (problem.upper[i] - problem.lower[i])
+            point[name] = float(np.clip(value, problem.lower[i], problem.upper[i]))
+        points.append(point)
+    return points
+
+
+def fingerprint(problem: IdentificationProblem, *parts: object) -> str:
+    """A key of ``problem`` (its free parameters, priors and weights, the knee's values, the data)
+    and ``parts``: the store's file names."""
+    h = hashlib.sha256()
+    priors = sorted((n, p.shape, repr(p.mean), repr(p.sd)) for n, p in problem.priors.items())
+    h.update(json.dumps([version("kneenlp"), problem.free, priors, repr(problem.prior_weight),
+                         [t.id for t in problem.trials], [repr((t.load.tolist(), t.flexion)) for t in problem.trials],
+                         list(parts)]).encode())
+    for array in (problem.model.theta(), np.asarray(problem.data.q, float), np.asarray(problem.weights, float)):
+        h.update(np.ascontiguousarray(array).tobytes())
+    return h.hexdigest()[:20]
+
+
+class Store:
+    """Finished solves of a search on disk (module docstring); ``None`` directory: nothing kept."""
+
+    def __init__(self, directory: str | Path | None):
+        self.directory = None if directory is None else Path(directory)
+
+    def _path(self, key: str) -> Path | None:
+        return None if self.directory is None else self.directory / f"{key}.json"
+
+    def load(self, problem: IdentificationProblem, key: str) -> Fit | None:
+        path = self._path(key)
+        if path is None or not path.exists():
+            return None
+        try:
+            d = json.loads(path.read_text())
+            return Fit.build(problem, d["method"], problem.theta(d["params"]), np.array(d["q"], float),
+                             status=d["status"], success=d["success"], iterations=d["iterations"], seconds=0.0,
+                             max_residual=d["max_residual"], message=d["message"], start=d["start"],
+                             off_path=tuple(d["off_path"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            return None  # a damaged record is solved again
+
+    def save(self, key: str, fit: Fit) -> None:
+        path = self._path(key)
+        if path is None:
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(path, json.dumps({
+            "method": fit.method, "params": fit.params, "q": np.asarray(fit.q_pred).tolist(), "status": fit.status,
+            "success": bool(fit.success), "iterations": int(fit.iterations), "max_residual": float(fit.max_residual),
+            "message": fit.message, "start": fit.start, "off_path": list(fit.off_path)}))
+
+
+def _ranked(fits: list[Fit], screened: bool = False) -> list[int]:
+    """Indices of ``fits`` by MAP objective, lowest first (ties within :data:`TIE` by index): the
+    converged ones with every trial on the loading path, the converged ones with trials off it, then
+    the rest; of ``screened`` fits (stopped on purpose) every one at equilibrium counts as converged."""
+    def usable(f: Fit) -> bool:
+        return (f.max_residual <= f.problem.equilibrium_tol) if screened else f.success
+
+    def key(i: int) -> tuple[bool, bool, float, int]:
+        f = fits[i]
+        value = f.map_objective if usable(f) and np.isfinite(f.map_objective) else np.inf
+        return (not usable(f), bool(f.off_path), _rounded(value), i)
+    return sorted(range(len(fits)), key=key)
+
+
+def _rounded(value: float) -> float:
+    """``value`` to :data:`TIE` relative (ranks made on it do not turn on the last digits)."""
+    if not np.isfinite(value) or value == 0:
+        return value
+    digits = int(-np.floor(np.log10(TIE))) - int(np.floor(np.log10(abs(value))))
+    return round(value, digits)
+
+
+def distinct_minima(ends: list[tuple[str, Fit]]) -> list[Minimum]:
+    """The converged ends grouped into minima (module docstring), lowest first."""
+    converged = [(label, f) for label, f in ends if f.success]
+    order = _ranked([f for _, f in converged])
+    groups: list[list[tuple[str, Fit]]] = []
+    for i in order:
+        label, f = converged[i]
+        for group in groups:
+            head = group[0][1]
+            if (abs(f.map_objective - head.map_objective) <= SAME_OBJECTIVE * abs(head.map_objective)
+                    and parameter_distance(head, f) <= SAME_PARAMETERS):
+                group.append((label, f))
+                break
+        else:
+            groups.append([(label, f)])
+    return [Minimum(g[0][1], tuple(label for label, _ in g)) for g in groups]
+
+
+Solve = Callable[[IdentificationProblem, dict[str, float], "np.ndarray | None", int], Fit]
+
+
+def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: Solve, hop: Solve,
+           screen: Solve, starts: int, seed: int, workers: int = 1, threads: int = 2,
+           on_minimum: Callable[[Fit], IdentificationProblem] | None = None,
+           store: str | Path | None = None) -> Search:
+    """The global search of ``problem`` (module docstring) from ``centre`` and ``starts - 1`` Sobol
+    points.  ``screen``, ``refine`` and ``hop`` solve the problem from a start (SI values, poses or
+    None, threads): the cheap screen, the refinement to convergence, a hop's solve.  ``on_minimum``
+    takes the lowest refined minimum and returns the problem the rest of the search solves (the same,
+    or one without the trials an outlier test set aside)."""
+    if not 1 <= starts <= MAX_STARTS:
+        raise InputError(f"expected a whole number of starts from 1 to {MAX_STARTS}, got {starts}", field="--starts")
+    kept = Store(store)
+    points = prior_starts(problem, centre, starts, seed)
+    processes = max(1, min(workers, len(points)))
+    inner = max(1, threads // processes) if processes > 1 else threads
+
+    def run(prob: IdentificationProblem, stage: str, jobs: list[tuple[dict, np.ndarray | None]],
+            solve: Solve) -> list[Fit]:
+        keys = [f"{fingerprint(prob, seed, starts, stage, i)}" for i in range(len(jobs))]
+        done = [kept.load(prob, k) for k in keys]
+        todo = [i for i, d in enumerate(done) if d is None]
+
+        def work(i: int) -> Fit:
+            fit = solve(prob, jobs[i][0], jobs[i][1], inner)
+            kept.save(keys[i], fit)
+            return fit
+
+        model = prob.model
+        for i, fit in zip(todo, forked_map(work, todo, processes, pack=_without_model,
+                                           unpack=lambda f: _with_model(f, model)), strict=True):
+            done[i] = fit
+        return done
+
+    screened = run(problem, "screen", [(p, None) for p in points], screen)
+    order = _ranked(screened, screened=True)[:REFINED]
+    refined = run(problem, "refine", [(screened[i].params, screened[i].q_pred) for i in order], refine)
+    ends = [(f"start {i + 1}", f) for i, f in zip(order, refined, strict=True)]
+    ends += _deepen(problem, ends, seed, starts, run, hop)
+    set_aside: tuple[str, ...] = ()
+    lowest = ends[_ranked([f for _, f in ends])[0]][1]
+    if on_minimum is not None and lowest.success:
+        kept_problem = on_minimum(lowest)
+        if kept_problem.n_trials < problem.n_trials:
+            ids = {t.id for t in kept_problem.trials}
+            set_aside = tuple(t.id for t in problem.trials if t.id not in ids)
+            rows = np.array([t.id in ids for t in problem.trials])
+            minima = distinct_minima(ends)[:REFINED]
+            again = run(kept_problem, "without " + ",".join(set_aside),
+                        [(m.fit.params, np.asarray(m.fit.q_pred)[rows]) for m in minima], hop)
+            ends = [(f"minimum {i + 1} without {', '.join(set_aside)}", f) for i, f in enumerate(again)]
+            ends += _deepen(kept_problem, ends, seed, starts, run, hop)
+            problem = kept_problem
+    screen_objectives = np.array([f.map_objective if f.max_residual <= f.problem.equilibrium_tol else np.nan
+                                  for f in screened])
+    return Search(starts, seed, screen_objectives, ends, distinct_minima(ends), set_aside)
+
+
+def _deepen(problem: IdentificationProblem, ends: list[tuple[str, Fit]], seed: int, starts: int, run,
+            hop: Solve) -> list[tuple[str, Fit]]:
+    """The deepening's hops (module docstring), labelled ``hop R.K``."""
+    fits = [f for _, f in ends]
+    best = fits[_ranked(fits)[0]]
+    if not best.success:
+        return []
+    rng = np.random.default_rng([seed, starts, 7])
+    out: list[tuple[str, Fit]] = []
+    misses = 0
+    for round_ in range(MAX_ROUNDS):
+        centre = standardised(problem, best.params)
+        jobs = [(from_standardised(problem, centre + HOP_STEP * rng.standard_normal(problem.n_free)), best.q_pred)
+                for _ in range(HOPS_PER_ROUND)]
+        hops = run(problem, f"hop {round_} from {best.map_objective:.9g}", jobs, hop)
+        out += [(f"hop {round_ + 1}.{k + 1}", f) for k, f in enumerate(hops)]
+        lowest = hops[_ranked(hops)[0]]
+        if _better(lowest, best):
+            best, misses = lowest, 0
+        else:
+            misses += 1
+            if misses >= PATIENCE:
+                break
+    return out
+
+
+def _better(a: Fit, b: Fit) -> bool:
+    """``a`` ranks before ``b`` (:func:`_ranked`) by more than :data:`SAME_OBJECTIVE`."""
+    if not a.success or not b.success:
+        return a.success and not b.success
+    if bool(a.off_path) != bool(b.off_path):
+        return not a.off_path
+    return _rounded(a.map_objective) < _rounded(b.map_objective * (1 - SAME_OBJECTIVE))
+
+
+def _without_model(fit: Fit) -> Fit:
+    fit.problem.model = None
+    return fit
+
+
+def _with_model(fit: Fit, model) -> Fit:
+    fit.problem.model = model
+    return fit

@@ -1,0 +1,146 @@
+"""The global search (kneenlp.estimation.search): its starts, its minima, its store, its answer.
+
+Oracles: the priors' own quantiles (the starts), minima made by hand (the clustering), and the
+search itself run another way (worker counts, a resumed store: the same ends bit for bit).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import kneenlp
+from kneenlp.base.errors import InputError
+from kneenlp.estimation.search import (
+    CENTRAL,
+    SAME_PARAMETERS,
+    distinct_minima,
+    prior_starts,
+    search,
+    standardised,
+)
+from kneenlp.estimation.solve import reduced_fit, solve_simultaneous
+from kneenlp.experiment.kneemodel import KneeModel
+from kneenlp.experiment.measured import read_measured
+from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.model.priors import Prior
+
+
+def fake_problem(priors: dict, lower=(-np.inf, 0.0, -1.0), upper=(np.inf, np.inf, 3.0)):
+    free = ["a", "b", "c"]
+    return SimpleNamespace(free=free, n_free=3, priors=priors, lower=np.array(lower), upper=np.array(upper),
+                           scales=np.ones(3))
+
+
+PRIORS = {"a": Prior("normal", 2.0, 0.5), "b": Prior("lognormal", 1.0, 0.3)}
+
+
+def test_starts_cover_each_priors_central_95_percent_and_follow_the_seed():
+    problem = fake_problem(PRIORS)
+    centre = {"a": 2.0, "b": 1.0, "c": 0.5}
+    points = prior_starts(problem, centre, 65, seed=4)
+    assert len(points) == 65 and points[0] == centre  # the centre first
+    a, b, c = (np.array([p[n] for p in points[1:]]) for n in "abc")
+    tail = (1 - CENTRAL) / 2
+    lo_a, hi_a = stats.norm.ppf([tail, 1 - tail], 2.0, 0.5)
+    assert lo_a <= a.min() < 2.0 < a.max() <= hi_a
+    assert np.exp(-1.96 * 0.3) <= b.min() and b.max() <= np.exp(1.96 * 0.3) + 1e-12
+    assert -1.0 <= c.min() and c.max() <= 3.0  # no prior: between the bounds
+    # a Sobol sequence is balanced: each half of every prior holds about half the starts
+    assert abs(np.mean(a < 2.0) - 0.5) < 0.05 and abs(np.mean(c < 1.0) - 0.5) < 0.05
+    assert prior_starts(problem, centre, 65, seed=4) == points
+    assert prior_starts(problem, centre, 65, seed=5)[1:] != points[1:]
+
+
+def test_a_parameter_without_prior_or_finite_bounds_cannot_be_sampled():
+    problem = fake_problem({"b": PRIORS["b"]}, upper=(np.inf, np.inf, 3.0))
+    with pytest.raises(InputError, match=r"a is free without a prior and without finite bounds.*give it a prior"):
+        prior_starts(problem, {"a": 0.0, "b": 1.0, "c": 0.0}, 8, seed=0)
+    assert len(prior_starts(problem, {"a": 0.0, "b": 1.0, "c": 0.0}, 1, seed=0)) == 1  # one start needs no draw
+
+
+def fake_fit(problem, objective, a, success=True, off=()):
+    return SimpleNamespace(problem=problem, map_objective=objective, success=success, off_path=off,
+                           params={"a": a, "b": 1.0, "c": 0.0}, max_residual=0.0)
+
+
+def test_minima_are_ends_equal_in_objective_and_parameters_lowest_on_the_loading_path_first():
+    problem = fake_problem(PRIORS)
+    problem.equilibrium_tol = 1e-6
+    step = SAME_PARAMETERS * 0.5 / 2  # a quarter of the tolerance, in the prior sd 0.5 of "a"
+    ends = [("start 1", fake_fit(problem, 10.0, 2.0)),
+            ("start 2", fake_fit(problem, 10.0 * (1 + 1e-8), 2.0 + step)),  # the same minimum
+            ("start 3", fake_fit(problem, 10.0, 2.5)),  # the same objective elsewhere: another minimum
+            ("start 4", fake_fit(problem, 9.0, 3.0, off=("valgus_flex60",))),  # lower, off the loading path
+            ("start 5", fake_fit(problem, 1.0, 1.0, success=False)),  # not converged: no minimum
+            ("hop 1.1", fake_fit(problem, 10.0, 2.0))]
+    minima = distinct_minima(ends)
+    assert [m.reached_by for m in minima] == [("start 1", "hop 1.1", "start 2"), ("start 3",), ("start 4",)]
+    assert standardised(problem, minima[1].fit.params)[0] == pytest.approx(1.0)
+
+
+@pytest.fixture(scope="module")
+def small_problem(knee, tmp_path_factory):
+    """Set 1 on the synthetic knee with noise; the four stiffnesses and the ACL's reference strain
+    free, with their default priors."""
+    path = tmp_path_factory.mktemp("search") / "measured.csv"
+    kneenlp.simulate(knee, "set1").measured("uniform:0.5", 3).to_csv(path, index=False)
+    data = read_measured(path)
+    model = KneeModel.of(knee)
+    free = ["ACL.k", "PCL.k", "MCL.k", "LCL.k", "ACL.ref_strain"]
+    return IdentificationProblem.from_data(model, data, free, priors="default", prior_weight=0.25)
+
+
+def screen(problem, start, q0, threads):
+    return reduced_fit(problem, start, q0=q0, max_evaluations=3, threads=threads)
+
+
+def nlp(problem, start, q0, threads):
+    return solve_simultaneous(problem, start, threads=threads, q0=q0)
+
+
+def test_the_search_gives_the_same_ends_with_one_or_two_workers_and_resumes_from_its_store(small_problem, tmp_path):
+    centre = {n: small_problem.model.theta()[small_problem.model.index(n)] for n in small_problem.free}
+    one = search(small_problem, centre, screen=screen, refine=nlp, hop=nlp, starts=6, seed=1, workers=1)
+    two = search(small_problem, centre, screen=screen, refine=nlp, hop=nlp, starts=6, seed=1, workers=2,
+                 store=tmp_path / "search")
+    assert one.best.fit.success and one.best.hits >= 1
+    assert [label for label, _ in one.ends] == [label for label, _ in two.ends]
+    assert [f.map_objective for _, f in one.ends] == [f.map_objective for _, f in two.ends]  # bit for bit
+    assert one.best.fit.params == two.best.fit.params
+    assert np.array_equal(one.screened, two.screened, equal_nan=True)
+    assert len(list((tmp_path / "search").glob("*.json"))) >= len(two.ends) + 6
+
+    def refused(*args):
+        raise AssertionError("solved again: the store should have answered")
+
+    again = search(small_problem, centre, screen=refused, refine=refused, hop=refused, starts=6, seed=1,
+                   workers=2, store=tmp_path / "search")
+    assert again.best.objective == pytest.approx(two.best.objective, rel=1e-12)
+    assert [m.reached_by for m in again.minima] == [m.reached_by for m in two.minima]
+    assert "reached by" in "\n".join(two.lines()) and two.summary()["minima"][0]["hits"] == two.best.hits
+
+
+@pytest.mark.parametrize("starts", [0, -3, 1001])
+def test_a_number_of_starts_out_of_range_is_refused(small_problem, starts):
+    with pytest.raises(InputError, match="starts from 1 to 1000"):
+        search(small_problem, {}, screen=screen, refine=nlp, hop=nlp, starts=starts, seed=0)
+
+
+def test_the_command_line_refuses_bad_starts_in_one_line(capsys):
+    from pathlib import Path
+
+    from kneenlp.cli import main
+
+    problems = Path(__file__).resolve().parents[1] / "problems"
+    for bad in ("0", "-2", "1001", "many"):
+        assert main(["identify", "--problem", str(problems / "s192803"), "--starts", bad]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--starts" in err, err
+    # the paper's scatter fits (Sets 1-4) are not a calibration: --starts is refused there
+    assert main(["identify", "--problem", str(problems / "set1"), "--starts", "4"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--starts" in err, err
