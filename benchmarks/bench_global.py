@@ -44,16 +44,17 @@ def one(options: dict) -> dict:
     from kneenlp.experiment.problem_file import ProblemFile
 
     problem = ProblemFile.load(PROBLEM)
-    knee = problem.knee_with_parameters(kneenlp.Knee.named(problem.knee))
+    base = kneenlp.Knee.named(problem.knee)
+    if options.get("perturb_start"):  # the knee's values: the first start and the priors' centres
+        model = KneeModel.of(base)
+        theta = model.theta() * (1 + options["perturb_start"])
+        values = {n: float(theta[model.index(n)]) for n in base.parameters.names()}
+        base = base.with_parameters(base.parameters.with_values(values))
+    knee = problem.knee_with_parameters(base)
     data = read_measured(problem.data)
     if options.get("perturb_data"):
         data = MeasuredData.from_user(data.trials, data.q_user * (1 + options["perturb_data"]), data.protocol,
                                       data.source, data.side)
-    if options.get("perturb_start"):  # the knee's values, the first start and the priors' centres
-        model = KneeModel.of(knee)
-        theta = model.theta() * (1 + options["perturb_start"])
-        knee = knee.with_parameters(knee.parameters.with_values({n: float(theta[model.index(n)])
-                                                                 for n in model.parameter_names}))
     model = KneeModel.of(knee)
     calibration_options = problem.calibrate_options() | {"workers": options.get("workers", 2)}
     if options.get("starts"):

@@ -140,10 +140,26 @@ def test_the_command_line_refuses_bad_starts_in_one_line(capsys):
         assert main(["identify", "--problem", str(problems / "s192803"), "--starts", bad]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "--starts" in err, err
-    # the paper's scatter fits (Sets 1-4) are not a calibration: --starts is refused there
-    assert main(["identify", "--problem", str(problems / "set1"), "--starts", "4"]) == 2
+    # the nested method has its own population
+    assert main(["identify", "--problem", str(problems / "set1"), "--starts", "4", "--method", "nested"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--starts" in err, err
+
+
+def test_a_scatter_fit_takes_the_global_search_as_an_option(knee, tmp_path):
+    """Set 1 on the synthetic knee: the search's fit is the single NLP's minimum here (the NLP is robust
+    on the paper's Sets), found from Sobol starts over the default priors."""
+    from kneenlp.estimation.identify import identify
+
+    path = tmp_path / "set1.csv"
+    kneenlp.simulate(knee, "set1").measured("uniform:0.5", 7).to_csv(path, index=False)
+    data = read_measured(path)
+    single = identify(knee, data, seed=7, noise="uniform:0.5")
+    found = identify(knee, data, seed=7, noise="uniform:0.5", starts=3, workers=2)
+    assert found.success and found.starts == 3 and "global search of 3 starts" in found.message
+    assert found.map_objective == pytest.approx(single.map_objective, rel=1e-6)
+    with pytest.raises(InputError, match="--workers"):  # workers without a search: still a calibration's option
+        identify(knee, data, noise="uniform:0.5", workers=2)
 
 
 def test_an_interrupted_search_keeps_its_finished_solves_and_a_rerun_resumes_them(small_problem, tmp_path):

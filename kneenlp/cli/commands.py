@@ -116,15 +116,14 @@ def worker_count(args) -> int:
 def start_workers(args) -> dict:
     """``identify``'s calibration options of its starts: a calibration's further starts (``--multistart``)
     or its global search's (``--starts``, its finished solves kept in ``--out``/search) share
-    :func:`worker_count` processes; a fit by the scatter strategy takes no such option (``--starts``
-    there is refused by ``identify``)."""
+    :func:`worker_count` processes (a scatter fit's global search too)."""
     from kneenlp.estimation.identify import resolve_strategy
 
     out = {}
     if args.starts > 1:
         out = {"starts": args.starts} | ({"store": str(Path(args.out) / "search")} if args.out else {})
     calibration = resolve_strategy(args.strategy, args.measured, args.method) == "calibration"
-    if calibration and (args.multistart > 1 or args.starts > 1):
+    if (calibration and args.multistart > 1) or args.starts > 1:
         out["workers"] = worker_count(args)
     return out
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.estimation.fit import Fit
-from kneenlp.estimation.solve import scatter_fit
+from kneenlp.estimation.solve import scatter_fit, scatter_search
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
@@ -41,6 +41,8 @@ METHODS = ("simultaneous", "nested")
 CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--also-free",
                        "keep_outliers": "--keep-outliers", "load_point": "--no-load-point", "workers": "--workers",
                        "starts": "--starts", "store": "--out"}
+#: Options of the global search, which the scatter strategy takes too (``starts`` > 1).
+SEARCH_OPTIONS = ("starts", "store", "workers")
 
 
 def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: str = "simultaneous", *,
@@ -102,10 +104,18 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
                               noise=noise, weighted=weighted, with_effects=with_effects, start=start, solver=solver,
                               solver_options=solver_options, multistart=multistart, threads=threads,
                               **calibration_options)
+    search_options = {}
+    if calibration_options.get("starts", 1) > 1:  # the global search's options: a scatter fit's too
+        search_options = {k: calibration_options.pop(k) for k in SEARCH_OPTIONS if k in calibration_options}
     _check_scatter(calibration_options, prior_weight)
     problem = IdentificationProblem.from_data(model, data, free, noise=noise, weighted=weighted, fixed=fixed,
                                               with_effects=with_effects or (), priors=priors,
                                               prior_weight=prior_weight)
+    if search_options:
+        if method != "simultaneous":
+            raise InputError("the global search solves the simultaneous NLP; --method nested has its own "
+                             "population", field="--starts")
+        return scatter_search(problem, problem.check_start(start), seed=seed, threads=threads, **search_options)
     return scatter_fit(problem, problem.check_start(start), seed=seed, method=method, multistart=multistart,
                        restarts=restarts, solver=solver, solver_options=solver_options, threads=threads,
                        nested_options=nested_options)

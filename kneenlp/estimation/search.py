@@ -42,6 +42,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import version
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from scipy import stats
@@ -205,9 +206,14 @@ def check_sampleable(problem: IdentificationProblem) -> None:
                              "or --priors default), finite bounds, or --starts 1", field=name)
 
 
-def prior_starts(problem: IdentificationProblem, centre: dict[str, float], starts: int, seed: int) -> list[dict]:
+def prior_starts(problem: IdentificationProblem, centre: dict[str, float], starts: int, seed: int,
+                 priors: dict | None = None) -> list[dict]:
     """``centre`` and ``starts - 1`` scrambled Sobol points over the central :data:`CENTRAL` of every
-    free parameter's prior (uniform between the bounds for one without a prior), seeded."""
+    free parameter's prior (``priors``, default the problem's; uniform between the bounds for one
+    without a prior), seeded."""
+    if priors is not None:  # the starts' own priors (a least-squares fit's starts cover its defaults)
+        problem = SimpleNamespace(free=problem.free, n_free=problem.n_free, priors=priors, lower=problem.lower,
+                                  upper=problem.upper)
     if starts > 1:
         check_sampleable(problem)
     points = [dict(centre)]
@@ -321,16 +327,19 @@ Solve = Callable[[IdentificationProblem, dict[str, float], "np.ndarray | None", 
 def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: Solve, hop: Solve,
            screen: Solve, starts: int, seed: int, workers: int = 1, threads: int = 2,
            on_minimum: Callable[[Fit], IdentificationProblem] | None = None,
-           store: str | Path | None = None) -> Search:
+           store: str | Path | None = None, refined: int = REFINED, deepen: bool = True,
+           priors: dict | None = None) -> Search:
     """The global search of ``problem`` (module docstring) from ``centre`` and ``starts - 1`` Sobol
-    points.  ``screen``, ``refine`` and ``hop`` solve the problem from a start (SI values, poses or
-    None, threads): the cheap screen, the refinement to convergence, a hop's solve.  ``on_minimum``
-    takes the lowest refined minimum and returns the problem the rest of the search solves (the same,
-    or one without the trials an outlier test set aside)."""
+    points over ``priors`` (default the problem's).  ``screen``, ``refine`` and ``hop`` solve the
+    problem from a start (SI values, poses or None, threads): the cheap screen, the refinement to
+    convergence, a hop's solve.  ``on_minimum`` takes the lowest minimum and returns the problem the
+    rest of the search solves (the same, or one without the trials an outlier test set aside).
+    ``refined`` screened starts are refined; ``deepen=False`` leaves out the basin hopping (a
+    scatter fit's search, where the NLP is robust and the hops would only cost)."""
     if not 1 <= starts <= MAX_STARTS:
         raise InputError(f"expected a whole number of starts from 1 to {MAX_STARTS}, got {starts}", field="--starts")
     kept = Store(store)
-    points = prior_starts(problem, centre, starts, seed)
+    points = prior_starts(problem, centre, starts, seed, priors)
     processes = max(1, min(workers, len(points)))
     inner = max(1, threads // processes) if processes > 1 else threads
 
@@ -352,10 +361,11 @@ def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: 
         return done
 
     screened = run(problem, "screen", [(p, None) for p in points], screen)
-    order = _ranked(screened, screened=True)[:REFINED]
-    refined = run(problem, "refine", [(screened[i].params, screened[i].q_pred) for i in order], refine)
-    ends = [(f"start {i + 1}", f) for i, f in zip(order, refined, strict=True)]
-    ends += _deepen(problem, ends, seed, starts, run, hop)
+    order = _ranked(screened, screened=True)[:refined]
+    ends = [(f"start {i + 1}", f) for i, f in zip(order, run(
+        problem, "refine", [(screened[i].params, screened[i].q_pred) for i in order], refine), strict=True)]
+    if deepen:
+        ends += _deepen(problem, ends, seed, starts, run, hop)
     set_aside: tuple[str, ...] = ()
     lowest = ends[_ranked([f for _, f in ends])[0]][1]
     if on_minimum is not None and lowest.success:
@@ -364,11 +374,12 @@ def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: 
             ids = {t.id for t in kept_problem.trials}
             set_aside = tuple(t.id for t in problem.trials if t.id not in ids)
             rows = np.array([t.id in ids for t in problem.trials])
-            minima = distinct_minima(ends)[:REFINED]
+            minima = distinct_minima(ends)[:refined]
             again = run(kept_problem, "without " + ",".join(set_aside),
                         [(m.fit.params, np.asarray(m.fit.q_pred)[rows]) for m in minima], hop)
             ends = [(f"minimum {i + 1} without {', '.join(set_aside)}", f) for i, f in enumerate(again)]
-            ends += _deepen(kept_problem, ends, seed, starts, run, hop)
+            if deepen:
+                ends += _deepen(kept_problem, ends, seed, starts, run, hop)
             problem = kept_problem
     screen_objectives = np.array([f.map_objective if f.max_residual <= f.problem.equilibrium_tol else np.nan
                                   for f in screened])
