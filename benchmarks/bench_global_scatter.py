@@ -4,8 +4,9 @@ For each seed: Set 4 measured with uniform +-0.5 noise; the default fit (one NLP
 scatter), the fit started at the truth (the truth's basin) and the global search
 (``identify(starts=N)``: Sobol starts over the default priors, screened, the 2 best solved).  Prints
 per seed the three MAP objectives and times, then how often each fit is in the truth's basin (MAP
-objective within 1e-6 relative of the truth-started fit's) and the search's time over the single
-NLP's (median).  Targets: the search in the truth's basin in 20 of 20 seeds at <= 3x the single NLP.
+objective within 1e-6 relative of the truth-started fit's) or lower, and the search's time over
+the single NLP's (median).  Targets: the search in the truth's basin (or lower) in 20 of 20 seeds
+at <= 3x the single NLP.
 
 Run: python benchmarks/bench_global_scatter.py [--seeds 20] [--starts 4]
 """
@@ -50,17 +51,21 @@ def main() -> None:
                          start={n: knee.parameters[n] for n in single.free})
         basin = truth.map_objective
 
-        def same(f) -> bool:
-            return f.success and abs(f.map_objective - basin) <= SAME * basin  # noqa: B023
+        def where(f) -> str:  # the truth's basin, a lower minimum, or a higher one
+            if not f.success or f.map_objective > basin * (1 + SAME):  # noqa: B023
+                return "higher"
+            return "lower" if f.map_objective < basin * (1 - SAME) else "same"  # noqa: B023
 
-        rows.append((same(single), same(found), t1 - t0, t2 - t1))
+        rows.append((where(single), where(found), t1 - t0, t2 - t1))
         print(f"seed {seed:2d}: truth's basin {basin:.6f}; single NLP {single.map_objective:.6f} "
-              f"({t1 - t0:.2f} s){'' if rows[-1][0] else ' OTHER'}; search {found.map_objective:.6f} "
-              f"({t2 - t1:.2f} s){'' if rows[-1][1] else ' OTHER'}", flush=True)
-    r = np.array(rows, float)
-    print(f"{args.seeds} seeds, {args.starts} starts: in the truth's basin: single NLP {int(r[:, 0].sum())}, "
-          f"search {int(r[:, 1].sum())}; median time single {np.median(r[:, 2]):.2f} s, search "
-          f"{np.median(r[:, 3]):.2f} s ({np.median(r[:, 3] / r[:, 2]):.1f}x)")
+              f"({t1 - t0:.2f} s, {rows[-1][0]}); search {found.map_objective:.6f} ({t2 - t1:.2f} s, {rows[-1][1]})",
+              flush=True)
+    single_at, search_at = ([r[k] for r in rows] for k in (0, 1))
+    t = np.array([r[2:] for r in rows])
+    print(f"{args.seeds} seeds, {args.starts} starts: the truth's basin or lower: single NLP "
+          f"{sum(w != 'higher' for w in single_at)} ({single_at.count('lower')} lower), search "
+          f"{sum(w != 'higher' for w in search_at)} ({search_at.count('lower')} lower); median time single "
+          f"{np.median(t[:, 0]):.2f} s, search {np.median(t[:, 1]):.2f} s ({np.median(t[:, 1] / t[:, 0]):.1f}x)")
 
 
 if __name__ == "__main__":

@@ -76,9 +76,11 @@ def scatter_fit(problem: IdentificationProblem, start: dict[str, float], *, seed
     return dataclasses.replace(best, starts=k)
 
 
-#: Screened starts a scatter fit's global search refines (``scatter_search``): the NLP is robust on the
-#: paper's Sets, so the search's worth there is its screen.
-SCATTER_REFINED = 2
+#: Screened starts a scatter fit's global search refines (``scatter_search``), and the reduced-space
+#: evaluations of its screen: the NLP is robust on the paper's Sets, so the search's worth there is a
+#: cheap look at where each start leads (default knee, noisy Set 4, 20 seeds: benchmarks/bench_global_scatter.py).
+SCATTER_REFINED = 1
+SCATTER_SCREEN = 3
 
 
 def scatter_search(problem: IdentificationProblem, start: dict[str, float], *, starts: int, seed: int = 0,
@@ -86,17 +88,17 @@ def scatter_search(problem: IdentificationProblem, start: dict[str, float], *, s
     """The scatter strategy's fit by the global search (:mod:`~kneenlp.estimation.search`): the first
     scatter start (``start`` over it) and ``starts - 1`` Sobol points over the free parameters'
     priors (their defaults, centred on the knee's values, where the fit is least squares), each
-    screened by :data:`~kneenlp.estimation.search.SCREEN_EVALUATIONS` reduced-space evaluations;
-    the :data:`SCATTER_REFINED` best solved by the NLP (with the rescue); no basin hopping.  The
+    screened by :data:`SCATTER_SCREEN` reduced-space evaluations; the :data:`SCATTER_REFINED` best
+    solved by the NLP (with the rescue); no basin hopping.  The
     kept fit's message gives the search's minima."""
-    from kneenlp.estimation.search import SCREEN_EVALUATIONS, search
+    from kneenlp.estimation.search import search
     from kneenlp.experiment.problem import resolve_priors
 
     draws = problem.priors or resolve_priors(problem.model, problem.free, "default")
     centre = problem.scatter(np.random.default_rng(seed)) | dict(start)
 
     def screen(p: IdentificationProblem, s: dict, q0, t: int) -> Fit:
-        return reduced_fit(p, s, q0=q0, max_evaluations=SCREEN_EVALUATIONS, threads=t)
+        return reduced_fit(p, s, q0=q0, max_evaluations=SCATTER_SCREEN, threads=t)
 
     def nlp(p: IdentificationProblem, s: dict, q0, t: int) -> Fit:
         fit = solve_simultaneous(p, s, "ipopt", None, t, q0=q0)
