@@ -190,3 +190,16 @@ def test_an_interrupted_search_keeps_its_finished_solves_and_a_rerun_resumes_the
     assert len(again) == 2  # the two screens not finished before
     fresh = search(small_problem, centre, screen=screen, refine=nlp, hop=nlp, starts=6, seed=2)
     assert resumed.best.fit.params == fresh.best.fit.params
+
+
+def test_a_search_whose_solves_all_failed_keeps_the_best_failed_one_and_says_so():
+    from kneenlp.estimation.search import Search
+
+    problem = fake_problem(PRIORS)
+    problem.equilibrium_tol = 1e-6
+    ends = [("start 1", fake_fit(problem, 5.0, 2.0, success=False)), ("start 2", fake_fit(problem, 4.0, 2.1,
+                                                                                          success=False))]
+    found = Search(2, 0, np.array([5.0, 4.0]), ends, distinct_minima(ends))
+    assert found.minima == [] and found.best.hits == 0 and not found.found
+    assert found.best.fit is ends[0][1]  # failed ends rank by index, never by an objective they did not reach
+    assert "none of its 2 solves converged" in found.advice()

@@ -115,7 +115,11 @@ class Search:
 
     @property
     def best(self) -> Minimum:
-        return self.minima[0]
+        """The lowest minimum; without any (no solve converged) the best of the failed ends, reached by none."""
+        if self.minima:
+            return self.minima[0]
+        fits = [f for _, f in self.ends]
+        return Minimum(fits[_ranked(fits)[0]], ())
 
     @property
     def found(self) -> bool:
@@ -124,6 +128,9 @@ class Search:
 
     def advice(self) -> str:
         """One line on whether the search may have missed the global MAP."""
+        if not self.minima:
+            return (f"none of its {len(self.ends)} solves converged: the fit kept is the best failed one (its "
+                    "status says why)")
         if self.found:
             return (f"the lowest minimum was reached by {self.best.hits} solves (of {len(self.ends)}): the search "
                     "finds it repeatedly")
