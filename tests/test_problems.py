@@ -35,8 +35,8 @@ def test_sets_are_the_default_knee_measured_from_their_seed(n):
     again = kneenlp.simulate(kneenlp.Knee.default(), f"set{n}").measured("uniform:0.5", n)
     # bit for bit on one machine; across processors the last bit of the transcendental functions
     # (libm's and NumPy's SIMD variants differ by processor) moves the equilibria by up to 5e-9
-    # relative (measured: the files' machine against an AMD EPYC), far below the 0.5 mm noise
-    pd.testing.assert_frame_equal(shipped, again.reset_index(drop=True), check_exact=False, rtol=1e-7, atol=1e-9)
+    # relative, 4e-9 mm or deg (the files' machine against an AMD EPYC): far below the 0.5 mm noise
+    pd.testing.assert_frame_equal(shipped, again.reset_index(drop=True), check_exact=False, rtol=1e-7, atol=1e-7)
 
 
 def test_s192803_problem_holds_the_shipped_dataset():
