@@ -365,22 +365,38 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     # (S192803: declared 0.2 mm, misfit about 1.5 mm); a declared noise serves diagnose's verdict
     options = {"noise": noise if weighted else None, "weighted": weighted, "with_effects": with_effects or (),
                "priors": priors, "prior_weight": None if estimate else float(prior_weight)}
+    found = None
     if starts > 1:
         fit, outliers, found = global_fit(model, data, [*free, *extra], theta, start, options, keep_outliers,
                                           starts=starts, seed=seed, workers=workers, threads=threads, store=store)
-        aside = np.array([t.id in found.set_aside for t in data.trials])
-        record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
-                                   predict(model, data.subset(aside), fit.params) if aside.any() else None, found)
-        return Calibration.of(dataclasses.replace(fit, calibration_record=record), record)
+    else:
+        fit, outliers = local_fit(model, data, free, extra, theta, start, options, keep_outliers, estimate=estimate,
+                                  seed=seed, solver=solver, solver_options=solver_options, multistart=multistart,
+                                  threads=threads, workers=workers)
+    aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
+    record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
+                               predict(model, data.subset(aside), fit.params) if outliers else None, found)
+    return Calibration.of(dataclasses.replace(fit, calibration_record=record), record)
+
+
+def local_fit(model: KneeModel, data: MeasuredData, free: list[str], extra: list[str], probe: np.ndarray,
+              start: dict[str, float] | None, options: dict, keep_outliers: bool, *, estimate: bool, seed: int,
+              solver: str, solver_options: dict | None, multistart: int, threads: int,
+              workers: int) -> tuple[Fit, list[Outlier]]:
+    """(the fit, the outliers set aside) of :func:`calibrate`'s chain of local steps: the reduced fit
+    of ``free`` from the ``probe`` (``start`` over it; :func:`first_fit`), ``extra`` freed from there
+    (:func:`with_also_free`), the outliers set aside unless ``keep_outliers``, the NLP's polish and
+    ``multistart`` further starts about the fit (:func:`lowest_of_starts`)."""
+    options = dict(options)
     problem = IdentificationProblem.from_data(model, data, free, **options)
     # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
     # docstring: IPOPT wandered on this problem, and from a good point made it worse)
-    start = {n: float(theta[model.index(n)]) for n in problem.free} | problem.check_start(start)
+    start = {n: float(probe[model.index(n)]) for n in problem.free} | problem.check_start(start)
     fit = first_fit(problem, start, estimate=estimate, seed=seed, solver=solver, solver_options=solver_options,
                     threads=threads)
     options["prior_weight"] = fit.problem.prior_weight
     if extra:
-        fit = with_also_free(fit, data, extra, theta, options, estimate=estimate)
+        fit = with_also_free(fit, data, extra, probe, options, estimate=estimate)
         options["prior_weight"] = fit.problem.prior_weight
     outliers: list[Outlier] = []
     if not keep_outliers:
@@ -389,11 +405,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
         fit = polished(fit, threads)
     if multistart > 1:
         fit = lowest_of_starts(fit, multistart, seed, threads, workers)
-    aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
-    record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
-                               predict(model, data.subset(aside), fit.params) if outliers else None)
-    return Calibration.of(dataclasses.replace(fit, calibration_record=record), record)
-
+    return fit, outliers
 
 def global_fit(model: KneeModel, data: MeasuredData, free: list[str], probe: np.ndarray,
                start: dict[str, float] | None, options: dict, keep_outliers: bool, *, starts: int, seed: int,

@@ -44,7 +44,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 from scipy import stats
@@ -52,8 +51,7 @@ from scipy.stats import qmc
 
 from kneenlp.base.atomic import write_text_atomic
 from kneenlp.base.errors import InputError
-from kneenlp.base.forked import forked_map
-from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.problem_file import MAX_STARTS
 from kneenlp.prediction.predict import rms_by_coordinate
@@ -206,10 +204,11 @@ def from_standardised(problem: IdentificationProblem, z: np.ndarray) -> dict[str
     return out
 
 
-def check_sampleable(problem: IdentificationProblem) -> None:
-    """Refuse a free parameter that has neither a prior nor finite bounds: the starts cannot cover it."""
+def check_sampleable(problem: IdentificationProblem, priors: dict) -> None:
+    """Refuse a free parameter that has neither a prior (in ``priors``) nor finite bounds: the starts
+    cannot cover it."""
     for i, name in enumerate(problem.free):
-        if name not in problem.priors and not (np.isfinite(problem.lower[i]) and np.isfinite(problem.upper[i])):
+        if name not in priors and not (np.isfinite(problem.lower[i]) and np.isfinite(problem.upper[i])):
             raise InputError(f"{name} is free without a prior and without finite bounds, so the global search cannot "
                              "draw starts for it: give it a prior (a 'prior' in the problem's [parameters] table, "
                              "or --priors default), finite bounds, or --starts 1", field=name)
@@ -220,11 +219,9 @@ def prior_starts(problem: IdentificationProblem, centre: dict[str, float], start
     """``centre`` and ``starts - 1`` scrambled Sobol points over the central :data:`CENTRAL` of every
     free parameter's prior (``priors``, default the problem's; uniform between the bounds for one
     without a prior), seeded."""
-    if priors is not None:  # the starts' own priors (a least-squares fit's starts cover its defaults)
-        problem = SimpleNamespace(free=problem.free, n_free=problem.n_free, priors=priors, lower=problem.lower,
-                                  upper=problem.upper)
+    priors = problem.priors if priors is None else priors  # a least-squares fit's starts cover its defaults
     if starts > 1:
-        check_sampleable(problem)
+        check_sampleable(problem, priors)
     points = [dict(centre)]
     if starts <= 1:
         return points
@@ -234,7 +231,7 @@ def prior_starts(problem: IdentificationProblem, centre: dict[str, float], start
     for row in u:
         point = {}
         for i, name in enumerate(problem.free):
-            prior = problem.priors.get(name)
+            prior = priors.get(name)
             if prior is not None:
                 value = prior.untransform(prior.centre + prior.sd * stats.norm.ppf(row[i]))
             else:
@@ -363,7 +360,7 @@ def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: 
 
     def run(prob: IdentificationProblem, stage: str, jobs: list[tuple[dict, np.ndarray | None]],
             solve: Solve) -> list[Fit]:
-        keys = [f"{fingerprint(prob, seed, starts, stage, i)}" for i in range(len(jobs))]
+        keys = [fingerprint(prob, seed, starts, stage, i) for i in range(len(jobs))]
         done = [kept.load(prob, k) for k in keys]
         todo = [i for i, d in enumerate(done) if d is None]
 
@@ -372,9 +369,7 @@ def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: 
             kept.save(keys[i], fit)
             return fit
 
-        model = prob.model
-        for i, fit in zip(todo, forked_map(work, todo, processes, pack=_without_model,
-                                           unpack=lambda f: _with_model(f, model)), strict=True):
+        for i, fit in zip(todo, forked_fits(work, todo, processes, prob.model), strict=True):
             done[i] = fit
         return done
 
@@ -437,13 +432,3 @@ def _better(a: Fit, b: Fit) -> bool:
     if bool(a.off_path) != bool(b.off_path):
         return not a.off_path
     return _rounded(a.map_objective) < _rounded(b.map_objective * (1 - SAME_OBJECTIVE))
-
-
-def _without_model(fit: Fit) -> Fit:
-    fit.problem.model = None
-    return fit
-
-
-def _with_model(fit: Fit, model) -> Fit:
-    fit.problem.model = model
-    return fit
