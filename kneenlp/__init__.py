@@ -11,14 +11,35 @@ Public API (see README.md)::
     print(fit.report())
 """
 
-from kneenlp.base.errors import ConvergenceError, InputError
-from kneenlp.estimation.identify import identify
-from kneenlp.experiment.kneemodel import KneeModel
-from kneenlp.experiment.noise import NoiseModel
-from kneenlp.experiment.protocol import Protocol, Trial
-from kneenlp.model.knee import Knee
-from kneenlp.model.parameters import ParameterSet
-from kneenlp.simulation import SimulationResult, simulate
+import importlib
+
+#: Where each public name lives; imported on first use (PEP 562), so ``import kneenlp`` and the
+#: command line's start (``kneenlp --help``) do not load CasADi, SciPy and the meshes.
+_HOMES = {
+    "ConvergenceError": "kneenlp.base.errors",
+    "InputError": "kneenlp.base.errors",
+    "identify": "kneenlp.estimation.identify",
+    "KneeModel": "kneenlp.experiment.kneemodel",
+    "NoiseModel": "kneenlp.experiment.noise",
+    "Protocol": "kneenlp.experiment.protocol",
+    "Trial": "kneenlp.experiment.protocol",
+    "Knee": "kneenlp.model.knee",
+    "ParameterSet": "kneenlp.model.parameters",
+    "SimulationResult": "kneenlp.simulation",
+    "simulate": "kneenlp.simulation",
+}
+
+
+def __getattr__(name: str):
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f"module 'kneenlp' has no attribute {name!r}")
+    return getattr(importlib.import_module(home), name)
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_HOMES])
+
 
 __version__ = "0.1.0"
 

@@ -105,3 +105,44 @@ def test_a_signal_inside_the_working_set_callback_is_held_and_still_wins(monkeyp
 
     monkeypatch.setitem(COMMANDS, "simulate", held_to_the_end)
     assert main(["simulate", "--knee", "synthetic", "--no-plots", "--out", str(tmp_path / "p")]) == 143
+
+
+def test_the_command_line_starts_without_the_heavy_imports():
+    """``kneenlp --help`` and argument errors load neither CasADi, SciPy, pandas nor numba (the
+    commands import them where they need them), and ``kneenlp.Knee`` still resolves on first use."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from kneenlp.cli import main\n"
+            "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "main(['identify', '--starts', '0'])\n"
+            "heavy = [m for m in ('casadi', 'scipy', 'pandas', 'numba', 'matplotlib') if m in sys.modules]\n"
+            "import kneenlp\nprint(heavy, kneenlp.Knee.__name__)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.stdout.strip().splitlines()[-1] == "[] Knee", (run.stdout, run.stderr)
+    assert "--starts" in run.stderr and "Traceback" not in run.stderr
+    assert "ParameterSet" in dir(kneenlp)
+    with pytest.raises(AttributeError, match="no attribute 'Kne'"):
+        kneenlp.Kne  # noqa: B018
+
+
+def test_a_signal_in_the_first_instant_is_one_line():
+    """SIGINT or SIGTERM while the command is still starting (imports included): 130/143 and one
+    line, never a traceback."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    for sig, status in ((signal.SIGINT, 130), (signal.SIGTERM, 143)):
+        for delay in (0.3, 0.6, 1.0):
+            proc = subprocess.Popen([sys.executable, "-m", "kneenlp.cli", "simulate", "--knee", "default",
+                                     "--protocol", "set3"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                    text=True)
+            time.sleep(delay)
+            proc.send_signal(sig)
+            _, err = proc.communicate(timeout=120)
+            if proc.returncode == 0:
+                continue
+            assert proc.returncode == status, (delay, proc.returncode, err)
+            assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
