@@ -2,7 +2,8 @@
 
 Runs the problem's calibration (the global search, ``kneenlp.estimation.search``) in fresh
 processes under each setting: BLAS threads 1 and 2, search workers 1 and 2, compiled residuals on
-and off, and the data and the knee's values perturbed by 1e-12 relative.  Prints, per setting, the
+and off, the data and the knee's values perturbed by 1e-12 relative, and the solves on a local Dask
+cluster.  Prints, per setting, the
 kept MAP objective, how many solves reached it, the distinct minima and the wall time; then the
 largest spread of the kept objective (relative) and of the kept parameters (prior sd) over the
 settings.  The target: the same kept minimum (1e-6 relative, 1e-4 prior sd), reached by at least 3
@@ -31,6 +32,7 @@ SETTINGS = {
     "interpreted": ({"KNEENLP_COMPILE": "off"}, {"workers": 2}),
     "data+1e-12": ({}, {"workers": 2, "perturb_data": 1e-12}),
     "start+1e-12": ({}, {"workers": 2, "perturb_start": 1e-12}),
+    "dask": ({}, {"workers": "dask"}),
 }
 
 
@@ -56,7 +58,12 @@ def one(options: dict) -> dict:
         data = MeasuredData.from_user(data.trials, data.q_user * (1 + options["perturb_data"]), data.protocol,
                                       data.source, data.side)
     model = KneeModel.of(knee)
-    calibration_options = problem.calibrate_options() | {"workers": options.get("workers", 2)}
+    workers = options.get("workers", 2)
+    if workers == "dask":  # a local Dask cluster of two single-threaded worker processes
+        from kneenlp.base.dask_cluster import DaskWorkers
+
+        workers = DaskWorkers(processes=2)
+    calibration_options = problem.calibrate_options() | {"workers": workers}
     if options.get("starts"):
         calibration_options["starts"] = options["starts"]
     t0 = time.perf_counter()

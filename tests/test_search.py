@@ -144,6 +144,11 @@ def test_the_command_line_refuses_bad_starts_in_one_line(capsys):
     assert main(["identify", "--problem", str(problems / "set1"), "--starts", "4", "--method", "nested"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--starts" in err, err
+    # Dask runs the search's solves: without a search it has nothing to run
+    for command in ("identify", "cross-validate"):
+        assert main([command, "--problem", str(problems / "set1"), "--dask"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--dask" in err and "--starts N" in err, err
 
 
 def test_a_scatter_fit_takes_the_global_search_as_an_option(knee, tmp_path):
@@ -203,3 +208,22 @@ def test_a_search_whose_solves_all_failed_keeps_the_best_failed_one_and_says_so(
     assert found.minima == [] and found.best.hits == 0 and not found.found
     assert found.best.fit is ends[0][1]  # failed ends rank by index, never by an objective they did not reach
     assert "none of its 2 solves converged" in found.advice()
+
+
+def test_the_search_on_a_dask_cluster_gives_the_local_answer_bit_for_bit(small_problem, tmp_path):
+    """The same seed on a local Dask cluster (two worker processes, each building the model from
+    what the search sends) and in this process: the same ends, the same kept minimum; the store
+    written as the solves finish."""
+    pytest.importorskip("dask.distributed")
+    from kneenlp.base.dask_cluster import DaskWorkers
+
+    centre = {n: small_problem.model.theta()[small_problem.model.index(n)] for n in small_problem.free}
+    local = search(small_problem, centre, screen=screen, refine=nlp, hop=nlp, starts=4, seed=2, workers=1,
+                   threads=1)
+    remote = search(small_problem, centre, screen=screen, refine=nlp, hop=nlp, starts=4, seed=2,
+                    workers=DaskWorkers(processes=2), store=tmp_path / "search")
+    assert [label for label, _ in local.ends] == [label for label, _ in remote.ends]
+    assert [f.map_objective for _, f in local.ends] == [f.map_objective for _, f in remote.ends]
+    assert local.best.fit.params == remote.best.fit.params
+    assert remote.best.fit.problem.model is small_problem.model
+    assert len(list((tmp_path / "search").glob("*.json"))) == len(remote.ends) + 4

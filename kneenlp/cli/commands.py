@@ -113,6 +113,16 @@ def worker_count(args) -> int:
     return args.workers or os.cpu_count() or 1
 
 
+def search_workers(args):
+    """Where a global search's solves run: Dask (``--dask``, ``--scheduler``), else
+    :func:`worker_count` forked processes."""
+    if args.dask or args.scheduler:
+        from kneenlp.base.dask_cluster import DaskWorkers
+
+        return DaskWorkers(args.scheduler, worker_count(args))
+    return worker_count(args)
+
+
 def start_workers(args) -> dict:
     """``identify``'s calibration options of its starts: a calibration's further starts (``--multistart``)
     or its global search's (``--starts``, its finished solves kept in ``--out``/search) share
@@ -123,7 +133,9 @@ def start_workers(args) -> dict:
     if args.starts > 1:
         out = {"starts": args.starts} | ({"store": str(Path(args.out) / "search")} if args.out else {})
     calibration = resolve_strategy(args.strategy, args.measured, args.method) == "calibration"
-    if (calibration and args.multistart > 1) or args.starts > 1:
+    if args.starts > 1:
+        out["workers"] = search_workers(args)
+    elif calibration and args.multistart > 1:
         out["workers"] = worker_count(args)
     return out
 
@@ -424,7 +436,7 @@ def cmd_cross_validate(args) -> int:
     model = KneeModel.of(knee_from_args(args))
     store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
     results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, store,
-                                      workers=worker_count(args), explain=True, seed=args.seed,
+                                      workers=search_workers(args), explain=True, seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
                                       keep_outliers=args.keep_outliers, multistart=args.multistart,
                                       **({"starts": args.starts} if args.starts > 1 else {}),

@@ -55,6 +55,9 @@ def check_inputs(args) -> None:
     if not getattr(args, "validate", False):
         return
     apply_problem(args)
+    if (getattr(args, "dask", False) or getattr(args, "scheduler", None)) and getattr(args, "starts", None) == 1:
+        raise InputError("runs the global search's solves on Dask: give --starts N (N > 1) too",
+                         field="--scheduler" if args.scheduler else "--dask")
     if getattr(args, "out_kind", None) and getattr(args, "out", None) is not None:
         check_out(args.out, args.out_kind)
     knee = getattr(args, "knee", None)

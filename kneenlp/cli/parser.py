@@ -47,6 +47,11 @@ def _starts_arg(p: argparse.ArgumentParser) -> None:
                         "default: the problem's, else 1 (the local calibration from the knee's values)")
 
 
+def _dask_args(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--scheduler", type=opt.scheduler, help=f"{what} the Dask scheduler at tcp://HOST:PORT")
+    p.add_argument("--dask", action="store_true", help=f"{what} a local Dask cluster of --workers processes")
+
+
 def _prior_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--priors", choices=["default", "none"], default=None,
                    help="default: the MAP estimate, every free parameter with its prior (from the parameter file "
@@ -104,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the paper's start scatter")
     _multistart_arg(p)
     _starts_arg(p)
+    _dask_args(p, "the global search's solves (--starts) on")
     p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"],
                    help="simultaneous NLP (default) or the paper's nested Complex method")
     p.add_argument("--solver", default="ipopt", type=opt.solver, help="CasADi nlpsol plugin (default ipopt)")
@@ -168,8 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="kneenlp-study", help="study directory (resumable)")
     p.add_argument("--workers", type=opt.integer(1, opt.MAX_WORKERS), default=None,
                    help="local processes (default: all cores)")
-    p.add_argument("--scheduler", type=opt.scheduler, help="Dask scheduler address tcp://HOST:PORT")
-    p.add_argument("--dask", action="store_true", help="run on a local Dask cluster")
+    _dask_args(p, "run on")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.add_argument("--yes", action="store_true",
@@ -240,6 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the calibrations (default 0)")
     _multistart_arg(p)
     _starts_arg(p)
+    _dask_args(p, "the global search's solves (--starts) on")
     p.add_argument("--pivot-tolerance", type=opt.fraction, default=None, metavar="F",
                    help="the calibrations fit the ligament parameters whose pivot is at least F of the largest "
                         "(default 0.02, see 'kneenlp identify')")

@@ -55,6 +55,7 @@ import pandas as pd
 import scipy.linalg
 
 from kneenlp.base.conventions import COORDINATES
+from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.estimation.outliers import (
@@ -322,7 +323,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
               prior_weight: float | str = PRIOR_WEIGHT, weighted: bool = False,
               with_effects: list[str] | tuple = (), start: dict[str, float] | None = None, solver: str = "ipopt",
               solver_options: dict | None = None, multistart: int = 1, threads: int = 2,
-              workers: int = 1, starts: int = 1, store: str | Path | None = None) -> Calibration:
+              workers: int | DaskWorkers = 1, starts: int = 1, store: str | Path | None = None) -> Calibration:
     """Fit ``free`` to the real experiment ``data``: reduced-space Gauss-Newton from the knee's
     values (or the probe), then the simultaneous NLP from there (:func:`polished`); the NLP with the
     scatter strategy's rescue where the reduced fit fails.  ``free`` defaults to the parameter
@@ -344,7 +345,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     :func:`~kneenlp.estimation.identify.identify`'s; ``multistart`` > 1 refits from further starts
     about the fit and keeps the lowest (:func:`lowest_of_starts`, its starts shared out over
     ``workers`` processes).  ``starts`` > 1 replaces that chain of local steps by the global search
-    (:func:`global_fit`; ``store``: where its finished solves are kept, and a rerun resumes them).
+    (:func:`global_fit`; ``store``: where its finished solves are kept, and a rerun resumes them;
+    its solves over ``workers`` processes or a :class:`~kneenlp.base.dask_cluster.DaskWorkers`).
     ``solver``, ``solver_options``
     and ``threads`` serve the fallback from the start (the simultaneous NLP, at most :data:`MAX_ITER` iterations
     unless ``solver_options`` say otherwise)."""
@@ -409,7 +411,7 @@ def local_fit(model: KneeModel, data: MeasuredData, free: list[str], extra: list
 
 def global_fit(model: KneeModel, data: MeasuredData, free: list[str], probe: np.ndarray,
                start: dict[str, float] | None, options: dict, keep_outliers: bool, *, starts: int, seed: int,
-               workers: int, threads: int, store: str | Path | None) -> tuple[Fit, list[Outlier], Search]:
+               workers: int | DaskWorkers, threads: int, store: str | Path | None) -> tuple[Fit, list[Outlier], Search]:
     """(the fit, the outliers set aside, the search) of :func:`calibrate`'s global search
     (:func:`~kneenlp.estimation.search.search`): ``free`` (the also-free parameters among them) from
     the ``probe`` (and ``start`` over it) and Sobol points over the priors; the outlier test at the

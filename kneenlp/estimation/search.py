@@ -50,6 +50,7 @@ from scipy import stats
 from scipy.stats import qmc
 
 from kneenlp.base.atomic import write_text_atomic
+from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.base.errors import InputError
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.experiment.problem import IdentificationProblem
@@ -340,7 +341,7 @@ Solve = Callable[[IdentificationProblem, dict[str, float], "np.ndarray | None", 
 
 
 def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: Solve, hop: Solve,
-           screen: Solve, starts: int, seed: int, workers: int = 1, threads: int = 2,
+           screen: Solve, starts: int, seed: int, workers: int | DaskWorkers = 1, threads: int = 2,
            on_minimum: Callable[[Fit], IdentificationProblem] | None = None,
            store: str | Path | None = None, refined: int = REFINED, deepen: bool = True,
            priors: dict | None = None) -> Search:
@@ -350,29 +351,69 @@ def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: 
     convergence, a hop's solve.  ``on_minimum`` takes the lowest minimum and returns the problem the
     rest of the search solves (the same, or one without the trials an outlier test set aside).
     ``refined`` screened starts are refined; ``deepen=False`` leaves out the basin hopping (a
-    scatter fit's search, where the NLP is robust and the hops would only cost)."""
+    scatter fit's search, where the NLP is robust and the hops would only cost).  ``workers``:
+    forked processes, or a :class:`~kneenlp.base.dask_cluster.DaskWorkers` (each solve on a Dask
+    worker with one thread; the same solves, so the same answer)."""
     if not 1 <= starts <= MAX_STARTS:
         raise InputError(f"expected a whole number of starts from 1 to {MAX_STARTS}, got {starts}", field="--starts")
-    kept = Store(store)
     points = prior_starts(problem, centre, starts, seed, priors)
-    processes = max(1, min(workers, len(points)))
-    inner = max(1, threads // processes) if processes > 1 else threads
+    if not isinstance(workers, DaskWorkers):
+        processes = max(1, min(workers, len(points)))
+        inner = max(1, threads // processes) if processes > 1 else threads
+        return _search(problem, points, _Runner(Store(store), seed, starts, processes, inner), screen, refine, hop,
+                       on_minimum, refined, deepen)
+    from kneenlp.estimation.dask_solves import register_model
 
-    def run(prob: IdentificationProblem, stage: str, jobs: list[tuple[dict, np.ndarray | None]],
-            solve: Solve) -> list[Fit]:
-        keys = [fingerprint(prob, seed, starts, stage, i) for i in range(len(jobs))]
-        done = [kept.load(prob, k) for k in keys]
+    client, cluster = workers.connect()
+    try:
+        register_model(client, problem.model)
+        return _search(problem, points, _Runner(Store(store), seed, starts, client, 1), screen, refine, hop,
+                       on_minimum, refined, deepen)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+@dataclass(frozen=True)
+class _Runner:
+    """Runs a stage's solves: those the store holds read from it, the rest solved over ``workers``
+    (a number of forked processes, each solve with ``threads``, or a Dask client), each written to
+    the store as it finishes."""
+
+    store: Store
+    seed: int
+    starts: int
+    workers: object
+    threads: int
+
+    def __call__(self, prob: IdentificationProblem, stage: str, jobs: list[tuple[dict, np.ndarray | None]],
+                 solve: Solve) -> list[Fit]:
+        keys = [fingerprint(prob, self.seed, self.starts, stage, i) for i in range(len(jobs))]
+        done = [self.store.load(prob, k) for k in keys]
         todo = [i for i, d in enumerate(done) if d is None]
+        if not isinstance(self.workers, int):  # a Dask client
+            from kneenlp.estimation.dask_solves import dask_fits
+
+            for k, fit in dask_fits(self.workers, solve, prob, [jobs[i] for i in todo]):
+                self.store.save(keys[todo[k]], fit)
+                done[todo[k]] = fit
+            return done
 
         def work(i: int) -> Fit:
-            fit = solve(prob, jobs[i][0], jobs[i][1], inner)
-            kept.save(keys[i], fit)
+            fit = solve(prob, jobs[i][0], jobs[i][1], self.threads)
+            self.store.save(keys[i], fit)
             return fit
 
-        for i, fit in zip(todo, forked_fits(work, todo, processes, prob.model), strict=True):
+        for i, fit in zip(todo, forked_fits(work, todo, self.workers, prob.model), strict=True):
             done[i] = fit
         return done
 
+
+def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, screen: Solve, refine: Solve,
+            hop: Solve, on_minimum, refined: int, deepen: bool) -> Search:
+    """:func:`search`'s stages from the starts ``points``."""
+    seed, starts = run.seed, run.starts
     screened = run(problem, "screen", [(p, None) for p in points], screen)
     order = _ranked(screened, screened=True)[:refined]
     ends = [(f"start {i + 1}", f) for i, f in zip(order, run(

@@ -21,6 +21,7 @@ import dataclasses
 import numpy as np
 from scipy import stats
 
+from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.starts import best_fit, run_starts
 from kneenlp.experiment.problem import IdentificationProblem
@@ -84,7 +85,7 @@ SCATTER_SCREEN = 3
 
 
 def scatter_search(problem: IdentificationProblem, start: dict[str, float], *, starts: int, seed: int = 0,
-                   workers: int = 1, threads: int = 2, store: str | None = None) -> Fit:
+                   workers: int | DaskWorkers = 1, threads: int = 2, store: str | None = None) -> Fit:
     """The scatter strategy's fit by the global search (:mod:`~kneenlp.estimation.search`): the first
     scatter start (``start`` over it) and ``starts - 1`` Sobol points over the free parameters'
     priors (their defaults, centred on the knee's values, where the fit is least squares), each

@@ -99,6 +99,8 @@ class KneeModel:
                  measurement: Measurement | None = None):
         self.knee = knee
         extra = list(extra_elements or [])
+        #: the arguments that build this model again (in another process: a Dask worker)
+        self.arguments = (knee, extra, measurement)
         wrong = [e for e in extra if not isinstance(e, ForceElement | ExperimentPart)]
         if wrong:
             raise InputError(f"{type(wrong[0]).__name__} is neither a ForceElement nor an ExperimentPart",

@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from kneenlp.base import interrupts
 from kneenlp.base.atomic import write_text_atomic
+from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.base.errors import InputError, unknown_name
 
 if TYPE_CHECKING:
@@ -263,7 +264,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
 
         truths = StudyTruths.of(spec)
     # Dask first: a missing package or an unreachable scheduler writes nothing into ``out``
-    dask = _dask_client(scheduler, dask_local, workers) if scheduler or dask_local else None
+    dask = DaskWorkers(scheduler, workers).connect() if scheduler or dask_local else None
     study = Study(spec, Path(out))
     study.prepare()
     todo = study.pending()
@@ -283,23 +284,6 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
 
         analyse_study(study, truths)
     return study
-
-
-def _dask_client(scheduler: str | None, dask_local: bool, workers: int):
-    """(client, cluster or None): connected to ``scheduler`` or to a new local cluster."""
-    try:
-        from dask.distributed import Client, LocalCluster
-    except ImportError:
-        raise InputError("Dask is not installed: pip install 'kneenlp[dask]'",
-                         field="--scheduler" if scheduler else "--dask") from None
-    if scheduler:
-        try:
-            return Client(scheduler, timeout="20s"), None
-        except (OSError, TimeoutError, ValueError, TypeError) as exc:
-            raise InputError(f"cannot connect to the Dask scheduler {scheduler!r} ({type(exc).__name__}: {exc})",
-                             field="--scheduler") from None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
-    return Client(cluster), cluster
 
 
 def _execute(spec: StudySpec, todo: list[tuple[str, int]], workers: int, dask,

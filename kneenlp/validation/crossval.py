@@ -49,6 +49,7 @@ import pandas as pd
 from scipy import stats
 
 from kneenlp.base.conventions import coordinate_columns
+from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.estimation.calibrate import Calibration, calibrate, noise_per_observation, prediction_variances
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.experiment.kneemodel import KneeModel
@@ -372,18 +373,24 @@ def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str =
 
 
 def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None = None,
-                   reference_draws: int = 0, store: Path | None = None, workers: int = 1,
+                   reference_draws: int = 0, store: Path | None = None, workers: int | DaskWorkers = 1,
                    explain: bool = False, **calibrate_options) -> list[HeldOut]:
     """Every hold-out of :func:`folds` (or those named in ``which``), in order; with
     ``reference_draws`` N, each also on N twins of the experiment (:func:`twin_draw`), each draw
     written to ``store`` as it finishes and read back from there on a rerun (:class:`TwinStore`).
-    ``workers`` > 1 calibrates the hold-outs in that many forked processes (:func:`hold_outs`).
+    ``workers`` > 1 calibrates the hold-outs in that many forked processes (:func:`hold_outs`); a
+    :class:`~kneenlp.base.dask_cluster.DaskWorkers` calibrates them in turn, each global search
+    (``starts``) on Dask.
     ``explain``: each hold-out's :func:`lessons` too (one more calibration, of every trial)."""
     chosen = _chosen(data, which)
     names = [n for n, _ in chosen]
     # the store is checked before the first calibration: a store of another run stops at once
     saved = TwinStore.open(store, model, data, names, calibrate_options) if store and reference_draws else None
-    results = hold_outs(model, data, chosen, workers, **calibrate_options)
+    if isinstance(workers, DaskWorkers):  # the hold-outs in turn, each calibration's search on Dask
+        calibrate_options = calibrate_options | {"workers": workers}
+        results = [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
+    else:
+        results = hold_outs(model, data, chosen, workers, **calibrate_options)
     fit = calibrate(model, data, **calibrate_options).fit if explain else None
     for r in results if explain else ():
         r.taught.extend(lessons(r, fit, data))
