@@ -55,7 +55,7 @@ from kneenlp.model.effects import (
 from kneenlp.model.elements import ForceElement, Output, Part, Pose, StagedElement
 from kneenlp.model.kinematics import generalized_forces, joint_coordinates, tibial_pose
 from kneenlp.model.knee import Knee
-from kneenlp.model.parameters import Parameter, ParameterSet
+from kneenlp.model.parameters import Parameter, ParameterSet, with_unit
 from kneenlp.model.solvercache import SolverCache
 
 
@@ -65,20 +65,33 @@ def check_set_names(params, info: dict[str, Parameter]) -> None:
     for name in dict.fromkeys([*params.names(), *params.priors, *params.bounds, *params.free]):
         if name not in info:
             raise unknown_name("parameter", name, list(info), source=src).with_context(field=name)
+        fld = f"{params.table}.{name}"
         if name in params.values:  # every way of giving a value passes here: file, --parameters, calibration
             lo, hi = info[name].bounds
             if not lo <= params.values[name] <= hi:
                 f, unit = info[name].to_user, info[name].unit
                 where = "its bounds" if name in params.bounds else f"the range of a {info[name].meta.text}"
-                raise InputError(f"value {params.values[name] * f:g} {unit} outside {where} [{lo * f:g}, "
-                                 f"{hi * f:g}] {unit}", source=src,
-                                 field=f"values.{name}" + (".bounds" if name in params.bounds else ""))
+                raise InputError(f"value {with_unit(params.values[name] * f, unit)} outside {where} "
+                                 f"[{lo * f:g}, {hi * f:g}]" + ("" if unit == "1" else f" {unit}"), source=src,
+                                 field=fld + (".bounds" if name in params.bounds else ""))
         unit = params.meta.get(name)
         if unit is not None and unit not in dict(info[name].meta.file_units):
             raise InputError(f"unit {unit!r} does not suit {name} ({info[name].meta.text}); use one of "
-                             f"{', '.join(dict(info[name].meta.file_units))}", source=src, field=f"values.{name}")
+                             f"{', '.join(dict(info[name].meta.file_units))}", source=src, field=fld)
         if name in params.priors:
-            info[name].check_prior(params.priors[name], src, f"values.{name}.prior")
+            info[name].check_prior(params.priors[name], src, f"{fld}.prior")
+
+
+def check_sign(info: Parameter, lower: float, source: str | None, table: str) -> None:
+    """Declared bounds may move a parameter's range, not past a sign it cannot change: a lower bound
+    below 0 for a quantity that is never negative (a stiffness, a scale), or at 0 for one that is
+    always positive (a linear strain limit, a modulus)."""
+    own = info.bounds[0]
+    if (own >= 0 and lower < 0) or (own > 0 and lower <= 0):
+        f, unit = info.to_user, info.unit
+        raise InputError(f"lower bound {with_unit(lower * f, unit)} lets {info.name} be "
+                         f"{'negative' if lower < 0 else 'zero'}, which a {info.meta.text} cannot be (its range "
+                         f"starts at {with_unit(own * f, unit)})", source=source, field=f"{table}.{info.name}.bounds")
 
 
 #: How far (in units of a parameter's scale) a value given to the model may lie beyond its bounds:
@@ -128,6 +141,7 @@ class KneeModel:
                 params.setdefault(p.name, p)
         for name, (lo, hi) in knee.parameters.bounds.items():  # the parameter file's bounds replace the kind's
             if name in params:
+                check_sign(params[name], lo, knee.parameters.source or knee.parameters.name, knee.parameters.table)
                 params[name] = dataclasses.replace(params[name], lower=lo, upper=hi)
         self.parameters: list[Parameter] = list(params.values())
         check_set_names(knee.parameters, params)

@@ -195,6 +195,8 @@ class ParameterSet:
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     #: free flags declared in the file (``[values]``' ``free``): a fit's default free parameters
     free: dict[str, bool] = field(default_factory=dict)
+    #: the file's table its declarations came from, named in errors (``parameters`` of a problem file)
+    table: str = "values"
 
     def __getitem__(self, key: str) -> float:
         try:
@@ -215,7 +217,7 @@ class ParameterSet:
                 raise unknown_name("parameter", k, self.values)
         return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
                             name=self.name, source=self.source, description=self.description, meta=dict(self.meta),
-                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free))
+                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free), table=self.table)
 
     def with_values(self, values: Mapping[str, float], name: str | None = None,
                     description: str | None = None) -> ParameterSet:
@@ -224,7 +226,7 @@ class ParameterSet:
         return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
                             name=name or self.name, source=None,
                             description=self.description if description is None else description,
-                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free))
+                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free), table=self.table)
 
     def with_entries(self, entries: Entries, source: str | None = None) -> ParameterSet:
         """A copy with a parameter table's ``entries`` over this set's (values, units, priors,
@@ -232,7 +234,8 @@ class ParameterSet:
         return ParameterSet({**self.values, **entries.values}, name=self.name, source=source or self.source,
                             description=self.description, meta=dict(self.meta) | entries.units,
                             priors=dict(self.priors) | entries.priors, posterior=self.posterior,
-                            bounds=dict(self.bounds) | entries.bounds, free=dict(self.free) | entries.free)
+                            bounds=dict(self.bounds) | entries.bounds, free=dict(self.free) | entries.free,
+                            table=entries.section)
 
     def vector(self, names: Iterable[str]) -> list[float]:
         return [self[n] for n in names]
@@ -267,7 +270,9 @@ class ParameterSet:
         document against :data:`PARAMETER_FILE`, then every value in SI checked against its kind."""
         path = Path(path)
         src = str(path)
-        spec = validated(PARAMETER_FILE, read_toml(path), src)
+        document = read_toml(path)
+        check_quoted(document.get("values") if isinstance(document, dict) else None, src)
+        spec = validated(PARAMETER_FILE, document, src)
         factors = {kind: accepted[getattr(spec.units, kind) or DISPLAY_UNITS[kind]]
                    for kind, accepted in UNIT_FACTORS.items()}
         values: dict[str, float] = {}
@@ -317,6 +322,8 @@ class Entries:
     priors: dict[str, Prior] = field(default_factory=dict)
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     free: dict[str, bool] = field(default_factory=dict)
+    #: the table they were read from (errors name it)
+    section: str = "values"
 
 
 def read_entries(table: object, src: str, section: str = "values") -> Entries:
@@ -327,14 +334,40 @@ def read_entries(table: object, src: str, section: str = "values") -> Entries:
     ``value`` the knee's own value stays.  A calibration writes the parameters it fitted so
     (:meth:`ParameterSet.to_toml`).  The table is checked against
     :data:`~kneenlp.model.parameter_schema.Entries`, then converted to SI."""
+    check_quoted(table, src, section)
     return entries_in(validated(EntrySchema, table, src, prefix=(section,)), src, section)
 
 
+def with_unit(value: float, unit: str) -> str:
+    """``value`` and its unit for a message (a dimensionless ``1`` left out)."""
+    return f"{value:g}" if unit == "1" else f"{value:g} {unit}"
+
+
+def check_quoted(table: object, src: str, section: str = "values") -> None:
+    """Refuse an unquoted dotted name: TOML reads ``ACL.k = {...}`` as a table ``ACL`` holding ``k``."""
+    if not isinstance(table, dict):
+        return
+    for key, item in table.items():
+        if isinstance(item, dict) and item and not set(item) & ENTRY_KEYS and all(isinstance(v, dict)
+                                                                                 for v in item.values()):
+            inner = next(iter(item))
+            raise InputError(f'a parameter name with a dot must be quoted: "{key}.{inner}" = {{...}}, not '
+                             f"{key}.{inner} = {{...}}", source=src, field=f"{section}.{key}")
+
+
+#: The keys of one entry of a parameter table.
+ENTRY_KEYS = frozenset({"value", "unit", "prior", "bounds", "free"})
+
+
 def entries_in(table: dict[str, Entry], src: str, section: str = "values") -> Entries:
-    """A validated parameter table in SI (each unit known, bounds ordered, priors complete)."""
-    out = Entries()
+    """A validated parameter table in SI (each unit known, bounds ordered, priors complete, no prior
+    on a parameter declared not free)."""
+    out = Entries(section=section)
     for name, item in table.items():
         fld = f"{section}.{name}"
+        if item.free is False and item.prior is not None:
+            raise InputError("has a prior but free = false, so the prior would never be used: set free = true or "
+                             "drop the prior", source=src, field=fld)
         if not item.model_fields_set - {"unit"}:
             raise InputError(f'expected {{value = V, unit = "U"}} (and optionally prior = {{...}}, bounds = [L, U], '
                              f"free = true), got {item.model_dump(exclude_unset=True)!r}", source=src, field=fld)
