@@ -565,7 +565,7 @@ def test_twin_draws_are_stored_and_read_back(s192803, tmp_path):
     errors = {"valgus": np.random.default_rng(3).normal(size=(4, 5)), "flexion 87 deg": np.full((6, 5), 0.25)}
     errors["valgus"][2] = np.nan
     saved = TwinStore.open(tmp_path / "twins", model, data, list(errors), {"seed": 0})
-    assert saved.load(0) is None
+    assert saved.load(0) is None and not (tmp_path / "twins").exists()  # nothing before the first draw
     saved.save(0, errors)
     again = TwinStore.open(tmp_path / "twins", model, data, list(errors), {"seed": 0}).load(0)
     assert list(again) == list(errors)
@@ -962,6 +962,17 @@ def test_export_abaqus_cli_and_its_refusals(s192803, tmp_path, capsys):
         assert not (tmp_path / f"no{i}").exists()
     assert main([*args, "--out", str(tmp_path / "x"), "--model", str(tmp_path)]) == 2
     assert "ligaments/" in capsys.readouterr().err
+    # the export over its own model, or beside files it does not write: refused, nothing written
+    assert main([*args, "--out", str(DEPOSIT / ".." / DEPOSIT.name)]) == 2
+    assert "is the --model folder itself" in capsys.readouterr().err
+    assert main([*args, "--out", str(tmp_path / "fe")]) == 0  # again into its own export: fine
+    capsys.readouterr()
+    (tmp_path / "fe" / "notes.txt").write_text("mine")
+    before = sorted(p.stat().st_mtime_ns for p in (tmp_path / "fe").rglob("*") if p.is_file())
+    assert main([*args, "--out", str(tmp_path / "fe")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "does not write (e.g. notes.txt)" in err and "\n" not in err, err
+    assert sorted(p.stat().st_mtime_ns for p in (tmp_path / "fe").rglob("*") if p.is_file()) == before
 
 
 @needs_deposit

@@ -382,8 +382,17 @@ def cmd_export_osim(args) -> int:
 def cmd_export_abaqus(args) -> int:
     from kneenlp.io.export_abaqus import export_abaqus
 
+    if Path(args.out).resolve() == Path(args.model).resolve():
+        raise InputError("is the --model folder itself: the calibrated copy would overwrite the model it is made "
+                         "from; give another folder", source=args.out, field="--out")
     with staged_directory(args.out) as stage:
         report = export_abaqus(args.calibration, args.knee, args.model, stage.path)
+        stray = sorted({p.relative_to(args.out) for p in Path(args.out).rglob("*") if p.is_file()
+                        and stage.path not in p.parents} - {p.relative_to(stage.path) for p in stage.path.rglob("*")})
+        if stray:
+            raise InputError(f"holds {len(stray)} file(s) this export does not write (e.g. {stray[0]}), which would "
+                             "sit beside the calibrated model: give an empty or new folder", source=args.out,
+                             field="--out")
     report.out = Path(args.out)
     print(report.text())
     return 0

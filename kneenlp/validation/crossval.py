@@ -436,30 +436,29 @@ def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[
 class TwinStore:
     """Finished twin draws in a directory: ``draw_<n>.csv`` (hold-out, row within it and errors,
     mm and deg), and ``run.json`` naming the run (knee and its parameters, data, hold-outs,
-    options) so that a store of another run is refused, never mixed in."""
+    options) so that a store of another run is refused, never mixed in.  Nothing is written before
+    the first draw finishes (an interrupted run with none leaves no file)."""
 
     path: Path
+    #: what ``run.json`` holds
+    identity: dict
 
     @classmethod
     def open(cls, path: Path, model: KneeModel, data: MeasuredData, names: list[str], options: dict) -> TwinStore:
-        """The store at ``path`` for this run, created if new; another run's is an
+        """The store at ``path`` for this run (written with its first draw); another run's is an
         :class:`~kneenlp.base.errors.InputError`."""
-        from kneenlp.base.atomic import write_text_atomic
         from kneenlp.base.errors import InputError
 
         path = Path(path)
         identity = {"knee": model.knee.name, "parameters": np.round(model.theta(), 12).tolist(),
                     "trials": [t.id for t in data.trials], "measured": np.round(data.q_user, 9).tolist(),
                     "hold_outs": names, "options": {k: v for k, v in sorted(options.items()) if v is not None}}
+        identity = json.loads(json.dumps(identity))
         stamp = path / "run.json"
-        if stamp.is_file():
-            if json.loads(stamp.read_text()) != json.loads(json.dumps(identity)):
-                raise InputError("holds the twins of another run (knee, data, hold-outs or options differ); remove "
-                                 "it or write elsewhere", source=str(path), field="--out")
-        else:
-            path.mkdir(parents=True, exist_ok=True)
-            write_text_atomic(stamp, json.dumps(identity))
-        return cls(path)
+        if stamp.is_file() and json.loads(stamp.read_text()) != identity:
+            raise InputError("holds the twins of another run (knee, data, hold-outs or options differ); remove "
+                             "it or write elsewhere", source=str(path), field="--out")
+        return cls(path, identity)
 
     def load(self, draw: int) -> dict[str, np.ndarray] | None:
         """The held-out errors of finished draw ``draw`` by hold-out name (None: not finished)."""
@@ -470,8 +469,12 @@ class TwinStore:
         return {n: g.sort_values("row")[columns].to_numpy(float) for n, g in table.groupby("held_out", sort=False)}
 
     def save(self, draw: int, errors: dict[str, np.ndarray]) -> None:
-        """Write draw ``draw``'s held-out errors, atomically."""
-        from kneenlp.base.atomic import write_csv_atomic
+        """Write draw ``draw``'s held-out errors, atomically (``run.json`` first, with the first draw)."""
+        from kneenlp.base.atomic import write_csv_atomic, write_text_atomic
+
+        if not (self.path / "run.json").is_file():
+            self.path.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(self.path / "run.json", json.dumps(self.identity))
 
         columns = coordinate_columns()
         rows = [{"held_out": n, "row": i, **dict(zip(columns, e, strict=True))}
