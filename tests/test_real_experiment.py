@@ -1054,3 +1054,24 @@ def test_what_the_held_out_trials_teach_brings_their_prediction_closer(s192803):
     text = crossval.report([r])
     assert "alone teach" in text and first.name in text and "prior sd" in text
     assert first.name in crossval.table([r]).loc[0, "taught"]
+
+
+def test_hold_outs_that_leave_nothing_loaded_are_not_folds(tmp_path, capsys):
+    """Four anterior trials at 197 N (one direction, four flexions): holding out 'anterior' would
+    leave no loaded trial, so the only fold is the highest flexion; asked for by name it is refused
+    in one line, and one trial alone has no fold at all."""
+    from kneenlp.base.errors import InputError
+    from kneenlp.validation import crossval
+
+    data = read_measured(CSV)
+    anterior = data.subset(np.array([t.id.startswith("anterior_") for t in data.trials]))
+    assert len(anterior.trials) == 4
+    assert [name for name, _ in crossval.folds(anterior)] == ["flexion 87 deg"]
+    path = tmp_path / "anterior.csv"
+    frame = pd.read_csv(CSV)
+    frame[frame["trial"].str.startswith("anterior_")].to_csv(path, index=False)
+    assert main(["cross-validate", str(path), "--knee", "s192803", "--hold-out", "anterior"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "hold-out 'anterior' leaves no loaded trial to calibrate on" in err and "\n" not in err
+    with pytest.raises(InputError, match="no hold-out leaves loaded trials"):
+        crossval.cross_validate(KneeModel.of(kneenlp.Knee.named("s192803")), anterior.subset(np.arange(4) == 0))

@@ -65,7 +65,12 @@ TRANSLATION_TARGET = 2.0
 
 
 def folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
-    """(name, held-out mask) of the highest-flexion hold-out and of every loaded direction."""
+    """(name, held-out mask) of the highest-flexion hold-out and of every loaded direction, those
+    that leave a loaded trial to calibrate on (:func:`calibrates`)."""
+    return [(name, held) for name, held in _default_folds(data) if calibrates(data, held)]
+
+
+def _default_folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
     nominal = flexion_groups(data.trials)
     top = nominal == nominal.max()
     out = [(f"flexion {nominal.max():.0f} deg", top)]
@@ -74,6 +79,12 @@ def folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
         if word != "none":
             out.append((word, words == word))
     return out
+
+
+def calibrates(data: MeasuredData, held: np.ndarray) -> bool:
+    """The hold-out ``held`` holds out some trials and leaves some loaded ones to calibrate on."""
+    loaded = np.array([t.dominant != "none" for t in data.trials])
+    return bool(held.any() and (loaded & ~held).any())
 
 
 @dataclass
@@ -493,15 +504,21 @@ def flexion_folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
 def _chosen(data: MeasuredData, which: list[str] | None) -> list[tuple[str, np.ndarray]]:
     """The hold-outs of :func:`folds` named in ``which`` (all of them if None), or any flexion of
     :func:`flexion_folds`; an unknown name is an error."""
+    from kneenlp.base.errors import InputError, unknown_name
+
     chosen = folds(data)
     if which is not None:
-        known = dict(flexion_folds(data)) | dict(chosen)
+        known = dict(flexion_folds(data)) | dict(_default_folds(data))
         unknown = [w for w in which if w not in known]
         if unknown:
-            from kneenlp.base.errors import unknown_name
-
             raise unknown_name("hold-out", unknown[0], list(known))
         chosen = [(n, known[n]) for n in dict.fromkeys(which)]
+        for name, held in chosen:
+            if not calibrates(data, held):
+                raise InputError(f"hold-out {name!r} leaves no loaded trial to calibrate on", field="--hold-out")
+    if not chosen:
+        raise InputError("no hold-out leaves loaded trials to calibrate on: cross-validation needs trials at two "
+                         "flexions or in two load directions", source=data.source, field="data")
     return chosen
 
 
