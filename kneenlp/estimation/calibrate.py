@@ -462,10 +462,10 @@ def on_loading_path(fit: Fit) -> Fit:
     reaches (so that ``predict`` of the very trials fitted differs from the fit).  The trial was
     loaded from neutral: the search ranks the minima with every trial on the loading path first
     (:mod:`~kneenlp.estimation.search`).  Solving again from the loading path's poses did not help:
-    the NLP went back to another branch in every case tried.  Bounding every pose to 2 mm / 2 deg
-    about the loading path's (16 starts) left 1 of 11 converged ends on it, at MAP objectives 370-428
-    against 292-303 with free poses: the data sit on equilibria that loading from neutral does not
-    reach, a misfit of the model (the apparatus' neutral zone, docs/status.md), not of the search."""
+    the NLP went back to another branch in every case tried, and bounding every pose to 2 mm / 2 deg
+    about the loading path's (16 starts, 25 trials) left 1 of 11 converged ends on it (MAP
+    objectives 370-428; free poses 362-395): as the parameters move, the loading path's branch moves
+    with them.  The equilibria in question lie 0.1-1.5 mm or deg apart (the knee's neutral zone)."""
     check = predict(fit.problem.model, fit.data, fit.params)
     off = tuple(t.id for t, o in zip(fit.data.trials, off_loading_path(fit, check), strict=True) if o)
     return dataclasses.replace(fit, off_path=off)
