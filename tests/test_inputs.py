@@ -74,6 +74,10 @@ def test_unknown_ligament_and_units_in_parameter_set(tmp_path, knee_copy):
     bad.write_text(text.replace('ref_strain = "%"', 'ref_strain = "fraction"'))
     with pytest.raises(InputError, match=r"units\.ref_strain: unit 'fraction' not accepted"):
         ParameterSet.load(bad)
+    # a misnamed property is named as unknown, not as the property it should have been
+    bad.write_text(text.replace("k = 10000.0", "stiffness = 10000.0", 1))
+    with pytest.raises(InputError, match=r"ligaments\.ACL\.stiffness: unknown key 'stiffness'; known: k, ref_strain"):
+        ParameterSet.load(bad)
 
 
 def test_protocol_errors(tmp_path):

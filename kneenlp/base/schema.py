@@ -102,8 +102,10 @@ def validated(schema: type[M] | Any, doc: object, source: str | None, *, prefix:
 
 
 def input_error(exc: ValidationError, model: Any, source: str | None, prefix: tuple = ()) -> InputError:
-    """The first error of ``exc`` (validating the schema ``model``) as an :class:`InputError`."""
-    err = exc.errors(include_url=False)[0]
+    """The first error of ``exc`` (validating the schema ``model``) as an :class:`InputError`; an
+    unknown key first of all (``stiffness = 1e4`` for ``k`` is a misnamed ``k``, not a missing one)."""
+    errors = exc.errors(include_url=False)
+    err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
     loc = tuple(p for p in err["loc"] if p != "[key]")
     ctx = err.get("ctx") or {}
     if ctx.get("key"):
