@@ -564,3 +564,18 @@ def test_forces_in_kilonewtons_are_named(tmp_path):
     with pytest.raises(kneenlp.InputError, match="kN in the _N columns") as err:
         read_measured(tmp_path / "kn.csv")
     assert err.value.field == "anterior_force_N"
+    # the real experiment's loads are never exactly zero and its flexions scatter: the pull of each
+    # load along its displacement still names the unit, forces alone or every load in kN
+    import pandas as pd
+
+    from kneenlp.base.resources import resource
+
+    real = pd.read_csv(resource("datasets", "s192803_laxity.csv"))
+    for columns, field in ((["anterior_force_N", "lateral_force_N", "proximal_force_N"], "anterior_force_N"),
+                           ([c for c in real.columns if c.endswith(("_N", "_Nm"))], None)):
+        slipped = real.copy()
+        slipped[columns] = slipped[columns] / 1000
+        slipped.to_csv(tmp_path / "real_kn.csv", index=False)
+        with pytest.raises(kneenlp.InputError, match=r"along itself.*kN in the _N columns") as err:
+            read_measured(tmp_path / "real_kn.csv")
+        assert field is None or err.value.field == field

@@ -80,7 +80,15 @@ from kneenlp.base.conventions import (
     load_columns,
 )
 from kneenlp.base.errors import InputError
-from kneenlp.experiment.protocol import FLEXION_RANGE, Protocol, Trial, available_protocols, check_load
+from kneenlp.experiment.protocol import (
+    FLEXION_RANGE,
+    TYPICAL,
+    Protocol,
+    Trial,
+    available_protocols,
+    check_load,
+    nominal_flexions,
+)
 
 REQUIRED = ["trial", "flexion_deg", *load_columns(), *coordinate_columns()]
 OPTIONAL_LOADS = load_columns(extra=True)[len(LOAD_COMPONENTS):]
@@ -361,26 +369,53 @@ def check_plausible(df: pd.DataFrame, src: str) -> None:
                          source=src, field=rots[int(np.argmax(r.max(axis=0)))])
 
 
-#: A trial whose anterior translation moved this far (mm) from the unloaded pose at its flexion under
-#: a force below 1 N and moments below :data:`QUIET_MOMENT_NM` had its force given in kN.
+#: A row under loads below 1 N and :data:`QUIET_MOMENT_NM` that moved this far (mm or deg) from the
+#: quietest row of its flexion, along its own load, was loaded in another unit (kN under ``_N``).
 KN_SLIP_MM = 1.0
 QUIET_MOMENT_NM = 0.1
+#: Each load component and the coordinate it pulls along (the same sign: an anterior force moves
+#: the tibia anteriorly, a varus moment into varus).
+PULLS = {"anterior_force_N": "anterior_translation_mm", "lateral_force_N": "lateral_translation_mm",
+         "varus_moment_Nm": "varus_rotation_deg", "internal_moment_Nm": "internal_rotation_deg"}
+#: Rows that must have moved along their loads before the loads are called 1000 times too small.
+SLIPPED_ROWS = 3
 
 
 def _check_force_unit(df: pd.DataFrame, src: str, force: np.ndarray, moment: np.ndarray) -> None:
-    """Forces in N, as moments are checked in N m: a row pushed away from the unloaded pose of its
-    flexion (a row with every load exactly zero) by a force below 1 N and no moment is a force in kN."""
-    loads = np.abs(df[[c for c in load_columns(extra=True) if c in df.columns]].to_numpy())
-    unloaded = ~loads.any(axis=1)
-    anterior = df["anterior_translation_mm"].to_numpy()
-    flexion = df["flexion_deg"].to_numpy()
-    suspect = (force > 0) & (force < 1.0) & (moment < QUIET_MOMENT_NM)
-    for i in np.flatnonzero(suspect):
-        same = unloaded & (np.abs(flexion - flexion[i]) < 0.5)
-        if same.any() and np.abs(anterior[i] - anterior[same]).min() > KN_SLIP_MM:
-            raise InputError(f"row {i + 2}: a force of {force[i]:g} N moved the tibia "
-                             f"{np.abs(anterior[i] - anterior[same]).min():.3g} mm from its unloaded pose: kN in the "
-                             "_N columns? Give forces in N", source=src, field="anterior_force_N")
+    """Forces in N and moments in N m, judged by the pull of each load against its displacement.
+    At one flexion (a robot's scatter of a few degrees included), rows whose loads are all below
+    1 N and :data:`QUIET_MOMENT_NM` are compared with the quietest row: if, with the forces (or
+    every load) read as 1000 times larger, at least :data:`SLIPPED_ROWS` of them moved more than
+    :data:`KN_SLIP_MM` along their largest load and at most a quarter as many against it, the
+    loads were given in kN (or kN m).  A knee's neutral zone moves an unloaded pose too, but not
+    along the noise of its load cell."""
+    columns = [c for c in PULLS if c in df.columns]
+    loads = df[columns].to_numpy(float)
+    typical = np.array([TYPICAL[c.rsplit("_", 1)[0]] for c in columns])
+    forces = np.array([c.endswith("_N") for c in columns])
+    quiet = (force < 1.0) & (moment < QUIET_MOMENT_NM)
+    nominal = nominal_flexions(df["flexion_deg"].to_numpy(float))
+    for scaled in (forces, np.ones_like(forces)):  # kN under _N; kN and kN m
+        rel = np.abs(loads) * np.where(scaled, 1000.0, 1.0) / typical
+        along, against = [], 0
+        for flexion in np.unique(nominal):
+            rows = np.flatnonzero(nominal == flexion)
+            reference = rows[np.argmin(rel[rows].max(axis=1))]
+            for i in rows[quiet[rows] & (rows != reference)]:
+                c = int(np.argmax(rel[i]))
+                moved = df[PULLS[columns[c]]].iloc[i] - df[PULLS[columns[c]]].iloc[reference]
+                if abs(moved) > KN_SLIP_MM and loads[i, c] != 0:
+                    if np.sign(moved) == np.sign(loads[i, c]):
+                        along.append((i, columns[c], float(loads[i, c]), float(moved)))
+                    else:
+                        against += 1
+        if len(along) >= SLIPPED_ROWS and 4 * against <= len(along):
+            i, col, load, moved = max(along, key=lambda a: abs(a[3]))
+            unit = col.rsplit("_", 1)[1].replace("Nm", "N m")
+            raise InputError(f"row {i + 2}: {load:g} {unit} moved the tibia {abs(moved):.3g} "
+                             f"{PULLS[col].rsplit('_', 1)[1]} along itself, as {len(along) - 1} more row(s) did: kN in "
+                             "the _N columns (kN m in _Nm)? Give forces in N and moments in N m", source=src,
+                             field=col)
 
 
 def _check_protocol_name(data: MeasuredData, path: Path) -> None:

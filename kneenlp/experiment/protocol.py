@@ -129,10 +129,15 @@ FLEXION_GAP_DEG = 3.0
 
 
 def flexion_groups(trials) -> np.ndarray:
-    """Each trial's nominal flexion (deg): the mean measured flexion of its group, the trials sorted
-    by flexion and split where consecutive ones differ by more than :data:`FLEXION_GAP_DEG`.  A
-    protocol's exact flexions are their own groups."""
-    flexion = np.array([t.flexion_deg for t in trials], float)
+    """Each trial's nominal flexion (deg): :func:`nominal_flexions` of their measured flexions."""
+    return nominal_flexions(np.array([t.flexion_deg for t in trials], float))
+
+
+def nominal_flexions(flexion: np.ndarray) -> np.ndarray:
+    """Each measured flexion's nominal one (deg): the mean of its group, the flexions sorted and split
+    where consecutive ones differ by more than :data:`FLEXION_GAP_DEG`.  A protocol's exact
+    flexions are their own groups."""
+    flexion = np.asarray(flexion, float)
     order = np.argsort(flexion, kind="stable")
     out = np.empty_like(flexion)
     start = 0
