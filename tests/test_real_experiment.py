@@ -1075,3 +1075,23 @@ def test_hold_outs_that_leave_nothing_loaded_are_not_folds(tmp_path, capsys):
     assert "hold-out 'anterior' leaves no loaded trial to calibrate on" in err and "\n" not in err
     with pytest.raises(InputError, match="no hold-out leaves loaded trials"):
         crossval.cross_validate(KneeModel.of(kneenlp.Knee.named("s192803")), anterior.subset(np.arange(4) == 0))
+
+
+@needs_deposit
+def test_import_abaqus_refuses_a_wrong_side_and_swapped_bone_nodes(tmp_path, capsys):
+    """The deposit (a left knee) imported as --side right, or with the femur and tibia reference
+    nodes of LIGS-ATTACH.inp swapped (every fibre's ends on the other bone): exit 2, one line naming
+    the cause (the collaterals on the wrong side; the fibres' ends against the bones), no knee written."""
+    assert main(["import-abaqus", str(DEPOSIT), "--out", str(tmp_path / "right"), "--side", "right"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "lateral collateral ligaments" in err and "(--side left)" in err and "\n" not in err, err
+    assert not (tmp_path / "right").exists()
+    swapped = tmp_path / "deposit"
+    shutil.copytree(DEPOSIT, swapped)
+    attach = swapped / "ligaments" / "LIGS-ATTACH.inp"
+    text = attach.read_text().replace("1900000", "@").replace("1200000", "1900000").replace("@", "1200000")
+    attach.write_text(text)
+    assert main(["import-abaqus", str(swapped), "--out", str(tmp_path / "sw"), "--side", "left"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "30 of 31 fibres have their femoral end on the tibia's bone" in err and "LIGS-ATTACH.inp" in err, err
+    assert not (tmp_path / "sw").exists()
