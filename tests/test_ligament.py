@@ -1,7 +1,7 @@
 import casadi as ca
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kneenlp.experiment.kneemodel import KneeModel
@@ -19,6 +19,7 @@ def paper_eq1(eps, k, eps_l):
     return k * (eps - eps_l)
 
 
+@settings(deadline=None, derandomize=True)  # a timing deadline fails a loaded CI machine, not the law
 @given(st.floats(-0.2, 0.3), st.floats(100.0, 30000.0), st.floats(0.01, 0.06))
 def test_casadi_law_matches_eq1_everywhere_outside_kink_band(eps, k, eps_l):
     if min(abs(eps), abs(eps - 2 * eps_l)) < 1e-4:

@@ -6,7 +6,7 @@ expression trees in the .nl prefix notation; every node used more than once beco
 variable* (a ``V`` segment, declared as a common expression), so the file grows linearly with
 the graph.  ``fmin``/``fmax`` are written with ``abs`` (``(a + b -+ |a - b|) / 2``), which every
 .nl reader supports (CasADi's own importer has no min/max or if-then-else).  Operations that have
-no .nl counterpart (comparisons, conditionals) raise a clear error.
+no .nl counterpart (comparisons, conditionals) raise a one-line InputError.
 
 Variables must be ordered as .nl requires: those nonlinear in both constraints and objective
 first (``n_both``), then those nonlinear in constraints only.  All terms are written in the
@@ -25,6 +25,7 @@ import casadi as ca
 import numpy as np
 
 from kneenlp.base.atomic import atomic_target, write_text_atomic
+from kneenlp.base.errors import InputError
 
 _BINARY = {ca.OP_ADD: "o0", ca.OP_SUB: "o1", ca.OP_MUL: "o2", ca.OP_DIV: "o3", ca.OP_POW: "o5",
            ca.OP_CONSTPOW: "o5", ca.OP_ATAN2: "o48"}
@@ -67,7 +68,9 @@ class _Graph:
             else:
                 if op not in _BINARY and op not in _UNARY and op not in (
                         ca.OP_SQ, ca.OP_TWICE, ca.OP_INV, ca.OP_FMIN, ca.OP_FMAX, ca.OP_LOG1P, ca.OP_EXPM1):
-                    raise ValueError(f"operation {_OP_NAMES.get(op, op)} has no .nl equivalent")
+                    raise InputError(f"the .nl format has no {_OP_NAMES.get(op, op)} (a comparison or conditional; a "
+                                     "ligament path that wraps an obstacle needs one): export --format casadi or c",
+                                     field="--format")
                 children = [reg[w] for w in ins[: (2 if op in _BINARY or op in (ca.OP_FMIN, ca.OP_FMAX) else 1)]]
                 for c in children:
                     # min/max use each operand twice: make them defined variables

@@ -7,6 +7,7 @@ described in :mod:`kneenlp.model.knee` and docs/inputs.md."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from pathlib import Path
 
@@ -40,10 +41,11 @@ from kneenlp.model.articular import (
 )
 from kneenlp.model.frames import Frame, angle_deg, axes_from_flexion, landmark_axes
 from kneenlp.model.kinematics import reference_transform
-from kneenlp.model.knee_schema import BundleTable, KneeDocument, SlackShiftTable
+from kneenlp.model.knee_schema import BundleTable, KneeDocument, SlackShiftTable, WrapTable
 from kneenlp.model.laws import DEFAULT_LAW, DEFAULT_PRESSURE_LAW, law_named
 from kneenlp.model.ligament import Bundle, Ligament, SlackShift
 from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, UNIT_FACTORS, ParameterSet
+from kneenlp.model.paths import CylinderWrap, LigamentPath, StraightPath
 
 #: Ligament names (prefixes, upper case) on the medial and the lateral side of the knee, the
 #: evidence :meth:`KneeFile.check_side` weighs against the declared side.
@@ -59,7 +61,8 @@ KNEE_SIZE_RANGE = (5e-3, 0.5)
 #: cartilage on a bone surface and the distance field's grid.  A value outside is a unit slip (a
 #: gate of 0.01 "mm" in a metre knee is 10 mm) or, for the grid, a field too coarse to represent
 #: cartilage or too fine to fit in memory.
-PLAUSIBLE_MM = {"gate": (1e-4, 0.1), "femur_offset": (0.0, 6.0), "grid_spacing": (0.05, 2.0)}
+PLAUSIBLE_MM = {"gate": (1e-4, 0.1), "femur_offset": (0.0, 6.0), "grid_spacing": (0.05, 2.0),
+                "wrap_radius": (0.5, 60.0)}
 #: Longest plausible ligament (m, attachment distance in the reference pose; the superficial MCL
 #: is about 0.1 m): attachments further apart are a typo or mixed units.
 MAX_LIGAMENT_LENGTH = 0.3
@@ -643,16 +646,29 @@ class KneeFile:
         for name, lig in self.spec.ligaments.items():
             fld = f"ligaments.{name}"
             law = law_named(lig.law if lig.law is not None else DEFAULT_LAW, source=self.src, field=f"{fld}.law")
+            path = self.wrap(lig.wrap, f"{fld}.wrap")
             if lig.bundles is not None:
-                ligaments[name] = Ligament(name, self.bundles(lig.bundles, f"{fld}.bundles"),
-                                           reference=self.reference, law=law,
+                bundles = [dataclasses.replace(b, path=path) for b in self.bundles(lig.bundles, f"{fld}.bundles")]
+                ligaments[name] = Ligament(name, bundles, reference=self.reference, law=law,
                                            shift=self.slack_shift(lig.slack_shift, f"{fld}.slack_shift"))
                 continue
             femur, tibia = self.point(lig.femur), self.point(lig.tibia)
             self.check_length(femur, tibia, fld)
             self.attach(femur, tibia, f"{fld}.femur", f"{fld}.tibia")
-            ligaments[name] = Ligament(name, [Bundle(femur, tibia)], reference=self.reference, law=law)
+            ligaments[name] = Ligament(name, [Bundle(femur, tibia, path=path)], reference=self.reference, law=law)
         return ligaments
+
+    def wrap(self, table: WrapTable | None, fld: str) -> LigamentPath:
+        """``[ligaments.<NAME>.wrap]``: the cylinder a ligament's paths wrap, in the model's frames (m;
+        a left knee mirrored, which turns the side), or the straight path."""
+        if table is None:
+            return StraightPath()
+        axis = self.point(table.axis) - self.point((0.0, 0.0, 0.0))
+        if not np.linalg.norm(axis) > 0:
+            raise InputError("must not be zero", source=self.src, field=f"{fld}.axis")
+        side = (1 if table.side == "positive" else -1) * int(self.mirror[2])
+        return CylinderWrap(self.point(table.centre), axis, self.length(table.radius, "wrap_radius", 10.0,
+                                                                         f"{fld}.radius"), table.body, side)
 
     def slack_shift(self, table: SlackShiftTable | None, fld: str) -> SlackShift | None:
         """``[ligaments.<NAME>.slack_shift]``: the group's length (file unit -> m) and reference strain

@@ -132,15 +132,30 @@ class SlackShiftTable(Table):
     ref_strain: Number = Field(description="the group's reference strain (%)")
 
 
+class WrapTable(Table):
+    """``[ligaments.<NAME>.wrap]``: every bundle's path wraps a cylinder (:class:`kneenlp.model.paths.
+    CylinderWrap`) fixed to ``body``, through ``centre`` along ``axis`` (that body's frame, file
+    unit), of ``radius``, passed on ``side`` (``positive``: counterclockwise about the axis going
+    from the tibial to the femoral attachment)."""
+
+    body: Literal["femur", "tibia"] = Field(description='body ("femur" or "tibia")')
+    centre: Point = Field(description="centre (a point of the axis)")
+    axis: Point = Field(description="axis direction")
+    radius: Number = Field(description="radius (file unit)")
+    side: Literal["positive", "negative"] = Field(description='side ("positive" or "negative")')
+
+
 class LigamentTable(Table):
     """``[ligaments.<NAME>]``: one bundle's attachments (femur in the femoral frame, tibia in the
-    tibial one) or ``bundles`` (and how their slack moves, ``slack_shift``), and the law."""
+    tibial one) or ``bundles`` (and how their slack moves, ``slack_shift``), the law and, given,
+    the cylinder every bundle's path wraps (``wrap``; straight paths by default)."""
 
     femur: Point | None = None
     tibia: Point | None = None
     bundles: list[BundleTable] | None = Field(None, min_length=1)
     slack_shift: SlackShiftTable | None = None
     law: str | None = None
+    wrap: WrapTable | None = None
 
     @model_validator(mode="after")
     def _attachments(self) -> LigamentTable:

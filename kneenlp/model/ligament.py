@@ -33,7 +33,7 @@ adequacy frees them as geometry candidates (:func:`kneenlp.model.effects.attachm
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
@@ -41,6 +41,7 @@ import numpy as np
 from kneenlp.model.elements import ForceElement, Output, Pose
 from kneenlp.model.laws import NUMPY, LigamentLaw, ToeLinearLaw
 from kneenlp.model.parameters import LIGAMENT_KINDS, Parameter, ligament_parameters
+from kneenlp.model.paths import LigamentPath, StraightPath
 
 
 def force_strain(eps, k, eps_l):
@@ -122,6 +123,8 @@ class Bundle:
     stiffness: float | None = None
     ref_strain: float | None = None
     lin_strain: float | None = None
+    #: how it runs between the attachments (:mod:`kneenlp.model.paths`; straight by default)
+    path: LigamentPath = field(default_factory=StraightPath)
 
     @property
     def reference_length(self) -> float:
@@ -186,8 +189,10 @@ class Ligament(ForceElement):
         return R @ np.asarray(point, float) + p
 
     def bundle_length(self, b: Bundle) -> float:
-        """Length (m) of bundle ``b`` in the reference pose."""
-        return float(np.linalg.norm(np.asarray(b.femur) - self.tibia_at_reference(b.tibia)))
+        """Length (m) of bundle ``b`` in the reference pose (along its path)."""
+        if isinstance(b.path, StraightPath):
+            return float(np.linalg.norm(np.asarray(b.femur) - self.tibia_at_reference(b.tibia)))
+        return b.path.length(b.femur, b.tibia, *self.reference)
 
     def parameters(self) -> list[Parameter]:
         shifts = [] if self.candidate else attachment_parameters(self.name)
@@ -226,13 +231,12 @@ class Ligament(ForceElement):
             scale, offset = values[f"{self.name}.k_scale"], values[f"{self.name}.ref_strain_offset"]
         else:
             own = {kind: values[f"{self.name}.{kind}"] for kind in LIGAMENT_KINDS}
-        R_ref, p_ref = ca.DM(self.reference[0]), ca.DM(self.reference[1])
+        at_reference = Pose(ca.DM(self.reference[0]), ca.DM(self.reference[1]), ca.DM.zeros(5), ca.DM(0))
         for b in self.bundles:
             femur, tibia = ca.DM(b.femur) + shift_f, ca.DM(b.tibia) + shift_t
-            reference = ca.norm_2(femur - (R_ref @ tibia + p_ref)) if not self.candidate else self.bundle_length(b)
-            arm = pose.R @ tibia
-            u = femur - (pose.p + arm)
-            length = ca.norm_2(u)
+            reference = b.path.route(femur, tibia, at_reference).length if not self.candidate else self.bundle_length(b)
+            route = b.path.route(femur, tibia, pose)
+            length = route.length
             if self.grouped:
                 slack, k, lin = bundle_law(b, self.bundle_length(b), reference, scale, offset, self.shift)
                 strain = length / slack - 1
@@ -240,7 +244,7 @@ class Ligament(ForceElement):
             else:
                 strain = length / slack_length(reference, own["ref_strain"]) - 1
                 tension = self.law.tension(strain, own["k"], own["lin_strain"])
-            yield arm, u / length, strain, tension
+            yield route.arm, route.direction, strain, tension
 
     def wrench(self, pose: Pose, values: dict) -> tuple[ca.SX, ca.SX]:
         force, moment = ca.SX.zeros(3), ca.SX.zeros(3)
