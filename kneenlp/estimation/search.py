@@ -357,22 +357,22 @@ def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: 
     if not 1 <= starts <= MAX_STARTS:
         raise InputError(f"expected a whole number of starts from 1 to {MAX_STARTS}, got {starts}", field="--starts")
     points = prior_starts(problem, centre, starts, seed, priors)
-    if not isinstance(workers, DaskWorkers):
-        processes = max(1, min(workers, len(points)))
-        inner = max(1, threads // processes) if processes > 1 else threads
-        return _search(problem, points, _Runner(Store(store), seed, starts, processes, inner), screen, refine, hop,
-                       on_minimum, refined, deepen)
-    from kneenlp.estimation.dask_solves import register_model
-
-    client, cluster = workers.connect()
+    client, cluster = workers.connect() if isinstance(workers, DaskWorkers) else (None, None)
     try:
-        register_model(client, problem.model)
-        return _search(problem, points, _Runner(Store(store), seed, starts, client, 1), screen, refine, hop,
-                       on_minimum, refined, deepen)
+        if client is None:
+            processes = max(1, min(workers, len(points)))
+            inner = max(1, threads // processes) if processes > 1 else threads
+            run = _Runner(Store(store), seed, starts, processes, inner)
+        else:
+            from kneenlp.estimation.dask_solves import register_model
+
+            register_model(client, problem.model)
+            run = _Runner(Store(store), seed, starts, client, 1)
+        return _search(problem, points, run, screen, refine, hop, on_minimum, refined, deepen)
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        for part in (client, cluster):
+            if part is not None:
+                part.close()
 
 
 @dataclass(frozen=True)
