@@ -4,6 +4,7 @@ the switch from straight to wrapped, and a knee file's wrapping ligament."""
 
 from __future__ import annotations
 
+import itertools
 import shutil
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from scipy.optimize import minimize
 import kneenlp
 from kneenlp.base.errors import InputError
 from kneenlp.model.elements import Pose
-from kneenlp.model.paths import CylinderWrap, StraightPath
+from kneenlp.model.paths import CylinderWrap, StraightPath, ViaPoints
 
 
 def shortest_about(S: np.ndarray, E: np.ndarray, w: CylinderWrap) -> float:
@@ -80,6 +81,16 @@ def test_the_wrapped_length_is_the_shortest_path_about_the_cylinder(case):
         assert length == pytest.approx(shortest_about(S, E, w), rel=1e-6)
 
 
+def test_via_points_sum_their_segments():
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    p, tibia, femur = np.array([0.001, -0.002, 0.0]), np.array([0.01, -0.03, 0.0]), np.array([0.0, 0.01, 0.02])
+    path = ViaPoints(tibia=((0.01, -0.02, 0.005),), femur=((0.004, -0.004, 0.01),))
+    chain = [p + R @ tibia, p + R @ np.array([0.01, -0.02, 0.005]), np.array([0.004, -0.004, 0.01]), femur]
+    expected = sum(np.linalg.norm(b - a) for a, b in itertools.pairwise(chain))
+    assert path.length(femur, tibia, R, p) == pytest.approx(expected, rel=1e-14)
+    assert ViaPoints().length(femur, tibia, R, p) == pytest.approx(StraightPath().length(femur, tibia, R, p), rel=1e-15)
+
+
 def test_a_path_clear_of_the_cylinder_is_the_straight_line():
     w = CylinderWrap(np.zeros(3), [0, 0, 1], 0.01, "femur", 1)
     S, E = np.array([0.03, 0.02, -0.02]), np.array([-0.03, 0.025, 0.03])
@@ -98,16 +109,21 @@ def _symbolic(path, femur, tibia):
                                      route.direction, ca.cross(route.arm, route.direction)])
 
 
-@pytest.mark.parametrize("body", ["femur", "tibia"])
-def test_the_force_on_the_tibia_is_the_length_derivative(body):
+PATHS = {"cylinder on the femur": CylinderWrap(np.array([0.001, 0.0, 0.002]), [0.1, 0.2, 1.0], 0.01, "femur", 1),
+         "cylinder on the tibia": CylinderWrap(np.array([0.001, 0.0, 0.002]), [0.1, 0.2, 1.0], 0.01, "tibia", 1),
+         "via points": ViaPoints(tibia=((0.02, -0.01, -0.01),), femur=((0.0, 0.015, 0.0), (-0.02, 0.01, 0.02)))}
+
+
+@pytest.mark.parametrize("name", PATHS)
+def test_the_force_on_the_tibia_is_the_length_derivative(name):
     """Virtual work: a tension T pulls the tibia with the force -T dL/dp and the moment -T dL/dw,
-    whichever bone carries the cylinder (the tibia's own cylinder moves with it)."""
+    whichever bone carries the cylinder (the tibia's own cylinder moves with it) or the via points."""
     femur, tibia = np.array([-0.03, -0.003, 0.03]), np.array([0.03, 0.002, -0.02])
-    path = CylinderWrap(np.array([0.001, 0.0, 0.002]), [0.1, 0.2, 1.0], 0.01, body, 1)
+    path = PATHS[name]
     f = _symbolic(path, femur, tibia)
     for p in (np.zeros(3), np.array([0.002, -0.001, 0.001])):
         length, dl_dp, dl_dw, direction, moment = (np.asarray(v).ravel() for v in f(p, np.zeros(3)))
-        assert length > np.linalg.norm(femur - (p + tibia)) + 1e-4  # wrapped
+        assert length > np.linalg.norm(femur - (p + tibia)) + 1e-4  # longer than the straight line
         np.testing.assert_allclose(direction, -dl_dp, atol=1e-12)
         np.testing.assert_allclose(moment, -dl_dw, atol=1e-12)
 

@@ -41,11 +41,11 @@ from kneenlp.model.articular import (
 )
 from kneenlp.model.frames import Frame, angle_deg, axes_from_flexion, landmark_axes
 from kneenlp.model.kinematics import reference_transform
-from kneenlp.model.knee_schema import BundleTable, KneeDocument, SlackShiftTable, WrapTable
+from kneenlp.model.knee_schema import BundleTable, KneeDocument, SlackShiftTable
 from kneenlp.model.laws import DEFAULT_LAW, DEFAULT_PRESSURE_LAW, law_named
 from kneenlp.model.ligament import Bundle, Ligament, SlackShift
 from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, UNIT_FACTORS, ParameterSet
-from kneenlp.model.paths import CylinderWrap, LigamentPath, StraightPath
+from kneenlp.model.paths import CylinderWrap, LigamentPath, StraightPath, ViaPoints
 
 #: Ligament names (prefixes, upper case) on the medial and the lateral side of the knee, the
 #: evidence :meth:`KneeFile.check_side` weighs against the declared side.
@@ -646,7 +646,7 @@ class KneeFile:
         for name, lig in self.spec.ligaments.items():
             fld = f"ligaments.{name}"
             law = law_named(lig.law if lig.law is not None else DEFAULT_LAW, source=self.src, field=f"{fld}.law")
-            path = self.wrap(lig.wrap, f"{fld}.wrap")
+            path = self.ligament_path(lig, fld)
             if lig.bundles is not None:
                 bundles = [dataclasses.replace(b, path=path) for b in self.bundles(lig.bundles, f"{fld}.bundles")]
                 ligaments[name] = Ligament(name, bundles, reference=self.reference, law=law,
@@ -658,11 +658,17 @@ class KneeFile:
             ligaments[name] = Ligament(name, [Bundle(femur, tibia, path=path)], reference=self.reference, law=law)
         return ligaments
 
-    def wrap(self, table: WrapTable | None, fld: str) -> LigamentPath:
-        """``[ligaments.<NAME>.wrap]``: the cylinder a ligament's paths wrap, in the model's frames (m;
-        a left knee mirrored, which turns the side), or the straight path."""
-        if table is None:
+    def ligament_path(self, lig, fld: str) -> LigamentPath:
+        """A ligament's path: its ``via`` points or the cylinder it ``wrap``s, in the model's frames
+        (m; a left knee mirrored, which turns a wrap's side), else the straight path."""
+        if lig.via is not None and lig.wrap is not None:
+            raise InputError("give via points or a wrapping cylinder, not both", source=self.src, field=f"{fld}.via")
+        if lig.via is not None:
+            return ViaPoints(tuple(tuple(self.point(v)) for v in lig.via.tibia),
+                             tuple(tuple(self.point(v)) for v in lig.via.femur))
+        if lig.wrap is None:
             return StraightPath()
+        table, fld = lig.wrap, f"{fld}.wrap"
         axis = self.point(table.axis) - self.point((0.0, 0.0, 0.0))
         if not np.linalg.norm(axis) > 0:
             raise InputError("must not be zero", source=self.src, field=f"{fld}.axis")

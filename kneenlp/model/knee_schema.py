@@ -145,10 +145,19 @@ class WrapTable(Table):
     side: Literal["positive", "negative"] = Field(description='side ("positive" or "negative")')
 
 
+class ViaTable(Table):
+    """``[ligaments.<NAME>.via]``: every bundle's path runs through ``tibia`` points (tibial frame,
+    from its attachment outwards), then ``femur`` points (femoral frame, towards its attachment)."""
+
+    tibia: list[Point] = Field(default_factory=list)
+    femur: list[Point] = Field(default_factory=list)
+
+
 class LigamentTable(Table):
     """``[ligaments.<NAME>]``: one bundle's attachments (femur in the femoral frame, tibia in the
     tibial one) or ``bundles`` (and how their slack moves, ``slack_shift``), the law and, given,
-    the cylinder every bundle's path wraps (``wrap``; straight paths by default)."""
+    the cylinder every bundle's path wraps (``wrap``) or its via points (``via``; straight paths
+    by default)."""
 
     femur: Point | None = None
     tibia: Point | None = None
@@ -156,6 +165,7 @@ class LigamentTable(Table):
     slack_shift: SlackShiftTable | None = None
     law: str | None = None
     wrap: WrapTable | None = None
+    via: ViaTable | None = None
 
     @model_validator(mode="after")
     def _attachments(self) -> LigamentTable:

@@ -5,6 +5,7 @@ tibia (:class:`Route`).  Both are exact CasADi expressions of the pose, so the e
 simultaneous NLP and the sensitivities keep exact derivatives.
 
 * :class:`StraightPath` (the default): the straight line between the attachments.
+* :class:`ViaPoints`: straight segments through points fixed to the tibia, then to the femur.
 * :class:`CylinderWrap`: the shortest path that does not enter a cylinder fixed to the femur or
   the tibia (a bone's rim or condyle; OpenSim's ``WrapCylinder``): straight to a tangent point, a
   helix on the cylinder, straight from the other tangent point.  In the plane across the axis the
@@ -25,6 +26,7 @@ AMPL ``.nl`` writer has no conditional and refuses such a knee with its one-line
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import casadi as ca
@@ -70,6 +72,23 @@ class StraightPath(LigamentPath):
         u = femur - (pose.p + arm)
         length = ca.norm_2(u)
         return Route(length, arm, u / length)
+
+
+@dataclass(frozen=True)
+class ViaPoints(LigamentPath):
+    """Straight segments through via points: ``tibia`` points (tibial frame) from the tibial
+    attachment outwards, then ``femur`` points (femoral frame) towards the femoral attachment (m).
+    The tibia feels the segment from its last point to the femur's first."""
+
+    tibia: tuple[tuple[float, float, float], ...] = ()
+    femur: tuple[tuple[float, float, float], ...] = ()
+
+    def route(self, femur, tibia, pose: Pose) -> Route:
+        arms = [pose.R @ tibia, *[pose.R @ ca.DM(v) for v in self.tibia]]
+        chain = [pose.p + arm for arm in arms] + [ca.DM(v) for v in self.femur] + [femur]
+        length = sum((ca.norm_2(b - a) for a, b in itertools.pairwise(chain)), ca.DM(0))
+        pull = chain[len(arms)] - chain[len(arms) - 1]
+        return Route(length, arms[-1], pull / ca.norm_2(pull))
 
 
 @dataclass(frozen=True)
