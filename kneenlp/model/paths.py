@@ -27,6 +27,7 @@ AMPL ``.nl`` writer has no conditional and refuses such a knee with its one-line
 from __future__ import annotations
 
 import itertools
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 import casadi as ca
@@ -49,13 +50,14 @@ class Route:
     direction: ca.SX
 
 
-class LigamentPath:
-    """How a bundle runs from its tibial to its femoral attachment (module docstring)."""
+class LigamentPath(ABC):
+    """How a bundle runs from its tibial to its femoral attachment (module docstring); each kind
+    of path implements :meth:`route`."""
 
+    @abstractmethod
     def route(self, femur: ca.SX, tibia: ca.SX, pose: Pose) -> Route:
         """The path from the tibial attachment ``tibia`` (tibial frame) to the femoral one ``femur``
         (femoral frame) with the tibia at ``pose`` (m)."""
-        raise NotImplementedError
 
     def length(self, femur: np.ndarray, tibia: np.ndarray, R: np.ndarray, p: np.ndarray) -> float:
         """The path's length (m) with the tibia at rotation ``R`` and origin ``p`` (numbers)."""
