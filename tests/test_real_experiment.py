@@ -258,6 +258,26 @@ def test_left_knee_declared_right_is_refused(tmp_path, capsys):
     assert code == 2 and "right knee" in err and "left knee" in err and "--side left" in err
 
 
+def test_data_mirrored_to_the_other_sides_signs_are_refused(tmp_path, capsys):
+    """The left knee's data with varus, internal and lateral negated (loads and poses: the other
+    knee's signs) keep every load's pull along its displacement, but the tibia then rotates
+    externally with flexion where the knee's geometry rotates it internally (screw home): exit 2
+    naming the column, before any fit; the file as shipped passes the same check."""
+    df = pd.read_csv(CSV)
+    for col in ("varus_moment_Nm", "internal_moment_Nm", "lateral_force_N", "varus_rotation_deg",
+                "internal_rotation_deg", "lateral_translation_mm"):
+        df[col] = -df[col]
+    df.to_csv(tmp_path / "mirrored.csv", index=False)
+    code = main(["identify", str(tmp_path / "mirrored.csv"), "--knee", "s192803", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "internal_rotation_deg" in err and "mirrored" in err and "externally" in err
+    assert not (tmp_path / "o" / "calibrated.toml").exists()
+    from kneenlp.prediction.predict import predict
+
+    predict(kneenlp.Knee.named("s192803"), read_measured(CSV)).check_side()
+
+
 def test_pose_beyond_the_knees_reach_is_refused(tmp_path, capsys):
     df = pd.read_csv(CSV)
     df.loc[3, "proximal_translation_mm"] = 30.0  # 50 mm from the imaged pose: another frame?

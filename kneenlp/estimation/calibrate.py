@@ -355,6 +355,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     with_priors, estimate = priors not in (None, "none"), prior_weight == "estimate"
     extra = also_free_names(model, also_free or [])
     before = predict(model, data)
+    before.check_side()
     theta, engaged = engaged_probe(model, data, model.theta())
     free, fixed = calibration_choice(model, data, free, theta, engaged, with_priors=with_priors,
                                      pivot_tolerance=pivot_tolerance, load_point=load_point)

@@ -33,6 +33,13 @@ from kneenlp.model.posterior import Posterior
 from kneenlp.prediction.laxity import laxity_lines, laxity_records, laxity_table
 from kneenlp.solvers.forward import TrialSolution, forward_solver
 
+#: Internal rotation (deg) over the trials' flexion range that the data and the knee must each show
+#: before opposite trends are called data mirrored to the other side's signs (screw home: the tibia
+#: rotates internally with flexion, by 5-20 deg from 0 to 90 deg in cadaver knees).
+SCREW_HOME_DEG = 3.0
+#: Internal moment (N m) below which a trial shows the knee's own coupled rotation.
+FREE_ROTATION_NM = 0.5
+
 
 def rms_by_coordinate(errors_user: np.ndarray) -> dict[str, float]:
     """RMS per coordinate column (mm, deg) of errors (T x 5, deg and mm); NaN with no rows."""
@@ -69,6 +76,28 @@ class Prediction:
     def errors_user(self) -> np.ndarray:
         """Measured minus predicted (T x 5, deg and mm); NaN where a trial did not converge."""
         return self.data.q_user - self.predicted_user
+
+    def check_side(self) -> None:
+        """Refuse data mirrored to the other knee's signs, by the evidence of the trials: over the
+        converged trials without an internal moment (:data:`FREE_ROTATION_NM`), the internal rotation's
+        linear trend with flexion in the data and in the prediction; both over :data:`SCREW_HOME_DEG`
+        across the flexion range and of opposite signs is a mirrored side (+varus, +internal and
+        +lateral are anatomical for either knee), not a model error."""
+        rows = [i for i, t in enumerate(self.data.trials)
+                if abs(t.loads.get("internal_moment", 0.0)) < FREE_ROTATION_NM and self.converged[i]]
+        flexion = np.array([self.data.trials[i].flexion_deg for i in rows])
+        if len(rows) < 3 or np.ptp(flexion) < 30.0:
+            return
+        span = np.array([flexion.min(), flexion.max()])
+        trend = [np.polyval(np.polyfit(flexion, y[rows, 1], 1), span) @ [-1.0, 1.0]
+                 for y in (self.data.q_user, self.observed_user)]
+        if min(abs(trend[0]), abs(trend[1])) >= SCREW_HOME_DEG and trend[0] * trend[1] < 0:
+            way = {True: "internally", False: "externally"}
+            raise InputError(f"the tibia rotates {way[trend[0] > 0]} by {abs(trend[0]):.1f} deg from {span[0]:.0f} to "
+                             f"{span[1]:.0f} deg flexion in the data, {way[trend[1] > 0]} by {abs(trend[1]):.1f} deg "
+                             f"in knee {self.knee_name!r}: data mirrored to the other knee's signs? Signs are "
+                             "anatomical for either side (+varus, +internal, +lateral)", source=self.data.source,
+                             field="internal_rotation_deg")
 
     def rms(self, trials: np.ndarray | None = None) -> dict[str, float]:
         """RMS of measured minus predicted per coordinate column (mm, deg) over the converged
