@@ -146,3 +146,27 @@ def test_a_signal_in_the_first_instant_is_one_line():
                 continue
             assert proc.returncode == status, (delay, proc.returncode, err)
             assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+
+
+def test_modes_are_listed_once_for_the_library_and_the_command_line(capsys):
+    """Every mode is a Literal type: the parser's choices are its names, the library refuses any
+    other value in the one-line "unknown X; known: ..." form, and ``--knee``'s help lists the
+    knees the package ships (a knee added to the resources is listed without an edit)."""
+    import typing
+
+    from kneenlp.base import modes
+    from kneenlp.base.errors import InputError
+    from kneenlp.base.resources import shipped_knees
+    from kneenlp.cli.parser import build_parser
+    from kneenlp.estimation.identify import identify
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.choices and "identify" in a.choices).choices
+    actions = {a.dest: a for a in sub["identify"]._actions}
+    assert tuple(actions["method"].choices) == typing.get_args(modes.Method)
+    assert tuple(actions["strategy"].choices) == typing.get_args(modes.Strategy)
+    assert all(name in actions["knee"].help for name in shipped_knees()) and "s192803" in shipped_knees()
+    with pytest.raises(InputError, match=r"unknown method 'complex'; known: nested, simultaneous"):
+        identify(kneenlp.Knee.named("synthetic"), "unused.csv", "complex")
+    with pytest.raises(InputError, match=r"--format: unknown export format 'mps'; known: c, casadi, nl"):
+        modes.checked("export format", "mps", modes.ExportFormat, field="--format")

@@ -46,7 +46,8 @@ class ConvergenceError(RuntimeError):
         self.result = result
 
 
-def unknown_name(kind: str, name: str, known: Iterable[str], *, source: str | None = None) -> InputError:
+def unknown_name(kind: str, name: str, known: Iterable[str], *, source: str | None = None,
+                 field: str | None = None) -> InputError:
     """Build the standard "unknown X 'name'; known: a, b, c" error."""
     known_list = ", ".join(sorted(known, key=str))
-    return InputError(f"unknown {kind} {name!r}; known: {known_list}", source=source)
+    return InputError(f"unknown {kind} {name!r}; known: {known_list}", source=source, field=field)

@@ -19,3 +19,8 @@ def resource(*parts: str) -> Path:
     file-system path that trimesh, pandas and ``open`` can read.
     """
     return Path(str(files("kneenlp").joinpath("resources", *parts)))
+
+
+def shipped_knees() -> list[str]:
+    """Names of the knees shipped with the package (``knees/<name>/knee.toml``)."""
+    return sorted(p.parent.name for p in resource("knees").glob("*/knee.toml"))

@@ -5,13 +5,26 @@ from __future__ import annotations
 
 import argparse
 
+from kneenlp.base.modes import (
+    Criterion,
+    ExportFormat,
+    Groups,
+    Method,
+    NlCommon,
+    PriorChoice,
+    Side,
+    Strategy,
+    StudyStart,
+    names,
+)
+from kneenlp.base.resources import shipped_knees
 from kneenlp.cli import options as opt
 from kneenlp.cli.inputs import MAX_STUDY_FITS, set_names
 
 
 def _knee_args(p: argparse.ArgumentParser, parameters: bool = True) -> None:
-    p.add_argument("--knee", help="knee description TOML, or the name of a shipped knee: default (Lenhart 2015, "
-                                  "the default), synthetic, implant, s192803")
+    p.add_argument("--knee", help="knee description TOML, or the name of a shipped knee: "
+                                  f"{', '.join(shipped_knees())} (default: default, Lenhart 2015)")
     if parameters:
         p.add_argument("--parameters", help="parameter set TOML (reference values and fixed parameters)")
     p.add_argument("--element", action="append", default=[], metavar="MODULE:FACTORY",
@@ -53,7 +66,7 @@ def _dask_args(p: argparse.ArgumentParser, what: str) -> None:
 
 
 def _prior_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--priors", choices=["default", "none"], default=None,
+    p.add_argument("--priors", choices=names(PriorChoice), default=None,
                    help="default: the MAP estimate, every free parameter with its prior (from the parameter file "
                         "or the shipped defaults centred on the knee's values, docs/priors.md); none: least squares "
                         "on the data alone.  Default: 'default' for a real experiment's calibration, 'none' for data "
@@ -110,7 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
     _multistart_arg(p)
     _starts_arg(p)
     _dask_args(p, "the global search's solves (--starts) on")
-    p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"],
+    p.add_argument("--method", default="simultaneous", choices=names(Method),
                    help="simultaneous NLP (default) or the paper's nested Complex method")
     p.add_argument("--solver", default="ipopt", type=opt.solver, help="CasADi nlpsol plugin (default ipopt)")
     p.add_argument("--protocol", help="protocol the data must match (default: the one named in the data)")
@@ -126,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-outliers", action="store_true",
                    help="real experiments: fit every trial (default: trials the outlier test flags are set aside "
                         "and reported, docs/real-experiment.md)")
-    p.add_argument("--strategy", default=None, choices=["auto", "calibration", "scatter"],
+    p.add_argument("--strategy", default=None, choices=names(Strategy),
                    help="calibration (a real experiment's: MAP, registration and load point, outlier test), scatter "
                         "(the paper's: least squares from a seeded scatter) or auto (default: calibration for data "
                         "with a declared side or joint loads)")
@@ -164,12 +177,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="noise samples per set (default 20)")
     p.add_argument("--noise", default="uniform:0.5", type=opt.noise, help="uniform:B or gaussian:SIGMA (mm, deg)")
     p.add_argument("--seed", type=opt.SEED, default=0, help="study seed; each sample's seed derives from it")
-    p.add_argument("--method", default="simultaneous", choices=["simultaneous", "nested"])
+    p.add_argument("--method", default="simultaneous", choices=names(Method))
     _knee_args(p, parameters=False)
     p.add_argument("--free", type=opt.names, help="comma-separated parameters to identify")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
                    help="also identify this candidate effect's parameters (repeatable)")
-    p.add_argument("--start", default="scatter", choices=["scatter", "truth"],
+    p.add_argument("--start", default="scatter", choices=names(StudyStart),
                    help="fit starts: scattered like the paper (default) or at the true values")
     p.add_argument("--out", default="kneenlp-study", help="study directory (resumable)")
     p.add_argument("--workers", type=opt.integer(1, opt.MAX_WORKERS), default=None,
@@ -183,14 +196,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("export", help="write the identification NLP for other solvers (.nl, CasADi, C)")
     p.add_argument("data", help="measured-data CSV")
-    p.add_argument("--format", required=True, choices=["nl", "casadi", "c"], help="export format")
+    p.add_argument("--format", required=True, choices=names(ExportFormat), help="export format")
     p.add_argument("--out", default="kneenlp-export", help="output directory")
     _knee_args(p)
     p.add_argument("--free", type=opt.names, help="comma-separated parameters to identify")
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the start scatter")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME",
                    help="also free this candidate effect's parameters (repeatable)")
-    p.add_argument("--nl-common", default="defined", choices=["defined", "lifted"],
+    p.add_argument("--nl-common", default="defined", choices=names(NlCommon),
                    help="shared subexpressions as .nl defined variables (default) or lifted auxiliary variables")
     p.add_argument("--approximate", action="store_true",
                    help=".nl of a mesh knee: write its contact as the second-order expansion at the start poses "
@@ -202,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("model", help="the .osim file")
     p.add_argument("--out", required=True, help="directory for knee.toml, parameters.toml and meshes/")
     p.add_argument("--geometry", help="folder of the model's meshes (default: beside the model)")
-    p.add_argument("--groups", default="fine", choices=["fine", "coarse"],
+    p.add_argument("--groups", default="fine", choices=names(Groups),
                    help="bundle groups: fine (ACLam, ACLpl, ...) or coarse (ACL, PCL, MCL, ...)")
     p.add_argument("--femur-mesh", help="femoral surface to use instead of the model's femoral contact mesh")
     p.add_argument("--femur-offset", type=opt.finite, default=0.0,
@@ -215,14 +228,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("import-abaqus", help="turn an Abaqus FE knee model (cartilage, fibres, frames) into a knee")
     p.add_argument("model", help="folder of the FE model: geometry/, ligaments/, frames/ (as the S192803 deposit)")
     p.add_argument("--out", required=True, help="directory for knee.toml, parameters.toml and meshes/")
-    p.add_argument("--side", required=True, choices=["left", "right"], help="the knee's side")
+    p.add_argument("--side", required=True, choices=names(Side), help="the knee's side")
     p.add_argument("--name", help="the knee's name (default: the --out folder's name)")
     p.set_defaults(validate=True, out_kind="dir")
 
     p = sub.add_parser("import-laxity", help="robotic laxity measurements (MATLAB struct) -> measured-data CSV")
     p.add_argument("mat", help="MATLAB file with a processed_laxity_trial struct array")
     p.add_argument("--out", required=True, help="the measured-data CSV to write")
-    p.add_argument("--side", required=True, choices=["left", "right"],
+    p.add_argument("--side", required=True, choices=names(Side),
                    help="the knee's side (the file's signs are anatomical; the side is recorded and checked "
                         "against the knee a fit uses)")
     p.add_argument("--json", action="store_true", help="print JSON")
@@ -291,7 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("design", help="design a laxity protocol with few load cases and tight estimates")
     p.add_argument("--max-cases", type=opt.integer(1, opt.MAX_CASES), default=22,
                    help="largest number of load cases (default 22)")
-    p.add_argument("--criterion", default="A", choices=["A", "D", "W", "R"],
+    p.add_argument("--criterion", default="A", choices=names(Criterion),
                    help="A: sum of relative variances, D: log det, W: worst relative standard error, "
                         "R: worst standard-error ratio to a reference protocol (--reference)")
     p.add_argument("--reference", default="set4", help="reference protocol of criterion R (default set4)")

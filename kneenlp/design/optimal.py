@@ -28,6 +28,7 @@ import numpy as np
 
 from kneenlp.base.atomic import write_text_atomic
 from kneenlp.base.errors import InputError
+from kneenlp.base.modes import Criterion, checked
 from kneenlp.estimation.statistics import fisher_information
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.noise import NoiseModel
@@ -36,7 +37,6 @@ from kneenlp.experiment.protocol import Protocol, Trial, trial_id
 from kneenlp.model.knee import Knee
 from kneenlp.solvers.forward import forward_solver
 
-CRITERIA = ("A", "D", "W", "R")
 #: Designs made before one simulates with every trial converged (each drops the failed cases).
 MAX_REDESIGNS = 5
 #: The paper's largest magnitude per direction (N or N m).
@@ -126,7 +126,7 @@ class DesignResult:
     """A designed protocol and its predicted performance (relative standard errors, fractions)."""
 
     protocol: Protocol
-    criterion: str
+    criterion: Criterion
     value: float
     predicted_rse: dict[str, float]  # at the knee's parameter set
     free: list[str]
@@ -158,7 +158,7 @@ def predicted_rse(model: KneeModel, protocol: Protocol, free: list[str], noise: 
     return {n: float(v) for n, v in zip(free, se, strict=True)}
 
 
-def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", *,
+def design(knee: Knee | None = None, max_cases: int = 22, criterion: Criterion = "A", *,
            pool: Protocol | None = None, free: list[str] | None = None, noise: str = "uniform:0.5",
            robust: int = 3, seed: int = 0, name: str | None = None,
            reference: Protocol | str = "set4") -> DesignResult:
@@ -169,8 +169,7 @@ def design(knee: Knee | None = None, max_cases: int = 22, criterion: str = "A", 
     design is made again without those it does not)."""
     from kneenlp.experiment.kneemodel import KneeModel
 
-    if criterion not in CRITERIA:
-        raise InputError(f"unknown criterion {criterion!r}; known: {', '.join(CRITERIA)}", field="--criterion")
+    checked("criterion", criterion, Criterion, field="--criterion")
     if max_cases < 1:
         raise InputError(f"must be >= 1, got {max_cases}", field="--max-cases")
     knee = knee or Knee.default()

@@ -25,18 +25,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.errors import InputError
+from kneenlp.base.modes import Method, Strategy, checked
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.solve import scatter_fit, scatter_search
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.experiment.problem_file import STRATEGIES
 from kneenlp.experiment.protocol import Protocol, available_protocols
 from kneenlp.model.knee import Knee
 
-METHODS = ("simultaneous", "nested")
 #: Options only a calibration takes (:func:`~kneenlp.estimation.calibrate.calibrate`), by CLI flag.
 CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--also-free",
                        "keep_outliers": "--keep-outliers", "load_point": "--no-load-point", "workers": "--workers",
@@ -45,7 +44,7 @@ CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--a
 SEARCH_OPTIONS = ("starts", "store", "workers")
 
 
-def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: str = "simultaneous", *,
+def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: Method = "simultaneous", *,
              free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
              noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
              solver: str = "ipopt", solver_options: dict | None = None,
@@ -53,7 +52,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
              nested_options: dict | None = None, with_effects: list[str] | None = None,
              fixed: dict[str, float] | None = None, threads: int = 2,
              priors: str | dict | None = None, prior_weight: float | str | None = None,
-             strategy: str = "auto", **calibration_options) -> Fit:
+             strategy: Strategy = "auto", **calibration_options) -> Fit:
     """Identify the ``free`` parameters of ``knee`` from measured ``data`` by ``strategy`` (module
     docstring).
 
@@ -121,12 +120,10 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
                        nested_options=nested_options)
 
 
-def _check_names(method: str, strategy: str, calibration_options: dict) -> None:
+def _check_names(method: Method, strategy: Strategy, calibration_options: dict) -> None:
     """Refuse an unknown method, strategy or keyword argument of :func:`identify`."""
-    if method not in METHODS:
-        raise unknown_name("method", method, METHODS)
-    if strategy not in STRATEGIES:
-        raise unknown_name("strategy", strategy, STRATEGIES)
+    checked("method", method, Method)
+    checked("strategy", strategy, Strategy)
     unknown = sorted(set(calibration_options) - set(CALIBRATION_OPTIONS))
     if unknown:
         raise TypeError(f"identify() got unexpected keyword argument(s): {', '.join(unknown)}")
@@ -170,7 +167,7 @@ def calibrated_fit(model: KneeModel, data: MeasuredData, free: list[str] | None,
     return cal.fit
 
 
-def resolve_strategy(strategy: str, data: MeasuredData, method: str = "simultaneous") -> str:
+def resolve_strategy(strategy: Strategy, data: MeasuredData, method: Method = "simultaneous") -> Strategy:
     """``"calibration"`` or ``"scatter"``: what ``strategy`` (``"auto"`` included) means for ``data``
     fitted by ``method`` (module docstring); a calibration by the nested method is refused."""
     from kneenlp.estimation.calibrate import real_experiment

@@ -30,13 +30,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from kneenlp.base.errors import InputError
+from kneenlp.base.modes import PriorChoice, Strategy, checked
 from kneenlp.base.tomlfile import read_toml
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.model.knee import Knee
 from kneenlp.model.parameters import Entries, read_entries
 
 #: The fit strategies a problem may name (:func:`kneenlp.estimation.identify.identify`'s).
-STRATEGIES = ("auto", "calibration", "scatter")
 #: The file a problem folder holds.
 FILE = "problem.toml"
 #: The keys of a problem file: required, then optional.
@@ -102,11 +102,8 @@ class ProblemFile:
             if not level > 0:
                 raise InputError(f"needs a level above zero, got {text['noise']!r}; e.g. uniform:0.2", source=src,
                                  field="noise")
-        if text.get("strategy", "auto") not in STRATEGIES:
-            raise InputError(f"unknown strategy {text['strategy']!r}; known: {', '.join(STRATEGIES)}", source=src,
-                             field="strategy")
-        if text.get("priors", "default") not in ("default", "none"):
-            raise InputError(f"expected 'default' or 'none', got {text['priors']!r}", source=src, field="priors")
+        checked("strategy", text.get("strategy", "auto"), Strategy, source=src, field="strategy")
+        checked("priors", text.get("priors", "default"), PriorChoice, source=src, field="priors")
         weight = doc.get("prior_weight")
         if weight is not None and (isinstance(weight, bool) or not isinstance(weight, int | float) or not weight > 0):
             raise InputError(f"expected a variance > 0 (mm^2, deg^2), got {weight!r}", source=src,

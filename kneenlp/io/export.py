@@ -51,6 +51,7 @@ from kneenlp.base.conventions import (
     coords_from_user,
 )
 from kneenlp.base.errors import InputError
+from kneenlp.base.modes import ExportFormat, NlCommon, checked
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.problem import IdentificationProblem
@@ -59,7 +60,6 @@ from kneenlp.model.knee import Knee
 from kneenlp.solvers.forward import equilibrium_start
 from kneenlp.solvers.nlp import nlp_expressions
 
-FORMATS = ("nl", "casadi", "c")
 #: How the exported NLP holds mesh contact (module docstring).
 CONTACT_FORMS = ("exact", "expansion")
 #: Half-width (mm or deg) of the box around the start poses where an expansion's error is measured.
@@ -191,12 +191,12 @@ def nl_function(prob: ExportProblem) -> tuple[ca.Function, np.ndarray]:
     return ca.Function("nlp_nl", [xnl], list(prob.function()(x_ours, prob.p_value))).expand(), order
 
 
-def write_export(prob: ExportProblem, fmt: str, out: str | Path, *, nl_common: str = "defined") -> list[Path]:
+def write_export(prob: ExportProblem, fmt: ExportFormat, out: str | Path, *,
+                 nl_common: NlCommon = "defined") -> list[Path]:
     """Write ``prob`` in format ``fmt`` (nl, casadi, c) into directory ``out``; returns the files.
 
     ``nl_common``: see :func:`kneenlp.io.nlwriter.write_nl` (``"lifted"`` for SCIP)."""
-    if fmt not in FORMATS:
-        raise InputError(f"unknown export format {fmt!r}; known: {', '.join(FORMATS)}", field="--format")
+    checked("export format", fmt, ExportFormat, field="--format")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []

@@ -29,6 +29,7 @@ import tomli_w
 
 from kneenlp.base.atomic import write_text_atomic
 from kneenlp.base.errors import InputError
+from kneenlp.base.modes import Groups, checked
 from kneenlp.io.osim import LineElement, OsimError, OsimModel, knee_line_elements, ligament_groups, read_osim
 from kneenlp.model.knee_file import PLAUSIBLE_MM
 from kneenlp.model.laws import BlankevoortLaw
@@ -64,7 +65,7 @@ def _find_mesh(name: str, folders: list[Path], source: str) -> Path:
                      field="Smith2018ContactMesh")
 
 
-def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | None = None, groups: str = "fine",
+def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | None = None, groups: Groups = "fine",
                 femur_body: str = "femur_distal_r", tibia_body: str = "tibia_proximal_r",
                 femur_mesh: str | Path | None = None, femur_offset: float = 0.0,
                 tuberosity: tuple[float, float, float] | None = None) -> ImportReport:
@@ -113,15 +114,14 @@ def _check_femur_offset(femur_offset: float) -> None:
                          "m?)", field="--femur-offset")
 
 
-def _read_model(osim: Path, groups: str, bodies: tuple[str, str]) -> OsimModel:
+def _read_model(osim: Path, groups: Groups, bodies: tuple[str, str]) -> OsimModel:
     """The OpenSim model at ``osim``, checked to have the knee's femur and tibia ``bodies``; ``groups``
     is the bundle grouping asked for (``fine`` or ``coarse``)."""
     try:
         model = read_osim(osim)
     except OsimError as exc:
         raise InputError(str(exc)) from None
-    if groups not in ("fine", "coarse"):
-        raise InputError(f"must be 'fine' or 'coarse', got {groups!r}", field="--groups")
+    checked("grouping", groups, Groups, field="--groups")
     for body in bodies:
         if body not in model.bodies:
             raise InputError(f"no body {body!r}; bodies: {', '.join(model.bodies)}", source=str(osim),

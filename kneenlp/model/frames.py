@@ -27,8 +27,6 @@ import trimesh
 
 from kneenlp.base.errors import InputError
 
-FRAME_METHODS = ("cylinders", "landmarks")
-
 
 @dataclass(frozen=True)
 class Frame:

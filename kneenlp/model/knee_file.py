@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from kneenlp.base.conventions import POSE_ENVELOPE_USER, coordinate_columns, coords_from_user
 from kneenlp.base.errors import InputError, unknown_name
-from kneenlp.base.resources import resource
+from kneenlp.base.resources import resource, shipped_knees
 from kneenlp.base.schema import validated
 from kneenlp.base.tomlfile import read_toml
 from kneenlp.geometry.axes import FlexionAxis, fit_flexion_axis, split_condyles
@@ -99,7 +99,7 @@ ATTACHMENT_DEPTH = 2.5e-3
 
 def available_knees() -> list[str]:
     """Names of the knees shipped with the package."""
-    return sorted(p.parent.name for p in resource("knees").glob("*/knee.toml"))
+    return shipped_knees()
 
 
 def knee_file(name: str = DEFAULT_KNEE) -> Path:

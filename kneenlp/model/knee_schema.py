@@ -10,8 +10,8 @@ from typing import Annotated, Any, Literal
 from pydantic import BeforeValidator, Field, PrivateAttr, create_model, model_validator
 
 from kneenlp.base.conventions import coordinate_columns
+from kneenlp.base.modes import FrameMethod
 from kneenlp.base.schema import Number, Point, Table, fail
-from kneenlp.model.frames import FRAME_METHODS
 
 #: The compartments a knee file may describe in ``[contact.<compartment>]`` tables.
 COMPARTMENTS = ("medial", "lateral")
@@ -220,7 +220,7 @@ class KneeDocument(Table):
     side: Literal["right", "left"] = "right"
     units: Literal["mm", "m"] = "mm"
     coordinates: Literal["femoral", "scan"] = "femoral"
-    frame: Literal[FRAME_METHODS] | None = None
+    frame: FrameMethod | None = None
     parameters: Annotated[str, BeforeValidator(file_name)] | None = None
     reference_pose: ReferencePose | None = None
     landmarks: dict[str, Point] = Field(default_factory=dict)

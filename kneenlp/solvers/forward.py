@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from kneenlp.base.conventions import EQUILIBRIUM_TOL, POSE_ENVELOPE_USER, coords_from_user, coords_to_user
+from kneenlp.base.modes import SolveStrategy
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.protocol import Trial
 from kneenlp.model.elements import StagedElement
@@ -58,7 +59,7 @@ class TrialSolution:
     q: np.ndarray
     converged: bool
     max_residual: float  # N or N m
-    strategy: str  # "newton", "ramp" or "failed"
+    strategy: SolveStrategy
     reason: str = ""  # why a trial did not converge
     #: every force element's outputs at the pose, by table column (SI: strain as a fraction, N, m)
     outputs: dict[str, float] = field(default_factory=dict)

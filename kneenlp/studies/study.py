@@ -38,6 +38,7 @@ from kneenlp.base import interrupts
 from kneenlp.base.atomic import write_text_atomic
 from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.modes import Method
 
 if TYPE_CHECKING:
     from kneenlp.studies.truth import StudyTruths
@@ -57,7 +58,7 @@ class StudySpec:
     samples: int = 20
     noise: str = "uniform:0.5"
     seed: int = 0
-    method: str = "simultaneous"
+    method: Method = "simultaneous"
     knee: str | None = None  # knee TOML path; None = embedded default knee
     #: user force elements by import path ("module:factory", see kneenlp.model.plugins)
     elements: tuple[str, ...] = ()
