@@ -19,6 +19,7 @@ _HOMES = {
     "ConvergenceError": "kneenlp.base.errors",
     "InputError": "kneenlp.base.errors",
     "identify": "kneenlp.estimation.identify",
+    "identification": "kneenlp.estimation.identify",
     "KneeModel": "kneenlp.experiment.kneemodel",
     "NoiseModel": "kneenlp.experiment.noise",
     "Protocol": "kneenlp.experiment.protocol",
@@ -53,6 +54,7 @@ __all__ = [
     "Protocol",
     "SimulationResult",
     "Trial",
+    "identification",
     "identify",
     "simulate",
 ]

@@ -27,7 +27,7 @@ def calibrated(tmp_path_factory):
     kneenlp.simulate(kneenlp.Knee.named("synthetic"), "set1").measured(NOISE, 5).to_csv(csv, index=False)
     fit = kneenlp.identify(kneenlp.Knee.named("synthetic"), read_measured(csv), free=FREE)
     toml = tmp / "calibrated.toml"
-    toml.write_text(Calibration(None, [], fit=fit).to_toml())
+    toml.write_text(Calibration(fit).to_toml())
     return csv, toml, fit
 
 
@@ -112,7 +112,7 @@ def test_identify_writes_the_posterior_for_arviz(calibrated, tmp_path, capsys):
     post = posterior(fit)
     summary = az.summary(idata, kind="stats")
     for n, sd in zip(post.names, np.sqrt(np.diag(post.covariance)), strict=True):
-        f = fit._info(n).to_user
+        f = fit.info(n).to_user
         assert summary.loc[n, "mean"] == pytest.approx(fit.params[n] * f, abs=4 * sd * f / np.sqrt(4000))
         assert summary.loc[n, "sd"] == pytest.approx(sd * f, rel=0.05)
     assert idata.observed_data["measured"].shape == (len(fit.data), 5)

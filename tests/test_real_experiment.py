@@ -691,13 +691,13 @@ def test_calibration_says_what_predict_reproduces(s192803, tmp_path):
     predict reaches the same poses: hard trials are followed from the knee file's own set.  The
     outlier test sets aside the one trial no passive knee produces (valgus_flex60).  The entry
     point is the API's ``identify``, whose strategy for a real experiment is the calibration."""
-    from kneenlp.estimation.calibrate import SAME_POSE
-    from kneenlp.estimation.identify import identify
+    from kneenlp.estimation.calibrate import NO_RECORD, SAME_POSE
+    from kneenlp.estimation.identify import identification
     from kneenlp.prediction.predict import predict
 
-    fit = identify(s192803, CSV)
-    cal = fit.calibration
-    assert cal is not None and cal.fit is fit and fit.problem.priors  # MAP, the calibration's default
+    cal = identification(s192803, CSV)
+    fit = cal.fit
+    assert cal.record is not NO_RECORD and fit.problem.priors  # MAP by default
     data = cal.fit.data  # the fitted trials
     assert [o.trial for o in cal.outliers] == ["valgus_flex60"]  # 5.9 deg varus under a valgus moment
     assert len(data) == 24 and cal.set_aside.data.trials[0].id == "valgus_flex60"

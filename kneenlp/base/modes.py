@@ -33,7 +33,7 @@ PriorChoice = Literal["default", "none"]
 #: Where a study's fits start.
 StudyStart = Literal["scatter", "truth"]
 #: How a forward solve reached a trial's equilibrium (Newton from its start, a load ramp, a
-#: parameter continuation from the knee's own values), or that it did not.
+#: parameter continuation from the knee file's own values), or that it did not.
 SolveStrategy = Literal["newton", "ramp", "continuation", "failed"]
 #: How a knee's frames are made from its geometry.
 FrameMethod = Literal["cylinders", "landmarks"]

@@ -153,8 +153,8 @@ def held_out_judgements(knee, args) -> list:
 
 
 def cmd_identify(args) -> int:
-    from kneenlp.estimation.calibrate import Calibration, posterior
-    from kneenlp.estimation.identify import identify
+    from kneenlp.estimation.calibrate import NO_RECORD, posterior
+    from kneenlp.estimation.identify import identification
     from kneenlp.estimation.profile import profile, profile_lines
     from kneenlp.figures.plots import waterfall
     from kneenlp.io import inferencedata
@@ -164,13 +164,13 @@ def cmd_identify(args) -> int:
     check_names(knee, args)
     given = {"pivot_tolerance": args.pivot_tolerance, "also_free": args.also_free,
              "keep_outliers": args.keep_outliers or None}
-    fit = identify(knee, args.measured, args.method, strategy=args.strategy, free=args.free, seed=args.seed,
-                   noise=args.noise, weighted=args.weighted, multistart=args.multistart, solver=args.solver,
-                   **start_workers(args),
-                   protocol=args.protocol, with_effects=args.with_effect, **prior_options(args),
-                   **{k: v for k, v in given.items() if v is not None})
-    calibration = fit.calibration or Calibration(None, [], fit=fit)
-    if args.held_out and fit.calibration is None:
+    calibration = identification(knee, args.measured, args.method, strategy=args.strategy, free=args.free,
+                                 seed=args.seed, noise=args.noise, weighted=args.weighted,
+                                 multistart=args.multistart, solver=args.solver, **start_workers(args),
+                                 protocol=args.protocol, with_effects=args.with_effect, **prior_options(args),
+                                 **{k: v for k, v in given.items() if v is not None})
+    fit = calibration.fit
+    if args.held_out and calibration.record is NO_RECORD:
         raise InputError("judges a real experiment's calibration (data with a declared side or joint loads)",
                          field="--held-out")
     judged = held_out_judgements(knee, args) if args.held_out else []
@@ -190,7 +190,7 @@ def cmd_identify(args) -> int:
                 write_csv_atomic(calibration.set_aside.table(), stage.path / "set_aside.csv", index=False,
                                  float_format="%.10g")
             if inferencedata.available():  # the posterior's draws for ArviZ
-                units = {n: (fit._info(n).unit, fit._info(n).to_user) for n in fit.free}
+                units = {n: (fit.info(n).unit, fit.info(n).to_user) for n in fit.free}
                 inferencedata.write_inference_data(stage.path / "posterior.nc", posterior(fit), fit.params, units,
                                                    fit.data, seed=args.seed)
     notes = [] if not args.out or inferencedata.available() else [

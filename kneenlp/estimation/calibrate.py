@@ -47,7 +47,7 @@ after; :meth:`Calibration.parameter_set` is the calibrated parameter file's cont
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -159,7 +159,7 @@ def calibration_free(model: KneeModel, data: MeasuredData, theta: np.ndarray | N
 class CalibrationRecord:
     """What a calibration found besides its fit: the prediction with the knee's own parameters, what
     was left fixed, the groups engaged, predict's check, the outliers.  A calibrated
-    :class:`~kneenlp.estimation.fit.Fit` carries it (``fit.calibration`` joins the two)."""
+    :class:`~kneenlp.estimation.fit.Fit` carries it (:class:`Calibration` holds the two)."""
 
     before: Prediction | None  # None: an identification without the prediction before it
     fixed: list[str]
@@ -175,21 +175,26 @@ class CalibrationRecord:
     #: the global search that found the fit, its competing minima (None: a local calibration)
     search: Search | None = None
 
-    def joined(self, fit: Fit) -> Calibration:
-        """The :class:`Calibration` of ``fit`` with this record."""
-        return Calibration.of(fit, self)
+
+#: The record of a fit that is no calibration (an identification): nothing found besides the fit.
+NO_RECORD = CalibrationRecord(None, [])
 
 
 @dataclass(frozen=True)
-class Calibration(CalibrationRecord):
-    """A calibration: the fit and its :class:`CalibrationRecord`."""
+class Calibration:
+    """A calibration: its fit and what it found besides (:class:`CalibrationRecord`; an
+    identification's fit has :data:`NO_RECORD`).  The record's fields read through."""
 
-    fit: Fit = field(kw_only=True)
+    fit: Fit
+    record: CalibrationRecord = NO_RECORD
 
-    @classmethod
-    def of(cls, fit: Fit, record: CalibrationRecord) -> Calibration:
-        """``fit`` with what its calibration found."""
-        return cls(**{f.name: getattr(record, f.name) for f in fields(CalibrationRecord)}, fit=fit)
+    before = property(lambda self: self.record.before, doc=":attr:`CalibrationRecord.before`")
+    fixed = property(lambda self: self.record.fixed, doc=":attr:`CalibrationRecord.fixed`")
+    engaged = property(lambda self: self.record.engaged, doc=":attr:`CalibrationRecord.engaged`")
+    check = property(lambda self: self.record.check, doc=":attr:`CalibrationRecord.check`")
+    outliers = property(lambda self: self.record.outliers, doc=":attr:`CalibrationRecord.outliers`")
+    set_aside = property(lambda self: self.record.set_aside, doc=":attr:`CalibrationRecord.set_aside`")
+    search = property(lambda self: self.record.search, doc=":attr:`CalibrationRecord.search`")
 
     @property
     def elsewhere(self) -> list[str]:
@@ -379,7 +384,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
     record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
                                predict(model, data.subset(aside), fit.params) if outliers else None, found)
-    return Calibration.of(dataclasses.replace(fit, calibration_record=record), record)
+    return Calibration(fit, record)
 
 
 def local_fit(model: KneeModel, data: MeasuredData, free: list[str], extra: list[str], probe: np.ndarray,

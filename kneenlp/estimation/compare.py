@@ -36,7 +36,7 @@ def compare_methods(knee: Knee | KneeModel | None, data: MeasuredData | str | Pa
             for f in fits]
     ref = fits[0].params
     rows[1]["max_relative_difference"] = max(abs(fits[1].params[n] - ref[n]) / abs(ref[n]) for n in ref)
-    return {"units": {n: fits[0]._info(n).unit for n in fits[0].free}, "methods": rows}
+    return {"units": {n: fits[0].info(n).unit for n in fits[0].free}, "methods": rows}
 
 
 #: Rootfinder solves (trial equilibria) after which the nested method's best objective is reported.

@@ -24,6 +24,7 @@ from kneenlp.estimation.statistics import (
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.model.parameters import Parameter
 from kneenlp.solvers.result import SolverResult
 
 
@@ -64,19 +65,9 @@ class Fit:
     starts: int = 1
     #: the priors' share of what the fit minimised (``prior_weight * sum z^2``; 0 without priors)
     prior_objective: float = 0.0
-    #: what a real experiment's calibration found besides this fit
-    #: (:class:`~kneenlp.estimation.calibrate.CalibrationRecord`: the prediction before, engaged
-    #: groups, outliers, predict's check) when ``identify`` calibrated; else None
-    calibration_record: object | None = field(default=None, repr=False, compare=False)
     #: trials whose fitted equilibrium is not the one ``predict`` reaches by loading from the
     #: unloaded state (a calibration's global search checks every end; empty: none, or not checked)
     off_path: tuple[str, ...] = ()
-
-    @property
-    def calibration(self) -> object | None:
-        """The :class:`~kneenlp.estimation.calibrate.Calibration` of this fit (its ``fit`` is this
-        fit), or None when the fit is not a real experiment's calibration."""
-        return None if self.calibration_record is None else self.calibration_record.joined(self)
 
     @classmethod
     def build(cls, problem: IdentificationProblem, method: str, theta: np.ndarray, q: np.ndarray,
@@ -226,14 +217,15 @@ class Fit:
         return float(np.sqrt(np.mean(self.residuals**2)))
 
     # ------------------------------------------------------------------ presentation
-    def _info(self, name):
+    def info(self, name: str) -> Parameter:
+        """The metadata of parameter ``name`` (unit, display factor, kind)."""
         return self.model.parameter(name)
 
     def params_user(self) -> dict[str, float]:
-        return {n: self.params[n] * self._info(n).to_user for n in self.free}
+        return {n: self.params[n] * self.info(n).to_user for n in self.free}
 
     def stderr_user(self) -> dict[str, float]:
-        return {n: v * self._info(n).to_user for n, v in self.stderr.items()}
+        return {n: v * self.info(n).to_user for n, v in self.stderr.items()}
 
     def table(self) -> pd.DataFrame:
         """Per trial: measured and predicted coordinates and residuals (mm, deg)."""
@@ -255,7 +247,7 @@ class Fit:
             "stderr": self.stderr,
             "params_display": self.params_user(),
             "stderr_display": self.stderr_user(),
-            "units_display": {n: self._info(n).unit for n in self.free},
+            "units_display": {n: self.info(n).unit for n in self.free},
             "objective": self.objective,
             "chi_square": self.chi_square(),
             "reduced_chi_square": self.reduced_chi_square,
@@ -271,7 +263,7 @@ class Fit:
             "identifiable": self.identifiable,
             "unidentifiable_directions": self.unidentifiable_directions(),
             "at_bounds": self.at_bounds(),
-            "priors": {n: p.record(self._info(n).to_user, self._info(n).unit) | {"source": p.source}
+            "priors": {n: p.record(self.info(n).to_user, self.info(n).unit) | {"source": p.source}
                        for n, p in self.problem.priors.items()},
             "prior_weight": self.problem.prior_weight if self.problem.priors else None,
             "prior_objective": self.prior_objective,
@@ -332,7 +324,7 @@ class Fit:
             if prior is None:
                 lines.append(f"    {name:18s}   none (the data alone)")
                 continue
-            info = self._info(name)
+            info = self.info(name)
             flag = "  ** OUTSIDE ITS PRIOR'S 99.7 % RANGE **" if name in outside else ""
             lines.append(f"    {name:18s}   {prior.describe(info.to_user, info.unit)} ({prior.source}){flag}")
         return lines
@@ -358,14 +350,14 @@ class Fit:
         ]
         pu, su, bound = self.params_user(), self.stderr_user(), set(self.at_bounds())
         for n in self.free:
-            unit = self._info(n).unit
+            unit = self.info(n).unit
             se = su[n]
             rel = f"({100 * se / abs(pu[n]):.2f}%)" if np.isfinite(se) and pu[n] != 0 else ""
             se_txt = f"+/- {se:.4g} {rel}" if np.isfinite(se) else "+/- (not identifiable)"
             if n in bound:
                 se_txt = "AT ITS BOUND (the optimum lies beyond; no standard error)"
             start = self.start.get(n)
-            init = f"(init = {start * self._info(n).to_user:.6g})" if start is not None else ""
+            init = f"(init = {start * self.info(n).to_user:.6g})" if start is not None else ""
             lines.append(f"    {n:18s} = {pu[n]:12.6g} {unit:7s} {se_txt} {init}")
         for d in self.unidentifiable_directions():
             lines.append(("    direction the data do not determine (its priors do): " if self.problem.priors else

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from kneenlp.base.errors import InputError
 from kneenlp.base.modes import Method, Strategy, checked
+from kneenlp.estimation.calibrate import Calibration, calibrate, real_experiment
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.solve import scatter_fit, scatter_search
 from kneenlp.experiment.kneemodel import KneeModel
@@ -44,7 +45,14 @@ CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--a
 SEARCH_OPTIONS = ("starts", "store", "workers")
 
 
-def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: Method = "simultaneous", *,
+def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: Method = "simultaneous",
+             **options) -> Fit:
+    """Identify parameters of ``knee`` from measured ``data``: the fit of :func:`identification`
+    (``options`` are its keyword arguments)."""
+    return identification(knee, data, method, **options).fit
+
+
+def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: Method = "simultaneous", *,
              free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
              noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
              solver: str = "ipopt", solver_options: dict | None = None,
@@ -52,7 +60,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
              nested_options: dict | None = None, with_effects: list[str] | None = None,
              fixed: dict[str, float] | None = None, threads: int = 2,
              priors: str | dict | None = None, prior_weight: float | str | None = None,
-             strategy: Strategy = "auto", **calibration_options) -> Fit:
+             strategy: Strategy = "auto", **calibration_options) -> Calibration:
     """Identify the ``free`` parameters of ``knee`` from measured ``data`` by ``strategy`` (module
     docstring).
 
@@ -92,14 +100,14 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         ``starts`` > 1: the global search, ``store`` the directory of its finished solves;
         :func:`~kneenlp.estimation.calibrate.calibrate`).
 
-    Returns the :class:`Fit`; a calibration's also carries its
-    :class:`~kneenlp.estimation.calibrate.Calibration` as ``fit.calibration``.
+    Returns the :class:`~kneenlp.estimation.calibrate.Calibration`: the :class:`Fit` and, for a real
+    experiment's calibration, what it found besides (its ``record``; an identification has none).
     """
     _check_names(method, strategy, calibration_options)
     model = KneeModel.of(knee or Knee.default())
     data = checked_data(data, protocol)
     if resolve_strategy(strategy, data, method) == "calibration":
-        return calibrated_fit(model, data, free, fixed=fixed, priors=priors, prior_weight=prior_weight, seed=seed,
+        return calibration(model, data, free, fixed=fixed, priors=priors, prior_weight=prior_weight, seed=seed,
                               noise=noise, weighted=weighted, with_effects=with_effects, start=start, solver=solver,
                               solver_options=solver_options, multistart=multistart, threads=threads,
                               **calibration_options)
@@ -114,10 +122,11 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
         if method != "simultaneous":
             raise InputError("the global search solves the simultaneous NLP; --method nested has its own "
                              "population", field="--starts")
-        return scatter_search(problem, problem.check_start(start), seed=seed, threads=threads, **search_options)
-    return scatter_fit(problem, problem.check_start(start), seed=seed, method=method, multistart=multistart,
-                       restarts=restarts, solver=solver, solver_options=solver_options, threads=threads,
-                       nested_options=nested_options)
+        return Calibration(scatter_search(problem, problem.check_start(start), seed=seed, threads=threads,
+                                          **search_options))
+    return Calibration(scatter_fit(problem, problem.check_start(start), seed=seed, method=method,
+                                   multistart=multistart, restarts=restarts, solver=solver,
+                                   solver_options=solver_options, threads=threads, nested_options=nested_options))
 
 
 def _check_names(method: Method, strategy: Strategy, calibration_options: dict) -> None:
@@ -153,25 +162,20 @@ def checked_data(data: MeasuredData | str | Path, protocol: Protocol | str | Non
     return data
 
 
-def calibrated_fit(model: KneeModel, data: MeasuredData, free: list[str] | None, *, fixed: dict[str, float] | None,
-                   priors: str | dict | None, prior_weight: float | str | None, **options) -> Fit:
-    """:func:`identify`'s calibration strategy: :func:`~kneenlp.estimation.calibrate.calibrate` (``options``
-    its keyword arguments): its fit, whose ``calibration`` describes that very fit."""
-    from kneenlp.estimation.calibrate import calibrate
-
+def calibration(model: KneeModel, data: MeasuredData, free: list[str] | None, *, fixed: dict[str, float] | None,
+                priors: str | dict | None, prior_weight: float | str | None, **options) -> Calibration:
+    """:func:`identification`'s calibration strategy: :func:`~kneenlp.estimation.calibrate.calibrate`
+    (``options`` its keyword arguments)."""
     if fixed:
         raise InputError("a calibration starts from the knee's parameter file: put the values there "
                          "(--parameters) instead of fixing them here", field="fixed")
-    cal = calibrate(model, data, free, **options, **({} if priors is None else {"priors": priors}),
-                    **({} if prior_weight is None else {"prior_weight": prior_weight}))
-    return cal.fit
+    return calibrate(model, data, free, **options, **({} if priors is None else {"priors": priors}),
+                     **({} if prior_weight is None else {"prior_weight": prior_weight}))
 
 
 def resolve_strategy(strategy: Strategy, data: MeasuredData, method: Method = "simultaneous") -> Strategy:
     """``"calibration"`` or ``"scatter"``: what ``strategy`` (``"auto"`` included) means for ``data``
     fitted by ``method`` (module docstring); a calibration by the nested method is refused."""
-    from kneenlp.estimation.calibrate import real_experiment
-
     if strategy == "auto":
         return "calibration" if method == "simultaneous" and real_experiment(data) else "scatter"
     if strategy == "calibration" and method != "simultaneous":
