@@ -146,3 +146,29 @@ def reference_equilibrium(model: KneeModel, trial, q: np.ndarray, theta: np.ndar
             break
         q -= np.linalg.solve(jac, r)
     return q, res
+
+
+def rescaled_knee(knee, rng: np.random.Generator, sd: float = 0.3):
+    """``knee`` (a :class:`~kneenlp.model.knee.Knee` whose ligaments' bundles carry their own
+    stiffness and whose groups have a ``k_scale``) parametrised another way: each group's bundle
+    stiffnesses times a log-normal factor (``sd``) and its ``k_scale`` divided by it.  Every force
+    is the same function of the pose (to rounding); only the parameter values differ, so any
+    difference in what a solver returns is the solver's path, not the knee."""
+    import copy
+    import dataclasses
+
+    from kneenlp.experiment.kneemodel import KneeModel
+
+    model = KneeModel.of(knee)
+    theta = model.theta()
+    ligaments, values = {}, {}
+    for name, ligament in knee.ligaments.items():
+        if f"{name}.k_scale" not in model.parameter_names or ligament.bundles[0].stiffness is None:
+            continue
+        factor = float(np.exp(rng.normal(0.0, sd)))
+        moved = copy.copy(ligament)
+        moved.bundles = [dataclasses.replace(b, stiffness=b.stiffness * factor) for b in ligament.bundles]
+        ligaments[name] = moved
+        values[f"{name}.k_scale"] = float(theta[model.index(f"{name}.k_scale")]) / factor
+    out = dataclasses.replace(knee, ligaments={**knee.ligaments, **ligaments})
+    return out.with_parameters(out.parameters.with_values(values))
