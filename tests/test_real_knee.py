@@ -30,7 +30,7 @@ def test_default_knee_is_the_real_knee_with_mesh_contact(real_knee):
     assert set(real_knee.compartments) == {"medial", "lateral"}
     assert not any(c.sphere for c in real_knee.compartments.values())
     assert real_knee.femur.offset == pytest.approx(2e-3)
-    assert real_knee.menisci == pytest.approx(5e3)  # N/m: the base model's meniscus springs
+    assert real_knee.structures["menisci"] == pytest.approx(5e3)  # N/m: the base model's meniscus springs
     text = real_knee.report()
     for words in ("two connected components", "split by a plane", "cylinders", "distance-field error"):
         assert words in text, text

@@ -48,7 +48,6 @@ from kneenlp.experiment.measurement import ExperimentPart, Measurement, registra
 from kneenlp.model.effects import (
     Effect,
     attachment_effects,
-    builtin_elements,
     builtin_groups,
     bundle_group_effects,
 )
@@ -118,7 +117,7 @@ class KneeModel:
         if wrong:
             raise InputError(f"{type(wrong[0]).__name__} is neither a ForceElement nor an ExperimentPart",
                              field="elements")
-        own = [*knee.elements(), *builtin_elements(knee.condyle_centres(), knee.menisci is None, knee.condyle_rest())]
+        own = [*knee.elements(), *knee.structure_candidates()]
         experiment = measurement or Measurement.standard()
         #: the knee's force elements (its own, the built-in candidates, the user's)
         self.elements: list[ForceElement] = [*own, *[e for e in extra if isinstance(e, ForceElement)]]

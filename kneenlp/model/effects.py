@@ -6,7 +6,8 @@ An *effect* is something the model adequacy check can add (:mod:`kneenlp.adequac
   ``candidate = True``): at its neutral parameter values it contributes exactly nothing, so the
   base fit is the extended fit with those parameters fixed.  Built in: bundles named in the knee
   file's ``[candidates.<name>]`` (e.g. ``posterior_capsule``, ``ALL``: :class:`Ligament` elements
-  with stiffness 0) and :class:`Meniscus`; the experiment's candidates (flexion offset,
+  with stiffness 0) and the structures a knee file does not declare (:mod:`kneenlp.model.structures`:
+  the menisci); the experiment's candidates (flexion offset,
   registration, load point) are :mod:`kneenlp.experiment.measurement`'s;
 * a parameter group of the base model (:func:`parameter_group`): ``lin_strain`` (the linear
   strain limits) and ``contact_modulus``;
@@ -24,12 +25,6 @@ give :meth:`parameters` with a ``neutral`` value and :meth:`wrench`), and pass i
 from __future__ import annotations
 
 from dataclasses import dataclass
-
-import casadi as ca
-import numpy as np
-
-from kneenlp.model.elements import ForceElement, Pose
-from kneenlp.model.parameters import Parameter
 
 
 @dataclass(frozen=True)
@@ -55,54 +50,9 @@ class Effect:
         return hits[0] if len(hits) == 1 else None
 
 
-class Meniscus(ForceElement):
-    """Springs (N/m) between each condyle centre and its reference position over the plateau,
-    acting in the tibial transverse plane (X, Z of the tibial frame): the menisci's resistance to
-    condylar translation.  ``meniscus.k`` in N/mm.
-
-    A candidate (neutral 0) unless the knee file declares its menisci (``[menisci] stiffness``,
-    N/mm): then it is part of the base model with that default stiffness."""
-
-    name = "meniscus"
-    description = "menisci: resistance to condylar translation over the plateau"
-
-    def __init__(self, centres: list[np.ndarray], stiffness: float | None = None,
-                 rest: list[np.ndarray] | None = None):
-        self.centres = [np.asarray(c, float) for c in centres]  # femoral frame, m
-        #: where each centre sits over the plateau with the springs relaxed (tibial frame, m): at
-        #: the knee's reference pose (the centres themselves where that pose is the identity)
-        self.rest = [np.asarray(c, float) for c in (rest if rest is not None else centres)]
-        self.stiffness = stiffness  # N/m, None: a candidate
-        self.candidate = stiffness is None
-
-    def parameters(self) -> list[Parameter]:
-        if self.candidate:
-            return [Parameter("meniscus.k", "spring", "meniscal spring stiffness per compartment", 0.0, 0.0)]
-        return [Parameter("meniscus.k", "spring", "meniscal spring stiffness per compartment", self.stiffness)]
-
-    def wrench(self, pose: Pose, values: dict) -> tuple[ca.SX, ca.SX]:
-        k = values["meniscus.k"]
-        force, moment = ca.SX.zeros(3), ca.SX.zeros(3)
-        mask = ca.DM([1.0, 0.0, 1.0])
-        for ref, rest in zip(self.centres, self.rest, strict=True):
-            c = pose.to_tibial(ref)
-            f_t = k * mask * (c - ca.DM(rest))  # on the tibia, tibial frame
-            force += pose.R @ f_t
-            moment += pose.R @ ca.cross(c, f_t)
-        return force, moment
-
-
 def parameter_group(name: str, names: list[str], description: str) -> Effect:
     """An effect that frees existing base-model parameters (e.g. the linear strain limits)."""
     return Effect(name, description, tuple(names))
-
-
-def builtin_elements(centres: list[np.ndarray], meniscus: bool = True,
-                     rest: list[np.ndarray] | None = None) -> list[ForceElement]:
-    """The candidate force elements every knee model carries (neutral until freed): the menisci
-    (:class:`Meniscus`), unless ``meniscus=False`` for a knee whose menisci are part of its base
-    model; ``rest``: the condyle centres' rest positions over the plateaus."""
-    return [Meniscus(centres, rest=rest)] if meniscus else []
 
 
 def builtin_groups(ligaments: list[str]) -> list[Effect]:

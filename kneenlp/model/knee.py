@@ -36,14 +36,14 @@ from kneenlp.model.articular import (
     swept_tibia,
 )
 from kneenlp.model.contact import SphereContact
-from kneenlp.model.effects import Meniscus
 from kneenlp.model.elements import ForceElement
 from kneenlp.model.kinematics import reference_transform
 from kneenlp.model.knee_file import KneeFile, check_parameter_set, default_knee_file, knee_file, resolve_knee
 from kneenlp.model.laws import DEFAULT_PRESSURE_LAW
 from kneenlp.model.ligament import Ligament
 from kneenlp.model.mesh_contact import RIM_SHARE, MeshContact
-from kneenlp.model.parameters import KINDS, ParameterSet
+from kneenlp.model.parameters import ParameterSet
+from kneenlp.model.structures import structure_tables
 
 
 @dataclass
@@ -63,7 +63,9 @@ class Knee:
     candidates: list[Ligament] = field(default_factory=list)  # [candidates.*]: bundles with stiffness 0
     femur: FemoralSurface | None = None  # the femoral surface of the mesh compartments
     axis: FlexionAxis | None = None  # fitted flexion axis (femoral frame)
-    menisci: float | None = None  # N/m: transverse meniscus springs of the base model ([menisci])
+    #: the built-in structures the knee file declares (:mod:`kneenlp.model.structures`): each
+    #: table's value (SI) by table name, e.g. ``{"menisci": 5000.0}`` (N/m)
+    structures: dict[str, object] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)  # how the file became this knee
     #: the pose in which the geometry was imaged ([reference_pose]): flexion (rad) and the five
     #: coordinates (rad, m); reference strains refer to it, solvers start from it
@@ -99,8 +101,8 @@ class Knee:
         return list(self.ligaments)
 
     def elements(self) -> list[ForceElement]:
-        """The knee's force elements: its ligaments, one contact element per compartment and the
-        candidate bundles of its file (neutral: stiffness 0)."""
+        """The knee's force elements: its ligaments, one contact element per compartment, the
+        structures its file declares and the candidate bundles of its file (neutral: stiffness 0)."""
         contact: list[ForceElement] = []
         for c in self.compartments.values():
             if c.sphere:
@@ -109,9 +111,14 @@ class Knee:
             else:
                 contact.append(MeshContact(c.name, self.femur.field, c.points, c.areas, self.gate,
                                            self.femur.mesh.vertices, self.femur.offset, c.law))
-        menisci = [Meniscus(self.condyle_centres(), self.menisci, self.condyle_rest())] \
-            if self.menisci is not None else []
-        return [*self.ligaments.values(), *contact, *menisci, *self.candidates]
+        structures = [e for t in structure_tables() if t.name in self.structures
+                      for e in t.declared(self, self.structures[t.name])]
+        return [*self.ligaments.values(), *contact, *structures, *self.candidates]
+
+    def structure_candidates(self) -> list[ForceElement]:
+        """The neutral candidates of the built-in structures its file does not declare (model
+        adequacy may free them; :mod:`kneenlp.model.structures`)."""
+        return [e for t in structure_tables() if t.name not in self.structures for e in t.candidates(self)]
 
     def condyle_centres(self) -> list[np.ndarray]:
         """Centre of each femoral condyle (femoral frame, m): where the meniscus springs act."""
@@ -133,9 +140,7 @@ class Knee:
         """How the knee file became this model: frames, splits, fits and surface representations
         (builds the femoral distance field if it is not built yet)."""
         lines = [f"knee {self.name!r} ({self.source or 'in memory'})", *self.notes]
-        if self.menisci is not None:
-            lines.append(f"menisci: transverse springs of {self.menisci * KINDS['spring'].to_user:g} N/mm per "
-                         "compartment at the condyle centres (part of the base model)")
+        lines += [t.describe(self.structures[t.name]) for t in structure_tables() if t.name in self.structures]
         for c in self.compartments.values():
             what = (f"explicit sphere, radius {c.sphere_radius * 1e3:.1f} mm, centre "
                     f"({', '.join(f'{v * 1e3:.1f}' for v in c.centre)}) mm" if c.sphere else "femoral mesh surface")

@@ -41,11 +41,12 @@ from kneenlp.model.articular import (
 )
 from kneenlp.model.frames import Frame, angle_deg, axes_from_flexion, landmark_axes
 from kneenlp.model.kinematics import reference_transform
-from kneenlp.model.knee_schema import BundleTable, KneeDocument, SlackShiftTable
+from kneenlp.model.knee_schema import BundleTable, SlackShiftTable, knee_document
 from kneenlp.model.laws import DEFAULT_LAW, DEFAULT_PRESSURE_LAW, law_named
 from kneenlp.model.ligament import Bundle, Ligament, SlackShift
-from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, UNIT_FACTORS, ParameterSet
+from kneenlp.model.parameters import KINDS, LIGAMENT_KINDS, ParameterSet
 from kneenlp.model.paths import CylinderWrap, LigamentPath, StraightPath, ViaPoints
+from kneenlp.model.structures import structure_tables
 
 #: Ligament names (prefixes, upper case) on the medial and the lateral side of the knee, the
 #: evidence :meth:`KneeFile.check_side` weighs against the declared side.
@@ -133,13 +134,13 @@ class KneeFile:
     """One knee TOML being read: its document, units and the map into the femoral frame."""
 
     def __init__(self, path: Path):
-        """Read ``path`` and check it against :class:`~kneenlp.model.knee_schema.KneeDocument`; the
+        """Read ``path`` and check it against :func:`~kneenlp.model.knee_schema.knee_document`; the
         file's unit (``scale`` to m), side (``mirror``) and reference pose (rad, SI)."""
         self.path, self.src = path, str(path)
         doc = read_toml(path)
         units = doc.get("units", "mm") if isinstance(doc, dict) else "mm"
-        #: the file checked against its schema (:class:`~kneenlp.model.knee_schema.KneeDocument`)
-        self.spec = validated(KneeDocument, doc, self.src, context={"units": units})
+        #: the file checked against its schema (:func:`~kneenlp.model.knee_schema.knee_document`)
+        self.spec = validated(knee_document(), doc, self.src, context={"units": units})
         self.units = self.spec.units
         self.scale = 1e-3 if self.units == "mm" else 1.0
         self.mirror = np.array([1.0, 1.0, -1.0 if self.spec.side == "left" else 1.0])
@@ -231,7 +232,7 @@ class KneeFile:
                     parameters=params, gate=self.length(contact.gate, "gate", 0.01, "contact.gate"),
                     working_set=contact.working_set, landmarks=landmarks, source=src,
                     description=spec.description, candidates=candidates, femur=geometry["femur"],
-                    axis=geometry["axis"], menisci=self.menisci(), notes=self.notes,
+                    axis=geometry["axis"], structures=self.structures(), notes=self.notes,
                     reference_pose=self.reference_pose, side=spec.side)
 
     def check_side(self, ligaments: dict[str, Ligament], compartments: dict[str, Compartment],
@@ -420,14 +421,11 @@ class KneeFile:
                       for i, d in zip(idx[inside], depth[inside], strict=True)]
         return found
 
-    def menisci(self) -> float | None:
-        """``[menisci] stiffness`` (N/mm per compartment) -> N/m, or None (menisci not modelled)."""
-        if self.spec.menisci is None:
-            return None
-        k = self.spec.menisci.stiffness
-        if k < 0:
-            raise InputError("must be >= 0", source=self.src, field="menisci.stiffness")
-        return k * UNIT_FACTORS["spring"]["N/mm"]
+    def structures(self) -> dict[str, object]:
+        """The knee's value of every built-in structure's table the file declares (SI, checked;
+        :mod:`kneenlp.model.structures`), by table name."""
+        return {t.name: t.read(getattr(self.spec, t.name), self.src) for t in structure_tables()
+                if getattr(self.spec, t.name) is not None}
 
     def contact(self, raw_landmarks: dict[str, np.ndarray]) -> dict:
         """The articular geometry in the femoral frame (m): read the tibial cartilage and the femoral

@@ -5,6 +5,7 @@ and points are in the file's unit (``units``), angles in degrees."""
 
 from __future__ import annotations
 
+import functools
 from typing import Annotated, Any, Literal
 
 from pydantic import BeforeValidator, Field, PrivateAttr, create_model, model_validator
@@ -12,6 +13,7 @@ from pydantic import BeforeValidator, Field, PrivateAttr, create_model, model_va
 from kneenlp.base.conventions import coordinate_columns
 from kneenlp.base.modes import FrameMethod
 from kneenlp.base.schema import Number, Point, Table, fail
+from kneenlp.model.structures import StructureTable, structure_tables
 
 #: The compartments a knee file may describe in ``[contact.<compartment>]`` tables.
 COMPARTMENTS = ("medial", "lateral")
@@ -197,12 +199,6 @@ class CandidateTable(Table):
         return self
 
 
-class MenisciTable(Table):
-    """``[menisci]``: the meniscus springs' stiffness (N/mm per compartment)."""
-
-    stiffness: Number = Field(description="stiffness (N/mm per compartment)")
-
-
 #: ``[reference_pose]``: the imaged pose of the tibial frame in the femoral frame (deg, mm).
 ReferencePose = create_model(
     "ReferencePose", __base__=Table, __doc__="The imaged pose (flexion and the five coordinates; deg, mm).",
@@ -210,10 +206,10 @@ ReferencePose = create_model(
        for k in ["flexion_deg", *coordinate_columns()]})
 
 
-class KneeDocument(Table):
+class KneeTables(Table):
     """A knee file: name, side, units (of every length and point), coordinates (``femoral`` or
     ``scan``, then mapped by ``frame``), the parameter file, the reference pose, landmarks, contact,
-    ligaments, candidate effects and menisci."""
+    ligaments, candidate effects; :data:`KneeDocument` adds the structures' tables."""
 
     name: str | None = None
     description: str = ""
@@ -227,4 +223,15 @@ class KneeDocument(Table):
     contact: ContactTable = Field(default_factory=dict, validate_default=True)
     ligaments: dict[str, LigamentTable] = Field(min_length=1, description="table [ligaments.<NAME>]")
     candidates: dict[str, CandidateTable] = Field(default_factory=dict)
-    menisci: MenisciTable | None = None
+
+
+def knee_document() -> type[KneeTables]:
+    """The schema of a knee file: :class:`KneeTables` and every built-in structure's table
+    (:func:`~kneenlp.model.structures.structure_tables`)."""
+    return _knee_document(structure_tables())
+
+
+@functools.cache
+def _knee_document(tables: tuple[StructureTable, ...]) -> type[KneeTables]:
+    return create_model("KneeDocument", __base__=KneeTables, __doc__=KneeTables.__doc__,
+                        **{t.name: (t.schema | None, None) for t in tables})
