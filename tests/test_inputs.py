@@ -579,3 +579,22 @@ def test_forces_in_kilonewtons_are_named(tmp_path):
         with pytest.raises(kneenlp.InputError, match=r"along itself.*kN in the _N columns") as err:
             read_measured(tmp_path / "real_kn.csv")
         assert field is None or err.value.field == field
+
+
+def test_an_error_about_a_staged_file_names_where_it_was_to_go(tmp_path):
+    """A command writes its outputs into a staging folder first and reads some of them back (an
+    exported Abaqus file's expressions): an error there names the file as it would have been in
+    ``--out``, never the staging folder that is deleted with the failure; nothing is written."""
+    from kneenlp.base.atomic import staged_directory
+    from kneenlp.base.errors import InputError
+
+    out = tmp_path / "out"
+    with pytest.raises(InputError) as err:
+        with staged_directory(out) as stage:
+            (stage.path / "LIG.inp").write_text("*Parameter\nK = 1 +\n")
+            raise InputError(f"cannot evaluate 'K = 1 +' in {stage.path / 'LIG.inp'}",
+                             source=str(stage.path / "LIG.inp"), field="K")
+    staged = list(out.iterdir()) if out.exists() else []
+    assert err.value.source == str(out / "LIG.inp") and err.value.field == "K"
+    assert str(out / "LIG.inp") in err.value.message and ".kneenlp-tmp" not in str(err.value)
+    assert staged == []

@@ -153,6 +153,12 @@ def staged_directory(out: str | Path, option: str | None = "--out") -> Iterator[
         done = True
     except OSError as exc:
         raise write_error(exc, out, option) from None
+    except InputError as exc:  # about a staged file (a written file read back): name where it was to go
+        if stage.as_posix() not in f"{exc.source} {exc.message}":
+            raise
+        raise InputError(exc.message.replace(stage.as_posix(), out.as_posix()),
+                         source=exc.source and exc.source.replace(stage.as_posix(), out.as_posix()),
+                         field=exc.field) from None
     finally:
         shutil.rmtree(stage, ignore_errors=True)
         for d in created if not done else []:
