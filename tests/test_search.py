@@ -62,12 +62,14 @@ def test_a_parameter_without_prior_or_finite_bounds_cannot_be_sampled():
     assert len(prior_starts(problem, {"a": 0.0, "b": 1.0, "c": 0.0}, 1, seed=0)) == 1  # one start needs no draw
 
 
-def fake_fit(problem, objective, a, success=True, off=()):
+def fake_fit(problem, objective, a, success=True, off=(), unstable=()):
     return SimpleNamespace(problem=problem, map_objective=objective, success=success, off_path=off,
-                           params={"a": a, "b": 1.0, "c": 0.0}, max_residual=0.0)
+                           unstable=unstable, params={"a": a, "b": 1.0, "c": 0.0}, max_residual=0.0)
 
 
 def test_minima_are_ends_equal_in_objective_and_parameters_lowest_on_the_loading_path_first():
+    """Ends equal in objective (1e-6) and parameters are one minimum; the minima rank stable and on
+    the loading path first, then off it, then those with a trial at an unstable equilibrium."""
     problem = fake_problem(PRIORS)
     problem.equilibrium_tol = 1e-6
     step = SAME_PARAMETERS * 0.5 / 2  # a quarter of the tolerance, in the prior sd 0.5 of "a"
@@ -76,9 +78,11 @@ def test_minima_are_ends_equal_in_objective_and_parameters_lowest_on_the_loading
             ("start 3", fake_fit(problem, 10.0, 2.5)),  # the same objective elsewhere: another minimum
             ("start 4", fake_fit(problem, 9.0, 3.0, off=("valgus_flex60",))),  # lower, off the loading path
             ("start 5", fake_fit(problem, 1.0, 1.0, success=False)),  # not converged: no minimum
+            ("start 6", fake_fit(problem, 8.0, 4.0, off=("varus_flex0",), unstable=("varus_flex0",))),
             ("hop 1.1", fake_fit(problem, 10.0, 2.0))]
     minima = distinct_minima(ends)
-    assert [m.reached_by for m in minima] == [("start 1", "hop 1.1", "start 2"), ("start 3",), ("start 4",)]
+    assert [m.reached_by for m in minima] == [("start 1", "hop 1.1", "start 2"), ("start 3",), ("start 4",),
+                                              ("start 6",)]
     assert standardised(problem, minima[1].fit.params)[0] == pytest.approx(1.0)
 
 

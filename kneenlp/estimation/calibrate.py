@@ -473,8 +473,19 @@ def on_loading_path(fit: Fit) -> Fit:
     objectives 370-428; free poses 362-395): as the parameters move, the loading path's branch moves
     with them.  The equilibria in question lie 0.1-1.5 mm or deg apart (the knee's neutral zone)."""
     check = predict(fit.problem.model, fit.data, fit.params)
-    off = tuple(t.id for t, o in zip(fit.data.trials, off_loading_path(fit, check), strict=True) if o)
-    return dataclasses.replace(fit, off_path=off)
+    ids = np.array([t.id for t in fit.data.trials])
+    return dataclasses.replace(fit, off_path=tuple(ids[off_loading_path(fit, check)]),
+                               unstable=tuple(ids[unstable(fit)]))
+
+
+def unstable(fit: Fit) -> np.ndarray:
+    """Per trial of ``fit``: its fitted equilibrium is unstable, ``det(-dr/dq) <= 0`` (an odd number
+    of directions in which the tibia moves away under its loads; a pose no loading ends at, though
+    Newton converges to it as to any root).  The determinant's sign does not depend on the units of
+    the coordinates.  On S192803 most of the global search's minima put varus_flex0 on one."""
+    problem = fit.problem
+    jacobians = problem.model.trial_derivatives(fit.q_pred, fit.theta, problem.loads, problem.flexions, 1)[1]
+    return np.linalg.det(-np.asarray(jacobians)) <= 0
 
 
 def off_loading_path(fit: Fit, check: Prediction) -> np.ndarray:

@@ -68,6 +68,9 @@ class Fit:
     #: trials whose fitted equilibrium is not the one ``predict`` reaches by loading from the
     #: unloaded state (a calibration's global search checks every end; empty: none, or not checked)
     off_path: tuple[str, ...] = ()
+    #: trials whose fitted equilibrium is unstable (:func:`~kneenlp.estimation.calibrate.unstable`;
+    #: empty: none, or not checked)
+    unstable: tuple[str, ...] = ()
 
     @classmethod
     def build(cls, problem: IdentificationProblem, method: str, theta: np.ndarray, q: np.ndarray,

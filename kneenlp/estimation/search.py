@@ -26,7 +26,8 @@ The search (:func:`search`) makes the choice explicit:
 6. **Minima** (:func:`distinct_minima`): every converged end clustered by objective
    (:data:`SAME_OBJECTIVE`) and parameters (:data:`SAME_PARAMETERS` prior sd); each minimum with how
    many solves reached it.  Ends with trials off the loading path (``Fit.off_path``: equilibria
-   ``predict`` does not reach from the unloaded state) rank after the rest.  Fewer than
+   ``predict`` does not reach from the unloaded state) rank after the rest, and ends with a trial at
+   an unstable equilibrium (``Fit.unstable``: no loading ends there) after those.  Fewer than
    :data:`ENOUGH_HITS` solves for the lowest is reported: the search may not have found the global MAP.
 
 Everything is a function of the problem, the seed and the number of starts; the jobs of a stage are
@@ -150,6 +151,7 @@ class Search:
         for i, m in enumerate(self.minima):
             row = {"minimum": i + 1, "map_objective": m.objective, "hits": m.hits,
                    "distance_sd": parameter_distance(best, m.fit), "off_loading_path": list(m.fit.off_path),
+                   "unstable": list(m.fit.unstable),
                    "rms": rms_by_coordinate(m.fit.data.q_user - m.fit.predicted_user)}
             if held_out is not None and i < len(held_out):
                 row["held_out"] = held_out[i]
@@ -163,19 +165,20 @@ class Search:
 
     def lines(self, limit: int = 6) -> list[str]:
         """The report's lines: the minima table (lowest first, up to ``limit``) and the advice."""
-        header = (f"    {'minimum':>7} {'MAP objective':>14} {'reached by':>10} {'distance':>9} {'off path':>8}   "
-                  "fitted RMS varus, internal (deg) | lateral, anterior, proximal (mm)")
+        header = (f"    {'minimum':>7} {'MAP objective':>14} {'reached by':>10} {'distance':>9} {'off path':>8} "
+                  f"{'unstable':>8}   fitted RMS varus, internal (deg) | lateral, anterior, proximal (mm)")
         lines = [f"[[Global search]] {self.starts} starts (seed {self.seed}), {len(self.ends)} solves, "
                  f"{len(self.minima)} distinct minima", header]
         for row in self.records()[:limit]:
             rms = " ".join(f"{v:.2f}" for v in row["rms"].values())
             lines.append(f"    {row['minimum']:>7} {row['map_objective']:>14.4f} {row['hits']:>10} "
-                         f"{row['distance_sd']:>6.2f} sd {len(row['off_loading_path']):>8}   {rms}")
+                         f"{row['distance_sd']:>6.2f} sd {len(row['off_loading_path']):>8} "
+                         f"{len(row['unstable']):>8}   {rms}")
         if len(self.minima) > limit:
             lines.append(f"    ... {len(self.minima) - limit} more (--json lists them all)")
         lines += [f"    {self.advice()}",
                   "    (off path: trials whose fitted equilibrium predict does not reach by loading from the unloaded "
-                  "state; minima with none rank first)"]
+                  "state; unstable: trials at an unstable equilibrium; minima with neither rank first, unstable last)"]
         return lines
 
 
@@ -282,7 +285,7 @@ class Store:
             return Fit.build(problem, d["method"], problem.theta(d["params"]), np.array(d["q"], float),
                              status=d["status"], success=d["success"], iterations=d["iterations"], seconds=0.0,
                              max_residual=d["max_residual"], message=d["message"], start=d["start"],
-                             off_path=tuple(d["off_path"]))
+                             off_path=tuple(d["off_path"]), unstable=tuple(d.get("unstable", ())))
         except (OSError, ValueError, KeyError, TypeError):
             return None  # a damaged record is solved again
 
@@ -294,20 +297,22 @@ class Store:
         write_text_atomic(path, json.dumps({
             "method": fit.method, "params": fit.params, "q": np.asarray(fit.q_pred).tolist(), "status": fit.status,
             "success": bool(fit.success), "iterations": int(fit.iterations), "max_residual": float(fit.max_residual),
-            "message": fit.message, "start": fit.start, "off_path": list(fit.off_path)}))
+            "message": fit.message, "start": fit.start, "off_path": list(fit.off_path),
+            "unstable": list(fit.unstable)}))
 
 
 def _ranked(fits: list[Fit], screened: bool = False) -> list[int]:
     """Indices of ``fits`` by MAP objective, lowest first (ties within :data:`TIE` by index): the
-    converged ones with every trial on the loading path, the converged ones with trials off it, then
-    the rest; of ``screened`` fits (stopped on purpose) every one at equilibrium counts as converged."""
+    converged ones with every trial at a stable equilibrium, first those with every trial on the
+    loading path, then those with trials off it; then those with an unstable trial; then the rest;
+    of ``screened`` fits (stopped on purpose) every one at equilibrium counts as converged."""
     def usable(f: Fit) -> bool:
         return (f.max_residual <= f.problem.equilibrium_tol) if screened else f.success
 
-    def key(i: int) -> tuple[bool, bool, float, int]:
+    def key(i: int) -> tuple[bool, bool, bool, float, int]:
         f = fits[i]
         value = f.map_objective if usable(f) and np.isfinite(f.map_objective) else np.inf
-        return (not usable(f), bool(f.off_path), _rounded(value), i)
+        return (not usable(f), bool(f.unstable), bool(f.off_path), _rounded(value), i)
     return sorted(range(len(fits)), key=key)
 
 
@@ -470,6 +475,8 @@ def _better(a: Fit, b: Fit) -> bool:
     """``a`` ranks before ``b`` (:func:`_ranked`) by more than :data:`SAME_OBJECTIVE`."""
     if not a.success or not b.success:
         return a.success and not b.success
+    if bool(a.unstable) != bool(b.unstable):
+        return not a.unstable
     if bool(a.off_path) != bool(b.off_path):
         return not a.off_path
     return _rounded(a.map_objective) < _rounded(b.map_objective * (1 - SAME_OBJECTIVE))
