@@ -473,9 +473,10 @@ def on_loading_path(fit: Fit) -> Fit:
     objectives 370-428; free poses 362-395): as the parameters move, the loading path's branch moves
     with them.  The equilibria in question lie 0.1-1.5 mm or deg apart (the knee's neutral zone)."""
     check = predict(fit.problem.model, fit.data, fit.params)
-    ids = np.array([t.id for t in fit.data.trials])
-    return dataclasses.replace(fit, off_path=tuple(ids[off_loading_path(fit, check)]),
-                               unstable=tuple(ids[unstable(fit)]))
+    ids = [t.id for t in fit.data.trials]
+    return dataclasses.replace(fit, off_path=tuple(i for i, o in zip(ids, off_loading_path(fit, check), strict=True)
+                                                   if o),
+                               unstable=tuple(i for i, u in zip(ids, unstable(fit), strict=True) if u))
 
 
 def unstable(fit: Fit) -> np.ndarray:

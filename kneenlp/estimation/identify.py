@@ -53,14 +53,14 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, met
 
 
 def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: Method = "simultaneous", *,
-             free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
-             noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
-             solver: str = "ipopt", solver_options: dict | None = None,
-             protocol: Protocol | str | None = None, restarts: int = 4,
-             nested_options: dict | None = None, with_effects: list[str] | None = None,
-             fixed: dict[str, float] | None = None, threads: int = 2,
-             priors: str | dict | None = None, prior_weight: float | str | None = None,
-             strategy: Strategy = "auto", **calibration_options) -> Calibration:
+                   free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
+                   noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
+                   solver: str = "ipopt", solver_options: dict | None = None,
+                   protocol: Protocol | str | None = None, restarts: int = 4,
+                   nested_options: dict | None = None, with_effects: list[str] | None = None,
+                   fixed: dict[str, float] | None = None, threads: int = 2,
+                   priors: str | dict | None = None, prior_weight: float | str | None = None,
+                   strategy: Strategy = "auto", **calibration_options) -> Calibration:
     """Identify the ``free`` parameters of ``knee`` from measured ``data`` by ``strategy`` (module
     docstring).
 
@@ -108,9 +108,9 @@ def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     data = checked_data(data, protocol)
     if resolve_strategy(strategy, data, method) == "calibration":
         return calibration(model, data, free, fixed=fixed, priors=priors, prior_weight=prior_weight, seed=seed,
-                              noise=noise, weighted=weighted, with_effects=with_effects, start=start, solver=solver,
-                              solver_options=solver_options, multistart=multistart, threads=threads,
-                              **calibration_options)
+                           noise=noise, weighted=weighted, with_effects=with_effects, start=start, solver=solver,
+                           solver_options=solver_options, multistart=multistart, threads=threads,
+                           **calibration_options)
     search_options = {}
     if calibration_options.get("starts", 1) > 1:  # the global search's options: a scatter fit's too
         search_options = {k: calibration_options.pop(k) for k in SEARCH_OPTIONS if k in calibration_options}
