@@ -20,7 +20,7 @@ PROBLEM = Path(__file__).resolve().parents[1] / "problems" / "s192803"
 
 def run(cache: Path, out: Path, starts: int) -> float:
     env = os.environ | {"KNEENLP_CACHE": str(cache), "NUMBA_CACHE_DIR": str(cache / "numba")}
-    argv = [sys.executable, "-m", "kneenlp", "identify", "--problem", str(PROBLEM), "--out", str(out)]
+    argv = [sys.executable, "-m", "kneenlp.cli", "identify", "--problem", str(PROBLEM), "--out", str(out)]
     if starts > 1:
         argv += ["--starts", str(starts)]
     t0 = time.perf_counter()

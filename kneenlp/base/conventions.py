@@ -65,6 +65,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from kneenlp.base.modes import LoadAxes, names
+
 #: The five free coordinates, in the order of the model's unknown vector ``q``.
 COORDINATES: tuple[str, ...] = (
     "varus_rotation",
@@ -160,10 +162,10 @@ def load_columns(extra: bool = False) -> list[str]:
 
 
 #: Axes along which load components act (see the module docstring).
-LOAD_AXES: tuple[str, ...] = ("femoral", "joint", "jcs")
+LOAD_AXES: tuple[str, ...] = names(LoadAxes)
 
 
-def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: str = "femoral") -> np.ndarray:
+def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes = "femoral") -> np.ndarray:
     """Internal load vector (:data:`LOAD_SIZE`) of signed load components (N, N m; absent = 0).
 
     ``[F (3), M (3), Q (5)]``: a force ``F`` at the tibial tuberosity and a pure moment ``M``, both

@@ -35,6 +35,16 @@ StudyStart = Literal["scatter", "truth"]
 #: How a forward solve reached a trial's equilibrium (Newton from its start, a load ramp, a
 #: parameter continuation from the knee file's own values), or that it did not.
 SolveStrategy = Literal["newton", "ramp", "continuation", "failed"]
+#: The axes a trial's loads are given in (a protocol's or the data's ``load_axes``).
+LoadAxes = Literal["femoral", "joint", "jcs"]
+#: The shape of the exact contact's CasADi graph: vectorised (CasADi files) or a loop (C).
+Layout = Literal["vector", "loop"]
+#: How an exported NLP holds the contact: exact in the graph, or an expansion at the start poses (.nl).
+ContactForm = Literal["exact", "expansion"]
+#: Where the NLP's contact working sets come from: the data vector, the graph, every pose evaluated.
+WorkingSetSource = Literal["data", "graph", "pose"]
+#: The frame a staged element gives its wrench in.
+WrenchFrame = Literal["tibial", "femoral"]
 #: How a knee's frames are made from its geometry.
 FrameMethod = Literal["cylinders", "landmarks"]
 

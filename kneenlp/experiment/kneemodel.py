@@ -44,6 +44,7 @@ import numpy as np
 from kneenlp.base.compiled import BufferedCall, compiled
 from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.modes import Layout
 from kneenlp.experiment.measurement import ExperimentPart, Measurement, registration_effects
 from kneenlp.model.effects import (
     Effect,
@@ -548,7 +549,7 @@ class KneeModel:
         """The balance's residual with the staged elements' wrenches given (numeric or MX)."""
         return self._balance(q, flexion, theta, load, *[w[0] for w in wrenches], *[w[1] for w in wrenches])[0]
 
-    def _exact_residual(self, layout: str) -> ca.Function:
+    def _exact_residual(self, layout: Layout) -> ca.Function:
         q, flexion = ca.MX.sym("q", 5), ca.MX.sym("flexion")
         theta, load = ca.MX.sym("theta", len(self.parameter_names)), ca.MX.sym("load", LOAD_SIZE)
         pr = self._probes(q, flexion, theta) if self.staged else []

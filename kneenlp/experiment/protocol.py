@@ -33,6 +33,7 @@ import numpy as np
 
 from kneenlp.base.conventions import DIRECTIONS, load_vector
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.modes import LoadAxes
 from kneenlp.base.resources import resource
 from kneenlp.base.schema import validated
 from kneenlp.base.tomlfile import read_toml
@@ -50,7 +51,7 @@ class Trial:
     loads: dict[str, float]  # component -> signed value (N or N m)
     direction: str = "none"
     magnitude: float = 0.0
-    axes: str = "femoral"  # or "joint", see module docstring
+    axes: LoadAxes = "femoral"  # see module docstring
 
     @property
     def flexion(self) -> float:
@@ -261,7 +262,7 @@ def _flexions(flexions: list[float], source: str, field: str) -> list[float]:
     return flexions
 
 
-def _case_trials(case: Case, fld: str, i: int, axes: str, source: str) -> list[Trial]:
+def _case_trials(case: Case, fld: str, i: int, axes: LoadAxes, source: str) -> list[Trial]:
     """The trials of one ``[[cases]]`` entry (loads in N and N m, flexion in deg)."""
     flexions = _flexions(case.flexion, source, f"{fld}.flexion")
     if case.loads is not None:

@@ -28,9 +28,10 @@ from functools import cache
 import casadi as ca
 import numpy as np
 
+from kneenlp.base.modes import Layout, names
 from kneenlp.geometry.sdf import DistanceField
 
-LAYOUTS = ("vector", "loop")
+LAYOUTS = names(Layout)
 #: (a, b, c) of the 64 coefficients of a cell, in the order of the gathered columns
 _ROWS = [(a, b, c) for a in range(4) for b in range(4) for c in range(4)]
 
@@ -67,7 +68,7 @@ def spline_function() -> ca.Function:
                        {"is_diff_in": [False, True]})
 
 
-def field_in_graph(field: DistanceField, X: ca.MX, layout: str = "vector") -> tuple[ca.MX, ca.MX]:
+def field_in_graph(field: DistanceField, X: ca.MX, layout: Layout = "vector") -> tuple[ca.MX, ca.MX]:
     """Field value (1 x N, m) and gradient (3 x N) at the points ``X`` (3 x N, femoral frame, m),
     in either :data:`LAYOUTS` (module docstring).  Points outside the grid are evaluated at the
     nearest cell of it (callers mask them)."""

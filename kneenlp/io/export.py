@@ -51,7 +51,7 @@ from kneenlp.base.conventions import (
     coords_from_user,
 )
 from kneenlp.base.errors import InputError
-from kneenlp.base.modes import ExportFormat, NlCommon, checked
+from kneenlp.base.modes import ContactForm, ExportFormat, Layout, NlCommon, checked, names
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.problem import IdentificationProblem
@@ -61,7 +61,7 @@ from kneenlp.solvers.forward import equilibrium_start
 from kneenlp.solvers.nlp import nlp_expressions
 
 #: How the exported NLP holds mesh contact (module docstring).
-CONTACT_FORMS = ("exact", "expansion")
+CONTACT_FORMS = names(ContactForm)
 #: Half-width (mm or deg) of the box around the start poses where an expansion's error is measured.
 ERROR_PROBE = 1.0
 #: Poses drawn per trial for that measurement.
@@ -88,7 +88,7 @@ class ExportProblem:
     n_free: int
     meta: dict
     #: how the contact is held: "exact" (in the graph) or "expansion" (at the start poses, in ``p``)
-    contact: str = "exact"
+    contact: ContactForm = "exact"
     #: for "expansion" on a knee with working sets: its measured error (see :func:`expansion_error`)
     contact_error: dict | None = None
     #: the data vector ``p``'s layout in words (:class:`~kneenlp.experiment.problem.DataLayout`)
@@ -104,7 +104,7 @@ class ExportProblem:
 def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, *,
                    free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
                    with_effects: list[str] | None = None, fixed: dict[str, float] | None = None,
-                   contact: str = "exact", layout: str = "vector") -> ExportProblem:
+                   contact: ContactForm = "exact", layout: Layout = "vector") -> ExportProblem:
     """Build the identification NLP of ``data`` with a start like
     :func:`kneenlp.estimation.identify.identify`'s (``knee`` may be a model with user elements);
     ``contact``: ``"exact"`` (CasADi, C) or ``"expansion"`` (what ``.nl`` can hold; module docstring);

@@ -33,6 +33,7 @@ from itertools import pairwise
 import casadi as ca
 import numpy as np
 
+from kneenlp.base.modes import Layout, WrenchFrame
 from kneenlp.model.parameters import Parameter
 
 
@@ -164,7 +165,7 @@ class StagedElement(ForceElement, ABC):
     #: numbers per working-set slot (rows of the matrix :meth:`surface_wrench` receives)
     ws_width: int = 4
     #: frame of :meth:`surface_wrench`'s force and moment: "tibial" or "femoral"
-    wrench_frame: str = "tibial"
+    wrench_frame: WrenchFrame = "tibial"
 
     @property
     def n_working(self) -> int:
@@ -234,7 +235,7 @@ class StagedElement(ForceElement, ABC):
         outs = [force, moment, *(self.report(probe, data, force) if with_report else [])]
         return ca.Function(f"surface_{self.name}", [probe, ws], outs)
 
-    def exact_wrench(self, probe: ca.MX, layout: str = "vector") -> tuple[ca.MX, ca.MX]:
+    def exact_wrench(self, probe: ca.MX, layout: Layout = "vector") -> tuple[ca.MX, ca.MX]:
         """Force and moment (:attr:`wrench_frame`) from the probe alone, every point counted: what
         the working sets stand for, as one self-contained graph (export); ``layout`` is the graph's
         shape where an element has a choice (:data:`kneenlp.geometry.graph_field.LAYOUTS`).

@@ -34,6 +34,7 @@ import numpy as np
 from kneenlp.base import interrupts
 from kneenlp.base.conventions import LOAD_SIZE, coords_from_user, coords_to_user
 from kneenlp.base.errors import InputError
+from kneenlp.base.modes import Layout, WorkingSetSource
 from kneenlp.experiment.problem import prior_rows
 from kneenlp.model.solvercache import frozen
 from kneenlp.solvers.forward import equilibrium_start
@@ -90,7 +91,7 @@ class NLPExpressions:
 
 
 def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", threads: int = 1,
-                    working_sets: str = "data", layout: str = "vector") -> NLPExpressions:
+                    working_sets: WorkingSetSource = "data", layout: Layout = "vector") -> NLPExpressions:
     """The NLP's expressions (see module docstring); ``parallel``/``threads`` set the trial map.
 
     ``working_sets``: ``"data"`` makes the contact working sets the last part of the data vector
