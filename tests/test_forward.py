@@ -312,3 +312,24 @@ def test_a_knee_written_another_way_has_the_same_forces_and_solves_the_same():
     for s, t in zip(kneenlp.simulate(knee, "set1").solutions, kneenlp.simulate(other, "set1").solutions, strict=True):
         assert s.converged and t.converged and s.strategy == t.strategy
         assert np.max(np.abs(coords_to_user(s.q) - coords_to_user(t.q))) <= 1e-6
+
+
+def test_an_unstable_equilibrium_is_named_by_the_sign_of_its_stiffness_whatever_the_units():
+    """``unstable_equilibria``: det(-dr/dq) <= 0 (an odd number of directions that run away).  The
+    verdict does not change when the coordinates' units change (columns and rows scaled by positive
+    factors); every trial a forward solve of Set 3 reaches on the default knee is stable."""
+    from types import SimpleNamespace
+
+    from kneenlp.solvers.forward import unstable_equilibria
+
+    rng = np.random.default_rng(0)
+    basis = np.linalg.qr(rng.normal(size=(5, 5)))[0]
+    stable = -basis @ np.diag([1e5, 3e4, 2e3, 40.0, 20.0]) @ basis.T
+    saddle = -basis @ np.diag([1e5, 3e4, 2e3, 40.0, -5.0]) @ basis.T
+    units = np.diag([1.0, 1.0, 1e3, 1e3, 1e3])  # rad and mm for rad and m
+    jacobians = np.stack([stable, saddle, units @ stable @ units, units @ saddle @ units])
+    model = SimpleNamespace(trial_derivatives=lambda q, theta, loads, flexions, threads: (None, jacobians))
+    flags = unstable_equilibria(model, np.zeros((4, 5)), np.zeros(1), np.zeros((4, LOAD_SIZE)), np.zeros(4))
+    assert flags.tolist() == [False, True, False, True]
+    solutions = kneenlp.simulate(kneenlp.Knee.default(), "set3").solutions
+    assert all(s.converged and s.stable for s in solutions)

@@ -78,7 +78,7 @@ from kneenlp.model.posterior import Posterior
 from kneenlp.model.priors import Prior
 from kneenlp.prediction.laxity import laxity_lines, laxity_records, laxity_table
 from kneenlp.prediction.predict import Prediction, predict, rms_by_coordinate
-from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.forward import forward_solver, unstable_equilibria
 
 #: Smallest pivot (relative to the largest) of a parameter the calibration frees.
 PIVOT_TOLERANCE = 0.02
@@ -480,13 +480,11 @@ def on_loading_path(fit: Fit) -> Fit:
 
 
 def unstable(fit: Fit) -> np.ndarray:
-    """Per trial of ``fit``: its fitted equilibrium is unstable, ``det(-dr/dq) <= 0`` (an odd number
-    of directions in which the tibia moves away under its loads; a pose no loading ends at, though
-    Newton converges to it as to any root).  The determinant's sign does not depend on the units of
-    the coordinates.  On S192803 most of the global search's minima put varus_flex0 on one."""
+    """Per trial of ``fit``: its fitted equilibrium is unstable
+    (:func:`~kneenlp.solvers.forward.unstable_equilibria`).  On S192803 most of the global search's
+    minima put varus_flex0 on one."""
     problem = fit.problem
-    jacobians = problem.model.trial_derivatives(fit.q_pred, fit.theta, problem.loads, problem.flexions, 1)[1]
-    return np.linalg.det(-np.asarray(jacobians)) <= 0
+    return unstable_equilibria(problem.model, fit.q_pred, fit.theta, problem.loads, problem.flexions)
 
 
 def off_loading_path(fit: Fit, check: Prediction) -> np.ndarray:

@@ -136,6 +136,7 @@ class Prediction:
         return {"knee": self.knee_name, "trials": len(self.solutions), "converged": int(self.converged.sum()),
                 "rms": self.rms(), "rms_units": {c: c.rsplit("_", 1)[1] for c in coordinate_columns()},
                 "failed": [{"trial": s.trial.id, "reason": s.reason} for s in self.solutions if not s.converged],
+                "unstable": [s.trial.id for s in self.solutions if not s.stable],
                 "laxity": laxity_records(self.laxity())} | ({} if self.sd_user is None else {
                     "band_level": BAND_LEVEL, "inside_band": self.inside_band(),
                     "sd": {c: [None if not np.isfinite(v) else float(v) for v in self.sd_user[:, j]]
@@ -154,7 +155,8 @@ class Prediction:
         lines.append(f"{'trial':<{width}}  flexion  {head}   (measured minus predicted)")
         for s, e in zip(self.solutions, self.errors_user, strict=True):
             cells = "  ".join(f"{v:14.2f}" for v in e) if s.converged else f"NO EQUILIBRIUM: {s.reason}"
-            lines.append(f"{s.trial.id:<{width}}  {s.trial.flexion_deg:7.1f}  {cells}")
+            note = "" if s.stable else "  (an UNSTABLE equilibrium: no loading ends there)"
+            lines.append(f"{s.trial.id:<{width}}  {s.trial.flexion_deg:7.1f}  {cells}{note}")
         if self.sd_user is not None:
             n = int(self.converged.sum())
             lines.append(f"Inside the {100 * BAND_LEVEL:g} % predictive band (posterior and noise, +-{BAND_Z:.2f} sd): "

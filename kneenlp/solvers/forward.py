@@ -63,6 +63,9 @@ class TrialSolution:
     reason: str = ""  # why a trial did not converge
     #: every force element's outputs at the pose, by table column (SI: strain as a fraction, N, m)
     outputs: dict[str, float] = field(default_factory=dict)
+    #: the equilibrium is stable by :func:`unstable_equilibria` (a converged trial may be an unstable
+    #: one: Newton converges to any root; predict says so)
+    stable: bool = True
 
 
 class ForwardSolver:
@@ -290,7 +293,10 @@ class ForwardSolver:
         ws = self.model.working_data(q, theta, trial.flexion, order=0)
         values = np.asarray(self.model.details(q, theta, trial.load, trial.flexion, ws)[1]).ravel()
         columns = [o.column for _, o in self.model.outputs]
-        return TrialSolution(trial, q, converged, res, strategy, outputs=dict(zip(columns, values, strict=True)))
+        stable = not (converged and unstable_equilibria(self.model, q[None], theta, trial.load[None],
+                                                        np.array([trial.flexion]))[0])
+        return TrialSolution(trial, q, converged, res, strategy, outputs=dict(zip(columns, values, strict=True)),
+                             stable=stable)
 
     def solve(self, trials: list[Trial] | tuple[Trial, ...], theta: np.ndarray,
               q_start: dict[str, np.ndarray] | None = None) -> list[TrialSolution]:
@@ -377,6 +383,17 @@ def equilibrium_start(problem: IdentificationProblem, theta: np.ndarray, threads
     ok &= problem.inside_pose_bounds(q0)
     return EquilibriumStart(np.where(ok[:, None], q0, data.q),
                             np.where(ok[:, None], coords_to_user(q0), problem.measured), ok)
+
+
+def unstable_equilibria(model: KneeModel, q: np.ndarray, theta: np.ndarray, loads: np.ndarray,
+                        flexions: np.ndarray, threads: int = 1) -> np.ndarray:
+    """Per pose of ``q`` (T x 5, SI, equilibria under ``loads`` T x 6 at ``flexions`` T, rad): it is
+    unstable, ``det(-dr/dq) <= 0``: an odd number of directions in which the tibia moves away under
+    its loads (a pose no loading ends at, though Newton converges to it as to any root).  The
+    determinant's sign does not depend on the units of the coordinates."""
+    jacobians = model.trial_derivatives(np.asarray(q, float), theta, np.asarray(loads, float),
+                                        np.asarray(flexions, float), threads)[1]
+    return np.linalg.det(-np.asarray(jacobians)) <= 0
 
 
 def rim_reason(share: float) -> str:
