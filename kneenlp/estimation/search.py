@@ -306,14 +306,18 @@ def _ranked(fits: list[Fit], screened: bool = False) -> list[int]:
     converged ones with every trial at a stable equilibrium, first those with every trial on the
     loading path, then those with trials off it; then those with an unstable trial; then the rest;
     of ``screened`` fits (stopped on purpose) every one at equilibrium counts as converged."""
-    def usable(f: Fit) -> bool:
-        return (f.max_residual <= f.problem.equilibrium_tol) if screened else f.success
-
     def key(i: int) -> tuple[bool, bool, bool, float, int]:
         f = fits[i]
-        value = f.map_objective if usable(f) and np.isfinite(f.map_objective) else np.inf
-        return (not usable(f), bool(f.unstable), bool(f.off_path), _rounded(value), i)
+        usable = (f.max_residual <= f.problem.equilibrium_tol) if screened else f.success
+        value = f.map_objective if usable and np.isfinite(f.map_objective) else np.inf
+        return (*_standing(f, usable), _rounded(value), i)
     return sorted(range(len(fits)), key=key)
+
+
+def _standing(f: Fit, usable: bool) -> tuple[bool, bool, bool]:
+    """What ranks a fit before its objective (:func:`_ranked`, :func:`_better`): not usable, a trial
+    at an unstable equilibrium, a trial off the loading path (each False first)."""
+    return not usable, bool(f.unstable), bool(f.off_path)
 
 
 def _rounded(value: float) -> float:
@@ -473,10 +477,7 @@ def _deepen(problem: IdentificationProblem, ends: list[tuple[str, Fit]], seed: i
 
 def _better(a: Fit, b: Fit) -> bool:
     """``a`` ranks before ``b`` (:func:`_ranked`) by more than :data:`SAME_OBJECTIVE`."""
-    if not a.success or not b.success:
-        return a.success and not b.success
-    if bool(a.unstable) != bool(b.unstable):
-        return not a.unstable
-    if bool(a.off_path) != bool(b.off_path):
-        return not a.off_path
+    standing_a, standing_b = _standing(a, a.success), _standing(b, b.success)
+    if standing_a != standing_b or not a.success:
+        return standing_a < standing_b
     return _rounded(a.map_objective) < _rounded(b.map_objective * (1 - SAME_OBJECTIVE))
