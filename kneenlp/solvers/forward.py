@@ -64,7 +64,7 @@ class TrialSolution:
     #: every force element's outputs at the pose, by table column (SI: strain as a fraction, N, m)
     outputs: dict[str, float] = field(default_factory=dict)
     #: the equilibrium is stable by :func:`unstable_equilibria` (a converged trial may be an unstable
-    #: one: Newton converges to any root; predict says so)
+    #: one: Newton converges to any root; :meth:`ForwardSolver.solve` checks, predict says so)
     stable: bool = True
 
 
@@ -293,10 +293,7 @@ class ForwardSolver:
         ws = self.model.working_data(q, theta, trial.flexion, order=0)
         values = np.asarray(self.model.details(q, theta, trial.load, trial.flexion, ws)[1]).ravel()
         columns = [o.column for _, o in self.model.outputs]
-        stable = not (converged and unstable_equilibria(self.model, q[None], theta, trial.load[None],
-                                                        np.array([trial.flexion]))[0])
-        return TrialSolution(trial, q, converged, res, strategy, outputs=dict(zip(columns, values, strict=True)),
-                             stable=stable)
+        return TrialSolution(trial, q, converged, res, strategy, outputs=dict(zip(columns, values, strict=True)))
 
     def solve(self, trials: list[Trial] | tuple[Trial, ...], theta: np.ndarray,
               q_start: dict[str, np.ndarray] | None = None) -> list[TrialSolution]:
@@ -331,7 +328,15 @@ class ForwardSolver:
                     if _is_unloaded(t):
                         unloaded[keys[i]] = sol.q
                 out[i] = sol
-        return [out[i] for i in range(len(trials))]
+        solutions = [out[i] for i in range(len(trials))]
+        done = [s for s in solutions if s.converged]
+        if done:  # every equilibrium's stability, in one batch
+            flags = unstable_equilibria(self.model, np.array([s.q for s in done]), theta,
+                                        np.array([s.trial.load for s in done]),
+                                        np.array([s.trial.flexion for s in done]), threads=2)
+            for s, unstable in zip(done, flags, strict=True):
+                s.stable = not unstable
+        return solutions
 
     def _prime(self, trials: list[Trial], theta: np.ndarray, starts: list[np.ndarray | None]) -> None:
         """The first Newton solve :meth:`solve_trial` makes for each of ``trials`` from ``starts``
