@@ -222,29 +222,12 @@ def test_a_repeated_newton_solve_is_answered_from_memory(model, monkeypatch):
     assert len(calls) == 2
 
 
-def one_at_a_time(solver, trials, theta):
-    """The forward solve's rule, one trial at a time: no-load trials first, each warm-started from the
-    last converged trial at its flexion, else its flexion's no-load pose (solved first where missing)."""
-    unloaded, last, out = {}, {}, {}
-    for i in sorted(range(len(trials)), key=lambda i: (bool(trials[i].loads), i)):
-        t, key = trials[i], round(trials[i].flexion_deg, 9)
-        q0 = last.get(key, unloaded.get(key))
-        if key not in unloaded and t.loads:
-            sol0 = solver.solve_trial(Trial("none", t.flexion_deg, {}, "none", 0.0), theta, q0)
-            if sol0.converged:
-                unloaded[key] = q0 = sol0.q
-        out[i] = solver.solve_trial(t, theta, q0, unloaded.get(key))
-        if out[i].converged:
-            last[key] = out[i].q
-            if not t.loads:
-                unloaded[key] = out[i].q
-    return [out[i] for i in range(len(trials))]
-
-
 @pytest.mark.parametrize("knee_name,protocol", [("default", "set3"), ("s192803", None)])
-def test_the_batched_forward_solve_is_the_one_at_a_time_solve(knee_name, protocol):
-    """Trials go in waves whose first Newton solves are batched: the poses are those of solving one
-    trial at a time, bit for bit (set 3: several trials per flexion; S192803: one flexion each)."""
+def test_a_trial_solves_the_same_alone_in_a_batch_or_in_any_order(knee_name, protocol):
+    """The loading path starts every trial from its flexion's unloaded state, never from another
+    trial: the batched solve of a protocol, its trials solved one by one by fresh solvers and the
+    protocol in reverse order give the same poses and strategies, bit for bit (set 3: several
+    trials per flexion; S192803: one flexion each)."""
     model = kneenlp.experiment.kneemodel.KneeModel.of(kneenlp.Knee.named(knee_name))
     if protocol:
         trials = list(Protocol.load(protocol).trials)
@@ -253,9 +236,11 @@ def test_the_batched_forward_solve_is_the_one_at_a_time_solve(knee_name, protoco
         trials = list(read_measured(kneenlp.base.resources.resource("datasets", "s192803_laxity.csv")).trials)
     theta = model.theta()
     batched = ForwardSolver(model).solve(trials, theta)
-    single = one_at_a_time(ForwardSolver(model), trials, theta)
-    assert [s.converged for s in batched] == [s.converged for s in single]
-    assert all(np.array_equal(a.q, b.q) and a.strategy == b.strategy for a, b in zip(batched, single, strict=True))
+    single = [ForwardSolver(model).solve_trial(t, theta) for t in trials]
+    reverse = ForwardSolver(model).solve(trials[::-1], theta)[::-1]
+    assert all(s.converged for s in batched)
+    for other in (single, reverse):
+        assert all(np.array_equal(a.q, b.q) and a.strategy == b.strategy for a, b in zip(batched, other, strict=True))
 
 
 class _SingularAtStart:
@@ -294,8 +279,8 @@ def test_a_knee_written_another_way_has_the_same_forces_and_solves_the_same():
     """S192803 with every group's stiffness scale moved into its bundles' stiffnesses
     (:func:`~kneenlp.testing.reference.rescaled_knee`): the residual is the same function of the pose
     (1e-9 of its scale at random poses), and Set 1 solves to the same poses (1e-6 mm and deg) by the
-    same strategies.  (A calibration written both ways still differs in one trial that only the
-    continuation from the knee file's own values reaches: benchmarks/bench_reparametrised.py.)"""
+    same strategies.  (Sets 1-4 of the default knee: the next test; a calibration's FE copy:
+    tests/test_real_experiment.py; all of them: benchmarks/bench_reparametrised.py.)"""
     from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.testing.reference import rescaled_knee
 
@@ -312,6 +297,21 @@ def test_a_knee_written_another_way_has_the_same_forces_and_solves_the_same():
     for s, t in zip(kneenlp.simulate(knee, "set1").solutions, kneenlp.simulate(other, "set1").solutions, strict=True):
         assert s.converged and t.converged and s.strategy == t.strategy
         assert np.max(np.abs(coords_to_user(s.q) - coords_to_user(t.q))) <= 1e-6
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_default_knee_written_another_way_solves_sets_1_to_4_the_same(seed):
+    """Random re-parametrisations of the default knee (scales moved into stiffnesses): every trial of
+    Sets 1-4 converges to the same pose (1e-6 mm and deg) by the same strategy."""
+    from kneenlp.testing.reference import rescaled_knee
+
+    knee = kneenlp.Knee.default()
+    other = rescaled_knee(knee, np.random.default_rng(seed))
+    for protocol in ("set1", "set2", "set3", "set4"):
+        a, b = kneenlp.simulate(knee, protocol).solutions, kneenlp.simulate(other, protocol).solutions
+        for s, t in zip(a, b, strict=True):
+            assert s.converged and t.converged and s.strategy == t.strategy, (protocol, s.trial.id)
+            assert np.max(np.abs(coords_to_user(s.q) - coords_to_user(t.q))) <= 1e-6, (protocol, s.trial.id)
 
 
 def test_an_unstable_equilibrium_is_named_by_the_sign_of_its_stiffness_whatever_the_units():

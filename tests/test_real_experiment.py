@@ -952,6 +952,32 @@ def test_export_abaqus_gives_the_calibrated_knee_back(s192803, tmp_path):
 
 
 @needs_deposit
+def test_a_calibrations_fe_copy_solves_every_trial_as_the_calibrated_knee(s192803, tmp_path):
+    """The export-abaqus / import-abaqus round trip of a calibration of the data (its groups' scales
+    and offsets, tests/data) is the same knee written another way (its values are the FE file's
+    own): Sets 1-4 and the S192803 trials solve alike, every trial, to 1e-6 mm and deg, by the same
+    strategy (a forward solve that followed the knee file's own values to the calibration differed
+    in three trials)."""
+    from kneenlp.io.export_abaqus import export_abaqus
+
+    fit = Path(__file__).parent / "data" / "s192803_calibration.json"
+    params = json.loads(fit.read_text())["params"]
+    export_abaqus(fit, s192803, DEPOSIT, tmp_path / "fe")
+    back = kneenlp.Knee.load(import_abaqus(tmp_path / "fe", tmp_path / "k", side="left", name="back"))
+    calibrated = s192803.with_parameters(s192803.parameters.with_values(params))
+    data = read_measured(CSV)
+    pairs = [(kneenlp.simulate(calibrated, p).solutions, kneenlp.simulate(back, p).solutions)
+             for p in ("set1", "set2", "set3", "set4")]
+    pairs.append((predict(calibrated, data).solutions, predict(back, data).solutions))
+    for a, b in pairs:
+        for s, t in zip(a, b, strict=True):
+            assert s.converged == t.converged and s.strategy == t.strategy, s.trial.id
+            if s.converged:
+                assert np.max(np.abs(coords_to_user(s.q) - coords_to_user(t.q))) <= 1e-6, s.trial.id
+    assert sum(s.converged for a, _ in pairs for s in a) >= 0.9 * sum(len(a) for a, _ in pairs)
+
+
+@needs_deposit
 def test_export_abaqus_cli_and_its_refusals(s192803, tmp_path, capsys):
     """The CLI writes a calibrated.toml's calibration; a neutral calibration changes nothing; bad
     input gets one line naming the parameter or file, exit 2, and no output folder."""

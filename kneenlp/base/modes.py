@@ -32,9 +32,9 @@ Groups = Literal["fine", "coarse"]
 PriorChoice = Literal["default", "none"]
 #: Where a study's fits start.
 StudyStart = Literal["scatter", "truth"]
-#: How a forward solve reached a trial's equilibrium (Newton from its start, a load ramp, a
-#: parameter continuation from the knee file's own values), or that it did not.
-SolveStrategy = Literal["newton", "ramp", "continuation", "failed"]
+#: How a forward solve reached a trial's equilibrium (Newton from its start, the load ramp from the
+#: unloaded state, settling where Newton or the ramp could not go on), or that it did not.
+SolveStrategy = Literal["newton", "ramp", "settle", "failed"]
 #: The axes a trial's loads are given in (a protocol's or the data's ``load_axes``).
 LoadAxes = Literal["femoral", "joint", "jcs"]
 #: The shape of the exact contact's CasADi graph: vectorised (CasADi files) or a loop (C).

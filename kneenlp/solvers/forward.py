@@ -1,18 +1,20 @@
 """Forward laxity simulation: solve each trial's static equilibrium.
 
-Strategy per trial (all with the model's one residual function):
+The loading path a laxity test describes, the same for every way of writing the knee's parameters
+(the answer is a function of the forces alone):
 
-1. Newton (:mod:`kneenlp.solvers.newton`: damped, affine-invariant step control, the contact
-   working sets retaken at every iterate) from a warm start: the solution of the
-   previous trial at the same flexion, else the no-load pose at that flexion, else the cold start
-   (tibia 0.3 mm proximal of the reference pose, i.e. slightly penetrated, so that contact has
-   stiffness from the first iteration);
-2. if that fails, load ramping (homotopy): the load is applied in fractions 1/4, 1/2, 3/4, 1 from
-   the no-load pose, each step warm-started from the last, with steps halved on failure;
-3. if that fails too, at parameters other than the knee's own: the trial solved at the knee's own
-   parameter set and followed from there to the parameters asked for (parameter homotopy,
-   :meth:`ForwardSolver.continue_parameters`; strategy ``continuation``): a load path can pass a
-   fold that no load ramp crosses while the equilibrium at the end exists;
+1. the unloaded equilibrium at each flexion: Newton from the cold start (the knee's reference pose,
+   0.3 mm proximal so that contact has stiffness from the first iteration; for a knee imaged at
+   another pose, the passive path walked from its imaged flexion, :meth:`ForwardSolver.cold_start`);
+   where Newton fails, the knee settles into a stable equilibrium by pseudo-transient continuation
+   (:meth:`~kneenlp.solvers.newton.EquilibriumNewton.settle`; strategy ``settle``);
+2. each loaded trial's load applied from there in fractions (1/4, 3/4, 1, steps halved on failure;
+   strategy ``ramp``); where a fraction cannot be reached (a fold of the equilibrium path), the knee
+   snaps: it settles at that load and the ramp goes on (strategy ``settle``).  A trial never starts
+   from another trial's pose, so the protocol's order does not choose its branch.  A caller's start
+   (``q_start``: a fit's poses) is tried first, by Newton (strategy ``newton``);
+3. Newton (:mod:`kneenlp.solvers.newton`: damped, affine-invariant step control, the contact
+   working sets retaken at every iterate) solves every step;
 4. a trial is *converged* only if the largest generalised force at the returned pose is below
    ``tol`` (default :data:`~kneenlp.base.conventions.EQUILIBRIUM_TOL`, 1e-6 N / N m; the paper's 1e-3 is
    the ceiling) AND the pose lies in the
@@ -44,11 +46,17 @@ if TYPE_CHECKING:
 COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m from the reference pose: slightly penetrated
 #: Flexion step (deg) of the passive path from a knee's reference pose (:meth:`ForwardSolver.cold_start`).
 PASSIVE_STEP_DEG = 10.0
+#: Times a load ramp may snap through a fold of its equilibrium path (:meth:`ForwardSolver._ramps`).
+SNAPS = 4
 #: Single-trial Newton solves a forward solver remembers (:meth:`ForwardSolver._newton`): a fit's
 #: retries ask for the same solve again (S192803 calibration: 2211 solves, 1478 distinct, 3.5 s of 9.8 s).
 NEWTON_MEMORY = 4096
 #: Largest |coordinate| of a plausible knee pose from the knee's reference pose (rad, rad, m, m, m).
 ENVELOPE = coords_from_user(POSE_ENVELOPE_USER)
+
+
+#: An unloaded equilibrium: pose (rad, m), residual (N or N m), how it was reached.
+Unloaded = tuple[np.ndarray, float, SolveStrategy]
 
 
 @dataclass
@@ -107,14 +115,23 @@ class ForwardSolver:
             return path[flexion].copy()
         step, side = np.radians(PASSIVE_STEP_DEG), np.sign(flexion - f_ref)
         grid = [f_ref + side * k * step for k in range(1, int(np.ceil(abs(flexion - f_ref) / step)))]
+        f_last = f_ref
         for f in [*grid, flexion]:
-            if f in path:
-                q = path[f]
-                continue
-            q_new, res = self._newton(q, theta, Trial("passive", float(np.degrees(f)), {}))
-            if not res <= self.tol:
-                return q.copy()
-            q = path[f] = q_new
+            if f not in path:
+                q_new, res = self._newton(q, theta, _passive(f))
+                if not res <= self.tol:  # flexed in smaller steps from the equilibrium at the last flexion
+                    if f_last == f_ref and f_ref not in path:
+                        q_ref, res_ref = self._newton(q, theta, _passive(f_ref))
+                        if not res_ref <= self.tol:
+                            return q.copy()
+                        q = path[f_ref] = q_ref
+                    def passive_at(s, q, a=f_last, b=f):
+                        return self._newton(q, theta, _passive(a + s * (b - a)))
+                    q_new, res = self._follow(passive_at, q, 0.5, 1 / 64, theta, _passive(f))
+                if not res <= self.tol:
+                    return q.copy()
+                path[f] = q_new
+            q, f_last = path[f], f
         return q.copy()
 
     def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray, threads: int = 2,
@@ -226,13 +243,15 @@ class ForwardSolver:
         return self._newton_batch(np.asarray(q0, float)[None, :], theta, [trial], scale)[0]
 
     def _newton_batch(self, q0: np.ndarray, theta: np.ndarray, trials: list[Trial],
-                      scale: float = 1.0) -> list[tuple[np.ndarray, float]]:
-        """:meth:`_newton` of every trial of ``trials`` from its row of ``q0`` (T x 5, SI): those not
-        remembered in one batched Newton (each trial's iteration is its own, so the numbers are those
-        of one solve at a time), remembered."""
+                      scale: float | np.ndarray = 1.0) -> list[tuple[np.ndarray, float]]:
+        """:meth:`_newton` of every trial of ``trials`` from its row of ``q0`` (T x 5, SI) under
+        ``scale`` (one, or one per trial) times its load: those not remembered in one batched Newton
+        (each trial's iteration is its own, so the numbers are those of one solve at a time),
+        remembered."""
         theta = np.ascontiguousarray(theta, dtype=float)
         q0 = np.ascontiguousarray(q0, dtype=float).reshape(-1, 5)
-        loads = np.array([scale * t.load for t in trials], float).reshape(len(trials), -1)
+        scales = np.broadcast_to(np.asarray(scale, float), (len(trials),))
+        loads = np.array([c * t.load for c, t in zip(scales, trials, strict=True)], float).reshape(len(trials), -1)
         flexions = np.array([t.flexion for t in trials], float)
         keys = [b"".join((q.tobytes(), theta.tobytes(), load.tobytes(), f.tobytes()))
                 for q, load, f in zip(q0, loads, flexions, strict=True)]
@@ -252,26 +271,76 @@ class ForwardSolver:
                     known[i] = self._solved[keys[i]] = (out.q[j].copy(), float(res[j]))
         return [(q.copy(), res) for q, res in known]
 
-    def solve_trial(self, trial: Trial, theta: np.ndarray, q0: np.ndarray | None = None,
-                    q_unloaded: np.ndarray | None = None) -> TrialSolution:
-        """Equilibrium of one trial at parameters ``theta`` (SI), warm-started from ``q0``."""
-        start = self.cold_start(trial.flexion, theta) if q0 is None else q0
-        q, res = self._newton(start, theta, trial)
-        strategy = "newton"
+    def solve_trial(self, trial: Trial, theta: np.ndarray, q0: np.ndarray | None = None) -> TrialSolution:
+        """Equilibrium of one trial at parameters ``theta`` (SI): :meth:`solve` of it alone."""
+        return self.solve([trial], theta, None if q0 is None else {trial.id: q0})[0]
+
+    def _ramp(self, trial: Trial, theta: np.ndarray, q_start: np.ndarray) -> tuple[np.ndarray, float]:
+        """The load ramp of :meth:`_ramps` from the unloaded equilibrium Newton finds from ``q_start``."""
+        q, res = self._newton(q_start, theta, trial, 0.0)
         if not res <= self.tol:
-            start = self.cold_start(trial.flexion, theta) if q_unloaded is None else q_unloaded
-            q, res = self._ramp(trial, theta, start)
-            strategy = "ramp"
-        if not res <= self.tol and not np.array_equal(own := self.model.source_theta(), theta):
-            # the equilibrium at the knee file's own parameters, followed to theta: a calibrated S192803 knee
-            # had equilibria for held-out trials that no load ramp reached (a fold on the load path); read
-            # back from its file, the calibrated set replaces the knee's own, hence its source's
-            at_own = self.solve_trial(trial, own)
-            if at_own.converged:
-                q_c, res_c = self.continue_parameters(trial, own, theta, at_own.q, min_step=1 / 64)
-                if res_c < res:
-                    q, res, strategy = q_c, res_c, "continuation"
-        sol = self._solution(trial, theta, q, bool(res <= self.tol), res, strategy)
+            return q, res
+        q_end, res_end, _ = self._ramps([trial], theta, q[None])
+        return q_end[0], float(res_end[0])
+
+    def _ramps(self, trials: list[Trial], theta: np.ndarray, q_unloaded: np.ndarray,
+               min_step: float = 1 / 64, snaps: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every trial's load applied from its unloaded equilibrium (row of ``q_unloaded``, T x 5, SI)
+        in fractions, each from the last one's equilibrium: 1/4 first, the step doubled after a
+        success (at most 1/2) and halved after a failure; the trials' fractions of each round are
+        solved in one batch (:meth:`_newton_batch`, the numbers of one trial at a time).  Where the
+        step falls below ``min_step`` the path has reached a fold: the knee snaps, settling at the
+        fraction it could not reach (:meth:`EquilibriumNewton.settle`), and the ramp goes on from
+        there (at most ``snaps`` times; none: the ramp stops at the fold).  Returns the poses,
+        residuals and whether a trial snapped."""
+        n = len(trials)
+        q = np.array(q_unloaded, float).reshape(n, 5)
+        res = np.full(n, np.inf)
+        done, step = np.zeros(n), np.full(n, 0.25)
+        snapped = np.zeros(n, int)
+        active = np.ones(n, bool)
+        while np.any(active):
+            idx = np.flatnonzero(active)
+            target = np.minimum(1.0, done[idx] + step[idx])
+            tried = self._newton_batch(q[idx], theta, [trials[i] for i in idx], target)
+            for i, s, (q_try, r) in zip(idx, target, tried, strict=True):
+                if r <= self.tol:
+                    q[i], done[i], step[i] = q_try, s, min(2 * step[i], 0.5)
+                    if s == 1.0:
+                        res[i], active[i] = r, False
+                    continue
+                step[i] /= 2
+                if step[i] >= min_step:
+                    continue
+                q_s, r_s = self._settle(q[i], theta, trials[i], s) if snapped[i] < snaps else (q_try, np.inf)
+                if r_s <= self.tol:
+                    q[i], done[i], step[i], snapped[i] = q_s, s, 0.25, snapped[i] + 1
+                    if s == 1.0:
+                        res[i], active[i] = r_s, False
+                else:
+                    q[i], res[i], active[i] = q_try, self.residual_norm(q_try, theta, trials[i]), False
+        return q, res, snapped > 0
+
+    def _settle(self, q0: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0) -> tuple[np.ndarray, float]:
+        """Where the knee comes to rest from ``q0`` under ``scale`` times the trial's load
+        (:meth:`EquilibriumNewton.settle`): the pose and its residual (inf where a contact point the
+        working sets leave out penetrates)."""
+        out = self.newton.settle(np.asarray(q0, float)[None], theta, scale * np.asarray(trial.load, float)[None],
+                                 np.array([trial.flexion]), self.tol, threads=1)
+        res = float(out.residual[0])
+        if res <= self.tol and self.model.ws_size and self.model.left_out_batch(out.q, theta, [trial.flexion])[0] > 0:
+            res = np.inf
+        return out.q[0], res
+
+    def _solution(self, trial, theta, q, res, strategy) -> TrialSolution:
+        """The trial's solution at ``q``: its element outputs, and converged only if the residual is
+        within ``tol`` and the pose plausible (inside :data:`ENVELOPE`, some contact, not beyond the
+        femoral surface's rim); otherwise ``failed`` with the reason."""
+        ws = self.model.working_data(q, theta, trial.flexion, order=0)
+        values = np.asarray(self.model.details(q, theta, trial.load, trial.flexion, ws)[1]).ravel()
+        columns = [o.column for _, o in self.model.outputs]
+        sol = TrialSolution(trial, q, bool(res <= self.tol), res, strategy,
+                            outputs=dict(zip(columns, values, strict=True)))
         if not sol.converged:
             sol.strategy, sol.reason = "failed", f"residual {res:.3g} > tolerance {self.tol:g}"
         elif np.any(np.abs(q - self.reference) > ENVELOPE) or not any(sol.outputs[c] > 0
@@ -283,51 +352,72 @@ class ForwardSolver:
             sol.reason = rim_reason(rim)
         return sol
 
-    def _ramp(self, trial: Trial, theta: np.ndarray, q_start: np.ndarray, min_step: float = 1 / 64):
-        q, res = self._newton(q_start, theta, trial, 0.0)
-        if not res <= self.tol:
-            return q, res
-        return self._follow(lambda s, q: self._newton(q, theta, trial, s), q, 0.25, min_step, theta, trial)
-
-    def _solution(self, trial, theta, q, converged, res, strategy) -> TrialSolution:
-        ws = self.model.working_data(q, theta, trial.flexion, order=0)
-        values = np.asarray(self.model.details(q, theta, trial.load, trial.flexion, ws)[1]).ravel()
-        columns = [o.column for _, o in self.model.outputs]
-        return TrialSolution(trial, q, converged, res, strategy, outputs=dict(zip(columns, values, strict=True)))
+    def unloaded_states(self, flexions: list[float], theta: np.ndarray,
+                        q_start: dict[float, np.ndarray] | None = None) -> dict[float, Unloaded]:
+        """The unloaded equilibrium at each of ``flexions`` (rad): Newton from ``q_start`` of that
+        flexion (a caller's start) or else from the :meth:`cold_start` (the passive path from the
+        knee's imaged pose), all in one batch; where Newton fails, the knee settles from the cold
+        start (:meth:`_settle`).  Returns flexion -> (pose, residual, strategy)."""
+        q_start = q_start or {}
+        flexions = list(dict.fromkeys(flexions))
+        starts = np.array([q_start[f] if f in q_start else self.cold_start(f, theta) for f in flexions], float)
+        tried = self._newton_batch(starts.reshape(-1, 5), theta, [_passive(f) for f in flexions])
+        out: dict[float, Unloaded] = {}
+        for f, (q, res) in zip(flexions, tried, strict=True):
+            strategy: SolveStrategy = "newton"
+            if not res <= self.tol:
+                q_s, res_s = self._settle(self.cold_start(f, theta), theta, _passive(f))
+                if res_s < res:
+                    q, res, strategy = q_s, res_s, "settle"
+            out[f] = (q, res, strategy)
+        return out
 
     def solve(self, trials: list[Trial] | tuple[Trial, ...], theta: np.ndarray,
-              q_start: dict[str, np.ndarray] | None = None) -> list[TrialSolution]:
-        """Solve all ``trials``; no-load trials first so that loaded ones warm-start from them.
+              q_start: dict[str, np.ndarray] | None = None, snap: bool = True) -> list[TrialSolution]:
+        """Solve all ``trials`` along the loading path a laxity test describes: the unloaded
+        equilibrium at each flexion (:meth:`unloaded_states`), then each trial's load applied from
+        it (:meth:`_ramps`, all trials at once).  The answer is a function of the knee's forces
+        alone, not of how its parameters are written, the order of the trials or what was solved
+        before: where a load has several equilibria, the one the loading path reaches.
 
-        ``q_start`` optionally maps trial ids to starting poses (e.g. a previous solution).  A trial
-        warm-starts from the trials before it at its flexion alone, so the trials go in waves (the
-        first of every flexion, then the second, ...), each wave's first Newton solves in one batch
-        (:meth:`_newton_batch`); the result is that of solving them one at a time.
+        ``q_start`` optionally maps trial ids to starting poses (e.g. a fit's poses, whose branch the
+        caller asks for): Newton from there first, the loading path where it fails (an unloaded
+        trial's start serves its flexion's unloaded state).  ``snap=False``: a ramp that reaches a
+        fold stops there (the trial fails) instead of settling past it: an outer fit's residuals
+        stay continuous in the parameters (a snap is a jump to another branch).
         """
         q_start = q_start or {}
-        unloaded: dict[float, np.ndarray] = {}
-        last: dict[float, np.ndarray] = {}
-        order = sorted(range(len(trials)), key=lambda i: (not _is_unloaded(trials[i]), i))
+        keys = [round(t.flexion_deg, 9) for t in trials]
+        flexion_of = {k: t.flexion for k, t in zip(keys, trials, strict=True)}
+        given = {flexion_of[k]: q_start[t.id] for k, t in zip(keys, trials, strict=True)
+                 if _is_unloaded(t) and t.id in q_start}
+        unloaded = self.unloaded_states([flexion_of[k] for k in keys], theta, given)
         out: dict[int, TrialSolution] = {}
-        for wave in _waves(order, [round(t.flexion_deg, 9) for t in trials]):
-            keys = {i: round(trials[i].flexion_deg, 9) for i in wave}
-            starts = {i: q_start.get(trials[i].id, last.get(keys[i], unloaded.get(keys[i]))) for i in wave}
-            first = [i for i in wave if keys[i] not in unloaded and not _is_unloaded(trials[i])]
-            self._prime([_unloaded(trials[i]) for i in first], theta, [starts[i] for i in first])
-            for i in first:
-                sol0 = self.solve_trial(_unloaded(trials[i]), theta, starts[i])
-                if sol0.converged:
-                    unloaded[keys[i]] = sol0.q
-                    starts[i] = q_start.get(trials[i].id, sol0.q)
-            self._prime([trials[i] for i in wave], theta, [starts[i] for i in wave])
-            for i in wave:
-                t = trials[i]
-                sol = self.solve_trial(t, theta, starts[i], unloaded.get(keys[i]))
-                if sol.converged:
-                    last[keys[i]] = sol.q
-                    if _is_unloaded(t):
-                        unloaded[keys[i]] = sol.q
-                out[i] = sol
+        loaded = []
+        for i, (k, t) in enumerate(zip(keys, trials, strict=True)):
+            if _is_unloaded(t):
+                q, res, strategy = unloaded[flexion_of[k]]
+                out[i] = self._solution(t, theta, q, res, strategy)
+            else:
+                loaded.append(i)
+        started = [i for i in loaded if trials[i].id in q_start]
+        if started:
+            tried = self._newton_batch(np.array([q_start[trials[i].id] for i in started], float), theta,
+                                       [trials[i] for i in started])
+            for i, (q, res) in zip(started, tried, strict=True):
+                if res <= self.tol:
+                    out[i] = self._solution(trials[i], theta, q, res, "newton")
+        rest = [i for i in loaded if i not in out and unloaded[flexion_of[keys[i]]][1] <= self.tol]
+        if rest:
+            q, res, snapped = self._ramps([trials[i] for i in rest], theta,
+                                          np.array([unloaded[flexion_of[keys[i]]][0] for i in rest]),
+                                          snaps=SNAPS if snap else 0)
+            for j, i in enumerate(rest):
+                out[i] = self._solution(trials[i], theta, q[j], res[j], "settle" if snapped[j] else "ramp")
+        for i in loaded:
+            if i not in out:  # no unloaded state at its flexion: Newton from the cold start, for the record
+                q, res = self._newton(self.cold_start(trials[i].flexion, theta), theta, trials[i])
+                out[i] = self._solution(trials[i], theta, q, res, "newton")
         solutions = [out[i] for i in range(len(trials))]
         done = [s for s in solutions if s.converged]
         if done:  # every equilibrium's stability, in one batch
@@ -337,25 +427,6 @@ class ForwardSolver:
             for s, unstable in zip(done, flags, strict=True):
                 s.stable = not unstable
         return solutions
-
-    def _prime(self, trials: list[Trial], theta: np.ndarray, starts: list[np.ndarray | None]) -> None:
-        """The first Newton solve :meth:`solve_trial` makes for each of ``trials`` from ``starts``
-        (its cold start where None), solved ahead in one batch and remembered."""
-        if len(trials) > 1:
-            q0 = [self.cold_start(t.flexion, theta) if q is None else q for t, q in zip(trials, starts, strict=True)]
-            self._newton_batch(np.array(q0, float), theta, trials)
-
-
-def _waves(order: list[int], keys: list) -> list[list[int]]:
-    """``order`` split into waves: the k-th wave holds the k-th of ``order``'s items of every key."""
-    seen: dict = {}
-    waves: list[list[int]] = []
-    for i in order:
-        k = seen[keys[i]] = seen.get(keys[i], -1) + 1
-        if k == len(waves):
-            waves.append([])
-        waves[k].append(i)
-    return waves
 
 
 @dataclass
@@ -427,12 +498,13 @@ def _nearest_converged(loads: np.ndarray, flexions: np.ndarray, converged: np.nd
     return near
 
 
+def _passive(flexion: float) -> Trial:
+    """The unloaded trial at ``flexion`` (rad) of the passive path."""
+    return Trial("passive", float(np.degrees(flexion)), {})
+
+
 def _is_unloaded(t: Trial) -> bool:
     return not any(v != 0 for v in t.loads.values())
-
-
-def _unloaded(t: Trial) -> Trial:
-    return Trial(f"none_flex{t.flexion_deg:g}", t.flexion_deg, {}, "none", 0.0)
 
 
 def forward_solver(model: KneeModel, tol: float = EQUILIBRIUM_TOL) -> ForwardSolver:

@@ -26,6 +26,12 @@ from kneenlp.base.conventions import EQUILIBRIUM_TOL, LOAD_SIZE, TO_USER
 MAX_STEP = 5.0
 #: Smallest damping factor before a trial is declared not converged.
 MIN_DAMPING = 1.0 / 1024
+#: The settling's metric (:meth:`EquilibriumNewton.settle`): 1 N m per deg and 1 N per mm, in SI; a
+#: constant of the method, not of the knee, so that the equilibrium it settles into is the same for
+#: every parametrisation of the same forces.
+SETTLE_METRIC = np.asarray(TO_USER, float)
+#: The settling's largest step (mm / deg): a time step follows the flow, not a jump across it.
+SETTLE_STEP = 2.0
 
 
 def newton_steps(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -108,5 +114,43 @@ class EquilibriumNewton:
                 failed[j[~ok & (lam[j] < MIN_DAMPING)]] = True
                 pending = pending[~ok & (lam[j] >= MIN_DAMPING)]
         res = np.max(np.abs(r), axis=1)
+        res[~np.isfinite(res)] = np.inf
+        return NewtonResult(q, res, it, evaluations)
+
+    def settle(self, q0: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
+               tol: float = EQUILIBRIUM_TOL, max_iter: int = 300, threads: int = 2) -> NewtonResult:
+        """Let every trial settle from ``q0`` (T x 5, SI) into a stable equilibrium: pseudo-transient
+        continuation, implicit Euler steps of the flow ``M dq/dt = r(q)`` (``M`` =
+        :data:`SETTLE_METRIC`), ``(M/dt - J) dq = r``, the time step growing as the residual falls
+        (switched evolution relaxation, ``dt *= |r_old| / |r_new|``, within [1/2, 10]) so that the
+        last steps are Newton's.  Where Newton from ``q0`` stalls or runs to a saddle, the flow goes
+        downhill to where the knee comes to rest (what a knee does when a load passes a fold of its
+        equilibrium path).  Steps are capped at :data:`SETTLE_STEP` (mm / deg); a step into a pose
+        that cannot be evaluated is retried with a quarter of the time step."""
+        q = np.array(q0, dtype=float).reshape(-1, 5)
+        loads = np.asarray(loads, dtype=float).reshape(-1, LOAD_SIZE)
+        flexions = np.asarray(flexions, dtype=float).ravel()
+        w = np.asarray(TO_USER)
+        r, jac = self.evaluate(q, theta, loads, flexions, threads)
+        res = np.max(np.abs(r), axis=1)
+        dt = np.ones(len(q))
+        evaluations, it = 1, 0
+        for it in range(1, max_iter + 1):  # noqa: B007 - the count is returned
+            idx = np.flatnonzero(np.isfinite(res) & ~(res <= tol))
+            if not len(idx):
+                break
+            lhs = SETTLE_METRIC[None, :, None] * np.eye(5)[None] / dt[idx, None, None] - jac[idx]
+            dq = newton_steps(lhs, r[idx])
+            dq *= np.minimum(1.0, SETTLE_STEP / np.maximum(np.max(np.abs(dq * w), axis=1), 1e-300))[:, None]
+            qt = q[idx] + dq
+            rt, jt = self.evaluate(qt, theta, loads[idx], flexions[idx], threads)
+            evaluations += 1
+            rest = np.max(np.abs(rt), axis=1)
+            ok = np.isfinite(rest)
+            j = idx[ok]
+            dt[j] = np.minimum(dt[j] * np.clip(res[j] / np.maximum(rest[ok], 1e-300), 0.5, 10.0), 1e12)
+            q[j], r[j], jac[j], res[j] = qt[ok], rt[ok], jt[ok], rest[ok]
+            dt[idx[~ok]] /= 4
+            res[idx[~ok & (dt[idx] < 1e-6)]] = np.inf  # nowhere to go: not settled
         res[~np.isfinite(res)] = np.inf
         return NewtonResult(q, res, it, evaluations)

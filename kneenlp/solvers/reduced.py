@@ -109,7 +109,7 @@ class ReducedSpace:
                                          theta0=theta_from, guess=self.predicted_poses(theta))
         bad = np.flatnonzero(~(res <= tol_eq))
         if len(bad) and (retries is None or len(bad) <= retries):  # try from the forward solver's own start
-            for i, sol in zip(bad, self.solver.solve([trials[i] for i in bad], theta), strict=True):
+            for i, sol in zip(bad, self.solver.solve([trials[i] for i in bad], theta, snap=False), strict=True):
                 if sol.converged:
                     q[i], res[i] = sol.q, sol.max_residual
         rows = np.concatenate([problem.residuals(q, theta).ravel() * self.sqrt_weights, self.prior_rows(x)])
