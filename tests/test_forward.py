@@ -264,6 +264,41 @@ def test_a_singular_jacobian_stops_its_trial_only():
     assert out.residual[0] >= 0.99 and np.allclose(out.q[0, :4], 1e-3)  # the singular one moves where it can
 
 
+class _Bistable:
+    """r = 1000 (1e-3 - q) in four coordinates (N, m) and a double well in the fifth,
+    r5 = 1e6 (q5 - q5^3 / (1 mm)^2) + f (f the load's first component): at f = 0 a stable
+    equilibrium at +-1 mm and an unstable one at 0; the left well's fold at f = 1e6 * 2 / 3^1.5 mm."""
+
+    def trial_derivatives(self, q, theta, loads, flexions, threads):
+        c2 = 1e-6
+        r = np.column_stack([1e3 * (1e-3 - q[:, :4]), 1e6 * (q[:, 4] - q[:, 4] ** 3 / c2) + loads[:, 0]])
+        jac = np.zeros((len(q), 5, 5))
+        jac[:, range(4), range(4)] = -1e3
+        jac[:, 4, 4] = 1e6 * (1 - 3 * q[:, 4] ** 2 / c2)
+        return r, jac
+
+
+def test_settling_finds_the_stable_equilibrium_newton_misses():
+    """Newton converges to any root: from next to the double well's hump it stops on the unstable
+    equilibrium (q5 = 0).  Settling follows the flow downhill into the well the start leans to
+    (+1 mm); past the left well's fold (f = 390 N) it ends in the right well, the only one left."""
+    from kneenlp.solvers.newton import EquilibriumNewton
+
+    newton = EquilibriumNewton(_Bistable())
+    q0 = np.array([[0.0, 0.0, 0.0, 0.0, 1e-5]])
+    loads = np.zeros((1, LOAD_SIZE))
+    root = newton.solve(q0, None, loads, np.zeros(1))
+    assert root.residual[0] <= 1e-6 and abs(root.q[0, 4]) < 1e-12  # the hump
+    rest = newton.settle(q0, None, loads, np.zeros(1))
+    assert rest.residual[0] <= 1e-6 and rest.q[0, 4] == pytest.approx(1e-3, rel=1e-9)
+    assert np.allclose(rest.q[0, :4], 1e-3)
+    left = np.array([[1e-3, 1e-3, 1e-3, 1e-3, -1e-3]])
+    pushed = loads.copy()
+    pushed[0, 0] = 400.0  # beyond the left well's fold: no equilibrium near -1 mm
+    snap = newton.settle(left, None, pushed, np.zeros(1))
+    assert snap.residual[0] <= 1e-6 and snap.q[0, 4] > 1e-3
+
+
 def test_newton_steps_beside_a_singular_jacobian_are_the_batch_without_it():
     from kneenlp.solvers.newton import newton_steps
 

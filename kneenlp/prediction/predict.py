@@ -137,6 +137,7 @@ class Prediction:
                 "rms": self.rms(), "rms_units": {c: c.rsplit("_", 1)[1] for c in coordinate_columns()},
                 "failed": [{"trial": s.trial.id, "reason": s.reason} for s in self.solutions if not s.converged],
                 "unstable": [s.trial.id for s in self.solutions if not s.stable],
+                "snapped": [s.trial.id for s in self.solutions if s.converged and s.strategy == "settle"],
                 "laxity": laxity_records(self.laxity())} | ({} if self.sd_user is None else {
                     "band_level": BAND_LEVEL, "inside_band": self.inside_band(),
                     "sd": {c: [None if not np.isfinite(v) else float(v) for v in self.sd_user[:, j]]
@@ -155,7 +156,9 @@ class Prediction:
         lines.append(f"{'trial':<{width}}  flexion  {head}   (measured minus predicted)")
         for s, e in zip(self.solutions, self.errors_user, strict=True):
             cells = "  ".join(f"{v:14.2f}" for v in e) if s.converged else f"NO EQUILIBRIUM: {s.reason}"
-            note = "" if s.stable else "  (an UNSTABLE equilibrium: no loading ends there)"
+            note = ("  (an UNSTABLE equilibrium: no loading ends there)" if not s.stable else
+                    "  (the loading path passes a fold: several equilibria; the one the knee settles into)"
+                    if s.converged and s.strategy == "settle" else "")
             lines.append(f"{s.trial.id:<{width}}  {s.trial.flexion_deg:7.1f}  {cells}{note}")
         if self.sd_user is not None:
             n = int(self.converged.sum())

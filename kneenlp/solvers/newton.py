@@ -118,15 +118,18 @@ class EquilibriumNewton:
         return NewtonResult(q, res, it, evaluations)
 
     def settle(self, q0: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
-               tol: float = EQUILIBRIUM_TOL, max_iter: int = 300, threads: int = 2) -> NewtonResult:
-        """Let every trial settle from ``q0`` (T x 5, SI) into a stable equilibrium: pseudo-transient
-        continuation, implicit Euler steps of the flow ``M dq/dt = r(q)`` (``M`` =
-        :data:`SETTLE_METRIC`), ``(M/dt - J) dq = r``, the time step growing as the residual falls
-        (switched evolution relaxation, ``dt *= |r_old| / |r_new|``, within [1/2, 10]) so that the
-        last steps are Newton's.  Where Newton from ``q0`` stalls or runs to a saddle, the flow goes
-        downhill to where the knee comes to rest (what a knee does when a load passes a fold of its
-        equilibrium path).  Steps are capped at :data:`SETTLE_STEP` (mm / deg); a step into a pose
-        that cannot be evaluated is retried with a quarter of the time step."""
+               tol: float = EQUILIBRIUM_TOL, max_iter: int = 2000, threads: int = 2) -> NewtonResult:
+        """Let every trial settle from ``q0`` (T x 5, SI) into a stable equilibrium, where the knee
+        comes to rest (what it does when a load passes a fold of its equilibrium path, or where
+        Newton stalls or runs to a saddle): pseudo-transient continuation, implicit Euler steps of
+        the flow ``M dq/dt = r(q)`` (``M`` = :data:`SETTLE_METRIC`), ``(M/dt - J) dq = r``.  The
+        time step grows as the residual falls (switched evolution relaxation, ``dt *= |r_old| /
+        |r_new|`` within [1, 10]: the flow may climb the residual on its way downhill), so that the
+        last steps are Newton's; where the stiffness has a direction that runs away (an eigenvalue
+        ``l > 0`` of the symmetric part of ``M^-1/2 J M^-1/2``), ``dt <= 1 / (2 l)`` keeps ``M/dt - J``
+        positive definite: every step goes downhill, never onto the hump.  Steps are capped at
+        :data:`SETTLE_STEP` (mm / deg); a step into a pose that cannot be evaluated is retried with a
+        quarter of the time step."""
         q = np.array(q0, dtype=float).reshape(-1, 5)
         loads = np.asarray(loads, dtype=float).reshape(-1, LOAD_SIZE)
         flexions = np.asarray(flexions, dtype=float).ravel()
@@ -139,6 +142,9 @@ class EquilibriumNewton:
             idx = np.flatnonzero(np.isfinite(res) & ~(res <= tol))
             if not len(idx):
                 break
+            scaled = jac[idx] / np.sqrt(np.outer(SETTLE_METRIC, SETTLE_METRIC))[None]
+            rising = np.linalg.eigvalsh(0.5 * (scaled + scaled.transpose(0, 2, 1)))[:, -1]  # 1 / time
+            dt[idx] = np.where(rising > 0, np.minimum(dt[idx], 0.5 / np.maximum(rising, 1e-300)), dt[idx])
             lhs = SETTLE_METRIC[None, :, None] * np.eye(5)[None] / dt[idx, None, None] - jac[idx]
             dq = newton_steps(lhs, r[idx])
             dq *= np.minimum(1.0, SETTLE_STEP / np.maximum(np.max(np.abs(dq * w), axis=1), 1e-300))[:, None]
@@ -148,7 +154,7 @@ class EquilibriumNewton:
             rest = np.max(np.abs(rt), axis=1)
             ok = np.isfinite(rest)
             j = idx[ok]
-            dt[j] = np.minimum(dt[j] * np.clip(res[j] / np.maximum(rest[ok], 1e-300), 0.5, 10.0), 1e12)
+            dt[j] = np.minimum(dt[j] * np.clip(res[j] / np.maximum(rest[ok], 1e-300), 1.0, 10.0), 1e12)
             q[j], r[j], jac[j], res[j] = qt[ok], rt[ok], jt[ok], rest[ok]
             dt[idx[~ok]] /= 4
             res[idx[~ok & (dt[idx] < 1e-6)]] = np.inf  # nowhere to go: not settled
