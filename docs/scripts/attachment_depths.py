@@ -24,7 +24,7 @@ def deepest(knee: str) -> tuple[str, str, float] | None:
     geometry = kf.contact({k: kf.raw_point(v) for k, v in kf.spec.landmarks.items()})
     kf.ligaments()
     kf.candidates()
-    inside = kf.attachment_depths(geometry)
+    inside = kf.attachment_depths(geometry | {"bones": kf.bones()})
     if not inside:
         return None
     fld, what, _, _, depth = max(inside, key=lambda row: row[-1])

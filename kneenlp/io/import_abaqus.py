@@ -150,6 +150,8 @@ class AbaqusKnee:
     #: each group's FE length and reference strain (mm, %) where its slack moves as one
     #: (:func:`group_shift`)
     shifts: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: the bones' surfaces by bone (``femur``, ``tibia``; closed), to check attachments against
+    bones: dict[str, trimesh.Trimesh] = field(default_factory=dict)
 
 
 #: Largest angle (deg) a frame's axes may be from orthogonal: rounding in the file, made exact; more
@@ -238,15 +240,36 @@ def read_abaqus_knee(folder: str | Path) -> AbaqusKnee:
                  f"{TUBEROSITY_BAND_MM[1]:g} mm below the tibial origin within {TUBEROSITY_HALF_WIDTH_MM:g} mm of "
                  "the sagittal plane")
     fibres = read_fibres(folder / "ligaments")
+    bones = {}
     femur_bone = sorted((folder / "geometry").glob("BONE1-FEMUR*.inp"))
     if femur_bone:
+        femur_mesh = read_mesh(femur_bone[0])
+        bones["femur"] = bone_surface(femur_mesh)
         attach = folder / "ligaments" / "LIGS-ATTACH.inp"
-        check_fibre_bones(fibres, read_mesh(femur_bone[0]).points, bone.points, attach)
+        check_fibre_bones(fibres, femur_mesh.points, bone.points, attach)
+    bones["tibia"] = bone_surface(bone)
     shifts, shift_notes = group_shift(folder / "ligaments", fibres)
     notes.append(f"{len(fibres)} ligament fibres in {len({f.group for f in fibres})} groups, laws from the "
                  f"connector tables; {len(shifts)} groups' slack moves by the FE's L / EREF")
     return AbaqusKnee((rf, of), (rt, ot), femur_surface, tibia_surfaces, fibres, tuberosity, notes + shift_notes,
-                      shifts)
+                      shifts, bones)
+
+
+#: Faces a bone's surface keeps in a written knee: it serves only the attachments' check (inside or
+#: not, 2.5 mm deep), for which a 2-3 mm edge is fine and the package stays small.
+BONE_FACES = 12_000
+
+
+def bone_surface(mesh) -> trimesh.Trimesh:
+    """A bone's triangulated surface (file coordinates) decimated to :data:`BONE_FACES`."""
+    from fast_simplification import simplify
+
+    surface = trimesh.Trimesh(mesh.points, triangles(next(iter(mesh.cells.values()))), process=True)
+    if len(surface.faces) > BONE_FACES:
+        vertices, faces = simplify(np.asarray(surface.vertices, np.float64), np.asarray(surface.faces, np.int64),
+                                   target_count=BONE_FACES)
+        surface = trimesh.Trimesh(vertices, faces, process=True)
+    return surface
 
 
 #: The femoral cartilage's extent (mm) of a human knee: far outside it the file is in other units.
@@ -481,6 +504,11 @@ def import_abaqus(folder: str | Path, out: str | Path, *, side: str = "left", na
         s = surf.copy()
         s.vertices = tib(s.vertices)
         export_mesh_atomic(s, out / "meshes" / f"tibia_{name_}.stl")
+    for bone, to_frame in (("femur", fem), ("tibia", tib)):
+        if bone in model.bones:
+            b = model.bones[bone].copy()
+            b.vertices = to_frame(b.vertices)
+            export_mesh_atomic(b, out / "meshes" / f"{bone}_bone.stl")
     flexion, q = reference_pose(model, side)
     q_user = coords_to_user(q)
     doc: dict = {
@@ -496,6 +524,7 @@ def import_abaqus(folder: str | Path, out: str | Path, *, side: str = "left", na
         "landmarks": {"tibial_tuberosity": _round(tib(model.tuberosity))},
         "contact": {"femur": "meshes/femur_cartilage.stl", "gate": 0.01, "grid_spacing": 0.5,
                     "medial": {"tibia": "meshes/tibia_medial.stl"}, "lateral": {"tibia": "meshes/tibia_lateral.stl"}},
+        **({"bones": {b: f"meshes/{b}_bone.stl" for b in model.bones}} if model.bones else {}),
         "ligaments": {},
     }
     for f in model.fibres:

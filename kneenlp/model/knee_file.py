@@ -224,7 +224,7 @@ class KneeFile:
         ligaments = self.ligaments()
         self.check_side(ligaments, geometry["compartments"], landmarks)
         candidates = self.candidates()
-        self.check_attachments(geometry)
+        self.check_attachments(geometry | {"bones": self.bones()})
         params = self.parameter_set(parameters, ligaments)
         contact = spec.contact
         return dict(name=spec.name if spec.name is not None else self.path.stem, ligaments=ligaments,
@@ -385,6 +385,23 @@ class KneeFile:
                              f"{ATTACHMENT_DEPTH * 1e3:g} mm inside): a typo or a sign slip, the femoral and "
                              "tibial points swapped, or a point in another frame or unit?", source=self.src, field=fld)
 
+    def bones(self) -> list[tuple[str, str, trimesh.Trimesh]]:
+        """``[bones]``: (what, file, surface in the femoral frame at the reference pose, m) of each
+        bone the file gives: closed, or open only away from the knee (a shaft cut off), so that its
+        winding number tells its inside (:meth:`attachment_depths`)."""
+        table = self.spec.bones
+        out = []
+        for bone, tibial in (("femur", False), ("tibia", True)):
+            value = None if table is None else getattr(table, bone)
+            if value is None:
+                continue
+            fld = f"bones.{bone}"
+            mesh = self.frame.mesh(self.mesh(value, fld))
+            if tibial:
+                mesh.vertices = self.at_reference(mesh.vertices)
+            out.append((f"{'tibial' if tibial else 'femoral'} bone", str(value), mesh))
+        return out
+
     def attachment_depths(self, geometry: dict, deeper_than: float = 0.0) -> list[tuple[str, str, str, str, float]]:
         """The attachments more than ``deeper_than`` (m) inside a mesh of the knee (the femoral mesh
         as given, without ``femur_offset``; each tibial mesh at the reference pose), as (field, mesh,
@@ -398,6 +415,7 @@ class KneeFile:
         femur = geometry["femur"]
         if femur is not None:
             meshes.append(("femoral mesh", " + ".join(femur.sources), femur.mesh, 1.0))
+        meshes += [(what, name, mesh, 1.0) for what, name, mesh in geometry.get("bones", [])]
         R, p = self.reference
         for c in geometry["compartments"].values():
             if not c.sphere:

@@ -206,10 +206,20 @@ ReferencePose = create_model(
        for k in ["flexion_deg", *coordinate_columns()]})
 
 
+class BonesTable(Table):
+    """``[bones]``: the bones' surfaces (closed meshes, in the coordinates of the contact meshes:
+    the femur's as ``contact.femur``, the tibia's as the tibial cartilage), read only to check that no
+    ligament attachment lies inside a bone (an articular surface alone cannot tell the inside of a
+    condyle from the intercondylar notch)."""
+
+    femur: MeshName | None = None
+    tibia: MeshName | None = None
+
+
 class KneeTables(Table):
     """A knee file: name, side, units (of every length and point), coordinates (``femoral`` or
     ``scan``, then mapped by ``frame``), the parameter file, the reference pose, landmarks, contact,
-    ligaments, candidate effects; :data:`KneeDocument` adds the structures' tables."""
+    bones, ligaments, candidate effects; :data:`KneeDocument` adds the structures' tables."""
 
     name: str | None = None
     description: str = ""
@@ -221,6 +231,7 @@ class KneeTables(Table):
     reference_pose: ReferencePose | None = None
     landmarks: dict[str, Point] = Field(default_factory=dict)
     contact: ContactTable = Field(default_factory=dict, validate_default=True)
+    bones: BonesTable | None = None
     ligaments: dict[str, LigamentTable] = Field(min_length=1, description="table [ligaments.<NAME>]")
     candidates: dict[str, CandidateTable] = Field(default_factory=dict)
 
