@@ -1,8 +1,8 @@
 """Fuzz suite, knee section: a researcher's own knee files load correctly or say why.
 
 Hand-made cases (one per knee-file slip) run the command line in this process on copies
-of two shipped mesh knees: the implant knee (millimetres, femoral frame) and the default knee
-(metres, scan coordinates, the Lenhart meshes beside it); the mutations also take the synthetic
+of shipped mesh knees: the implant knee (millimetres, femoral frame), the default knee (metres,
+scan coordinates, the Lenhart meshes beside it) and s192803 (its bones); the mutations also take the synthetic
 knee (explicit spheres).  Each must exit 2 with one stderr line
 naming the knee file (or the option) and the field, the JSON error object on stdout with ``--json``,
 and nothing written to ``--out``.  Hypothesis then mutates the shipped knee files as a user would
@@ -68,6 +68,7 @@ def base(tmp_path_factory) -> Path:
     (d / "default" / "knee.toml").write_text(text.replace("../../parameters/table1.toml", "../table1.toml"))
     text = (d / "implant" / "knee.toml").read_text()
     (d / "implant" / "knee.toml").write_text(text.replace("../../parameters/table1.toml", "../table1.toml"))
+    shutil.copytree(SHIPPED / "s192803", d / "s192803")  # with its [bones]
     return d
 
 
@@ -168,6 +169,9 @@ CASES = [
          "ligaments.ACL.femur", "a point in m"),
     Case("attachment-inside-the-femur", edit("default", DEF_ACL, "femur = [0.0140, -0.0129, 0.0264]"),
          "ligaments.ACL.femur", "inside the femoral mesh", "default"),
+    Case("attachment-inside-a-condyle", edit("s192803", "femur = [\n    -6.98181,\n    -2.259463,\n    -8.263589,\n]",
+                                             "femur = [6.34, 0.90, 20.47]"),  # the medial condyle's centre
+         "ligaments.ACLam.bundles[0].femur", "inside the femoral bone", "s192803"),
     Case("side-declared-wrong", edit("implant", 'side = "right"', 'side = "left"'), "side", "is it a right knee?"),
     # contact lengths in another unit
     Case("gate-in-mm-in-a-metre-knee", edit("default", "gate = 1e-5", "gate = 0.01"), "contact.gate",
@@ -230,7 +234,7 @@ def test_knee_case(case: Case, base: Path, tmp_path: Path, capsys):
 
 def test_knee_case_count():
     """Every knee-file slip has a case (the count only grows)."""
-    assert len({c.id for c in CASES}) == len(CASES) >= 23
+    assert len({c.id for c in CASES}) == len(CASES) >= 24
 
 
 # ------------------------------------------------------------------ Hypothesis: mutations of shipped knees

@@ -98,25 +98,6 @@ def test_imported_knee_is_the_shipped_one(fe_model, tmp_path, s192803):
         assert np.allclose(s192803.compartments[c].points, fresh.compartments[c].points, atol=1e-9)
 
 
-def test_an_attachment_inside_a_condyle_is_named_by_the_bone(s192803, tmp_path, capsys):
-    """The cartilage alone cannot tell the inside of a condyle from the notch (cruciate attachments
-    lie 8-15 mm inside the condyles' fitted cylinders); the knee's ``[bones]`` can: ACLam's femoral
-    attachment moved to the medial condyle's centre is refused in one line naming the field and the
-    bone (exit 2), and the shipped knee's attachments lie at most 1 mm inside a bone."""
-    knee_dir = tmp_path / "k"
-    shutil.copytree(resource("knees", "s192803"), knee_dir)
-    text = (knee_dir / "knee.toml").read_text()
-    centre = s192803.condyle_centres()[0] * 1e3 * np.array([1.0, 1.0, -1.0])  # the file's left-knee axes
-    first = text.index("[[ligaments.ACLam.bundles]]")
-    start = text.index("femur = [", first)
-    end = text.index("]", start) + 1
-    (knee_dir / "knee.toml").write_text(text[:start] + f"femur = {list(map(float, centre))}" + text[end:])
-    assert main(["simulate", "--knee", str(knee_dir / "knee.toml"), "--protocol", "set1", "--no-plots",
-                 "--out", str(tmp_path / "o")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "ligaments.ACLam.bundles[0].femur" in err[0] and "inside the femoral bone" in err[0]
-
-
 def test_shipped_bundles_have_the_fe_slack_lengths(s192803):
     """A fibre's slack length is reached at the reference (imaged) pose's length / (1 + ref_strain):
     the knee file's slack_length round-trips through the reference pose (no frame mixed up)."""
