@@ -432,11 +432,6 @@ class KneeModel:
         R, p = self.knee.reference_transform
         return joint_coordinates(R @ turn, p)
 
-    def source_theta(self) -> np.ndarray:
-        """:meth:`theta` of the knee file's own parameter set (SI), also when another set replaced it
-        (:meth:`Knee.with_parameters`); candidate parameters at neutral."""
-        return self._theta_of(self.knee.source_parameters or self.knee.parameters)
-
     def _theta_of(self, params: ParameterSet, values: dict[str, float] | None = None) -> np.ndarray:
         values = dict(values or {})
         for n, v in values.items():  # the API's values pass the range check a file's values pass (a

@@ -71,9 +71,6 @@ class Knee:
     #: coordinates (rad, m); reference strains refer to it, solvers start from it
     reference_pose: tuple[float, np.ndarray] = (0.0, np.zeros(5))
     side: str = "right"  # the side of the knee file (the model is always a right knee)
-    #: the knee file's own parameter set once :meth:`with_parameters` replaced it (e.g. by a
-    #: calibration's file); the forward solver follows hard trials from it
-    source_parameters: ParameterSet | None = None
 
     @property
     def reference_transform(self) -> tuple[np.ndarray, np.ndarray]:
@@ -133,8 +130,7 @@ class Knee:
     def with_parameters(self, parameters: ParameterSet | str | Path) -> Knee:
         """The same geometry with another parameter set."""
         params = parameters if isinstance(parameters, ParameterSet) else ParameterSet.load(parameters)
-        return dataclasses.replace(self, parameters=check_parameter_set(params, self.ligaments, self.source),
-                                   source_parameters=self.source_parameters or self.parameters)
+        return dataclasses.replace(self, parameters=check_parameter_set(params, self.ligaments, self.source))
 
     def report(self) -> str:
         """How the knee file became this model: frames, splits, fits and surface representations
