@@ -28,8 +28,10 @@ def main() -> None:
         t0 = time.perf_counter()
         knee = kneenlp.Knee.load(cropped_knee_file("default", 10e-3, Path(tmp)))
         sim = kneenlp.simulate(knee, "set3")
+        noted = [s.trial.id for s in sim.solutions if s.note]
         print(f"cropped knee and Set 3: {time.perf_counter() - t0:.1f} s, {sim.converged} of {len(sim.solutions)} "
-              "trials at equilibrium (the others refused: more than 5 % of a compartment's force beyond the rim)")
+              f"trials at equilibrium; noted (more than 5 % of a compartment's force beyond the rim): "
+              f"{', '.join(noted) or 'none'}")
         model = KneeModel.of(knee)
         theta = model.theta()
         trials, q_model, q_ref = [], [], []

@@ -64,6 +64,7 @@ class SimulationResult:
         df["converged"] = [s.converged for s in self.solutions]
         df["max_residual"] = [s.max_residual for s in self.solutions]
         df["strategy"] = [s.strategy for s in self.solutions]
+        df["note"] = [s.note for s in self.solutions]
         return df
 
     def recruitment(self) -> pd.DataFrame:
@@ -113,6 +114,7 @@ class SimulationResult:
             "converged": self.converged,
             "failed": [{"trial": s.trial.id, "max_residual": s.max_residual, "reason": s.reason}
                        for s in self.failed],
+            "notes": {s.trial.id: s.note for s in self.solutions if s.note},
             "max_residual": self.max_residual,
             "seconds": round(self.seconds, 4),
         }

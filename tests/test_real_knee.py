@@ -204,10 +204,10 @@ def test_a_nonlinear_pressure_law_named_in_the_knee_file(real_knee, set1, tmp_pa
 @pytest.mark.slow
 def test_a_cropped_femur_ends_at_its_rim_and_matches_the_brute_force(tmp_path):
     """The default knee with its femoral cartilage cropped 10 mm behind the femoral origin (the rim
-    crosses the 30 deg contact patches): Set 3 solves every trial but those with more than 5 % of a
-    compartment's force beyond the rim, which are refused naming the share; at every equilibrium the
+    crosses the 30 deg contact patches): Set 3 solves every trial, those with more than 5 % of a
+    compartment's force beyond the rim with a note naming the share; at every equilibrium the
     contact matches the brute force on the cropped mesh (a point presses only where its nearest mesh
-    point is inside the surface) to 1 % in force and moment."""
+    point is inside the surface) to 1 % in force and moment, 2 % where noted (1.3 % measured)."""
     from kneenlp.model.mesh_contact import RIM_SHARE
     from kneenlp.testing.reference import cropped_knee_file
 
@@ -216,16 +216,17 @@ def test_a_cropped_femur_ends_at_its_rim_and_matches_the_brute_force(tmp_path):
     sim = kneenlp.simulate(knee, "set3")
     model = KneeModel.of(knee)
     theta = model.theta()
-    for s in sim.failed:
-        assert model.rim_share(s.q, theta, s.trial.flexion) > RIM_SHARE
-        assert "% of a compartment's contact force" in s.reason
-    assert len(sim.failed) <= 2
+    assert not sim.failed  # computed, not refused
+    for s in sim.solutions:
+        assert bool(s.note) == (model.rim_share(s.q, theta, s.trial.flexion) > RIM_SHARE)
+        assert not s.note or "% of a compartment's contact force" in s.note
     distance = MeshDistance(knee.femur.mesh)
     touched = 0
     for s in sim.solutions:
         if not s.converged:
             continue
         touched += model.rim_share(s.q, theta, s.trial.flexion) > 0
+        tol = 0.02 if s.note else 0.01  # the fade over one spacing against the sharp edge, more of it at the rim
         for comp, c in compare_contact(knee, s.q, theta, s.trial.flexion, distance).items():
-            assert c["force_error"] <= 0.01 and c["moment_error"] <= 0.01, (s.trial.id, comp, c)
+            assert c["force_error"] <= tol and c["moment_error"] <= tol, (s.trial.id, comp, c)
     assert touched  # the rim carries some of the load

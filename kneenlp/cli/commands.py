@@ -96,6 +96,9 @@ def cmd_simulate(args) -> int:
                                                                                         float_format="%.2f"))
         for s in result.failed:
             print(f"NOT CONVERGED: {s.trial.id}: {s.reason}")
+        for s in result.solutions:
+            if s.note:
+                print(f"NOTE: {s.trial.id}: {s.note}")
         print("wrote: " + ", ".join(str(p) for p in written))
     return 1 if result.failed else 0
 

@@ -26,7 +26,7 @@ from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.starts import best_fit, run_starts
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.model.mesh_contact import RIM_SHARE
-from kneenlp.solvers.forward import rim_reason
+from kneenlp.solvers.forward import rim_note
 from kneenlp.solvers.nlp import solve_nlp
 from kneenlp.solvers.reduced import reduced_least_squares, tolerance
 
@@ -194,12 +194,12 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
                        solver_options: dict | None = None, threads: int = 2, q0: np.ndarray | None = None) -> Fit:
     """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter)
     (:func:`~kneenlp.solvers.nlp.solve_nlp`), judged: a success needs the solver's, every trial
-    at equilibrium (:attr:`~kneenlp.experiment.problem.IdentificationProblem.equilibrium_tol`), no
-    contact point left out of the working sets and at most :data:`~kneenlp.model.mesh_contact.RIM_SHARE` of a
-    compartment's force from beyond the femoral surface's open edge."""
+    at equilibrium (:attr:`~kneenlp.experiment.problem.IdentificationProblem.equilibrium_tol`) and no
+    contact point left out of the working sets; more than :data:`~kneenlp.model.mesh_contact.RIM_SHARE`
+    of a compartment's force from beyond the femoral surface's open edge is noted."""
     r = solve_nlp(problem, start, solver, solver_options, threads, q0)
     tol = problem.equilibrium_tol
-    success = r.success and r.max_residual <= tol and r.left_out <= 0 and r.rim <= RIM_SHARE
+    success = r.success and r.max_residual <= tol and r.left_out <= 0
     notes = []
     if r.started_at_data:
         notes.append(f"{r.started_at_data} trial(s) had no equilibrium inside the pose envelope at the start; "
@@ -210,7 +210,7 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
         notes.append(f"a contact point outside the working sets penetrates {1e3 * r.left_out:.3f} mm: enlarge "
                      "contact.working_set in the knee file (or the contact left the represented femoral surface)")
     if r.rim > RIM_SHARE:
-        notes.append(rim_reason(r.rim))
+        notes.append(rim_note(r.rim))
     return Fit.build(problem, "simultaneous", problem.theta(r.values), r.q, status=r.status, success=success,
                      iterations=r.iterations, seconds=r.seconds, max_residual=r.max_residual,
                      start=dict(start), build_seconds=r.build_seconds, evaluations=r.iterations,

@@ -182,5 +182,5 @@ class Knee:
         return (f"femoral mesh: open where the tibia reaches ({len(rim)} edges): {n} swept tibial points come within "
                 f"{RIM_GAP * 1e3:g} mm of the surface beyond its open edge between {TOUCHABLE_FLEXION_DEG[0]:g} and "
                 f"{TOUCHABLE_FLEXION_DEG[1]:g} deg flexion; the surface ends at the edge (the contact weight falls to "
-                f"0 across it within a grid spacing), and a trial is refused where more than "
+                f"0 across it within a grid spacing), and a trial is noted where more than "
                 f"{RIM_SHARE * 100:g} % of a compartment's contact force would come from beyond it")

@@ -47,8 +47,8 @@ from kneenlp.model.parameters import Parameter
 #: penetrate with one look-up, :func:`kneenlp.geometry.kernels.contact_batch`).
 CANDIDATE_REACH = 2e-3
 
-#: A trial is refused when more than this share of a compartment's contact force would come from
-#: beyond the femoral surface's open edge (:meth:`MeshContact.rim_batch`).
+#: A trial is noted (solved, with a warning) when more than this share of a compartment's contact
+#: force would come from beyond the femoral surface's open edge (:meth:`MeshContact.rim_batch`).
 RIM_SHARE = 0.05
 
 #: Layout of the working-set input: expansion pose R0 (9, column-major) and p0 (3), wrench W (6),
@@ -151,7 +151,7 @@ class MeshContact(StagedElement):
     m; ``femur_vertices`` (femoral frame, m) with ``offset`` (m) bound the gap of points outside
     the field's grid.  A cropped surface ends at its rim (its open edges): every
     pressure is multiplied by the field's rim weight (:attr:`~kneenlp.geometry.sdf.DistanceField.
-    weights`, 1 on the surface, 0 beyond the rim), and a pose is refused only where more than
+    weights`, 1 on the surface, 0 beyond the rim), and a pose is noted where more than
     :data:`RIM_SHARE` of a compartment's force would come from beyond it (:meth:`rim_batch`).
     Parameter: ``contact.modulus``.  Outputs: contact force (N) and largest penetration (mm).
     """

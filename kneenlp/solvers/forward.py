@@ -74,6 +74,8 @@ class TrialSolution:
     #: the equilibrium is stable by :func:`unstable_equilibria` (a converged trial may be an unstable
     #: one: Newton converges to any root; :meth:`ForwardSolver.solve` checks, predict says so)
     stable: bool = True
+    #: a warning on a converged trial (:func:`rim_note`: contact where a cropped femoral surface ends)
+    note: str = ""
 
 
 class ForwardSolver:
@@ -348,8 +350,7 @@ class ForwardSolver:
             sol.converged, sol.strategy = False, "failed"
             sol.reason = "equilibrium found only at an implausible (dislocated) pose"
         elif (rim := self.model.rim_share(q, theta, trial.flexion)) > RIM_SHARE:
-            sol.converged, sol.strategy = False, "failed"
-            sol.reason = rim_reason(rim)
+            sol.note = rim_note(rim)
         return sol
 
     def unloaded_states(self, flexions: list[float], theta: np.ndarray,
@@ -472,12 +473,13 @@ def unstable_equilibria(model: KneeModel, q: np.ndarray, theta: np.ndarray, load
     return np.linalg.det(-np.asarray(jacobians)) <= 0
 
 
-def rim_reason(share: float) -> str:
-    """Why a pose with contact at the femoral mesh's open edge is refused (``share`` of a
-    compartment's contact force from beyond the edge, above :data:`~kneenlp.model.mesh_contact.RIM_SHARE`)."""
-    return (f"contact beyond the femoral surface's open edge: {100 * share:.1f} % of a compartment's contact force "
-            f"would come from where the femoral mesh ends (more than {100 * RIM_SHARE:g} %; a cropped or partial "
-            "surface, the knee report says where it is open)")
+def rim_note(share: float) -> str:
+    """The warning of an equilibrium with contact at the femoral mesh's open edge (``share`` of a
+    compartment's contact force from beyond the edge, above :data:`~kneenlp.model.mesh_contact.RIM_SHARE`):
+    the cropped surface's equilibrium, which an intact surface would move."""
+    return (f"contact at the femoral surface's open edge: {100 * share:.1f} % of a compartment's contact force "
+            f"would come from where the femoral mesh ends (more than {100 * RIM_SHARE:g} %): the equilibrium of "
+            "the cropped surface; a whole one would carry more there (the knee report says where it is open)")
 
 
 def _nearest_converged(loads: np.ndarray, flexions: np.ndarray, converged: np.ndarray,

@@ -42,7 +42,7 @@ class SolverResult:
     #: deepest penetration (m) of a contact point outside the working sets; -inf: none or not checked
     left_out: float = -np.inf
     #: largest share of a compartment's contact force from beyond the femoral surface's open edge
-    #: (:data:`~kneenlp.model.mesh_contact.RIM_SHARE` refuses); 0: none or not checked
+    #: (above :data:`~kneenlp.model.mesh_contact.RIM_SHARE`: noted); 0: none or not checked
     rim: float = 0.0
     #: trials with no equilibrium inside the pose envelope at the start (simultaneous NLP)
     started_at_data: int = 0
