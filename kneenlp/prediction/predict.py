@@ -137,7 +137,7 @@ class Prediction:
                 "rms": self.rms(), "rms_units": {c: c.rsplit("_", 1)[1] for c in coordinate_columns()},
                 "failed": [{"trial": s.trial.id, "reason": s.reason} for s in self.solutions if not s.converged],
                 "unstable": [s.trial.id for s in self.solutions if not s.stable],
-                "snapped": [s.trial.id for s in self.solutions if s.converged and s.strategy == "settle"],
+                "snapped": [s.trial.id for s in self.solutions if s.snapped],
                 "notes": {s.trial.id: s.note for s in self.solutions if s.note},
                 "laxity": laxity_records(self.laxity())} | ({} if self.sd_user is None else {
                     "band_level": BAND_LEVEL, "inside_band": self.inside_band(),
@@ -159,7 +159,7 @@ class Prediction:
             cells = "  ".join(f"{v:14.2f}" for v in e) if s.converged else f"NO EQUILIBRIUM: {s.reason}"
             note = ("  (an UNSTABLE equilibrium: no loading ends there)" if not s.stable else
                     "  (the loading path passes a fold: several equilibria; the one the knee settles into)"
-                    if s.converged and s.strategy == "settle" else "") + (f"  ({s.note})" if s.note else "")
+                    if s.snapped else "") + (f"  ({s.note})" if s.note else "")
             lines.append(f"{s.trial.id:<{width}}  {s.trial.flexion_deg:7.1f}  {cells}{note}")
         if self.sd_user is not None:
             n = int(self.converged.sum())

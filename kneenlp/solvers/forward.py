@@ -77,6 +77,11 @@ class TrialSolution:
     #: a warning on a converged trial (:func:`rim_note`: contact where a cropped femoral surface ends)
     note: str = ""
 
+    @property
+    def snapped(self) -> bool:
+        """Its loading path passed a fold (several equilibria there): the knee settled into this one."""
+        return self.converged and self.strategy == "settle" and bool(np.any(self.trial.load))
+
 
 class ForwardSolver:
     """Per-trial equilibrium solver for one model; the rootfinder is built once."""
