@@ -374,3 +374,58 @@ def test_the_exported_contact_of_a_cropped_surface_is_the_compiled_one(half_plat
     assert np.allclose(got, W,
                        rtol=1e-9, atol=1e-9 * np.abs(W).max())
     assert 0 < contact.rim_batch(R[None], p[None])[0] < 1  # the rim carries part of it
+
+
+@pytest.fixture(scope="module")
+def cartilage_shell():
+    """A closed cylindrical layer 3 mm thick about the Z axis (inner radius 30 mm, outer 33 mm, 24 mm
+    long; metres): the shape of a condyle's cartilage, with rim walls at its ends."""
+    n = 256  # a ring of quads between two circles of the same angles, at each end and on each wall
+    a = 2 * np.pi * np.arange(n) / n
+    rings = [np.c_[r * np.cos(a), r * np.sin(a), np.full(n, z)] for r, z in
+             ((33e-3, -12e-3), (33e-3, 12e-3), (30e-3, 12e-3), (30e-3, -12e-3))]
+    vertices = np.vstack(rings)
+    faces = []
+    for k in range(4):  # outer wall, top rim, inner wall, bottom rim: ring k to ring k + 1
+        b, c = k * n, ((k + 1) % 4) * n
+        for i in range(n):
+            j = (i + 1) % n
+            faces += [[b + i, b + j, c + j], [b + i, c + j, c + i]]
+    mesh = trimesh.Trimesh(vertices, faces, process=True)
+    if mesh.volume < 0:
+        mesh.invert()
+    for _ in range(2):
+        mesh = mesh.subdivide()
+    return mesh
+
+
+def test_a_cartilage_shell_is_deep_below_its_articular_side_not_its_mid_plane(cartilage_shell):
+    """Pressed into a closed 3 mm layer, the plain signed distance turns at mid-thickness (1.5 mm:
+    the contact force would turn); the shell's field is the depth below the articular (outer) side,
+    the closed form ``r - 33 mm``, through the layer and behind it, and the rim walls belong to the
+    articular side (a point beside the layer's edge is outside)."""
+    from kneenlp.geometry.shell import ShellDistance, articular_faces, shell_thickness
+
+    mesh = cartilage_shell
+    assert mesh.is_watertight and shell_thickness(mesh) == pytest.approx(2 * mesh.volume / mesh.area)
+    assert 2.5e-3 < shell_thickness(mesh) < 3e-3
+    assert shell_thickness(trimesh.creation.box(extents=[0.04, 0.04, 0.04])) is None  # a bone: 13 mm
+    side = articular_faces(mesh, np.zeros(3), np.array([0.0, 0, 1]))
+    radius = np.linalg.norm(mesh.triangles_center[:, :2], axis=1)
+    wall = np.abs(mesh.face_normals[:, 2]) < 0.1
+    assert np.all(side[radius > 32.9e-3]) and not np.any(side[(radius < 30.1e-3) & wall])
+    assert np.all(side[np.abs(mesh.face_normals[:, 2]) > 0.99])  # the rim walls
+    r = np.linspace(27e-3, 35e-3, 33)
+    pts = np.c_[r * np.cos(0.3), r * np.sin(0.3), np.zeros_like(r)]
+    plain = MeshDistance(mesh)(pts)[0]
+    d, _, grad = ShellDistance(mesh, side)(pts)
+    assert np.max(np.abs(d - (r - 33e-3))) < 2e-6  # the closed form, 6 mm deep
+    assert np.allclose(grad @ np.array([np.cos(0.3), np.sin(0.3), 0]), 1.0, atol=1e-3)
+    assert plain[r == 31.5e-3].item() == pytest.approx(-1.5e-3, abs=2e-6) and plain[r == 30.5e-3].item() > -1.0e-3
+    beside = np.array([[31.5e-3, 0, 13e-3]])  # 1 mm beyond the top rim wall
+    assert ShellDistance(mesh, side)(beside)[0].item() == pytest.approx(1e-3, abs=2e-6)
+    box = np.array([[24e-3, 5e-3, -6e-3], [36e-3, 14e-3, 6e-3]])  # a sector of the layer
+    fld = DistanceField.from_mesh(mesh, box, spacing=0.5e-3, articular=side)
+    accurate = (r >= 31.5e-3) & (r <= 34e-3)  # the field's accurate band, -1.5 to 1 mm
+    assert np.max(np.abs(fld.evaluate(pts[accurate])[0] - (r[accurate] - 33e-3))) < 20e-6
+    assert np.all(np.diff(fld.evaluate(pts[(r >= 30.5e-3) & (r < 34e-3)])[0]) > 1e-4)  # deeper down to the clip

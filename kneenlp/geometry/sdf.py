@@ -37,6 +37,7 @@ from kneenlp.base.cache import cache_dir
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.kernels import cell_minimum, field_values
 from kneenlp.geometry.rim import OpenEdges, rim_weights
+from kneenlp.geometry.shell import ShellDistance
 
 #: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
 FORMAT_VERSION = 5
@@ -143,7 +144,7 @@ class DistanceField:
     @classmethod
     def from_mesh(cls, mesh: trimesh.Trimesh, box: np.ndarray, *, spacing: float = 5e-4, offset: float = 0.0,
                   band: float = 2e-3, depth: float = 3e-3, n_check: int = 4000,
-                  rng_seed: int = 0) -> DistanceField:
+                  rng_seed: int = 0, articular: np.ndarray | None = None) -> DistanceField:
         """Build from a triangle mesh with outward normals (metres).
 
         ``box`` (2 x 3, m) is the region to represent (padded here by the spline's support);
@@ -153,7 +154,9 @@ class DistanceField:
         about three grid cells, so the field is accurate for ``-(depth - 3 spacing) < d < band - 3
         spacing`` (-1.5 to 0.5 mm by default: penetrations up to 1.5 mm, gaps up to 0.5 mm); it is
         checked there against exact distances at ``n_check`` random points inside ``box``
-        (``info['error_rms_um']``, ``info['error_max_um']``).
+        (``info['error_rms_um']``, ``info['error_max_um']``).  ``articular`` (bool per face) makes
+        a thin closed shell's field the depth below those faces (:class:`~kneenlp.geometry.shell.
+        ShellDistance`).
         """
         t0 = time.perf_counter()
         # nodes on multiples of the spacing in the mesh's frame: the same anatomy in the same frame gives
@@ -162,7 +165,8 @@ class DistanceField:
         lo, shape = cls.grid(box, spacing)
         axes = [lo[i] + spacing * np.arange(shape[i]) for i in range(3)]
         nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        exact = MeshDistance(mesh)
+        exact = MeshDistance(mesh) if articular is None else ShellDistance(mesh, articular)
+        side = mesh if articular is None else exact.surface  # whose vertex normals tell a far node's side
         # nearest-sample distance bounds the true distance within one facet radius; on a fine mesh the
         # nodes are sorted out against a subsample (its slack: the farthest sample from it), since the
         # tree queries of a million nodes grow with the samples (158 s for a 300k-face femur)
@@ -175,8 +179,8 @@ class DistanceField:
         d = np.empty(len(nodes))
         far = np.flatnonzero(~near)
         # far nodes (beyond the reach) take the side of the nearest vertex's normal (of a subsample)
-        keep = _subsample_indices(len(mesh.vertices), COARSE_SAMPLES)
-        vertices, normals = np.asarray(mesh.vertices)[keep], np.asarray(mesh.vertex_normals)[keep]
+        keep = _subsample_indices(len(side.vertices), COARSE_SAMPLES)
+        vertices, normals = np.asarray(side.vertices)[keep], np.asarray(side.vertex_normals)[keep]
         _, iv = cKDTree(vertices).query(nodes[far], 1, workers=-1)
         outward = np.einsum("ij,ij->i", nodes[far] - vertices[iv], normals[iv]) >= 0
         d[far] = np.where(outward, band, -depth)
@@ -193,11 +197,11 @@ class DistanceField:
         t1 = time.perf_counter()
         # accuracy: random points on the represented surface moved along its normal within the band
         rng = np.random.default_rng(rng_seed)
-        pts, face = trimesh.sample.sample_surface(mesh, 4 * n_check, seed=rng_seed)
+        pts, face = trimesh.sample.sample_surface(side, 4 * n_check, seed=rng_seed)
         inside = np.all((pts >= box[0]) & (pts <= box[1]), axis=1)
         pts, face = pts[inside][:n_check], face[inside][:n_check]
         lo_d, hi_d = -(depth - 3 * spacing), band - 3 * spacing
-        test = pts + mesh.face_normals[face] * (offset + rng.uniform(lo_d, hi_d, (len(pts), 1)))
+        test = pts + side.face_normals[face] * (offset + rng.uniform(lo_d, hi_d, (len(pts), 1)))
         d_exact = exact(test)[0] - offset
         keep = (d_exact > lo_d) & (d_exact < hi_d) & np.all((test >= box[0]) & (test <= box[1]), axis=1)
         err = out.evaluate(test[keep])[0] - d_exact[keep]
@@ -207,7 +211,9 @@ class DistanceField:
                     "error_max_um": float(np.max(np.abs(err)) * 1e6) if err.size else float("nan"),
                     "checked_points": int(err.size), "build_seconds": t1 - t0,
                     "check_seconds": time.perf_counter() - t1, "megabytes": coeffs.nbytes / 1e6,
-                    "rim_edges": len(rim), "rim_weighted_nodes": int(np.count_nonzero(out.weights.ravel()[near] < 1))
+                    "rim_edges": len(rim),
+                    "shell_articular_faces": int(np.count_nonzero(articular)) if articular is not None else 0,
+                    "rim_weighted_nodes": int(np.count_nonzero(out.weights.ravel()[near] < 1))
                     if out.weights is not None else 0}
         return out
 
@@ -267,9 +273,11 @@ class DistanceField:
                        float(z["band"]), float(z["depth"]), json.loads(str(z["info"])), weights)
 
 
-def field_key(mesh: trimesh.Trimesh, box: np.ndarray, **settings: float) -> str:
-    """Hash of everything a field depends on: vertices, faces, box and settings."""
+def field_key(mesh: trimesh.Trimesh, box: np.ndarray, articular: np.ndarray | None = None, **settings: float) -> str:
+    """Hash of everything a field depends on: vertices, faces, box, the articular faces and settings."""
     h = hashlib.sha256()
+    if articular is not None:
+        h.update(np.packbits(np.asarray(articular, bool)).tobytes())
     h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
     h.update(np.round(np.asarray(box, float), 9).tobytes())
@@ -277,10 +285,11 @@ def field_key(mesh: trimesh.Trimesh, box: np.ndarray, **settings: float) -> str:
     return h.hexdigest()[:24]
 
 
-def cached_field(mesh: trimesh.Trimesh, box: np.ndarray, progress=None, **settings: float) -> DistanceField:
+def cached_field(mesh: trimesh.Trimesh, box: np.ndarray, progress=None, articular: np.ndarray | None = None,
+                 **settings: float) -> DistanceField:
     """:meth:`DistanceField.from_mesh`, read from the cache when an identical field was built
     before; ``progress`` (callable taking a message) is told when a build starts."""
-    key = field_key(mesh, box, **settings)
+    key = field_key(mesh, box, articular, **settings)
     where = cache_dir()
     path = where / f"field-{key}.npz" if where else None
     if path is not None and path.is_file():
@@ -292,7 +301,7 @@ def cached_field(mesh: trimesh.Trimesh, box: np.ndarray, progress=None, **settin
             pass  # a damaged entry is rebuilt
     if progress is not None:
         progress("building the femoral distance field (once per surface; cached)")
-    out = DistanceField.from_mesh(mesh, box, **settings)
+    out = DistanceField.from_mesh(mesh, box, articular=articular, **settings)
     if path is not None:
         try:
             out.save(path)

@@ -31,11 +31,14 @@ from kneenlp.geometry.decimate import (
 from kneenlp.geometry.distance import MeshDistance, winding_number
 from kneenlp.geometry.rim import OpenEdges
 from kneenlp.geometry.sdf import DistanceField
+from kneenlp.geometry.shell import articular_faces, shell_thickness
 from kneenlp.model.articular import (
+    SAMPLE_EDGE,
     Compartment,
     FemoralSurface,
     femoral_box,
     mesh_path,
+    sampled_plateau,
     split_tibia,
     tibial_samples,
 )
@@ -579,7 +582,12 @@ class KneeFile:
         contact, tables = self.spec.contact, self.spec.contact.compartments()
         compartments = {}
         for name, raw in tibiae.items():
-            mesh = self.frame.mesh(raw)
+            mesh = sampled_plateau(self.frame.mesh(raw))
+            if len(mesh.vertices) != len(raw.vertices):
+                edge = float(np.median(raw.edges_unique_length))
+                self.notes.append(f"tibial cartilage {name!r}: median edge {edge * 1e3:.2g} mm, refined to "
+                                  f"{len(mesh.vertices)} contact points from {len(raw.vertices)} vertices (edges of "
+                                  f"at most {SAMPLE_EDGE * 1e3:g} mm)")
             points, areas = tibial_samples(mesh)
             if name in spheres:
                 centre, radius = self.frame(spheres[name][0]), spheres[name][1]
@@ -609,7 +617,11 @@ class KneeFile:
             DistanceField.check_memory(box, spacing)
         except ValueError as exc:
             raise InputError(str(exc), source=self.src, field="contact.grid_spacing") from None
-        return FemoralSurface(fmesh, offset, spacing, box, sources)
+        articular = None
+        if not offset and shell_thickness(fmesh) is not None:  # a segmented cartilage: depth below its articular side
+            on_axis = (axis.point, axis.direction) if axis is not None else (np.zeros(3), np.array([0, 0, 1.0]))
+            articular = articular_faces(fmesh, *on_axis)
+        return FemoralSurface(fmesh, offset, spacing, box, sources, articular)
 
     def approximate_axes(self, raw_landmarks: dict[str, np.ndarray]) -> np.ndarray:
         """Anterior, proximal and lateral directions of the scan (rows), good enough to choose the

@@ -46,8 +46,11 @@ if TYPE_CHECKING:
 COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m from the reference pose: slightly penetrated
 #: Flexion step (deg) of the passive path from a knee's reference pose (:meth:`ForwardSolver.cold_start`).
 PASSIVE_STEP_DEG = 10.0
-#: Times a load ramp may snap through a fold of its equilibrium path (:meth:`ForwardSolver._ramps`).
+#: Times a load ramp may settle where Newton cannot follow it (:meth:`ForwardSolver._ramps`).
 SNAPS = 4
+#: A settling that moves the knee by more than this (mm or deg) from the ramp's last equilibrium is a
+#: snap through a fold; a shorter one crossed a stretch Newton could not (the same branch).
+SNAP_JUMP = 0.5
 #: Single-trial Newton solves a forward solver remembers (:meth:`ForwardSolver._newton`): a fit's
 #: retries ask for the same solve again (S192803 calibration: 2211 solves, 1478 distinct, 3.5 s of 9.8 s).
 NEWTON_MEMORY = 4096
@@ -299,12 +302,12 @@ class ForwardSolver:
         step falls below ``min_step`` the path has reached a fold: the knee snaps, settling at the
         fraction it could not reach (:meth:`EquilibriumNewton.settle`), and the ramp goes on from
         there (at most ``snaps`` times; none: the ramp stops at the fold).  Returns the poses,
-        residuals and whether a trial snapped."""
+        residuals and whether a trial snapped (settled more than :data:`SNAP_JUMP` away)."""
         n = len(trials)
         q = np.array(q_unloaded, float).reshape(n, 5)
         res = np.full(n, np.inf)
         done, step = np.zeros(n), np.full(n, 0.25)
-        snapped = np.zeros(n, int)
+        settled, snapped = np.zeros(n, int), np.zeros(n, bool)
         active = np.ones(n, bool)
         while np.any(active):
             idx = np.flatnonzero(active)
@@ -319,14 +322,15 @@ class ForwardSolver:
                 step[i] /= 2
                 if step[i] >= min_step:
                     continue
-                q_s, r_s = self._settle(q[i], theta, trials[i], s) if snapped[i] < snaps else (q_try, np.inf)
+                q_s, r_s = self._settle(q[i], theta, trials[i], s) if settled[i] < snaps else (q_try, np.inf)
                 if r_s <= self.tol:
-                    q[i], done[i], step[i], snapped[i] = q_s, s, 0.25, snapped[i] + 1
+                    snapped[i] |= np.max(np.abs(coords_to_user(q_s - q[i]))) > SNAP_JUMP
+                    q[i], done[i], step[i], settled[i] = q_s, s, 0.25, settled[i] + 1
                     if s == 1.0:
                         res[i], active[i] = r_s, False
                 else:
                     q[i], res[i], active[i] = q_try, self.residual_norm(q_try, theta, trials[i]), False
-        return q, res, snapped > 0
+        return q, res, snapped
 
     def _settle(self, q0: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0) -> tuple[np.ndarray, float]:
         """Where the knee comes to rest from ``q0`` under ``scale`` times the trial's load
