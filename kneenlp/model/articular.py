@@ -137,20 +137,21 @@ def split_tibia(mesh: trimesh.Trimesh, lateral: np.ndarray) -> tuple[dict[str, t
     return meshes, parts, how
 
 
-#: Largest median edge (m) of a tibial cartilage mesh whose vertices sample contact as they are.
-#: Contact acts at the vertices, and the force of a vertex starts within the gate (0.01 mm): on a
-#: coarser plateau the contact sum changes by steps as vertices enter the patch one by one, so the
-#: equilibria of a load ramp (and a fit's objective) ripple and Newton stalls between them (S192803,
-#: median edge 1.8 mm: the objective along a stiffness changed by up to 0.4 % between neighbouring
-#: values 0.5 % apart; refined to 1 mm it is smooth and monotone).  The shipped default and implant
-#: knees (0.77, 0.91 mm) are sampled as they are.
+#: Largest median edge (m) of a tibial cartilage mesh whose vertices sample contact as they are, and
+#: the longest edge (m) of one refined.  Contact acts at the vertices, and the force of a vertex
+#: starts within the gate (0.01 mm): on a coarse plateau the contact sum changes by steps as vertices
+#: enter the patch one by one, so the equilibria of a load ramp (and a fit's objective) ripple and
+#: Newton stalls between them (S192803, median edge 1.8 mm: the objective along a stiffness changed
+#: by up to 0.4 % between values 0.5 % apart; refined to 1 mm edges it is smooth and monotone).  The
+#: shipped default, synthetic and implant knees (0.77, 1.01, 0.91 mm) are sampled as they are.
+COARSE_EDGE = 1.25e-3
 SAMPLE_EDGE = 1e-3
 
 
 def sampled_plateau(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """``mesh`` (m) itself, or where its median edge exceeds :data:`SAMPLE_EDGE`, its triangles split in
-    their planes until no edge does (the same surface, the same area)."""
-    if float(np.median(mesh.edges_unique_length)) <= SAMPLE_EDGE:
+    """``mesh`` (m) itself, or where its median edge exceeds :data:`COARSE_EDGE`, its triangles split
+    in their planes until no edge exceeds :data:`SAMPLE_EDGE` (the same surface, the same area)."""
+    if float(np.median(mesh.edges_unique_length)) <= COARSE_EDGE:
         return mesh
     vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=SAMPLE_EDGE)
     return trimesh.Trimesh(vertices, faces, process=True)
