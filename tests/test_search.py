@@ -6,6 +6,7 @@ search itself run another way (worker counts, a resumed store: the same ends bit
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -231,3 +232,31 @@ def test_the_search_on_a_dask_cluster_gives_the_local_answer_bit_for_bit(small_p
     assert local.best.fit.params == remote.best.fit.params
     assert remote.best.fit.problem.model is small_problem.model
     assert len(list((tmp_path / "search").glob("*.json"))) == len(remote.ends) + 4
+
+
+def test_the_outlier_test_inside_the_search_judges_a_trial_by_the_searchs_own_minima(knee, tmp_path):
+    """A trial moved 6 mm and 6 deg off (every coordinate) is named by the screen at the lowest
+    minimum, tested against the lowest minimum of the search without it and set aside, with 1 and 2
+    workers alike; the same search of the clean data sets nothing aside."""
+    from kneenlp.estimation.calibrate import outlier_candidate, outlier_verdict
+    from kneenlp.estimation.outliers import MAX_OUTLIER_SHARE
+    from kneenlp.estimation.search import OutlierTest
+
+    test = OutlierTest(outlier_candidate, outlier_verdict, MAX_OUTLIER_SHARE)
+    kneenlp.simulate(knee, "set3").measured("uniform:0.5", 3).to_csv(tmp_path / "m.csv", index=False)
+    small_problem = IdentificationProblem.from_data(KneeModel.of(knee), read_measured(tmp_path / "m.csv"),
+                                                    ["ACL.k", "PCL.k", "MCL.k", "LCL.k", "ACL.ref_strain"],
+                                                    priors="default", prior_weight=0.25)
+    centre = {n: small_problem.model.theta()[small_problem.model.index(n)] for n in small_problem.free}
+    clean = search(small_problem, centre, screen=screen, refine=nlp, hop=nlp, starts=4, seed=2, outliers=test)
+    assert clean.set_aside == () and clean.best.fit.problem.n_trials == small_problem.n_trials
+    measured = small_problem.measured.copy()
+    measured[5] += 6.0
+    planted = dataclasses.replace(small_problem, measured=measured)
+    found = [search(planted, centre, screen=screen, refine=nlp, hop=nlp, starts=4, seed=2, outliers=test,
+                    workers=workers) for workers in (1, 2)]
+    trial = small_problem.trials[5].id
+    assert [f.set_aside for f in found] == [(trial,), (trial,)]
+    assert found[0].outliers[0].p_adjusted < 0.05 and found[0].best.fit.problem.n_trials == small_problem.n_trials - 1
+    assert found[0].best.fit.params == found[1].best.fit.params
+    assert any(label.endswith(f"without {trial}") for label, _ in found[0].ends)

@@ -67,7 +67,7 @@ from kneenlp.estimation.outliers import (
     residual_factors,
     screen,
 )
-from kneenlp.estimation.search import SCREEN_EVALUATIONS, Search, search
+from kneenlp.estimation.search import SCREEN_EVALUATIONS, OutlierTest, Search, search
 from kneenlp.estimation.solve import reduced_fit, scatter_fit, solve_simultaneous
 from kneenlp.estimation.statistics import effective_parameters, gauss_newton_covariance
 from kneenlp.experiment.kneemodel import KneeModel
@@ -428,17 +428,13 @@ def global_fit(model: KneeModel, data: MeasuredData, free: list[str], probe: np.
     if options["prior_weight"] is None and problem.priors:
         problem = map_fit(problem, centre, estimate=True, threads=threads).problem
         options = options | {"prior_weight": problem.prior_weight}
-    outliers: list[Outlier] = []
-
-    def outlier_test(fit: Fit) -> IdentificationProblem:
-        nonlocal outliers
-        refit, outliers = without_outliers(fit, options)
-        return refit.problem
-
+    test = None if keep_outliers else OutlierTest(outlier_candidate, outlier_verdict, MAX_OUTLIER_SHARE)
     found = search(problem, centre, screen=screened, refine=hopped, hop=hopped, starts=starts, seed=seed,
-                   workers=workers, threads=threads, on_minimum=None if keep_outliers else outlier_test, store=store)
+                   workers=workers, threads=threads, outliers=test, store=store)
     fit = found.best.fit.with_note(f"global search: {found.advice()}")
-    return fit, [o for o in outliers if o.trial in found.set_aside], found
+    for note in found.notes:
+        fit = fit.with_note(note)
+    return fit, list(found.outliers), found
 
 
 def screened(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None, threads: int) -> Fit:
@@ -683,41 +679,53 @@ def map_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndar
 
 def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
     """``fit`` refitted without the trials the outlier test sets aside (:mod:`~kneenlp.estimation.outliers`:
-    the screen's worst trial, refitted without and predicted; at most :data:`MAX_OUTLIER_SHARE` of
-    the trials, one at a time), and those trials; ``options`` those of the fit's problem (noise,
-    weights, effects).  The noise is always estimated from the other trials, never a declared
-    level: a trial is an outlier against the rest of its experiment (a declared level below the
-    fit's residuals is the adequacy check's finding, not every trial's fault).  A refit that loses
-    a trial's equilibrium, or a candidate predict cannot solve, keeps the trial (the fit's message
-    says so)."""
-
-    model, found = fit.problem.model, []
-    limit = int(MAX_OUTLIER_SHARE * len(fit.data))
-    while len(found) < limit:
-        ids = [t.id for t in fit.data.trials]
-        residuals = fit.data.q_user - fit.predicted_user
-        chi2, p = screen(residuals, len(fit.free),
-                         factors=residual_factors(fit.sensitivity, fit.problem.weights, noise_per_observation(fit)))
-        worst = int(np.argmax(chi2))
-        if not p[worst] < SCREEN_ALPHA:
+    the screen's worst trial (:func:`outlier_candidate`), refitted without and predicted
+    (:func:`outlier_verdict`); at most :data:`MAX_OUTLIER_SHARE` of the trials, one at a time), and
+    those trials; ``options`` those of the fit's problem (noise, weights, effects).  The refit is a
+    local one from ``fit`` (the global search refits by its own search, :func:`global_fit`)."""
+    found: list[Outlier] = []
+    while len(found) < int(MAX_OUTLIER_SHARE * (len(fit.data) + len(found))):
+        worst = outlier_candidate(fit)
+        if worst is None:
             break
-        keep = np.arange(len(ids)) != worst
-        problem = IdentificationProblem.from_data(model, fit.data.subset(keep), fit.free, **options)
+        keep = np.array([t.id != worst for t in fit.data.trials])
+        problem = IdentificationProblem.from_data(fit.problem.model, fit.data.subset(keep), fit.free, **options)
         refit = reduced_fit(problem, fit.params, q0=fit.q_pred[keep], max_evaluations=MAX_EVALUATIONS)
-        held = fit.data.subset(~keep)
-        alone = predict(model, held, refit.params)
-        why = ("the fit without it lost a trial's equilibrium" if not refit.max_residual <= problem.equilibrium_tol
-               else "predict finds no equilibrium for it without it" if not alone.converged[0] else "")
+        outlier, why = outlier_verdict(refit, fit.data.subset(~keep), len(fit.data))
         if why:
-            fit = fit.with_note(f"{ids[worst]} not tested as an outlier: {why}")
-            break
-        outlier = deletion_test(ids[worst], alone.errors_user[0], noise_per_observation(refit)[0],
-                                prediction_variances(refit, held, np.array([alone.solutions[0].q]))[0],
-                                max(len(refit.data) - len(fit.free) / 5, 1.0), len(ids))
+            fit = fit.with_note(f"{worst} not tested as an outlier: {why}")
         if outlier is None:
             break
         fit, found = refit, [*found, outlier]
     return fit, found
+
+
+def outlier_candidate(fit: Fit) -> str | None:
+    """The trial of ``fit`` whose residuals the outlier screen finds worst, if its adjusted p-value is
+    below :data:`~kneenlp.estimation.outliers.SCREEN_ALPHA` (:func:`~kneenlp.estimation.outliers.screen`,
+    the leverages from the fit's sensitivities); else None."""
+    residuals = fit.data.q_user - fit.predicted_user
+    chi2, p = screen(residuals, len(fit.free),
+                     factors=residual_factors(fit.sensitivity, fit.problem.weights, noise_per_observation(fit)))
+    worst = int(np.argmax(chi2))
+    return fit.data.trials[worst].id if p[worst] < SCREEN_ALPHA else None
+
+
+def outlier_verdict(without: Fit, held: MeasuredData, n_trials: int) -> tuple[Outlier | None, str]:
+    """The deletion test (:func:`~kneenlp.estimation.outliers.deletion_test`) of the one trial of
+    ``held`` predicted by ``without``, the fit of the other trials (``n_trials`` in all): the outlier or
+    None, and why it was not tested ("" if it was): a fit that lost a trial's equilibrium, or a
+    candidate predict cannot solve, keeps the trial."""
+    alone = predict(without.problem.model, held, without.params)
+    lost = not without.max_residual <= without.problem.equilibrium_tol
+    why = ("the fit without it lost a trial's equilibrium" if lost
+           else "predict finds no equilibrium for it without it" if not alone.converged[0] else "")
+    if why:
+        return None, why
+    outlier = deletion_test(held.trials[0].id, alone.errors_user[0], noise_per_observation(without)[0],
+                            prediction_variances(without, held, np.array([alone.solutions[0].q]))[0],
+                            max(len(without.data) - len(without.free) / 5, 1.0), n_trials)
+    return outlier, ""
 
 
 def prediction_variances(fit: Fit, data: MeasuredData, q: np.ndarray) -> np.ndarray:

@@ -19,10 +19,14 @@ The search (:func:`search`) makes the choice explicit:
    and solved by the NLP from the minimum's poses; the lowest hop is taken if it is lower by more
    than :data:`SAME_OBJECTIVE` (relative); it stops after :data:`PATIENCE` rounds without one, or
    :data:`MAX_ROUNDS`.  The number of hops per round is fixed, so the workers change the wall time only.
-5. **Outliers** (``on_minimum``): the caller's test at the lowest minimum may set trials aside;
-   the :data:`REFINED` lowest distinct minima are then re-converged without them (the NLP from
-   their own parameters and poses) and deepened again, so the choice among minima is made on the
-   data the fit keeps.
+5. **Outliers** (``outliers``, an :class:`OutlierTest`): the caller's screen at the lowest minimum
+   names a candidate trial; the :data:`REFINED` lowest distinct minima are re-converged without it
+   (the NLP from their own parameters and poses) and deepened again, and the candidate is tested
+   against the lowest minimum of that search (predicted by it): an outlier is set aside and the
+   search goes on without it; otherwise the search with every trial stands.  Both sides of the test
+   are minima of a search, not of a local refit, so whether a trial is set aside does not turn on
+   the last digits of a path (a local refit without it set valgus_flex60 aside or not for a 1e-12
+   change of the data).
 6. **Minima** (:func:`distinct_minima`): every converged end clustered by objective
    (:data:`SAME_OBJECTIVE`) and parameters (:data:`SAME_PARAMETERS` prior sd); each minimum with how
    many solves reached it.  Ends with trials off the loading path (``Fit.off_path``: equilibria
@@ -112,8 +116,15 @@ class Search:
     #: every converged or failed end, labelled
     ends: list[tuple[str, Fit]] = field(repr=False)
     minima: list[Minimum] = field(repr=False)
-    #: trials set aside inside the search (the caller's outlier test at the lowest refined minimum)
-    set_aside: tuple[str, ...] = ()
+    #: the outlier test's verdicts on the trials set aside inside the search (module docstring)
+    outliers: tuple = ()
+    #: what the outlier test could not test, in words
+    notes: tuple[str, ...] = ()
+
+    @property
+    def set_aside(self) -> tuple[str, ...]:
+        """The trials the outlier test set aside."""
+        return tuple(o.trial for o in self.outliers)
 
     @property
     def best(self) -> Minimum:
@@ -349,16 +360,28 @@ def distinct_minima(ends: list[tuple[str, Fit]]) -> list[Minimum]:
 Solve = Callable[[IdentificationProblem, dict[str, float], "np.ndarray | None", int], Fit]
 
 
+@dataclass(frozen=True)
+class OutlierTest:
+    """The outlier test inside a search (module docstring): ``candidate(fit)`` the trial the screen
+    finds worst at a minimum (or None); ``verdict(without, held, n_trials)`` the deletion test of
+    the trial ``held`` (measured data of one trial) predicted by ``without``, the lowest minimum
+    without it: (an outlier record or None, why it was not tested or ""); at most ``share`` of the
+    trials are set aside."""
+
+    candidate: Callable[[Fit], str | None]
+    verdict: Callable[[Fit, object, int], tuple[object, str]]
+    share: float
+
+
 def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: Solve, hop: Solve,
            screen: Solve, starts: int, seed: int, workers: int | DaskWorkers = 1, threads: int = 2,
-           on_minimum: Callable[[Fit], IdentificationProblem] | None = None,
-           store: str | Path | None = None, refined: int = REFINED, deepen: bool = True,
-           priors: dict | None = None) -> Search:
+           outliers: OutlierTest | None = None, store: str | Path | None = None, refined: int = REFINED,
+           deepen: bool = True, priors: dict | None = None) -> Search:
     """The global search of ``problem`` (module docstring) from ``centre`` and ``starts - 1`` Sobol
     points over ``priors`` (default the problem's).  ``screen``, ``refine`` and ``hop`` solve the
     problem from a start (SI values, poses or None, threads): the cheap screen, the refinement to
-    convergence, a hop's solve.  ``on_minimum`` takes the lowest minimum and returns the problem the
-    rest of the search solves (the same, or one without the trials an outlier test set aside).
+    convergence, a hop's solve.  ``outliers``: the outlier test the search runs (None: every trial
+    is kept).
     ``refined`` screened starts are refined; ``deepen=False`` leaves out the basin hopping (a
     scatter fit's search, where the NLP is robust and the hops would only cost).  ``workers``:
     forked processes, or a :class:`~kneenlp.base.dask_cluster.DaskWorkers` (each solve on a Dask
@@ -377,7 +400,7 @@ def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: 
 
             register_model(client, problem.model)
             run = _Runner(Store(store), seed, starts, client, 1)
-        return _search(problem, points, run, screen, refine, hop, on_minimum, refined, deepen)
+        return _search(problem, points, run, screen, refine, hop, outliers, refined, deepen)
     finally:
         for part in (client, cluster):
             if part is not None:
@@ -420,7 +443,7 @@ class _Runner:
 
 
 def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, screen: Solve, refine: Solve,
-            hop: Solve, on_minimum, refined: int, deepen: bool) -> Search:
+            hop: Solve, outliers: OutlierTest | None, refined: int, deepen: bool) -> Search:
     """:func:`search`'s stages from the starts ``points``."""
     seed, starts = run.seed, run.starts
     screened = run(problem, "screen", [(p, None) for p in points], screen)
@@ -429,24 +452,31 @@ def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, sc
         problem, "refine", [(screened[i].params, screened[i].q_pred) for i in order], refine), strict=True)]
     if deepen:
         ends += _deepen(problem, ends, seed, starts, run, hop)
-    set_aside: tuple[str, ...] = ()
-    lowest = ends[_ranked([f for _, f in ends])[0]][1]
-    if on_minimum is not None and lowest.success:
-        kept_problem = on_minimum(lowest)
-        if kept_problem.n_trials < problem.n_trials:
-            ids = {t.id for t in kept_problem.trials}
-            set_aside = tuple(t.id for t in problem.trials if t.id not in ids)
-            rows = np.array([t.id in ids for t in problem.trials])
-            minima = distinct_minima(ends)[:refined]
-            again = run(kept_problem, "without " + ",".join(set_aside),
-                        [(m.fit.params, np.asarray(m.fit.q_pred)[rows]) for m in minima], hop)
-            ends = [(f"minimum {i + 1} without {', '.join(set_aside)}", f) for i, f in enumerate(again)]
-            if deepen:
-                ends += _deepen(kept_problem, ends, seed, starts, run, hop)
-            problem = kept_problem
+    found, notes = [], []
+    limit = int(outliers.share * problem.n_trials) if outliers is not None else 0
+    while len(found) < limit:
+        lowest = ends[_ranked([f for _, f in ends])[0]][1]
+        worst = outliers.candidate(lowest) if lowest.success else None
+        if worst is None:
+            break
+        rows = np.array([t.id != worst for t in problem.trials])
+        kept_problem = problem.without_trials([worst])
+        again = run(kept_problem, f"without {worst}",
+                    [(m.fit.params, np.asarray(m.fit.q_pred)[rows]) for m in distinct_minima(ends)[:refined]], hop)
+        kept_ends = [(f"minimum {i + 1} without {worst}", f) for i, f in enumerate(again)]
+        if deepen:
+            kept_ends += _deepen(kept_problem, kept_ends, seed, starts, run, hop)
+        without = kept_ends[_ranked([f for _, f in kept_ends])[0]][1]
+        outlier, why = outliers.verdict(without, lowest.data.subset(~rows), problem.n_trials + len(found))
+        if why:
+            notes.append(f"{worst} not tested as an outlier: {why}")
+        if outlier is None:
+            break
+        found.append(outlier)
+        ends, problem = kept_ends, kept_problem
     screen_objectives = np.array([f.map_objective if f.max_residual <= f.problem.equilibrium_tol else np.nan
                                   for f in screened])
-    return Search(starts, seed, screen_objectives, ends, distinct_minima(ends), set_aside)
+    return Search(starts, seed, screen_objectives, ends, distinct_minima(ends), tuple(found), tuple(notes))
 
 
 def _deepen(problem: IdentificationProblem, ends: list[tuple[str, Fit]], seed: int, starts: int, run,

@@ -29,7 +29,7 @@ including any measurement bias of the model's elements.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import casadi as ca
 import numpy as np
@@ -250,6 +250,12 @@ class IdentificationProblem:
         fixed = dict(fixed or {})
         return cls(model, tuple(data.trials), free, data.q_user, weights, noise_model, fixed,
                    data.source, data.protocol, resolve_priors(model, free, priors, fixed), float(prior_weight))
+
+    def without_trials(self, ids: Sequence[str]) -> IdentificationProblem:
+        """The same problem without the trials ``ids`` (their measurements and weights too)."""
+        keep = np.array([t.id not in set(ids) for t in self.trials])
+        return replace(self, trials=tuple(t for t, k in zip(self.trials, keep, strict=True) if k),
+                       measured=None if self.measured is None else self.measured[keep], weights=self.weights[keep])
 
     # ------------------------------------------------------------------ layout
     @property
