@@ -230,7 +230,7 @@ CALIBRATIONS = {
     "MAP calibration": ({}, 2),
     "problems/s192803": ({"also_free": ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment",
                                         "ACLam_femoral_attachment", "PCLal_bundles", "PFL_tibial_attachment"],
-                          "multistart": 4, "workers": 2}, 3),
+                          "starts": 16, "workers": 2}, 3),
 }
 
 
