@@ -131,7 +131,7 @@ def test_a_problem_names_its_calibration_options():
 
     s192803 = ProblemFile.load(PROBLEMS / "s192803")
     options = s192803.calibrate_options()
-    assert options == {"also_free": list(s192803.also_free), "multistart": 4, "priors": "default", "prior_weight": 1.0}
+    assert options == {"also_free": list(s192803.also_free), "starts": 16, "priors": "default", "prior_weight": 1.0}
     assert set(options) <= set(inspect.signature(calibrate).parameters)
     assert ProblemFile.load(PROBLEMS / "set1").calibrate_options() == {"priors": "none"}
 
