@@ -139,14 +139,14 @@ def test_a_problem_names_its_calibration_options():
 @pytest.mark.slow
 def test_s192803_problem_is_the_calibration_with_what_the_held_out_error_accepts(capsys):
     """The shipped problem's parameter table is the calibration's default written out, its
-    also_free the effects the held-out error accepts, its multistart the starts that predict best:
-    the same fit as those options give."""
+    also_free the effects the held-out error accepts, its starts those of the global search: the
+    same fit as those options give."""
     problem = ProblemFile.load(PROBLEMS / "s192803")
-    assert problem.also_free and problem.strategy == "calibration" and problem.multistart == 4
+    assert problem.also_free and problem.strategy == "calibration" and problem.starts == 16
     assert main(["identify", "--problem", str(PROBLEMS / "s192803"), "--json"]) == 0
     by_problem = json.loads(capsys.readouterr().out)
     assert main(["identify", str(resource("datasets", "s192803_laxity.csv")), "--knee", "s192803", "--also-free",
-                 ",".join(problem.also_free), "--multistart", "4", "--json"]) == 0
+                 ",".join(problem.also_free), "--starts", "16", "--json"]) == 0
     by_options = json.loads(capsys.readouterr().out)
     assert list(by_problem["params"]) == list(by_options["params"])
     for name, value in by_options["params"].items():
