@@ -684,7 +684,8 @@ def without_outliers(fit: Fit, options: dict) -> tuple[Fit, list[Outlier]]:
     those trials; ``options`` those of the fit's problem (noise, weights, effects).  The refit is a
     local one from ``fit`` (the global search refits by its own search, :func:`global_fit`)."""
     found: list[Outlier] = []
-    while len(found) < int(MAX_OUTLIER_SHARE * (len(fit.data) + len(found))):
+    limit = int(MAX_OUTLIER_SHARE * len(fit.data))
+    while len(found) < limit:
         worst = outlier_candidate(fit)
         if worst is None:
             break
