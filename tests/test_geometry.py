@@ -122,6 +122,25 @@ def test_cell_minimum_is_the_smallest_coefficient_of_each_cell():
         assert got[i, j, k] == block.min()  # at the border: the part of the block inside the grid
 
 
+def test_cell_lower_bound_bounds_the_spline_in_every_cell_and_passes_over_more_than_the_smallest_coefficient():
+    """Oracle: the spline evaluated at 20 000 random points of a distance field's grid is never below
+    its cell's bound, and the bound is above the smallest coefficient in most cells near the surface."""
+    from kneenlp.geometry.kernels import cell_lower_bound, cell_minimum
+
+    x, y, z = np.meshgrid(*[np.arange(12) * 1e-3] * 3, indexing="ij")
+    coeffs = np.sqrt((x - 5.5e-3) ** 2 + (y - 5e-3) ** 2 + (z - 6e-3) ** 2) - 3e-3  # a sphere's distance
+    fld = DistanceField(np.zeros(3), 1e-3, coeffs, band=1.0, depth=1.0)
+    bound, smallest = cell_lower_bound(coeffs), cell_minimum(coeffs)
+    lo, hi = fld.bounds
+    pts = lo + (hi - lo) * np.random.default_rng(1).random((20000, 3))
+    cell = np.floor(pts / 1e-3).astype(int)
+    values = fld.evaluate(pts)[0]
+    assert np.all(values >= bound[cell[:, 0], cell[:, 1], cell[:, 2]] - 1e-15)
+    near = (values > 0) & (values < 2e-3)
+    tighter = bound[cell[near, 0], cell[near, 1], cell[near, 2]] > smallest[cell[near, 0], cell[near, 1], cell[near, 2]]
+    assert np.all(bound >= smallest) and tighter.mean() > 0.5
+
+
 def test_a_pressure_law_given_as_a_compiled_function_equals_the_built_in_family():
     """A user's law as a compiled function (the pass compiled for it in the process) gives what the
     built-in power family's exponent gives (the pass loaded from the machine's cache)."""

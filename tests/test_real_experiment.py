@@ -268,7 +268,8 @@ def test_data_mirrored_to_the_other_sides_signs_are_refused(tmp_path, capsys):
                 "internal_rotation_deg", "lateral_translation_mm"):
         df[col] = -df[col]
     df.to_csv(tmp_path / "mirrored.csv", index=False)
-    code = main(["identify", str(tmp_path / "mirrored.csv"), "--knee", "s192803", "--out", str(tmp_path / "o")])
+    code = main(["identify", str(tmp_path / "mirrored.csv"), "--knee", "s192803", "--starts", "1", "--out",
+                 str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "internal_rotation_deg" in err and "mirrored" in err and "externally" in err
@@ -618,7 +619,7 @@ def test_held_out_flexion_is_predicted(s192803, tmp_path, capsys):
     equilibrium, a trial that does not is reported with its reason (and the exit code says so),
     never dropped."""
     out = tmp_path / "cv"
-    code = main(["cross-validate", str(CSV), "--knee", "s192803", "--hold-out", "flexion 87 deg",
+    code = main(["cross-validate", str(CSV), "--knee", "s192803", "--hold-out", "flexion 87 deg", "--starts", "1",
                  "--out", str(out), "--json"])
     summary = json.loads(capsys.readouterr().out)
     (row,) = summary["hold_outs"]
@@ -678,9 +679,9 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
         assert again[f"twin_rms_{c}"] == pytest.approx(10 * row[f"twin_rms_{c}"], rel=1e-5)
     model = KneeModel.of(s192803)
     data = read_measured(CSV)
-    truth = calibrate(model, data, priors="none").fit.params
+    truth = calibrate(model, data, priors="none", starts=1).fit.params
     exact = twin(model, data, truth, np.zeros(5), np.random.default_rng(0))
-    held = hold_out(model, exact, dict(folds(exact))["varus"], "varus", priors="none", start=truth)
+    held = hold_out(model, exact, dict(folds(exact))["varus"], "varus", priors="none", start=truth, starts=1)
     assert held.prediction.converged.all() and held.calibration.fit.objective < 1e-12
     assert max(held.rms().values()) < 1e-6, held.rms()
 
@@ -733,7 +734,7 @@ def test_identify_writes_the_set_aside_trials(tmp_path, capsys):
     summary (the set-aside trial with its statistic), set_aside.csv its prediction at the
     calibrated values, and predict with calibrated.toml reaches every trial, the set-aside one too."""
     out = tmp_path / "cal"
-    assert main(["identify", str(CSV), "--knee", "s192803", "--out", str(out)]) == 0
+    assert main(["identify", str(CSV), "--knee", "s192803", "--starts", "1", "--out", str(out)]) == 0
     capsys.readouterr()
     saved = json.loads((out / "fit.json").read_text())
     assert [o["trial"] for o in saved["outliers"]] == ["valgus_flex60"] and saved["outliers"][0]["p_adjusted"] < 0.05
@@ -755,8 +756,8 @@ def test_also_free_joins_from_the_calibration(s192803):
     from kneenlp.estimation.calibrate import calibrate
 
     data, model = read_measured(CSV), KneeModel.of(s192803)
-    base = calibrate(model, data, keep_outliers=True)  # the same trials in both
-    cal = calibrate(model, data, also_free=["PCLal_femoral_attachment"], keep_outliers=True)
+    base = calibrate(model, data, keep_outliers=True, starts=1)  # the same trials in both
+    cal = calibrate(model, data, also_free=["PCLal_femoral_attachment"], keep_outliers=True, starts=1)
     names = ["PCLal.femur_anterior", "PCLal.femur_proximal", "PCLal.femur_lateral"]
     assert set(names) <= set(cal.fit.free) and set(base.fit.free) < set(cal.fit.free)
     assert cal.fit.objective <= base.fit.objective
@@ -771,7 +772,7 @@ def test_candidates_are_judged_by_their_held_out_error(s192803):
     from kneenlp.validation import crossval
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
-    base, wider = crossval.judge(model, data, [["PCLal_femoral_attachment"]], which=["varus"])
+    base, wider = crossval.judge(model, data, [["PCLal_femoral_attachment"]], which=["varus"], starts=1)
     assert base.name == "base" and wider.also_free == ("PCLal_femoral_attachment",)
     assert wider.free == base.free + 3 and list(base.held_out) == ["varus"]
     best = crossval.judged_best([base, wider])
@@ -811,8 +812,8 @@ def test_hold_outs_in_two_processes_are_the_sequential_ones(s192803):
     from kneenlp.validation import crossval
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
-    one = crossval.cross_validate(model, data, ["varus", "anterior"])
-    two = crossval.cross_validate(model, data, ["varus", "anterior"], workers=2)
+    one = crossval.cross_validate(model, data, ["varus", "anterior"], starts=1)
+    two = crossval.cross_validate(model, data, ["varus", "anterior"], workers=2, starts=1)
     assert [r.name for r in two] == [r.name for r in one] and len(one) == 2
     for a, b in zip(one, two, strict=True):
         np.testing.assert_array_equal(a.prediction.errors_user, b.prediction.errors_user)
@@ -829,7 +830,7 @@ def test_what_too_few_trials_cannot_determine_is_not_reported_as_a_result(s19280
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     keep_one = np.arange(len(data)) != 0
-    r = crossval.hold_out(model, data, keep_one, "all but the first")
+    r = crossval.hold_out(model, data, keep_one, "all but the first", starts=1)
     assert np.isnan(r.expected).all() and np.isnan(r.p_value())
     assert "n.d." in crossval.report([r])
     unloaded = data.subset(np.array([t.dominant == "none" for t in data.trials]))
@@ -1096,7 +1097,7 @@ def test_what_the_held_out_trials_teach_brings_their_prediction_closer(s192803):
     from kneenlp.validation import crossval
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
-    (r,) = crossval.cross_validate(model, data, ["external"], explain=True)
+    (r,) = crossval.cross_validate(model, data, ["external"], explain=True, starts=1)
     assert 1 <= len(r.taught) <= crossval.LESSONS
     shares = [x.share for x in r.taught]
     assert shares == sorted(shares, reverse=True) and all(crossval.LESSON_SHARE <= s <= 1 for s in shares)

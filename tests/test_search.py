@@ -149,9 +149,10 @@ def test_the_command_line_refuses_bad_starts_in_one_line(capsys):
     assert main(["identify", "--problem", str(problems / "set1"), "--starts", "4", "--method", "nested"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--starts" in err, err
-    # Dask runs the search's solves: without a search it has nothing to run
-    for command in ("identify", "cross-validate"):
-        assert main([command, "--problem", str(problems / "set1"), "--dask"]) == 2
+    # Dask runs the search's solves: without a search (a scatter fit's default, --starts 1) it has nothing to run
+    for args in (["identify", "--problem", str(problems / "set1")],
+                 ["cross-validate", "--problem", str(problems / "s192803"), "--starts", "1"]):
+        assert main([*args, "--dask"]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "--dask" in err and "--starts N" in err, err
 

@@ -28,7 +28,8 @@ def cmd_diagnose(args) -> int:
     real = real_experiment(data)
     if real:  # the base model of a real experiment is its calibration (registration included);
         # every trial: the residual map shows a trial identify would set aside
-        fit = calibrate(KneeModel.of(knee), data, noise=args.noise, seed=args.seed, keep_outliers=True).fit
+        fit = calibrate(KneeModel.of(knee), data, noise=args.noise, seed=args.seed, keep_outliers=True,
+                        starts=search_starts(args, calibration=True), workers=search_workers(args)).fit
     else:
         if args.held_out:
             raise InputError("judges a real experiment's calibrations (data with a declared side or joint loads)",
@@ -37,7 +38,7 @@ def cmd_diagnose(args) -> int:
     d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear")
     n = (HELD_OUT_CANDIDATES if args.held_out is None else args.held_out) if real else 0
     judged = crossval.judge(KneeModel.of(knee), data, [[s.effect] for s in d.ranking[:n]], seed=args.seed,
-                            workers=worker_count(args)) if n else []
+                            workers=search_workers(args), starts=search_starts(args, calibration=True)) if n else []
     extra = {"held_out": [j.record() for j in judged],
              "held_out_recommended": (best.name if (best := crossval.judged_best(judged)) else None)} if judged else {}
     if args.out:
@@ -126,21 +127,34 @@ def search_workers(args):
     return worker_count(args)
 
 
+def search_starts(args, calibration: bool) -> int:
+    """The starts of a command's calibrations: ``--starts`` (or the problem's); by default the global
+    search's :data:`~kneenlp.estimation.search.DEFAULT_STARTS` for a real experiment's calibration,
+    unless ``--multistart`` asks for the local chain's further starts; 1 for a scatter fit (and then
+    ``--dask`` is refused: it runs a global search's solves)."""
+    from kneenlp.estimation.search import DEFAULT_STARTS
+
+    starts = args.starts if args.starts is not None else (
+        DEFAULT_STARTS if calibration and getattr(args, "multistart", 1) == 1 else 1)
+    if (args.dask or args.scheduler) and starts == 1:
+        raise InputError("runs the global search's solves on Dask: give --starts N (N > 1) too",
+                         field="--scheduler" if args.scheduler else "--dask")
+    return starts
+
+
 def start_workers(args) -> dict:
     """``identify``'s calibration options of its starts: a calibration's further starts (``--multistart``)
-    or its global search's (``--starts``, its finished solves kept in ``--out``/search) share
+    or its global search's (:func:`search_starts`, its finished solves kept in ``--out``/search) share
     :func:`worker_count` processes (a scatter fit's global search too)."""
     from kneenlp.estimation.identify import resolve_strategy
 
-    out = {}
-    if args.starts > 1:
-        out = {"starts": args.starts} | ({"store": str(Path(args.out) / "search")} if args.out else {})
     calibration = resolve_strategy(args.strategy, args.measured, args.method) == "calibration"
-    if args.starts > 1:
-        out["workers"] = search_workers(args)
-    elif calibration and args.multistart > 1:
-        out["workers"] = worker_count(args)
-    return out
+    starts = search_starts(args, calibration)
+    if starts > 1:
+        return {"starts": starts, "workers": search_workers(args)} | (
+            {"store": str(Path(args.out) / "search")} if args.out else {})
+    return {"starts": 1, "workers": worker_count(args)} if calibration and args.multistart > 1 else (
+        {"starts": 1} if calibration else {})
 
 
 def held_out_judgements(knee, args) -> list:
@@ -451,7 +465,7 @@ def cmd_cross_validate(args) -> int:
                                       workers=search_workers(args), explain=True, seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
                                       keep_outliers=args.keep_outliers, multistart=args.multistart,
-                                      **({"starts": args.starts} if args.starts > 1 else {}),
+                                      starts=search_starts(args, calibration=True),
                                       **prior_options(args))
     table = crossval.table(results)
     written = []

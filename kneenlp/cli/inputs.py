@@ -55,9 +55,6 @@ def check_inputs(args) -> None:
     if not getattr(args, "validate", False):
         return
     apply_problem(args)
-    if (getattr(args, "dask", False) or getattr(args, "scheduler", None)) and getattr(args, "starts", None) == 1:
-        raise InputError("runs the global search's solves on Dask: give --starts N (N > 1) too",
-                         field="--scheduler" if args.scheduler else "--dask")
     if getattr(args, "out_kind", None) and getattr(args, "out", None) is not None:
         check_out(args.out, args.out_kind)
     knee = getattr(args, "knee", None)
@@ -96,7 +93,7 @@ def check_inputs(args) -> None:
 FROM_PROBLEM = {"noise": "noise", "strategy": "strategy", "priors": "priors", "prior_weight": "prior_weight",
                 "hold_out": "hold_outs", "also_free": "also_free", "multistart": "multistart",
                 "starts": "starts"}
-DEFAULTS = {"strategy": "auto", "multistart": 1, "starts": 1}
+DEFAULTS = {"strategy": "auto", "multistart": 1}  # --starts: commands.search_starts
 DIAGNOSE_NOISE = "uniform:0.5"
 
 

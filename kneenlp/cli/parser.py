@@ -57,7 +57,8 @@ def _starts_arg(p: argparse.ArgumentParser) -> None:
                         "Sobol points over the priors' central 95 %%), each screened, the best refined by the NLP, "
                         "the lowest deepened; its minima are reported and, with --out, waterfall.png and the "
                         "finished solves (search/, a rerun resumes them) written (docs/real-experiment.md); "
-                        "default: the problem's, else 1 (the local calibration from the knee's values)")
+                        "default: the problem's, else 16 for a real experiment's calibration (1: the local "
+                        "calibration from the knee's values, a quick look), 1 for a scatter fit")
 
 
 def _dask_args(p: argparse.ArgumentParser, what: str) -> None:
@@ -103,8 +104,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=opt.SEED, default=0, help="seed of the start scatter")
     p.add_argument("--held-out", type=opt.integer(0, opt.MAX_CASES), default=None, metavar="N",
                    help="real experiments: judge the N best-ranked candidates by their held-out error (each "
-                        "calibrated beside the default and cross-validated: about a minute each; default 2, 0 skips)")
+                        "calibrated beside the default and cross-validated, each calibration by the global search: "
+                        "several minutes each; default 2, 0 skips)")
     _workers_arg(p)
+    _starts_arg(p)
+    _dask_args(p, "the global search's solves (--starts) on")
     p.add_argument("--simulated-limits", action="store_true",
                    help="detection limits from simulated noise-free data instead of the linearised test "
                         "(a few seconds per candidate parameter; exact for nonlinear effects)")

@@ -67,7 +67,7 @@ from kneenlp.estimation.outliers import (
     residual_factors,
     screen,
 )
-from kneenlp.estimation.search import SCREEN_EVALUATIONS, OutlierTest, Search, search
+from kneenlp.estimation.search import DEFAULT_STARTS, SCREEN_EVALUATIONS, OutlierTest, Search, search
 from kneenlp.estimation.solve import reduced_fit, scatter_fit, solve_simultaneous
 from kneenlp.estimation.statistics import effective_parameters, gauss_newton_covariance
 from kneenlp.experiment.kneemodel import KneeModel
@@ -328,7 +328,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
               prior_weight: float | str = PRIOR_WEIGHT, weighted: bool = False,
               with_effects: list[str] | tuple = (), start: dict[str, float] | None = None, solver: str = "ipopt",
               solver_options: dict | None = None, multistart: int = 1, threads: int = 2,
-              workers: int | DaskWorkers = 1, starts: int = 1, store: str | Path | None = None) -> Calibration:
+              workers: int | DaskWorkers = 1, starts: int | None = None,
+              store: str | Path | None = None) -> Calibration:
     """Fit ``free`` to the real experiment ``data``: reduced-space Gauss-Newton from the knee's
     values (or the probe), then the simultaneous NLP from there (:func:`polished`); the NLP with the
     scatter strategy's rescue where the reduced fit fails.  ``free`` defaults to the parameter
@@ -351,7 +352,11 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     about the fit and keeps the lowest (:func:`lowest_of_starts`, its starts shared out over
     ``workers`` processes).  ``starts`` > 1 replaces that chain of local steps by the global search
     (:func:`global_fit`; ``store``: where its finished solves are kept, and a rerun resumes them;
-    its solves over ``workers`` processes or a :class:`~kneenlp.base.dask_cluster.DaskWorkers`).
+    its solves over ``workers`` processes or a :class:`~kneenlp.base.dask_cluster.DaskWorkers`);
+    by default (None) the calibration is the global search from
+    :data:`~kneenlp.estimation.search.DEFAULT_STARTS` starts, or the local chain where
+    ``multistart`` > 1 asks for its further starts; ``starts=1`` is the local chain from the knee's
+    values (a quick look, whose answer may depend on the path: docs/real-experiment.md).
     ``solver``, ``solver_options``
     and ``threads`` serve the fallback from the start (the simultaneous NLP, at most :data:`MAX_ITER` iterations
     unless ``solver_options`` say otherwise)."""
@@ -374,6 +379,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     options = {"noise": noise if weighted else None, "weighted": weighted, "with_effects": with_effects or (),
                "priors": priors, "prior_weight": None if estimate else float(prior_weight)}
     found = None
+    if starts is None:
+        starts = 1 if multistart > 1 else DEFAULT_STARTS
     if starts > 1:
         fit, outliers, found = global_fit(model, data, [*free, *extra], theta, start, options, keep_outliers,
                                           starts=starts, seed=seed, workers=workers, threads=threads, store=store)
@@ -421,7 +428,8 @@ def global_fit(model: KneeModel, data: MeasuredData, free: list[str], probe: np.
     """(the fit, the outliers set aside, the search) of :func:`calibrate`'s global search
     (:func:`~kneenlp.estimation.search.search`): ``free`` (the also-free parameters among them) from
     the ``probe`` (and ``start`` over it) and Sobol points over the priors; the outlier test at the
-    search's lowest minimum unless ``keep_outliers``; ``options`` the problem's (a weight
+    search's lowest minimum unless ``keep_outliers``; without priors the starts cover the default
+    priors about the probe; ``options`` the problem's (a weight
     ``None`` in them: estimated once from the probe's fit, :func:`map_fit`, then held)."""
     problem = IdentificationProblem.from_data(model, data, sorted(free, key=model.index), **options)
     centre = {n: float(probe[model.index(n)]) for n in problem.free} | problem.check_start(start)
@@ -429,8 +437,10 @@ def global_fit(model: KneeModel, data: MeasuredData, free: list[str], probe: np.
         problem = map_fit(problem, centre, estimate=True, threads=threads).problem
         options = options | {"prior_weight": problem.prior_weight}
     test = None if keep_outliers else OutlierTest(outlier_candidate, outlier_verdict, MAX_OUTLIER_SHARE)
-    found = search(problem, centre, screen=screened, refine=hopped, hop=hopped, starts=starts, seed=seed,
-                   workers=workers, threads=threads, outliers=test, store=store)
+    # a least-squares calibration's starts cover the default priors about the probe (it has none to draw from)
+    draws = problem.priors or {n: model.parameter(n).default_prior(float(probe[model.index(n)])) for n in problem.free}
+    found = search(problem, centre, screen=screened, refine=refined, hop=hopped, starts=starts, seed=seed,
+                   workers=workers, threads=threads, outliers=test, store=store, priors=draws)
     fit = found.best.fit.with_note(f"global search: {found.advice()}")
     for note in found.notes:
         fit = fit.with_note(note)
@@ -443,13 +453,22 @@ def screened(problem: IdentificationProblem, start: dict[str, float], q0: np.nda
     return reduced_fit(problem, start, q0=q0, max_evaluations=SCREEN_EVALUATIONS, threads=threads)
 
 
+def refined(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None, threads: int) -> Fit:
+    """A solve of the global search that must converge (a screened start, a minimum without a
+    candidate outlier): the NLP from ``start`` and the poses ``q0`` (:func:`hopped`); where it
+    fails, the reduced-space fit from the same point and the NLP from its end (:func:`polished`)."""
+    fit = hopped(problem, start, q0, threads)
+    if fit.success:
+        return fit
+    fit = polished(reduced_fit(problem, start, q0=q0, max_evaluations=MAX_EVALUATIONS, threads=threads), threads)
+    return on_loading_path(fit) if fit.success else fit
+
+
 def hopped(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None, threads: int) -> Fit:
-    """A solve of the global search to convergence (a screened start, a hop, a minimum without the
-    set-aside trials): the simultaneous NLP from ``start`` and the poses ``q0``; where it fails, the
-    reduced-space fit from the same point and the NLP from its end (:func:`polished`)."""
+    """A hop of the global search: the simultaneous NLP from ``start`` and the poses ``q0``, nothing
+    more (a hop the NLP cannot converge is a failed hop: the reduced-space rescue cost 5-8 s on
+    S192803 and found no lower minimum than the hops that converged)."""
     fit = solve_simultaneous(problem, start, "ipopt", {"ipopt": {"max_iter": POLISH_ITER}}, threads, q0=q0)
-    if not fit.success:
-        fit = polished(reduced_fit(problem, start, q0=q0, max_evaluations=MAX_EVALUATIONS, threads=threads), threads)
     return on_loading_path(fit) if fit.success else fit
 
 

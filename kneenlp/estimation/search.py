@@ -21,9 +21,12 @@ The search (:func:`search`) makes the choice explicit:
    :data:`MAX_ROUNDS`.  The number of hops per round is fixed, so the workers change the wall time only.
 5. **Outliers** (``outliers``, an :class:`OutlierTest`): the caller's screen at the lowest minimum
    names a candidate trial; the :data:`REFINED` lowest distinct minima are re-converged without it
-   (the NLP from their own parameters and poses) and deepened again, and the candidate is tested
-   against the lowest minimum of that search (predicted by it): an outlier is set aside and the
-   search goes on without it; otherwise the search with every trial stands.  Both sides of the test
+   (the NLP from their own parameters and poses) and deepened, and the candidate is tested against
+   the lowest minimum of that search (predicted by it): an outlier is set aside and the search goes
+   on without it; otherwise the search with every trial stands.  The test runs before the search
+   with every trial is deepened, so that a trial set aside costs no deepening of a problem the
+   search then leaves; when the candidate is kept, the search with every trial is deepened and
+   the candidate its lowest minimum names, if another, is tested in turn.  Both sides of the test
    are minima of a search, not of a local refit, so whether a trial is set aside does not turn on
    the last digits of a path (a local refit without it set valgus_flex60 aside or not for a 1e-12
    change of the data).
@@ -64,8 +67,10 @@ from kneenlp.prediction.predict import rms_by_coordinate
 
 #: Share of each prior the starts cover (its central quantiles).
 CENTRAL = 0.95
-#: Starts of a calibration by default: on S192803 (51 free parameters) ... (docs/real-experiment.md).
-DEFAULT_STARTS = 32
+#: Starts of a real experiment's calibration by default: on S192803 (51 free parameters) 16 starts
+#: find the lowest minimum with 3-6 solves in every BLAS, worker, compile and Dask setting, in about a
+#: minute on 2 cores (benchmarks/bench_global.py); 8 did not find it in every setting.
+DEFAULT_STARTS = 16
 #: Reduced-space evaluations of a start's screen.
 SCREEN_EVALUATIONS = 8
 #: Screened starts refined to convergence.
@@ -380,8 +385,8 @@ def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: 
     """The global search of ``problem`` (module docstring) from ``centre`` and ``starts - 1`` Sobol
     points over ``priors`` (default the problem's).  ``screen``, ``refine`` and ``hop`` solve the
     problem from a start (SI values, poses or None, threads): the cheap screen, the refinement to
-    convergence, a hop's solve.  ``outliers``: the outlier test the search runs (None: every trial
-    is kept).
+    convergence (also of the minima without a candidate outlier), a hop's solve.  ``outliers``: the
+    outlier test the search runs (None: every trial is kept).
     ``refined`` screened starts are refined; ``deepen=False`` leaves out the basin hopping (a
     scatter fit's search, where the NLP is robust and the hops would only cost).  ``workers``:
     forked processes, or a :class:`~kneenlp.base.dask_cluster.DaskWorkers` (each solve on a Dask
@@ -450,19 +455,21 @@ def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, sc
     order = _ranked(screened, screened=True)[:refined]
     ends = [(f"start {i + 1}", f) for i, f in zip(order, run(
         problem, "refine", [(screened[i].params, screened[i].q_pred) for i in order], refine), strict=True)]
-    if deepen:
-        ends += _deepen(problem, ends, seed, starts, run, hop)
     found, notes = [], []
     limit = int(outliers.share * problem.n_trials) if outliers is not None else 0
-    while len(found) < limit:
+    deepened, retained = not deepen, set()  # whether ``ends`` are deepened; candidates tested and kept
+    while True:
         lowest = ends[_ranked([f for _, f in ends])[0]][1]
-        worst = outliers.candidate(lowest) if lowest.success else None
-        if worst is None:
-            break
+        worst = outliers.candidate(lowest) if len(found) < limit and lowest.success else None
+        if worst is None or worst in retained:
+            if deepened:
+                break
+            ends, deepened = ends + _deepen(problem, ends, seed, starts, run, hop), True
+            continue  # the deepened lowest minimum may name another candidate
         rows = np.array([t.id != worst for t in problem.trials])
         kept_problem = problem.without_trials([worst])
         again = run(kept_problem, f"without {worst}",
-                    [(m.fit.params, np.asarray(m.fit.q_pred)[rows]) for m in distinct_minima(ends)[:refined]], hop)
+                    [(m.fit.params, np.asarray(m.fit.q_pred)[rows]) for m in distinct_minima(ends)[:refined]], refine)
         kept_ends = [(f"minimum {i + 1} without {worst}", f) for i, f in enumerate(again)]
         if deepen:
             kept_ends += _deepen(kept_problem, kept_ends, seed, starts, run, hop)
@@ -471,9 +478,10 @@ def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, sc
         if why:
             notes.append(f"{worst} not tested as an outlier: {why}")
         if outlier is None:
-            break
+            retained.add(worst)
+            continue
         found.append(outlier)
-        ends, problem = kept_ends, kept_problem
+        ends, problem, retained, deepened = kept_ends, kept_problem, set(), True  # kept_ends: deepened
     screen_objectives = np.array([f.map_objective if f.max_residual <= f.problem.equilibrium_tol else np.nan
                                   for f in screened])
     return Search(starts, seed, screen_objectives, ends, distinct_minima(ends), tuple(found), tuple(notes))

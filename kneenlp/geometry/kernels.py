@@ -293,16 +293,17 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
             for l_ in range(3):
                 for c in range(6):
                     tmp[j, l_, c] = D2f[j, 0, l_] * B[0, c] + D2f[j, 1, l_] * B[1, c] + D2f[j, 2, l_] * B[2, c]
+        # f2 and H are symmetric in (c, e) (second derivatives): the upper triangle here, mirrored at the end
         for j in range(3):
             for c in range(6):
-                for e in range(6):
+                for e in range(c, 6):
                     f2[j, c, e] = tmp[j, 0, c] * B[0, e] + tmp[j, 1, c] * B[1, e] + tmp[j, 2, c] * B[2, e]
             for u in range(3):
-                for v in range(3):
+                for v in range(u, 3):
                     f2[j, 3 + u, 3 + v] += Df[j, 0] * Xw[0, u, v] + Df[j, 1] * Xw[1, u, v] + Df[j, 2] * Xw[2, u, v]
         for c in range(6):
             b0, b1, b2 = (B[0, c], B[1, c], B[2, c]) if c >= 3 else (0.0, 0.0, 0.0)
-            for e in range(6):
+            for e in range(c, 6):
                 for j in range(3):
                     H[j, c, e] += f2[j, c, e]
                 c0, c1, c2 = (B[0, e], B[1, e], B[2, e]) if e >= 3 else (0.0, 0.0, 0.0)
@@ -313,11 +314,15 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
                 H[5, c, e] += (b0 * f1[1, e] - b1 * f1[0, e] + c0 * f1[1, c] - c1 * f1[0, c]
                                + rx * f2[1, c, e] - ry * f2[0, c, e])
         for u in range(3):
-            for v in range(3):
+            for v in range(u, 3):
                 x0, x1, x2 = Xw[0, u, v], Xw[1, u, v], Xw[2, u, v]
                 H[3, 3 + u, 3 + v] += x1 * f[2] - x2 * f[1]
                 H[4, 3 + u, 3 + v] += x2 * f[0] - x0 * f[2]
                 H[5, 3 + u, 3 + v] += x0 * f[1] - x1 * f[0]
+    for c in range(6):
+        for e in range(c + 1, 6):
+            for a in range(6):
+                H[a, e, c] = H[a, c, e]
     return W, J, H
 
 
@@ -335,6 +340,36 @@ def cell_minimum(coeffs: np.ndarray) -> np.ndarray:
         padded = np.pad(m, pad, constant_values=np.inf)  # node i of m is node i + 1 of padded
         m = np.minimum.reduce([np.take(padded, np.arange(s, s + n), axis=axis) for s in range(4)])
     return m
+
+
+def cell_lower_bound(coeffs: np.ndarray) -> np.ndarray:
+    """Per grid cell, a lower bound of the tricubic B-spline in it, at least :func:`cell_minimum`:
+    in the cells whose 64 coefficients lie inside the grid also the value at the cell's centre less
+    half the largest coefficient difference along each axis, summed (the spline's derivative along an
+    axis is a B-spline of the differences over the spacing, and no point of the cell is farther than
+    half a spacing from the centre along any axis).  Near a surface the smallest coefficient is
+    negative for points up to two spacings away; this bound passes over those more than about half a
+    spacing clear (:func:`contact_batch`)."""
+    c = np.asarray(coeffs, dtype=np.float64)
+    out = cell_minimum(c)
+    if min(c.shape) < 4:
+        return out
+    w = np.array([1.0, 23.0, 23.0, 1.0]) / 48.0  # the cubic B-spline's weights at the cell's centre
+    centre = c
+    for axis in range(3):
+        n = centre.shape[axis] - 3
+        centre = sum(w[s] * np.take(centre, np.arange(s, s + n), axis=axis) for s in range(4))
+    change = np.zeros_like(centre)
+    for axis in range(3):
+        block = np.abs(np.diff(c, axis=axis))
+        for other in range(3):  # the block's largest difference: 3 differences along the axis, 4 nodes across
+            width = 3 if other == axis else 4
+            n = block.shape[other] - width + 1
+            block = np.maximum.reduce([np.take(block, np.arange(s, s + n), axis=other) for s in range(width)])
+        change += 0.5 * block
+    inner = (slice(1, -2),) * 3  # lower nodes 1 .. n-3: the cells whose coefficients lie inside the grid
+    out[inner] = np.maximum(out[inner], centre - change)
+    return out
 
 
 @njit(cache=True, nogil=True)

@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 from kneenlp.base.atomic import atomic_target
 from kneenlp.base.cache import cache_dir
 from kneenlp.geometry.distance import MeshDistance
-from kneenlp.geometry.kernels import cell_minimum, field_values
+from kneenlp.geometry.kernels import cell_lower_bound, field_values
 from kneenlp.geometry.rim import OpenEdges, rim_weights
 from kneenlp.geometry.shell import ShellDistance
 
@@ -111,9 +111,10 @@ class DistanceField:
 
     @cached_property
     def cell_min(self) -> np.ndarray:
-        """Smallest coefficient shaping each grid cell (:func:`~kneenlp.geometry.kernels.cell_minimum`,
-        m): a lower bound of the field in the cell, derived once from :attr:`coeffs`."""
-        return cell_minimum(self.coeffs)
+        """A lower bound of the field in each grid cell (m; :func:`~kneenlp.geometry.kernels.cell_lower_bound`,
+        at least the smallest coefficient shaping the cell), derived once from :attr:`coeffs`: a point
+        in a cell whose bound is not negative cannot penetrate, and is passed over with one look-up."""
+        return cell_lower_bound(self.coeffs)
 
     @cached_property
     def bounds(self) -> np.ndarray:

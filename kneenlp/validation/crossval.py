@@ -269,7 +269,7 @@ class Judgement:
 
 
 def judge(model: KneeModel, data: MeasuredData, candidates: list[list[str]], which: list[str] | None = None,
-          workers: int = 1, **calibrate_options) -> list[Judgement]:
+          workers: int | DaskWorkers = 1, **calibrate_options) -> list[Judgement]:
     """The base calibration and one with each candidate (parameters or effects fitted beside it,
     ``also_free``) judged by what they predict: each calibrated on all trials (the fitted RMS) and
     cross-validated over the hold-outs (:func:`cross_validate`).  The base first."""
@@ -278,7 +278,7 @@ def judge(model: KneeModel, data: MeasuredData, candidates: list[list[str]], whi
         options = dict(calibrate_options)
         if extra:
             options["also_free"] = [*(options.get("also_free") or []), *extra]
-        cal = calibrate(model, data, **options)
+        cal = calibrate(model, data, **options, workers=workers)
         results = cross_validate(model, data, which, workers=workers, **options)
         out.append(Judgement(" + ".join(extra) or "base", tuple(extra), cal.rms_after, len(cal.fit.free),
                              {r.name: r.normalised() for r in results},
@@ -402,14 +402,15 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
         results = [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
     else:
         results = hold_outs(model, data, chosen, workers, **calibrate_options)
-    fit = calibrate(model, data, **calibrate_options).fit if explain else None
+    whole = calibrate_options | {"workers": workers}  # the calibration of every trial: its search over the workers
+    fit = calibrate(model, data, **whole).fit if explain else None
     for r in results if explain else ():
         r.taught.extend(lessons(r, fit, data))
     for draw in range(reference_draws):
         errors = saved.load(draw) if saved else None
         if errors is None:
             if fit is None:  # (only where a draw is still to run)
-                fit = calibrate(model, data, **calibrate_options).fit
+                fit = calibrate(model, data, **whole).fit
             errors = twin_draw(model, data, fit, draw, names, **calibrate_options)
             if saved:
                 saved.save(draw, errors)
