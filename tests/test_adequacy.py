@@ -474,9 +474,9 @@ def test_a_misfit_with_a_sign_per_load_direction_is_the_models():
 def test_held_out_judge_recommends_only_what_lowers_the_held_out_error():
     from kneenlp.validation.crossval import Judgement, judged_best, judgement_lines
 
-    def j(name, errors, ok=True):
+    def j(name, errors, ok=True, spread=float("nan")):
         return Judgement(name, (name,), {"varus_rotation_deg": 1.0}, 8, errors,
-                         {h: (4 if ok else 3, 4) for h in errors})
+                         {h: (4 if ok else 3, 4) for h in errors}, dict.fromkeys(errors, spread))
 
     base = j("base", {"a": 1.2, "b": 0.9})
     better, worse = j("x", {"a": 0.8, "b": 0.9}), j("y", {"a": 1.5, "b": 0.7})
@@ -485,3 +485,9 @@ def test_held_out_judge_recommends_only_what_lowers_the_held_out_error():
     assert judged_best([base, worse, broken]) is None
     assert "no candidate lowers" in judgement_lines([base, worse])[-1]
     assert "x lowers the error 1.05 -> 0.85 (met 1 -> 2 of 2)" in judgement_lines([base, better])[-1]
+    # the searches' neighbouring minima move the held-out error by 0.3: a 0.2 fall is a tie, not an improvement
+    wide = j("base", {"a": 1.2, "b": 0.9}, spread=0.3)
+    assert judged_best([wide, better]) is None
+    lines = judgement_lines([wide, better])
+    assert any("x ties with the base (1.05 -> 0.85, within 0.30)" in line for line in lines), lines
+    assert judged_best([wide, j("x", {"a": 0.5, "b": 0.5})]).name == "x"

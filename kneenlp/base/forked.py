@@ -19,6 +19,15 @@ Item = TypeVar("Item")
 Result = TypeVar("Result")
 
 
+def one_blas_thread():
+    """A context in which NumPy's and SciPy's BLAS run on one thread: in a worker of a pool that
+    fills the cores, a BLAS on two threads per worker oversubscribes them (the global search of
+    S192803 on 2 workers: 64 s with OpenBLAS's default of two threads each, 53 s with one)."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def _same(result):
     return result
 
@@ -57,10 +66,12 @@ def forked_map(work: Callable[[Item], Result], items: list[Item], workers: int, 
 
 
 def _worker(work: Callable, items: list, pack: Callable, send) -> None:
-    """A forked process's jobs, sent back as ("ok", packed results) or ("error", exception)."""
+    """A forked process's jobs, sent back as ("ok", packed results) or ("error", exception); its
+    BLAS on one thread (:func:`one_blas_thread`)."""
     interrupts.as_worker()
     try:
-        results = [work(item) for item in items]  # every job before any packing: a job may share what pack strips
+        with one_blas_thread():
+            results = [work(item) for item in items]  # every job before any packing: a job may share what pack strips
         send.send(("ok", [pack(r) for r in results]))
     except Exception as exc:  # sent to the parent, which raises it
         send.send(("error", exc))

@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 from distributed import WorkerPlugin, as_completed, get_worker
 
+from kneenlp.base.forked import one_blas_thread
 from kneenlp.estimation.fit import Fit
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.problem import IdentificationProblem
@@ -50,7 +51,8 @@ def _remote(solve: Callable, problem: IdentificationProblem, start: dict[str, fl
     plugin = get_worker().plugins[PLUGIN_NAME]
     problem = copy.copy(problem)
     problem.model = plugin.model_of()
-    fit = solve(problem, start, q0, 1)
+    with one_blas_thread():  # one thread a worker, its BLAS too
+        fit = solve(problem, start, q0, 1)
     fit.problem.model = None
     return fit
 

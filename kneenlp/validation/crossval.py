@@ -253,10 +253,20 @@ class Judgement:
     free: int  # parameters fitted
     held_out: dict[str, float]  # normalised held-out error per hold-out (:meth:`HeldOut.normalised`)
     converged: dict[str, tuple[int, int]]  # per hold-out, held-out trials at equilibrium of those held out
+    #: per hold-out, :meth:`HeldOut.spread` (NaN: a local calibration, or one minimum)
+    spread: dict[str, float] = field(default_factory=dict)
 
     @property
     def mean(self) -> float:
         return float(np.mean(list(self.held_out.values())))
+
+    @property
+    def margin(self) -> float:
+        """The mean over the hold-outs of their spreads (0 where there is none): how far the mean
+        held-out error may move between the searches' lowest minima, the least difference that is
+        not a tie."""
+        values = [v for v in self.spread.values() if np.isfinite(v)]
+        return float(np.mean(values)) if values else 0.0
 
     @property
     def met(self) -> int:
@@ -265,7 +275,8 @@ class Judgement:
     def record(self) -> dict:
         return {"name": self.name, "also_free": list(self.also_free), "free": self.free, "fitted_rms": self.fitted,
                 "held_out_normalised": self.held_out, "held_out_mean": self.mean, "held_out_met": self.met,
-                "held_out_converged": {k: list(v) for k, v in self.converged.items()}}
+                "held_out_converged": {k: list(v) for k, v in self.converged.items()},
+                "held_out_spread": self.spread, "held_out_margin": self.margin}
 
 
 def judge(model: KneeModel, data: MeasuredData, candidates: list[list[str]], which: list[str] | None = None,
@@ -282,17 +293,26 @@ def judge(model: KneeModel, data: MeasuredData, candidates: list[list[str]], whi
         results = cross_validate(model, data, which, workers=workers, **options)
         out.append(Judgement(" + ".join(extra) or "base", tuple(extra), cal.rms_after, len(cal.fit.free),
                              {r.name: r.normalised() for r in results},
-                             {r.name: (int(r.prediction.converged.sum()), int(r.held.sum())) for r in results}))
+                             {r.name: (int(r.prediction.converged.sum()), int(r.held.sum())) for r in results},
+                             {r.name: r.spread() for r in results}))
     return out
 
 
 def judged_best(judgements: list[Judgement]) -> Judgement | None:
     """The candidate whose held-out error (mean normalised, every held-out trial at equilibrium) is
-    lowest, if lower than the base's; None when no candidate lowers it."""
+    lowest, if lower than the base's by more than either's :attr:`Judgement.margin` (less is a tie:
+    the search's neighbouring minima move it as much); None when no candidate lowers it."""
     base, rest = judgements[0], judgements[1:]
     whole = [j for j in rest if all(ok == n for ok, n in j.converged.values())]
     best = min(whole, key=lambda j: j.mean, default=None)
-    return best if best is not None and best.mean < base.mean else None
+    return best if best is not None and best.mean < base.mean - max(base.margin, best.margin) else None
+
+
+def tied(judgements: list[Judgement]) -> list[Judgement]:
+    """The candidates whose mean held-out error is below the base's by no more than the margin the
+    searches leave (:attr:`Judgement.margin`): ties, not improvements."""
+    base = judgements[0]
+    return [j for j in judgements[1:] if base.mean - max(base.margin, j.margin) <= j.mean < base.mean]
 
 
 def judgement_lines(judgements: list[Judgement]) -> list[str]:
@@ -301,13 +321,18 @@ def judgement_lines(judgements: list[Judgement]) -> list[str]:
     lines = [f"Judged by what it predicts: fitted RMS (all trials; deg, deg, mm, mm, mm) beside the held-out "
              f"error (RMS over {ROTATION_TARGET:g} deg or {TRANSLATION_TARGET:g} mm, the larger; <= 1 meets the "
              "target) of each hold-out",
-             f"    {'calibration':40s} {'free':>4}  {'fitted RMS':>29}  {'mean':>5} {'met':>4}  " + " ".join(
+             f"    {'calibration':40s} {'free':>4}  {'fitted RMS':>29}  {'mean':>5} {'+-':>5} {'met':>4}  " + " ".join(
                  f"{h[:10]:>10}" for h in holds)]
     for j in judgements:
         fitted = " ".join(f"{v:5.2f}" for v in j.fitted.values())
         cells = " ".join(f"{j.held_out[h]:10.2f}" + ("" if j.converged[h][0] == j.converged[h][1] else "!")
                          for h in holds)
-        lines.append(f"    {j.name[:40]:40s} {j.free:4d}  {fitted:>29}  {j.mean:5.2f} {j.met:2d}/{len(holds)}  {cells}")
+        lines.append(f"    {j.name[:40]:40s} {j.free:4d}  {fitted:>29}  {j.mean:5.2f} {j.margin:5.2f} "
+                     f"{j.met:2d}/{len(holds)}  {cells}")
+    lines.append("    (+-: the mean spread of the held-out error over each search's lowest minima; a difference "
+                 "within it is a tie)")
+    lines += [f"    held out, {j.name} ties with the base ({judgements[0].mean:.2f} -> {j.mean:.2f}, within "
+              f"{max(judgements[0].margin, j.margin):.2f})" for j in tied(judgements)]
     best = judged_best(judgements)
     lines.append("    ! a held-out trial without equilibrium (the candidate is not recommended)"
                  if any("!" in x for x in lines) else "")
