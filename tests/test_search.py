@@ -261,3 +261,71 @@ def test_the_outlier_test_inside_the_search_judges_a_trial_by_the_searchs_own_mi
     assert found[0].outliers[0].p_adjusted < 0.05 and found[0].best.fit.problem.n_trials == small_problem.n_trials - 1
     assert found[0].best.fit.params == found[1].best.fit.params
     assert any(label.endswith(f"without {trial}") for label, _ in found[0].ends)
+
+
+def test_the_global_search_is_the_default_calibration_of_a_real_experiment_and_an_option_of_a_scatter_fit():
+    """``search_starts``: a real experiment's calibration searches from DEFAULT_STARTS unless --starts
+    or --multistart (the local chain's further starts) says otherwise; a scatter fit keeps one start,
+    and Dask, which runs a search's solves, is refused without one."""
+    from argparse import Namespace
+
+    from kneenlp.base.errors import InputError
+    from kneenlp.cli.commands import search_starts
+    from kneenlp.estimation.search import DEFAULT_STARTS
+
+    def args(**given):
+        return Namespace(**({"starts": None, "multistart": 1, "dask": False, "scheduler": None} | given))
+
+    assert search_starts(args(), calibration=True) == DEFAULT_STARTS
+    assert search_starts(args(starts=1), calibration=True) == 1
+    assert search_starts(args(multistart=4), calibration=True) == 1
+    assert search_starts(args(), calibration=False) == 1
+    assert search_starts(args(starts=8, dask=True), calibration=False) == 8
+    with pytest.raises(InputError, match="--starts N"):
+        search_starts(args(dask=True), calibration=False)
+
+
+def test_the_kept_minimum_is_the_same_whatever_the_workers_blas_threads_or_last_digits_default_knee(tmp_path):
+    """The default knee, noisy Set 1, the search from 4 starts: the kept minimum is the same (1e-6
+    relative in objective, 1e-4 prior sd in every parameter) with one or two workers, NumPy's BLAS on
+    one or two threads, and the data or the start moved by 1e-12 relative."""
+    from threadpoolctl import threadpool_limits
+
+    from kneenlp.estimation.identify import identify
+
+    knee = kneenlp.Knee.default()
+    path = tmp_path / "set1.csv"
+    kneenlp.simulate(knee, "set1").measured("uniform:0.5", 3).to_csv(path, index=False)
+    data = read_measured(path)
+    nudged = dataclasses.replace(data, q=np.asarray(data.q) * (1 + 1e-12))
+    start = {n: knee.parameters[n] * (1 + 1e-12) for n in knee.parameters.names()
+             if n.endswith((".k", ".ref_strain"))}
+
+    def kept(data=data, workers=1, blas=2, **options):
+        with threadpool_limits(limits=blas, user_api="blas"):
+            return identify(knee, data, seed=3, noise="uniform:0.5", starts=4, workers=workers, **options)
+
+    base = kept()
+    problem = base.problem
+    for fit in (kept(workers=2), kept(blas=1), kept(data=nudged), kept(start=start)):
+        assert fit.success and fit.map_objective == pytest.approx(base.map_objective, rel=1e-6)
+        z = standardised(problem, fit.params) - standardised(problem, base.params)
+        assert np.abs(z).max() <= 1e-4, np.abs(z).max()
+
+
+@pytest.mark.slow
+def test_the_kept_minimum_of_s192803_is_the_same_with_one_blas_thread_and_with_the_data_moved_1e_12():
+    """problems/s192803's global search (benchmarks/bench_global.py, fresh processes): OpenBLAS on one
+    thread, and the data moved by 1e-12 relative, keep the same minimum (1e-6 relative, 1e-4 prior sd)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    bench = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_global.py"
+    out = subprocess.run([sys.executable, str(bench), "--settings", "blas1-workers2,data+1e-12"],
+                         capture_output=True, text=True, check=True).stdout
+    objectives = [float(line.split("MAP objective ")[1].split(",")[0]) for line in out.splitlines()
+                  if "MAP objective" in line]
+    spread = out.split("spread over 2 settings: objective ")[1]
+    relative, sd = float(spread.split(" relative")[0]), float(spread.split("parameters ")[1].split(" prior")[0])
+    assert len(objectives) == 2 and relative <= 1e-6 and sd <= 1e-4, out
