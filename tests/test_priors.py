@@ -158,7 +158,7 @@ def test_a_calibration_from_several_starts_keeps_the_lowest_and_lists_them():
 
     model = KneeModel.of(kneenlp.Knee.named("s192803"))
     data = read_measured(resource("datasets", "s192803_laxity.csv"))
-    one = identify(model, data)
+    one = identify(model, data, starts=1)  # the local chain; its further starts: multistart
     several = identify(model, data, multistart=2)
     m = re.search(r"2 starts .*: MAP objectives (.*); start (\d) kept", several.message)
     assert m, several.message

@@ -699,7 +699,7 @@ def test_calibration_says_what_predict_reproduces(s192803, tmp_path):
     from kneenlp.estimation.identify import identification
     from kneenlp.prediction.predict import predict
 
-    cal = identification(s192803, CSV)
+    cal = identification(s192803, CSV, workers=2)  # the global search, its solves on two processes
     fit = cal.fit
     assert cal.record is not NO_RECORD and fit.problem.priors  # MAP by default
     data = cal.fit.data  # the fitted trials
