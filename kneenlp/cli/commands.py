@@ -153,8 +153,9 @@ def start_workers(args) -> dict:
     if starts > 1:
         return {"starts": starts, "workers": search_workers(args)} | (
             {"store": str(Path(args.out) / "search")} if args.out else {})
-    return {"starts": 1, "workers": worker_count(args)} if calibration and args.multistart > 1 else (
-        {"starts": 1} if calibration else {})
+    if not calibration:
+        return {}
+    return {"starts": 1} | ({"workers": worker_count(args)} if args.multistart > 1 else {})
 
 
 def held_out_judgements(knee, args) -> list:

@@ -68,8 +68,8 @@ from kneenlp.prediction.predict import rms_by_coordinate
 #: Share of each prior the starts cover (its central quantiles).
 CENTRAL = 0.95
 #: Starts of a real experiment's calibration by default: on S192803 (51 free parameters) 16 starts
-#: find the lowest minimum with 3-6 solves in every BLAS, worker, compile and Dask setting, in about a
-#: minute on 2 cores (benchmarks/bench_global.py); 8 did not find it in every setting.
+#: reach the lowest minimum with 4-5 solves in every BLAS, worker, compile and Dask setting, in about
+#: a minute on 2 cores (benchmarks/bench_global.py).
 DEFAULT_STARTS = 16
 #: Reduced-space evaluations of a start's screen.
 SCREEN_EVALUATIONS = 8

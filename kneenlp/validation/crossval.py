@@ -276,7 +276,8 @@ class Judgement:
         return {"name": self.name, "also_free": list(self.also_free), "free": self.free, "fitted_rms": self.fitted,
                 "held_out_normalised": self.held_out, "held_out_mean": self.mean, "held_out_met": self.met,
                 "held_out_converged": {k: list(v) for k, v in self.converged.items()},
-                "held_out_spread": self.spread, "held_out_margin": self.margin}
+                "held_out_spread": {k: v if np.isfinite(v) else None for k, v in self.spread.items()},
+                "held_out_margin": self.margin}
 
 
 def judge(model: KneeModel, data: MeasuredData, candidates: list[list[str]], which: list[str] | None = None,
@@ -414,7 +415,9 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
     """Every hold-out of :func:`folds` (or those named in ``which``), in order; with
     ``reference_draws`` N, each also on N twins of the experiment (:func:`twin_draw`), each draw
     written to ``store`` as it finishes and read back from there on a rerun (:class:`TwinStore`).
-    ``workers`` > 1 calibrates the hold-outs in that many forked processes (:func:`hold_outs`); a
+    ``workers`` > 1 calibrates the hold-outs in that many forked processes (:func:`hold_outs`), those
+    left over from whole rounds one at a time with their global searches over the workers (7 hold-outs
+    of S192803 on 2: the seventh's search on both, not the 4th round of one process); a
     :class:`~kneenlp.base.dask_cluster.DaskWorkers` calibrates them in turn, each global search
     (``starts``) on Dask.
     ``explain``: each hold-out's :func:`lessons` too (one more calibration, of every trial)."""
@@ -425,8 +428,11 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
     if isinstance(workers, DaskWorkers):  # the hold-outs in turn, each calibration's search on Dask
         calibrate_options = calibrate_options | {"workers": workers}
         results = [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
-    else:
-        results = hold_outs(model, data, chosen, workers, **calibrate_options)
+    else:  # whole rounds over the workers; the rest (fewer than the workers) in turn, each search over them all
+        split = len(chosen) - len(chosen) % workers
+        results = hold_outs(model, data, chosen[:split], workers, **calibrate_options)
+        results += [hold_out(model, data, mask, name, **calibrate_options | {"workers": workers})
+                    for name, mask in chosen[split:]]
     whole = calibrate_options | {"workers": workers}  # the calibration of every trial: its search over the workers
     fit = calibrate(model, data, **whole).fit if explain else None
     for r in results if explain else ():
