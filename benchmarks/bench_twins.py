@@ -3,7 +3,7 @@
 The twin of the experiment (``crossval.twin``): every trial at its measured load and flexion
 predicted by the calibrated knee of ``problems/s192803`` itself, plus normal noise at the
 calibration's misfit per coordinate times ``--misfit F``, seeded per draw.  Each twin is
-calibrated and cross-validated as the problem says (the seven hold-outs, four starts each).  Prints,
+calibrated and cross-validated as the problem says (the seven hold-outs, each by the global search).  Prints,
 per twin, the hold-outs within 2 mm and 5 deg and the mean normalised error (1 = on target), then
 their range: the held-out error these 25 trials allow a model that is right, at that misfit.
 (``kneenlp cross-validate --problem problems/s192803 --twins N`` measures the same at F = 1, per
