@@ -425,15 +425,14 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
     names = [n for n, _ in chosen]
     # the store is checked before the first calibration: a store of another run stops at once
     saved = TwinStore.open(store, model, data, names, calibrate_options) if store and reference_draws else None
+    whole = calibrate_options | {"workers": workers}  # a calibration in turn: its search over the workers
     if isinstance(workers, DaskWorkers):  # the hold-outs in turn, each calibration's search on Dask
-        calibrate_options = calibrate_options | {"workers": workers}
-        results = [hold_out(model, data, mask, name, **calibrate_options) for name, mask in chosen]
+        calibrate_options = whole
+        results = [hold_out(model, data, mask, name, **whole) for name, mask in chosen]
     else:  # whole rounds over the workers; the rest (fewer than the workers) in turn, each search over them all
         split = len(chosen) - len(chosen) % workers
         results = hold_outs(model, data, chosen[:split], workers, **calibrate_options)
-        results += [hold_out(model, data, mask, name, **calibrate_options | {"workers": workers})
-                    for name, mask in chosen[split:]]
-    whole = calibrate_options | {"workers": workers}  # the calibration of every trial: its search over the workers
+        results += [hold_out(model, data, mask, name, **whole) for name, mask in chosen[split:]]
     fit = calibrate(model, data, **whole).fit if explain else None
     for r in results if explain else ():
         r.taught.extend(lessons(r, fit, data))
