@@ -26,6 +26,7 @@ _HOMES = {
     "Trial": "kneenlp.experiment.protocol",
     "Knee": "kneenlp.model.knee",
     "ParameterSet": "kneenlp.model.parameters",
+    "Parameters": "kneenlp.model.params",
     "SimulationResult": "kneenlp.simulation",
     "simulate": "kneenlp.simulation",
 }

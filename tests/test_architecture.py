@@ -92,7 +92,7 @@ def test_objective_is_the_weighted_residual_sum(effect, method, tmp_path):
     path = tmp_path / "data.csv"
     data.to_csv(path, index=False)
     free = ["ACL.k", "MCL.k"]
-    fit = identify(model, path, method, free=free, with_effects=[effect], weighted=True, noise="uniform:0.5",
+    fit = identify(model, path, method=method, free=free, with_effects=[effect], weighted=True, noise="uniform:0.5",
                    nested_options={"max_evals": 300})
     r = fit.residuals
     wsum = float(np.sum(fit.weights * r**2))
@@ -133,7 +133,7 @@ def test_user_element_consistent_across_methods(example):
     md = MeasuredData([s.trial for s in res.solutions], coords_from_user(data[coordinate_columns()].to_numpy()),
                       "set1")
     for method in ("simultaneous", "nested"):
-        fit = identify(model, md, method, free=["ACL.k"], with_effects=["compression"],
+        fit = identify(model, md, method=method, free=["ACL.k"], with_effects=["compression"],
                        nested_options={"max_evals": 200})
         assert fit.objective == pytest.approx(float(np.sum(fit.weights * fit.residuals**2)), rel=1e-9)
     prob = export_problem(model, md, free=["ACL.k"], with_effects=["compression"])

@@ -167,6 +167,6 @@ def test_modes_are_listed_once_for_the_library_and_the_command_line(capsys):
     assert tuple(actions["strategy"].choices) == typing.get_args(modes.Strategy)
     assert all(name in actions["knee"].help for name in shipped_knees()) and "s192803" in shipped_knees()
     with pytest.raises(InputError, match=r"unknown method 'complex'; known: nested, simultaneous"):
-        identify(kneenlp.Knee.named("synthetic"), "unused.csv", "complex")
+        identify(kneenlp.Knee.named("synthetic"), "unused.csv", method="complex")
     with pytest.raises(InputError, match=r"--format: unknown export format 'mps'; known: c, casadi, nl"):
         modes.checked("export format", "mps", modes.ExportFormat, field="--format")

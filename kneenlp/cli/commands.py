@@ -182,7 +182,7 @@ def cmd_identify(args) -> int:
     check_names(knee, args)
     given = {"pivot_tolerance": args.pivot_tolerance, "also_free": args.also_free,
              "keep_outliers": args.keep_outliers or None}
-    calibration = identification(knee, args.measured, args.method, strategy=args.strategy, free=args.free,
+    calibration = identification(knee, args.measured, method=args.method, strategy=args.strategy, free=args.free,
                                  seed=args.seed, noise=args.noise, weighted=args.weighted,
                                  multistart=args.multistart, solver=args.solver, **start_workers(args),
                                  protocol=args.protocol, with_effects=args.with_effect, **prior_options(args),

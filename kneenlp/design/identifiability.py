@@ -19,8 +19,9 @@ import numpy as np
 
 from kneenlp.estimation.statistics import gauss_newton_covariance, svd_rank, weighted_svd
 from kneenlp.experiment.noise import NoiseModel
-from kneenlp.experiment.problem import IdentificationProblem, default_free
+from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import Protocol
+from kneenlp.model.params import default_free
 
 
 @dataclass

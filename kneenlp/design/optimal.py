@@ -32,9 +32,10 @@ from kneenlp.base.modes import Criterion, checked
 from kneenlp.estimation.statistics import fisher_information
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.noise import NoiseModel
-from kneenlp.experiment.problem import IdentificationProblem, default_free
+from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import Protocol, Trial, trial_id
 from kneenlp.model.knee import Knee
+from kneenlp.model.params import default_free
 from kneenlp.solvers.forward import forward_solver
 
 #: Designs made before one simulates with every trial converged (each drops the failed cases).

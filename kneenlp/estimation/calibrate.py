@@ -56,7 +56,7 @@ import scipy.linalg
 
 from kneenlp.base.conventions import COORDINATES
 from kneenlp.base.dask_cluster import DaskWorkers
-from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.errors import InputError
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.estimation.outliers import (
     MAX_OUTLIER_SHARE,
@@ -72,8 +72,9 @@ from kneenlp.estimation.solve import reduced_fit, scatter_fit, solve_simultaneou
 from kneenlp.estimation.statistics import effective_parameters, gauss_newton_covariance
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
-from kneenlp.experiment.problem import IdentificationProblem, declared_free, default_free
+from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.model.parameters import ParameterSet
+from kneenlp.model.params import Parameters, declared_free, default_free, named_parameters
 from kneenlp.model.posterior import Posterior
 from kneenlp.model.priors import Prior
 from kneenlp.prediction.laxity import laxity_lines, laxity_records, laxity_table
@@ -310,16 +311,7 @@ def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
     the order named: the reduced-space fit stops within the mesh contact's cost noise, at a point
     that depends on the order of its unknowns (S192803: sum of squares 113-117 for two orders of the
     same six effects), and the same names must give the same calibration."""
-    groups = {e.name: [p.name for p in e.parameters()] for e in model.parts} | {
-        e.name: e.free_names() for e in model.effects}
-    out: list[str] = []
-    for name in names:
-        found = [name] if name in model.parameter_names else groups.get(name)
-        if not found:
-            known = unknown_name("parameter, effect or element", name, [n for n, ps in groups.items() if ps])
-            raise InputError(known.message, field="--also-free")
-        out += [n for n in found if n not in out]
-    return sorted(out, key=model.index)
+    return named_parameters(model, names, "--also-free")
 
 
 def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
@@ -329,7 +321,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
               with_effects: list[str] | tuple = (), start: dict[str, float] | None = None, solver: str = "ipopt",
               solver_options: dict | None = None, multistart: int = 1, threads: int = 2,
               workers: int | DaskWorkers = 1, starts: int | None = None,
-              store: str | Path | None = None) -> Calibration:
+              store: str | Path | None = None, params: Parameters | None = None) -> Calibration:
     """Fit ``free`` to the real experiment ``data``: reduced-space Gauss-Newton from the knee's
     values (or the probe), then the simultaneous NLP from there (:func:`polished`); the NLP with the
     scatter strategy's rescue where the reduced fit fails.  ``free`` defaults to the parameter
@@ -359,8 +351,13 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     values (a quick look, whose answer may depend on the path: docs/real-experiment.md).
     ``solver``, ``solver_options``
     and ``threads`` serve the fallback from the start (the simultaneous NLP, at most :data:`MAX_ITER` iterations
-    unless ``solver_options`` say otherwise)."""
+    unless ``solver_options`` say otherwise).
 
+    ``params`` (:class:`~kneenlp.model.params.Parameters`, instead of ``free`` and ``priors``):
+    its varied parameters are fitted with its priors, bounds and ties; its values that differ from
+    the knee's start the fit there (:func:`from_params`)."""
+    if params is not None:
+        free, priors, start, ties = from_params(model, params, free, priors, start, also_free, pivot_tolerance)
     _check_calibration(data, free, pivot_tolerance, also_free)
     with_priors, estimate = priors not in (None, "none"), prior_weight == "estimate"
     extra = also_free_names(model, also_free or [])
@@ -377,7 +374,8 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     # error, not the instrument's noise, is what the parameters' and predictions' uncertainty must carry
     # (S192803: declared 0.2 mm, misfit about 1.5 mm); a declared noise serves diagnose's verdict
     options = {"noise": noise if weighted else None, "weighted": weighted, "with_effects": with_effects or (),
-               "priors": priors, "prior_weight": None if estimate else float(prior_weight)}
+               "priors": priors, "prior_weight": None if estimate else float(prior_weight),
+               **({} if params is None else {"bounds": params.bounds(), "ties": ties})}
     found = None
     if starts is None:
         starts = 1 if multistart > 1 else DEFAULT_STARTS
@@ -392,6 +390,29 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
                                predict(model, data.subset(aside), fit.params) if outliers else None, found)
     return Calibration(fit, record)
+
+
+def from_params(model: KneeModel, params: Parameters, *given) -> tuple[list[str], dict, dict, dict[str, str]]:
+    """(free, priors, start, ties) of a calibration given ``params``: its varied parameters, their
+    priors (None: none), the varied values that differ from the knee's (the start there) and its
+    ties; refused beside ``free``, ``priors``, ``start``, ``also_free`` or ``pivot_tolerance``
+    (``given``, in that order), or with a fixed value other than the knee's (a calibration starts
+    from the knee's parameter file: put it there)."""
+    names = ("free", "priors", "start", "also_free", "pivot_tolerance")
+    for name, value in zip(names, given, strict=True):
+        if value is not None and not (name == "priors" and value == "default"):
+            raise InputError(f"params says what is fitted and how: set it there (vary, prior, value), not by {name}",
+                             field=name)
+    params.check()
+    own, values = model.theta(), params.valuesdict()
+    moved = {n: v for n, v in values.items() if v != own[model.index(n)]}
+    fixed = [n for n in moved if not params[n].vary and n not in params.ties()]
+    if fixed:
+        raise InputError(f"{fixed[0]} is fixed at another value than the knee's: a calibration starts from the "
+                         "knee's parameter file; put the value there (--parameters, Knee.with_parameters)",
+                         field=f"parameters.{fixed[0]}")
+    free = params.free
+    return free, params.priors(), {n: moved[n] for n in free if n in moved}, params.ties()
 
 
 def local_fit(model: KneeModel, data: MeasuredData, free: list[str], extra: list[str], probe: np.ndarray,

@@ -36,6 +36,7 @@ from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import Protocol, available_protocols
 from kneenlp.model.knee import Knee
+from kneenlp.model.params import Parameters
 
 #: Options only a calibration takes (:func:`~kneenlp.estimation.calibrate.calibrate`), by CLI flag.
 CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--also-free",
@@ -45,15 +46,16 @@ CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--a
 SEARCH_OPTIONS = ("starts", "store", "workers")
 
 
-def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: Method = "simultaneous",
-             **options) -> Fit:
+def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, params: Parameters | None = None,
+             method: Method = "simultaneous", **options) -> Fit:
     """Identify parameters of ``knee`` from measured ``data``: the fit of :func:`identification`
-    (``options`` are its keyword arguments)."""
-    return identification(knee, data, method, **options).fit
+    (``params`` and ``options`` as its)."""
+    return identification(knee, data, params, method, **options).fit
 
 
-def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, method: Method = "simultaneous", *,
-                   free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
+def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, params: Parameters | None = None,
+                   method: Method = "simultaneous", *, free: list[str] | None = None,
+                   start: dict[str, float] | None = None, seed: int = 0,
                    noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
                    solver: str = "ipopt", solver_options: dict | None = None,
                    protocol: Protocol | str | None = None, restarts: int = 4,
@@ -69,14 +71,15 @@ def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     knee : the knee (geometry + reference parameter set) or a :class:`KneeModel` (e.g. with user
         elements); ``None`` for the default knee.
     data : measured data or the path of a measured-data CSV (mm, deg).
+    params : :class:`~kneenlp.model.params.Parameters` (``model.make_params()``; instead of ``free``,
+        ``fixed``, ``priors``, ``with_effects``): the varied ones fitted with their priors, bounds, ties.
     method : ``"simultaneous"`` (one IPOPT program for all trials and parameters) or ``"nested"``.
     free : names of the parameters to identify (default: k and ref_strain of every ligament).
     start : starting values (SI) by name; missing ones are scattered like the paper (``seed``).
     noise : noise model of the measurements (e.g. ``"uniform:0.5"``): gives the noise variance of
         the covariance; without it the variance is estimated from the residuals.
     weighted : weight each coordinate by its inverse noise variance (needs ``noise``).
-    multistart : number of starts; the best converged one is kept.
-    restarts : extra scatter draws tried when no start has converged yet.
+    multistart : number of starts (the best converged kept); restarts : extra draws while none converged.
     with_effects : candidate effects (:mod:`kneenlp.model.effects`) whose parameters are freed too,
         starting at their neutral values (e.g. ``["posterior_capsule"]``).
     fixed : values (SI, by name) of fixed parameters replacing the knee's parameter set, as
@@ -103,21 +106,23 @@ def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     Returns the :class:`~kneenlp.estimation.calibrate.Calibration`: the :class:`Fit` and, for a real
     experiment's calibration, what it found besides (its ``record``; an identification has none).
     """
-    _check_names(method, strategy, calibration_options)
+    _check_names(params, method, strategy, calibration_options)
     model = KneeModel.of(knee or Knee.default())
     data = checked_data(data, protocol)
     if resolve_strategy(strategy, data, method) == "calibration":
         return calibration(model, data, free, fixed=fixed, priors=priors, prior_weight=prior_weight, seed=seed,
                            noise=noise, weighted=weighted, with_effects=with_effects, start=start, solver=solver,
                            solver_options=solver_options, multistart=multistart, threads=threads,
-                           **calibration_options)
+                           **calibration_options, **({} if params is None else {"params": params}))
+    chosen = {"free": free, "fixed": fixed, "priors": priors, "with_effects": with_effects or ()}
+    if params is not None:
+        chosen = scatter_params(model, params, chosen)
     search_options = {}
     if calibration_options.get("starts", 1) > 1:  # the global search's options: a scatter fit's too
         search_options = {k: calibration_options.pop(k) for k in SEARCH_OPTIONS if k in calibration_options}
     _check_scatter(calibration_options, prior_weight)
-    problem = IdentificationProblem.from_data(model, data, free, noise=noise, weighted=weighted, fixed=fixed,
-                                              with_effects=with_effects or (), priors=priors,
-                                              prior_weight=prior_weight)
+    problem = IdentificationProblem.from_data(model, data, noise=noise, weighted=weighted, prior_weight=prior_weight,
+                                              **chosen)
     if search_options:
         if method != "simultaneous":
             raise InputError("the global search solves the simultaneous NLP; --method nested has its own "
@@ -129,8 +134,28 @@ def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
                                    solver_options=solver_options, threads=threads, nested_options=nested_options))
 
 
-def _check_names(method: Method, strategy: Strategy, calibration_options: dict) -> None:
-    """Refuse an unknown method, strategy or keyword argument of :func:`identify`."""
+def scatter_params(model: KneeModel, params: Parameters, given: dict) -> dict:
+    """What a scatter fit takes of ``params`` (:meth:`IdentificationProblem.from_data`'s keyword
+    arguments): its varied parameters, every value that differs from the knee's (the fixed values
+    and the varied ones' reference), their priors (None: none), bounds and ties; refused beside any
+    of ``given`` (``free``, ``fixed``, ``priors``, ``with_effects``)."""
+    for name, value in given.items():
+        if value:
+            raise InputError(f"params says what is fitted and how: set it there (vary, prior, value), not by {name}",
+                             field=name)
+    params.check()
+    own, values = model.theta(), params.valuesdict()
+    moved = {n: v for n, v in values.items() if v != own[model.index(n)] and n not in params.ties()}
+    return {"free": params.free, "fixed": moved, "priors": params.priors(), "bounds": params.bounds(),
+            "ties": params.ties()}
+
+
+def _check_names(params: object, method: Method, strategy: Strategy, calibration_options: dict) -> None:
+    """Refuse a method given in place of ``params``, an unknown method, strategy or keyword argument
+    of :func:`identify`."""
+    if isinstance(params, str):
+        raise TypeError("identify()'s third argument is a Parameters (model.make_params()); give the method by "
+                        f"name: method={params!r}")
     checked("method", method, Method)
     checked("strategy", strategy, Strategy)
     unknown = sorted(set(calibration_options) - set(CALIBRATION_OPTIONS))

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 from functools import cached_property
+from typing import Literal
 
 import casadi as ca
 import numpy as np
@@ -44,8 +45,9 @@ import numpy as np
 from kneenlp.base.compiled import BufferedCall, compiled
 from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.base.errors import InputError, unknown_name
-from kneenlp.base.modes import Layout
+from kneenlp.base.modes import Layout, PriorChoice
 from kneenlp.experiment.measurement import ExperimentPart, Measurement, registration_effects
+from kneenlp.model import ties as tie_rules
 from kneenlp.model.effects import (
     Effect,
     attachment_effects,
@@ -56,6 +58,7 @@ from kneenlp.model.elements import ForceElement, Output, Part, Pose, StagedEleme
 from kneenlp.model.kinematics import generalized_forces, joint_coordinates, tibial_pose
 from kneenlp.model.knee import Knee
 from kneenlp.model.parameters import Parameter, ParameterSet, with_unit
+from kneenlp.model.params import Parameters, make_params
 from kneenlp.model.solvercache import SolverCache
 
 
@@ -80,6 +83,7 @@ def check_set_names(params, info: dict[str, Parameter]) -> None:
                              f"{', '.join(dict(info[name].meta.file_units))}", source=src, field=fld)
         if name in params.priors:
             info[name].check_prior(params.priors[name], src, f"{fld}.prior")
+    tie_rules.ordered(params.ties, info, source=src)
 
 
 def check_sign(info: Parameter, lower: float, source: str | None, table: str) -> None:
@@ -455,7 +459,15 @@ class KneeModel:
             else:
                 raise InputError(f"parameter set {params.name} lacks {p.name}", source=params.source,
                                  field=p.name)
+        if params.ties:  # the parameter file's ties (kneenlp.model.ties)
+            tied = tie_rules.tied(dict(zip(self.parameter_names, out, strict=True)), params.ties)
+            out = [tied[n] for n in self.parameter_names]
         return np.array(out, dtype=float)
+
+    def make_params(self, priors: PriorChoice | Literal["declared"] = "declared") -> Parameters:
+        """Every parameter of the model as one :class:`~kneenlp.model.params.Parameters`
+        (:func:`~kneenlp.model.params.make_params`)."""
+        return make_params(self, priors)
 
     def observe(self, q: np.ndarray, theta: np.ndarray, flexions) -> np.ndarray:
         """Measured coordinates (T x 5, mm and deg) of poses ``q`` (T x 5, SI) at their prescribed

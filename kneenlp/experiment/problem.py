@@ -46,21 +46,9 @@ from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.protocol import Trial
 from kneenlp.model.parameters import Parameter
+from kneenlp.model.params import declared_free, default_free
 from kneenlp.model.priors import Prior
-
-
-def default_free(model: KneeModel) -> list[str]:
-    """Stiffness and reference strain of every ligament (8 values for the four-ligament knee; the
-    stiffness scale and reference-strain offset of each bundle group of a multi-bundle knee)."""
-    return [n for lig in model.ligament_names for n in model.element(lig).main_parameters()]
-
-
-def declared_free(model: KneeModel, default: Sequence[str]) -> list[str]:
-    """The free parameters the knee's parameter set declares (``free = true`` entries, in the
-    model's order) or, without any, ``default`` less those it declares ``free = false``."""
-    flags = model.knee.parameters.free
-    chosen = [n for n in model.parameter_names if flags.get(n)]
-    return chosen or [n for n in default if flags.get(n, True)]
+from kneenlp.model.space import ParameterSpace
 
 
 def free_names(model: KneeModel, free: Sequence[str] | None = None, with_effects: Sequence[str] = ()) -> list[str]:
@@ -209,6 +197,10 @@ class IdentificationProblem:
     #: ``z^2`` on the scale of the weighted sum of squares: the MAP objective is
     #: ``sum w r^2 + prior_weight * sum z^2`` (1 for a fit weighted by 1/variance)
     prior_weight: float = 1.0
+    #: bounds (SI) of free parameters replacing their declared ones (a ``Parameters``' min and max)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: ties (:mod:`kneenlp.model.ties`) over the knee's own: a tied parameter follows the free ones
+    ties: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.trials = tuple(self.trials)
@@ -219,6 +211,19 @@ class IdentificationProblem:
             if n not in self.free:
                 raise unknown_name("free parameter with a prior", n, self.free)
             self.model.parameter(n).check_prior(prior)
+        for n, (lo, hi) in self.bounds.items():
+            if n not in self.free:
+                raise unknown_name("free parameter with bounds", n, self.free)
+            if not lo < hi:
+                raise InputError(f"lower bound {lo:g} not below upper {hi:g} (SI)", field=f"parameters.{n}")
+        self.ties = {**self.model.knee.parameters.ties, **self.ties}
+        for n in self.ties:
+            if n in self.free:
+                raise InputError("a tied parameter (expr) cannot be free: its value follows its tie",
+                                 field=f"parameters.{n}")
+        self.space = ParameterSpace(tuple(self.model.parameter_names), tuple(self.free), self.scales, self.lower,
+                                    self.upper, self.ties)
+        _ = self.space.order  # unknown names and cycles: an error now, not at the first solve
         if not (np.isfinite(self.prior_weight) and self.prior_weight > 0):
             raise InputError(f"prior weight must be > 0, got {self.prior_weight!r}", field="prior_weight")
         if self.weights is None:
@@ -234,11 +239,13 @@ class IdentificationProblem:
                   noise: str | NoiseModel | None = None, weighted: bool = False,
                   fixed: Mapping[str, float] | None = None,
                   with_effects: Sequence[str] = (), priors: str | Mapping[str, Prior | None] | None = None,
-                  prior_weight: float | None = None) -> IdentificationProblem:
+                  prior_weight: float | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
+                  ties: Mapping[str, str] | None = None) -> IdentificationProblem:
         """The problem of identifying ``free`` (default: k and ref_strain of every ligament, plus
         the parameters of ``with_effects``) from measured ``data``; ``priors`` as
         :func:`resolve_priors`; ``prior_weight`` the noise variance per unit weight the priors are
-        weighed against (default: 1 for a weighted fit, the declared noise variance, else 1)."""
+        weighed against (default: 1 for a weighted fit, the declared noise variance, else 1);
+        ``bounds`` and ``ties`` as the fields'."""
         model.knee.check_flexions(data.trials, data.source)
         free = free_names(model, free, with_effects)
         noise_model = NoiseModel.parse(noise) if noise is not None else None
@@ -249,7 +256,8 @@ class IdentificationProblem:
             prior_weight = 1.0 if weighted or noise_model is None or noise_model.std == 0 else noise_model.std**2
         fixed = dict(fixed or {})
         return cls(model, tuple(data.trials), free, data.q_user, weights, noise_model, fixed,
-                   data.source, data.protocol, resolve_priors(model, free, priors, fixed), float(prior_weight))
+                   data.source, data.protocol, resolve_priors(model, free, priors, fixed), float(prior_weight),
+                   {n: b for n, b in (bounds or {}).items() if n in free}, dict(ties or {}))
 
     def without_trials(self, ids: Sequence[str]) -> IdentificationProblem:
         """The same problem without the trials ``ids`` (their measurements and weights too)."""
@@ -276,15 +284,19 @@ class IdentificationProblem:
         """Each free parameter's scale (SI): the encoding divides by it (order one)."""
         return np.array([p.scale for p in self.parameters])
 
+    def bounds_of(self, name: str) -> tuple[float, float]:
+        """(lower, upper) of a free parameter (SI): the problem's, else its declared ones."""
+        return self.bounds.get(name) or self.model.parameter(name).bounds
+
     @property
     def lower(self) -> np.ndarray:
         """Lower bounds (SI); a log-normal prior's floor where it is higher (:meth:`Prior.floor`)."""
-        return np.array([max(p.bounds[0], self.priors[p.name].floor()) if p.name in self.priors else p.bounds[0]
-                         for p in self.parameters])
+        return np.array([max(self.bounds_of(n)[0], self.priors[n].floor()) if n in self.priors
+                         else self.bounds_of(n)[0] for n in self.free])
 
     @property
     def upper(self) -> np.ndarray:
-        return np.array([p.bounds[1] for p in self.parameters])
+        return np.array([self.bounds_of(n)[1] for n in self.free])
 
     @property
     def equilibrium_tol(self) -> float:
@@ -304,19 +316,17 @@ class IdentificationProblem:
 
     # ------------------------------------------------------------------ the free-vector encoding
     def to_scaled(self, values: Mapping[str, float] | Sequence[float] | np.ndarray) -> np.ndarray:
-        """The free parameters (SI, by name or in order) divided by their scales."""
-        if isinstance(values, Mapping):
-            values = [values[n] for n in self.free]
-        return np.asarray(values, dtype=float) / self.scales
+        """The free parameters (SI, by name or in order) divided by their scales (:attr:`space`'s)."""
+        return self.space.to_scaled(values)
 
     def from_scaled(self, x_scaled: np.ndarray) -> np.ndarray:
         """The free parameters (SI, in order) of scaled values (one point, or one per row)."""
-        return np.asarray(x_scaled, dtype=float) * self.scales
+        return self.space.from_scaled(x_scaled)
 
     @property
     def scaled_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds of the scaled free parameters."""
-        return self.lower / self.scales, self.upper / self.scales
+        return self.space.scaled_bounds
 
     def to_x(self, values: Mapping[str, float] | Sequence[float] | np.ndarray, q_user: np.ndarray) -> np.ndarray:
         """The NLP's decision vector: the scaled free parameters (``values`` SI), then every
@@ -336,13 +346,9 @@ class IdentificationProblem:
                 np.concatenate([hi_p, np.tile(hi_q, self.n_trials)]))
 
     def theta_of_scaled(self, x_scaled: ca.MX | ca.SX, theta: ca.MX | ca.SX) -> ca.MX | ca.SX:
-        """The full parameter vector (SI, symbolic): scale times ``x_scaled`` for the free
-        parameters, ``theta``'s entry for the others.  Element by element, so that fixed parameters
-        (e.g. the contact modulus) depend on no decision variable structurally: the Hessian then
-        never seeds the contact with parameter directions (a dense selection matrix made it ~2x slower)."""
-        pos, scales = {n: j for j, n in enumerate(self.free)}, self.scales
-        return ca.vertcat(*[scales[pos[n]] * x_scaled[pos[n]] if n in pos else theta[i]
-                            for i, n in enumerate(self.model.parameter_names)])
+        """The full parameter vector (SI, symbolic) of the scaled free parameters, the ties
+        evaluated (:meth:`~kneenlp.model.space.ParameterSpace.theta_of_scaled`)."""
+        return self.space.theta_of_scaled(x_scaled, theta)
 
     @property
     def loads(self) -> np.ndarray:
@@ -363,7 +369,7 @@ class IdentificationProblem:
         """Full parameter vector (SI): fixed values, then the free ``values`` (dict or in order)."""
         if values is not None and not isinstance(values, Mapping):
             values = dict(zip(self.free, np.asarray(values, dtype=float).ravel(), strict=True))
-        return self.model.theta({**self.fixed, **(values or {})})
+        return self.space.tied(self.model.theta({**self.fixed, **(values or {})}))
 
     def values(self, theta: np.ndarray) -> dict[str, float]:
         """The free parameters' values (SI) in a full parameter vector."""
@@ -455,12 +461,15 @@ class IdentificationProblem:
         dq, dth = model.trial_derivatives(q, theta, self.loads, self.flexions, wrt_theta=True)
         dy_dq, dy_dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
                          for v in model.observation_jacobians.map(T)(q.T, theta, self.flexions[None, :]))
-        dr_dp = dth[:, :, idx]
+        dr_dp, dy_dp_direct = dth[:, :, idx], dy_dth[:, :, idx]
+        if names is None and self.ties:  # through the ties: d theta / d p is not a selection
+            J = self.space.jacobian(theta)
+            dr_dp, dy_dp_direct = dth @ J, dy_dth @ J
         try:
             dq_dp = -np.linalg.solve(dq, dr_dp)
         except np.linalg.LinAlgError:  # a singular equilibrium (e.g. a failed solve): least squares there
             dq_dp = -np.stack([np.linalg.pinv(a) @ b for a, b in zip(dq, dr_dp, strict=True)])
-        dy_dp = (dy_dq @ dq_dp + dy_dth[:, :, idx]).reshape(5 * T, len(idx))
+        dy_dp = (dy_dq @ dq_dp + dy_dp_direct).reshape(5 * T, len(idx))
         return (dy_dp, dq_dp) if with_poses else dy_dp
 
     # ------------------------------------------------------------------ starts

@@ -36,13 +36,15 @@ class PriorTable(Table):
 
 class Entry(Table):
     """A row of a parameter table: ``"NAME" = {value = V, unit = "U"}`` with optionally a prior,
-    ``bounds = [LOWER, UPPER]`` (same unit) and ``free = true|false``."""
+    ``bounds = [LOWER, UPPER]`` (same unit), ``free = true|false`` and ``expr``, a tie to other
+    parameters (SI; :mod:`kneenlp.model.ties`)."""
 
     value: Number | None = None
     unit: str = Field(description='unit (e.g. unit = "N")')
     prior: PriorTable | None = None
     bounds: Annotated[tuple[float, float], BeforeValidator(to_bounds)] | None = None
     free: StrictBool | None = None
+    expr: str | None = None
 
 
 #: A parameter table (``[values]`` of a parameter file, ``[parameters]`` of a problem file).

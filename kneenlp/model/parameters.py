@@ -21,6 +21,7 @@ from kneenlp.model.parameter_schema import Entries as EntrySchema
 from kneenlp.model.parameter_schema import Entry, PriorTable, parameter_file_schema
 from kneenlp.model.posterior import Posterior
 from kneenlp.model.priors import Prior
+from kneenlp.model.ties import names_in
 
 
 @dataclass(frozen=True)
@@ -195,6 +196,8 @@ class ParameterSet:
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     #: free flags declared in the file (``[values]``' ``free``): a fit's default free parameters
     free: dict[str, bool] = field(default_factory=dict)
+    #: ties declared in the file (``[values]``' ``expr``): the parameter follows the expression (SI)
+    ties: dict[str, str] = field(default_factory=dict)
     #: the file's table its declarations came from, named in errors (``parameters`` of a problem file)
     table: str = "values"
 
@@ -217,7 +220,8 @@ class ParameterSet:
                 raise unknown_name("parameter", k, self.values)
         return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
                             name=self.name, source=self.source, description=self.description, meta=dict(self.meta),
-                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free), table=self.table)
+                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free),
+                            ties=dict(self.ties), table=self.table)
 
     def with_values(self, values: Mapping[str, float], name: str | None = None,
                     description: str | None = None) -> ParameterSet:
@@ -226,7 +230,8 @@ class ParameterSet:
         return ParameterSet({**self.values, **{k: float(v) for k, v in values.items()}},
                             name=name or self.name, source=None,
                             description=self.description if description is None else description,
-                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free), table=self.table)
+                            priors=dict(self.priors), bounds=dict(self.bounds), free=dict(self.free),
+                            ties=dict(self.ties), table=self.table)
 
     def with_entries(self, entries: Entries, source: str | None = None) -> ParameterSet:
         """A copy with a parameter table's ``entries`` over this set's (values, units, priors,
@@ -235,7 +240,7 @@ class ParameterSet:
                             description=self.description, meta=dict(self.meta) | entries.units,
                             priors=dict(self.priors) | entries.priors, posterior=self.posterior,
                             bounds=dict(self.bounds) | entries.bounds, free=dict(self.free) | entries.free,
-                            table=entries.section)
+                            ties=dict(self.ties) | entries.ties, table=entries.section)
 
     def vector(self, names: Iterable[str]) -> list[float]:
         return [self[n] for n in names]
@@ -295,7 +300,7 @@ class ParameterSet:
                      else None)
         return cls(values, name=spec.name if spec.name is not None else path.stem, source=src,
                    description=spec.description, meta=entries.units, priors=entries.priors,
-                   posterior=posterior, bounds=entries.bounds, free=entries.free)
+                   posterior=posterior, bounds=entries.bounds, free=entries.free, ties=entries.ties)
 
 
 #: The laxity-noise paper's elastic-foundation modulus (N/m^3): the parameter set of an imported knee.
@@ -322,6 +327,7 @@ class Entries:
     priors: dict[str, Prior] = field(default_factory=dict)
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     free: dict[str, bool] = field(default_factory=dict)
+    ties: dict[str, str] = field(default_factory=dict)
     #: the table they were read from (errors name it)
     section: str = "values"
 
@@ -356,7 +362,7 @@ def check_quoted(table: object, src: str, section: str = "values") -> None:
 
 
 #: The keys of one entry of a parameter table.
-ENTRY_KEYS = frozenset({"value", "unit", "prior", "bounds", "free"})
+ENTRY_KEYS = frozenset({"value", "unit", "prior", "bounds", "free", "expr"})
 
 
 def entries_in(table: dict[str, Entry], src: str, section: str = "values") -> Entries:
@@ -386,6 +392,12 @@ def entries_in(table: dict[str, Entry], src: str, section: str = "values") -> En
             out.bounds[name] = (lo, hi)
         if item.free is not None:
             out.free[name] = item.free
+        if item.expr is not None:
+            if item.free or item.prior is not None:
+                raise InputError("a tied parameter (expr) follows its tie: it takes neither free = true nor a prior",
+                                 source=src, field=fld)
+            names_in(item.expr, f"{fld}.expr")
+            out.ties[name] = item.expr
         out.units[name] = item.unit
     return out
 

@@ -95,7 +95,7 @@ def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2, tru
     from kneenlp.base.conventions import coordinate_columns
     from kneenlp.estimation.identify import identify
     from kneenlp.experiment.measured import MeasuredData
-    from kneenlp.experiment.problem import default_free
+    from kneenlp.model.params import default_free
     row: dict = {"set": set_name, "sample": index, "seed": -1}
     t0 = time.perf_counter()
     try:
@@ -113,7 +113,7 @@ def run_sample(spec: StudySpec, set_name: str, index: int, threads: int = 2, tru
         start = None
         if spec.start == "truth":
             start = {n: truth.parameters[n] for n in (free or default_free(model))}
-        fit = identify(model, data, spec.method, free=free, seed=seed, start=start, noise=spec.noise,
+        fit = identify(model, data, method=spec.method, free=free, seed=seed, start=start, noise=spec.noise,
                        nested_options={"max_evals": spec.nested_max_evals}, with_effects=list(spec.with_effects),
                        threads=threads)
         row.update(status=fit.status, success=fit.success, objective=fit.objective, iterations=fit.iterations,
