@@ -41,7 +41,7 @@ from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
 from kneenlp.prediction.laxity import laxity_lines
 from kneenlp.prediction.predict import predict, rms_by_coordinate
-from kneenlp.validation import crossval
+from kneenlp.validation import crossval, crossval_report
 
 DEPOSIT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "du-s192803"
 TABLE = Path(__file__).resolve().parents[1] / "docs" / "figures" / "s192803_cross_validation.csv"
@@ -108,12 +108,12 @@ def main() -> None:
     results = crossval.cross_validate(model, data, reference_draws=twins, **options)
     print(f"cross-validation, {len(results)} hold-outs{f', each on {twins} twins too' if twins else ''}: "
           f"{time.perf_counter() - t0:.0f} s")
-    print(crossval.report(results))
+    print(crossval_report.report(results))
     print("  targets: <= 2 mm and <= 5 deg on held-out trials")
     if tolerance is not None or also is not None or options["keep_outliers"]:
         return
     TABLE.parent.mkdir(parents=True, exist_ok=True)
-    crossval.table(results).to_csv(TABLE, index=False, float_format="%.4g")
+    crossval_report.table(results).to_csv(TABLE, index=False, float_format="%.4g")
     print(f"wrote {TABLE}")
 
 

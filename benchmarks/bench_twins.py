@@ -1,6 +1,6 @@
 """Benchmark: what an exactly right model would predict of S192803's hold-outs.
 
-The twin of the experiment (``crossval.twin``): every trial at its measured load and flexion
+The twin of the experiment (``twins.twin``): every trial at its measured load and flexion
 predicted by the calibrated knee of ``problems/s192803`` itself, plus normal noise at the
 calibration's misfit per coordinate times ``--misfit F``, seeded per draw.  Each twin is
 calibrated and cross-validated as the problem says (the seven hold-outs, each by the global search).  Prints,
@@ -31,7 +31,7 @@ from kneenlp.estimation.calibrate import calibrate, noise_per_observation
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.problem_file import ProblemFile
-from kneenlp.validation import crossval
+from kneenlp.validation import crossval, twins
 
 PROBLEM = Path(__file__).resolve().parents[1] / "problems" / "s192803"
 #: The robot's test loads (halved by --half-loads; the preload and the small components stay).
@@ -74,7 +74,7 @@ def main() -> None:
     met, means = [], []
     for draw in range(args.draws):
         t0 = time.perf_counter()
-        copy = crossval.twin(model, protocol, fit.params, sd, np.random.default_rng([0, draw]))
+        copy = twins.twin(model, protocol, fit.params, sd, np.random.default_rng([0, draw]))
         scores = [judged(crossval.hold_out(model, copy, mask, name, **options), copy)
                   for name, mask in crossval.folds(copy)]
         met.append(sum(s <= 1 for s in scores))

@@ -472,7 +472,8 @@ def test_a_misfit_with_a_sign_per_load_direction_is_the_models():
 
 
 def test_held_out_judge_recommends_only_what_lowers_the_held_out_error():
-    from kneenlp.validation.crossval import Judgement, judged_best, judgement_lines
+    from kneenlp.validation.crossval import Judgement, judged_best
+    from kneenlp.validation.crossval_report import judgement_lines
 
     def j(name, errors, ok=True, spread=float("nan")):
         return Judgement(name, (name,), {"varus_rotation_deg": 1.0}, 8, errors,

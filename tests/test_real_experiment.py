@@ -541,7 +541,8 @@ def test_hold_outs_within_target_on_each_twin():
     a twin's trial without equilibrium is left out; no line when the draws do not match."""
     from types import SimpleNamespace
 
-    from kneenlp.validation.crossval import HeldOut, twin_verdict
+    from kneenlp.validation.crossval import HeldOut
+    from kneenlp.validation.crossval_report import twin_verdict
 
     def held(rms, draws):
         prediction = SimpleNamespace(rms=lambda: dict(zip(coordinate_columns(), rms, strict=True)))
@@ -561,7 +562,7 @@ def test_twin_is_the_knees_own_prediction_plus_noise(s192803):
     """``twin``: without noise, each trial's pose is predict's at the given values (registration
     included); with noise of standard deviation ``sd`` per coordinate, the poses move by the seeded
     standard normal draw times ``sd``, trial by trial; the trials and the side are the data's."""
-    from kneenlp.validation.crossval import twin
+    from kneenlp.validation.twins import twin
 
     model = KneeModel.of(s192803)
     data = read_measured(CSV).subset(np.arange(25) % 3 == 0)
@@ -580,7 +581,7 @@ def test_twin_draws_are_stored_and_read_back(s192803, tmp_path):
     without equilibrium included, in order); a store of another run (other options) is refused
     with a one-line error naming it, never mixed in."""
     from kneenlp.base.errors import InputError
-    from kneenlp.validation.crossval import TwinStore
+    from kneenlp.validation.twins import TwinStore
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     errors = {"valgus": np.random.default_rng(3).normal(size=(4, 5)), "flexion 87 deg": np.full((6, 5), 0.25)}
@@ -651,7 +652,8 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
     chain ends in another local minimum of this twin, objective 7.9, 1.1 mm off in anterior
     translation: the path's dependence the global search is for, not what this oracle measures.)"""
     from kneenlp.estimation.calibrate import calibrate
-    from kneenlp.validation.crossval import folds, hold_out, twin
+    from kneenlp.validation.crossval import folds, hold_out
+    from kneenlp.validation.twins import twin
 
     # the least-squares calibration, whose twin the oracle below was measured on
     args = ["cross-validate", str(CSV), "--knee", "s192803", "--hold-out", "varus", "--twins", "1", "--out",
@@ -769,7 +771,7 @@ def test_candidates_are_judged_by_their_held_out_error(s192803):
     """crossval.judge: the base calibration and one with a candidate, each with its fitted RMS beside
     its held-out error (here the varus hold-out alone); the candidate is recommended only where its
     held-out error is lower, whatever its fit."""
-    from kneenlp.validation import crossval
+    from kneenlp.validation import crossval, crossval_report
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     base, wider = crossval.judge(model, data, [["PCLal_femoral_attachment"]], which=["varus"], starts=1)
@@ -777,7 +779,7 @@ def test_candidates_are_judged_by_their_held_out_error(s192803):
     assert wider.free == base.free + 3 and list(base.held_out) == ["varus"]
     best = crossval.judged_best([base, wider])
     assert (best is wider) == (wider.held_out["varus"] < base.held_out["varus"] and wider.converged["varus"][0] == 4)
-    lines = crossval.judgement_lines([base, wider])
+    lines = crossval_report.judgement_lines([base, wider])
     assert "fitted RMS" in lines[0] and any(line.strip().startswith("base") for line in lines)
 
 
@@ -826,13 +828,13 @@ def test_what_too_few_trials_cannot_determine_is_not_reported_as_a_result(s19280
     """A hold-out calibrated on one trial has no misfit to estimate: its expected error and p are
     "not determined", never an expected RMS of 1e-13 and p = 0; data with every trial unloaded are
     refused (nothing there determines a ligament)."""
-    from kneenlp.validation import crossval
+    from kneenlp.validation import crossval, crossval_report
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     keep_one = np.arange(len(data)) != 0
     r = crossval.hold_out(model, data, keep_one, "all but the first", starts=1)
     assert np.isnan(r.expected).all() and np.isnan(r.p_value())
-    assert "n.d." in crossval.report([r])
+    assert "n.d." in crossval_report.report([r])
     unloaded = data.subset(np.array([t.dominant == "none" for t in data.trials]))
     with pytest.raises(kneenlp.InputError, match="unloaded"):
         crossval.calibrate(model, unloaded)
@@ -1094,7 +1096,7 @@ def test_what_the_held_out_trials_teach_brings_their_prediction_closer(s192803):
     (nonlinear, each trial at equilibrium) the held-out trials with the hold-out's values and the
     first lesson's parameter moved: their squared error falls; and the report prints the lessons."""
     from kneenlp.prediction.predict import predict
-    from kneenlp.validation import crossval
+    from kneenlp.validation import crossval, crossval_report
 
     model, data = KneeModel.of(s192803), read_measured(CSV)
     (r,) = crossval.cross_validate(model, data, ["external"], explain=True, starts=1)
@@ -1107,9 +1109,9 @@ def test_what_the_held_out_trials_teach_brings_their_prediction_closer(s192803):
     moved = predict(model, held, r.calibration.fit.params | {first.name: first.with_them})
     assert moved.converged.all() and r.prediction.converged.all()
     assert np.sum(moved.errors_user**2) < np.sum(r.prediction.errors_user**2)
-    text = crossval.report([r])
+    text = crossval_report.report([r])
     assert "alone teach" in text and first.name in text and "prior sd" in text
-    assert first.name in crossval.table([r]).loc[0, "taught"]
+    assert first.name in crossval_report.table([r]).loc[0, "taught"]
 
 
 def test_hold_outs_that_leave_nothing_loaded_are_not_folds(tmp_path, capsys):

@@ -21,7 +21,7 @@ def cmd_diagnose(args) -> int:
     from kneenlp.adequacy.diagnosis import diagnose
     from kneenlp.estimation.calibrate import calibrate, real_experiment
     from kneenlp.experiment.kneemodel import KneeModel
-    from kneenlp.validation import crossval
+    from kneenlp.validation import crossval, crossval_report
 
     knee = knee_from_args(args)
     data = args.measured  # read and checked by the options layer
@@ -49,7 +49,7 @@ def cmd_diagnose(args) -> int:
     if args.json:
         print(json.dumps(json.loads(d.to_json()) | extra, indent=2))
     else:
-        print("\n".join([d.report(), *crossval.judgement_lines(judged)]) if judged else d.report())
+        print("\n".join([d.report(), *crossval_report.judgement_lines(judged)]) if judged else d.report())
     return 0
 
 
@@ -176,7 +176,7 @@ def cmd_identify(args) -> int:
     from kneenlp.estimation.profile import profile, profile_lines
     from kneenlp.figures.plots import waterfall
     from kneenlp.io import inferencedata
-    from kneenlp.validation import crossval
+    from kneenlp.validation import crossval_report
 
     knee = knee_from_args(args)
     check_names(knee, args)
@@ -216,7 +216,7 @@ def cmd_identify(args) -> int:
     if args.json:
         print(summary)
     else:
-        judgement = crossval.judgement_lines(judged) if judged else []
+        judgement = crossval_report.judgement_lines(judged) if judged else []
         print("\n".join([calibration.report(), *profile_lines(intervals), *judgement, *notes]))
     return 0 if fit.success else 1
 
@@ -458,7 +458,7 @@ def cmd_predict(args) -> int:
 
 def cmd_cross_validate(args) -> int:
     from kneenlp.experiment.kneemodel import KneeModel
-    from kneenlp.validation import crossval
+    from kneenlp.validation import crossval, crossval_report
 
     model = KneeModel.of(knee_from_args(args))
     store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
@@ -468,7 +468,7 @@ def cmd_cross_validate(args) -> int:
                                       keep_outliers=args.keep_outliers, multistart=args.multistart,
                                       starts=search_starts(args, calibration=True),
                                       **prior_options(args))
-    table = crossval.table(results)
+    table = crossval_report.table(results)
     written = []
     if args.out:
         with staged_directory(args.out) as stage:
@@ -482,7 +482,7 @@ def cmd_cross_validate(args) -> int:
         print(json.dumps({"units": "mm, deg", "hold_outs": table.to_dict(orient="records"), "outputs": written},
                          indent=2))
     else:
-        print(crossval.report(results))
+        print(crossval_report.report(results))
         if written:
             print("wrote: " + ", ".join(written))
     return 0 if all(r.prediction.converged.all() for r in results) else 1

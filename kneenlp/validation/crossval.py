@@ -40,24 +40,21 @@ hold-outs, at half of it in 4-6; the real knee's errors are the twin's in every 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 from scipy import stats
 
-from kneenlp.base.conventions import coordinate_columns
 from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.estimation.calibrate import Calibration, calibrate, noise_per_observation, prediction_variances
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
-from kneenlp.experiment.noise import NoiseModel
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import flexion_groups
 from kneenlp.prediction.predict import Prediction, predict, rms_by_coordinate
+from kneenlp.validation.twins import TwinStore, twin
 
 #: The held-out targets: RMS of measured minus predicted, rotations (deg) and translations (mm).
 ROTATION_TARGET = 5.0
@@ -316,34 +313,6 @@ def tied(judgements: list[Judgement]) -> list[Judgement]:
     return [j for j in judgements[1:] if base.mean - max(base.margin, j.margin) <= j.mean < base.mean]
 
 
-def judgement_lines(judgements: list[Judgement]) -> list[str]:
-    """The judgements as a table: fitted RMS beside the held-out error, base and each candidate."""
-    holds = list(judgements[0].held_out)
-    lines = [f"Judged by what it predicts: fitted RMS (all trials; deg, deg, mm, mm, mm) beside the held-out "
-             f"error (RMS over {ROTATION_TARGET:g} deg or {TRANSLATION_TARGET:g} mm, the larger; <= 1 meets the "
-             "target) of each hold-out",
-             f"    {'calibration':40s} {'free':>4}  {'fitted RMS':>29}  {'mean':>5} {'+-':>5} {'met':>4}  " + " ".join(
-                 f"{h[:10]:>10}" for h in holds)]
-    for j in judgements:
-        fitted = " ".join(f"{v:5.2f}" for v in j.fitted.values())
-        cells = " ".join(f"{j.held_out[h]:10.2f}" + ("" if j.converged[h][0] == j.converged[h][1] else "!")
-                         for h in holds)
-        lines.append(f"    {j.name[:40]:40s} {j.free:4d}  {fitted:>29}  {j.mean:5.2f} {j.margin:5.2f} "
-                     f"{j.met:2d}/{len(holds)}  {cells}")
-    lines.append("    (+-: the mean spread of the held-out error over each search's lowest minima; a difference "
-                 "within it is a tie)")
-    lines += [f"    held out, {j.name} ties with the base ({judgements[0].mean:.2f} -> {j.mean:.2f}, within "
-              f"{max(judgements[0].margin, j.margin):.2f})" for j in tied(judgements)]
-    best = judged_best(judgements)
-    lines.append("    ! a held-out trial without equilibrium (the candidate is not recommended)"
-                 if any("!" in x for x in lines) else "")
-    lines.append(f"    held out, {best.name} lowers the error {judgements[0].mean:.2f} -> {best.mean:.2f} (met "
-                 f"{judgements[0].met} -> {best.met} of {len(holds)}): recommended (the held-out error is the judge; "
-                 "the tests above rank the candidates)" if best else
-                 "    held out, no candidate lowers the error: none is recommended, whatever it does to the fit")
-    return [x for x in lines if x]
-
-
 def consistency(errors: np.ndarray, expected: np.ndarray) -> float:
     """p-value of held-out errors (T x 5, mm and deg) against the calibration's expected standard
     deviations (T x 5): the chi-square ``sum (error / expected)^2`` on as many degrees of freedom as
@@ -370,19 +339,6 @@ def against_reference(errors: np.ndarray, reference: np.ndarray) -> float:
     if not p:
         return float("nan")
     return float(stats.chi2.sf(-2.0 * np.sum(np.log(np.maximum(p, 1e-300))), 2 * len(p)))
-
-
-def twin(model: KneeModel, data: MeasuredData, parameters: dict[str, float], sd: np.ndarray,
-         rng: np.random.Generator) -> MeasuredData:
-    """The experiment as the knee with ``parameters`` would have produced it: every trial of
-    ``data`` at its measured load and flexion predicted (registration included), plus normal noise
-    of standard deviation ``sd`` per coordinate (5, mm and deg) drawn from ``rng`` (a (T, 5) draw
-    of standard normals, scaled).  A trial without equilibrium is left out."""
-    truth = predict(model, data, parameters)
-    ok = truth.converged
-    q = truth.predicted_user[ok] + NoiseModel("gaussian", 1.0).sample(rng, (int(ok.sum()), 5)) * sd
-    trials = [t for t, k in zip(data.trials, ok, strict=True) if k]
-    return MeasuredData.from_user(trials, q, data.protocol, f"twin of {data.source}", data.side)
 
 
 #: Minima of a hold-out's global search at which its held-out error is measured (:attr:`HeldOut.at_minima`).
@@ -474,57 +430,6 @@ def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[
             for n in names if n in masks}
 
 
-@dataclass(frozen=True)
-class TwinStore:
-    """Finished twin draws in a directory: ``draw_<n>.csv`` (hold-out, row within it and errors,
-    mm and deg), and ``run.json`` naming the run (knee and its parameters, data, hold-outs,
-    options) so that a store of another run is refused, never mixed in.  Nothing is written before
-    the first draw finishes (an interrupted run with none leaves no file)."""
-
-    path: Path
-    #: what ``run.json`` holds
-    identity: dict
-
-    @classmethod
-    def open(cls, path: Path, model: KneeModel, data: MeasuredData, names: list[str], options: dict) -> TwinStore:
-        """The store at ``path`` for this run (written with its first draw); another run's is an
-        :class:`~kneenlp.base.errors.InputError`."""
-        from kneenlp.base.errors import InputError
-
-        path = Path(path)
-        identity = {"knee": model.knee.name, "parameters": np.round(model.theta(), 12).tolist(),
-                    "trials": [t.id for t in data.trials], "measured": np.round(data.q_user, 9).tolist(),
-                    "hold_outs": names, "options": {k: v for k, v in sorted(options.items()) if v is not None}}
-        identity = json.loads(json.dumps(identity))
-        stamp = path / "run.json"
-        if stamp.is_file() and json.loads(stamp.read_text()) != identity:
-            raise InputError("holds the twins of another run (knee, data, hold-outs or options differ); remove "
-                             "it or write elsewhere", source=str(path), field="--out")
-        return cls(path, identity)
-
-    def load(self, draw: int) -> dict[str, np.ndarray] | None:
-        """The held-out errors of finished draw ``draw`` by hold-out name (None: not finished)."""
-        path = self.path / f"draw_{draw}.csv"
-        if not path.is_file():
-            return None
-        table, columns = pd.read_csv(path), coordinate_columns()
-        return {n: g.sort_values("row")[columns].to_numpy(float) for n, g in table.groupby("held_out", sort=False)}
-
-    def save(self, draw: int, errors: dict[str, np.ndarray]) -> None:
-        """Write draw ``draw``'s held-out errors, atomically (``run.json`` first, with the first draw)."""
-        from kneenlp.base.atomic import write_csv_atomic, write_text_atomic
-
-        if not (self.path / "run.json").is_file():
-            self.path.mkdir(parents=True, exist_ok=True)
-            write_text_atomic(self.path / "run.json", json.dumps(self.identity))
-
-        columns = coordinate_columns()
-        rows = [{"held_out": n, "row": i, **dict(zip(columns, e, strict=True))}
-                for n, table in errors.items() for i, e in enumerate(table)]
-        write_csv_atomic(pd.DataFrame(rows, columns=["held_out", "row", *columns]), self.path / f"draw_{draw}.csv",
-                         index=False, float_format="%.17g")
-
-
 def flexion_folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
     """(name, held-out mask) of every flexion, all its trials held out (the highest is one of
     :func:`folds`; the others are hold-outs a user names: checks the default ones did not choose)."""
@@ -551,75 +456,3 @@ def _chosen(data: MeasuredData, which: list[str] | None) -> list[tuple[str, np.n
         raise InputError("no hold-out leaves loaded trials to calibrate on: cross-validation needs trials at two "
                          "flexions or in two load directions", source=data.source, field="data")
     return chosen
-
-
-def table(results: list[HeldOut]) -> pd.DataFrame:
-    """One row per hold-out: trial counts, the calibration's RMS on its own trials and the
-    held-out RMS per coordinate (columns ``fit_rms_<coordinate>``, ``rms_<coordinate>``: mm, deg)."""
-    return pd.DataFrame([r.row() for r in results])
-
-
-def _number(value: float, spec: str) -> str:
-    """``value`` formatted, or "n.d." (not determined: a calibration on too few trials to estimate
-    its misfit) right-aligned in the same width."""
-    text = format(value, spec)
-    return text if np.isfinite(value) else "n.d.".rjust(len(text))
-
-
-def report(results: list[HeldOut]) -> str:
-    """The hold-outs as a text table (mm, deg): each error and, in brackets, the calibration's
-    expected error (module docstring); with twins, a second table of each error beside the twins'."""
-    cols = coordinate_columns()
-    head = "  ".join(f"{c.rsplit('_', 1)[0].replace('_translation', '').replace('_rotation', ''):>13}"
-                     for c in cols)
-    units = "  ".join(f"{c.rsplit('_', 1)[1]:>13}" for c in cols)
-    width = max(12, *(len(r.name) for r in results))
-
-    def rows(second, p):
-        for r in results:
-            cells = "  ".join(f"{v:5.2f} ({_number(e, '5.2f')})" for v, e in zip(r.rms().values(),
-                                                                                  second(r).values(), strict=True))
-            n = f"{int(r.prediction.converged.sum())}/{int(r.held.sum())}"
-            yield f"{r.name:<{width}}  {n:>6}  {cells}  {_number(p(r), '7.2g')}"
-
-    header = [f"{'held out':<{width}}  trials  {head}  {'p':>7}", f"{'':<{width}}          {units}"]
-    lines = ["Held-out prediction: RMS of measured minus predicted on trials the calibration did not see",
-             "(in brackets: what the calibration expects it to be, its noise and its parameters' uncertainty;",
-             " p: how likely errors this large are if that expectation is right)",
-             *header, *rows(HeldOut.expected_rms, HeldOut.p_value)]
-    spread = [r for r in results if r.at_minima]
-    if spread:
-        lines += ["", f"Held-out error (normalised, 1 = on target) at the global search's {SPREAD_MINIMA} lowest "
-                  "minima, and their spread (a difference smaller than it is a tie):",
-                  *(f"  {r.name:<{width}}  {' / '.join(f'{v:.3f}' for v in r.at_minima)}  spread "
-                    f"{_number(r.spread(), '.3f')}" for r in spread)]
-    taught = [r for r in results if r.taught]
-    if taught:
-        lines += ["", "What the held-out trials alone teach the calibration: the parameters whose move, when they",
-                  "join it, removes most of their squared error (linearised; display units):",
-                  *(line for r in taught for line in [f"  {r.name}:", *(
-                      f"    {x.text(r.calibration.fit.problem.model)}" for x in r.taught)])]
-    twins = max((len(r.reference) for r in results), default=0)
-    if twins:
-        lines += ["", "The same errors beside, in brackets, those of the same hold-out on the experiment's twin "
-                  f"({twins} noise draw{'s' if twins > 1 else ''}):",
-                  "the calibrated knee's own predictions of every trial plus noise at the calibration's level, i.e.",
-                  "the error of a model that is exactly right, calibrated the same way (p: how likely errors this",
-                  "large are for it)",
-                  *header, *rows(HeldOut.reference_rms, HeldOut.p_reference), *twin_verdict(results)]
-    return "\n".join(lines)
-
-
-def twin_verdict(results: list[HeldOut]) -> list[str]:
-    """How many hold-outs meet the targets here and on each twin: the second is what these trials
-    allow a model that is exactly right, at the calibration's misfit (nothing when the twins do not
-    hold every hold-out the same number of times)."""
-    draws = {len(r.reference) for r in results}
-    if len(draws) != 1 or not draws.pop():
-        return []
-    per_draw = [sum(v <= 1 for v in column) for column in zip(*(r.reference_normalised() for r in results),
-                                                               strict=True)]
-    met = sum(r.normalised() <= 1 for r in results)
-    return [f"Within {TRANSLATION_TARGET:g} mm and {ROTATION_TARGET:g} deg: {met} of {len(results)} hold-outs here; on "
-            f"the twins {min(per_draw)}-{max(per_draw)} (median {np.median(per_draw):g}; per draw "
-            f"{', '.join(map(str, per_draw))}):", "what these trials allow a model that is exactly right"]
