@@ -32,7 +32,8 @@ import numpy as np
 
 import kneenlp
 from kneenlp.base.resources import resource
-from kneenlp.estimation.calibrate import LOAD_POINT, REGISTRATION, calibrate
+from kneenlp.estimation.calibrate import calibrate
+from kneenlp.estimation.choice import LOAD_POINT, REGISTRATION
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
 from kneenlp.experiment.problem import resolve_priors

@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 import kneenlp
-from kneenlp.estimation.calibrate import calibrate, noise_per_observation
+from kneenlp.estimation.calibrate import calibrate
+from kneenlp.estimation.calibrated import noise_per_observation
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.problem_file import ProblemFile

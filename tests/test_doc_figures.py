@@ -239,7 +239,8 @@ CALIBRATIONS = {
                                   pytest.param("problems/s192803", marks=pytest.mark.slow)])
 def test_s192803_fitted_rms(s192803, name):
     """The fitted RMS of the 'In short' table (benchmarks/bench_priors.py's calibrations)."""
-    from kneenlp.estimation.calibrate import LOAD_POINT, REGISTRATION, calibrate
+    from kneenlp.estimation.calibrate import calibrate
+    from kneenlp.estimation.choice import LOAD_POINT, REGISTRATION
 
     raw = (DOCS / "real-experiment.md").read_text()
     options, column = CALIBRATIONS[name]

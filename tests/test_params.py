@@ -152,7 +152,7 @@ def test_effects_and_elements_are_freed_by_name(model):
 
 
 def test_a_calibration_refuses_a_fixed_value_it_would_not_start_from():
-    from kneenlp.estimation.calibrate import from_params
+    from kneenlp.estimation.choice import from_params
 
     model = KneeModel.of(kneenlp.Knee.named("synthetic"))
     params = model.make_params().only(["ACL.k"])

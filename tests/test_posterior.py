@@ -10,7 +10,7 @@ import pytest
 import kneenlp
 from kneenlp.base.conventions import BAND_Z
 from kneenlp.cli import main
-from kneenlp.estimation.calibrate import Calibration, posterior
+from kneenlp.estimation.calibrated import Calibration, posterior
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
 from kneenlp.prediction.predict import predict

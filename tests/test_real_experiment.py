@@ -309,7 +309,7 @@ def test_calibration_frees_what_the_trials_determine(s192803):
     """The registration always; of the ligament groups, those the trials move at the knee's values:
     the superficial MCL (20 % slack in the FE model), the LCL and the PCL never engage in these 25
     trials and stay at the knee's values."""
-    from kneenlp.estimation.calibrate import REGISTRATION, calibration_free, real_experiment
+    from kneenlp.estimation.choice import REGISTRATION, calibration_free, real_experiment
 
     data = read_measured(CSV)
     assert real_experiment(data)
@@ -325,7 +325,7 @@ def test_calibration_frees_what_the_trials_determine(s192803):
 def test_a_larger_pivot_tolerance_fits_a_subset(s192803):
     """``pivot_tolerance`` chooses how weakly determined a fitted parameter may be: a larger one
     fits a strict subset of the default's ligament parameters (the registration always)."""
-    from kneenlp.estimation.calibrate import PIVOT_TOLERANCE, REGISTRATION, calibration_free
+    from kneenlp.estimation.choice import PIVOT_TOLERANCE, REGISTRATION, calibration_free
 
     data, model = read_measured(CSV), KneeModel.of(s192803)
     default, _ = calibration_free(model, data)
@@ -350,7 +350,7 @@ def test_pivot_tolerance_is_refused_where_nothing_is_calibrated(tmp_path, capsys
 def test_also_free_names_parameters_or_effects(s192803, tmp_path, capsys):
     """``--also-free`` takes parameter names and effect names (an effect is all its parameters);
     an unknown name, a given --free and data that is not a real experiment are refused in one line."""
-    from kneenlp.estimation.calibrate import also_free_names
+    from kneenlp.estimation.choice import also_free_names
 
     model = KneeModel.of(s192803)
     names = ["PCLal_femoral_attachment", "ACLam.femur_anterior", "PCLal.femur_lateral", "tibial_axes"]
@@ -470,7 +470,7 @@ def test_probe_engages_the_groups_slack_in_every_trial(s192803):
     """At the knee's values the superficial MCL, LCL and PCL are slack in all 25 trials (no
     sensitivity, nothing to fit); the calibration's probe raises their offsets until each reaches
     the toe region in its most stretching trial, and leaves every other group alone."""
-    from kneenlp.estimation.calibrate import ENGAGE_STRAIN, engaged_probe
+    from kneenlp.estimation.choice import ENGAGE_STRAIN, engaged_probe
     from kneenlp.solvers.forward import forward_solver
 
     model = KneeModel.of(s192803)
@@ -697,7 +697,7 @@ def test_calibration_says_what_predict_reproduces(s192803, tmp_path):
     predict reaches the same poses: its loading path is a function of the forces alone.  The
     outlier test sets aside the one trial no passive knee produces (valgus_flex60).  The entry
     point is the API's ``identify``, whose strategy for a real experiment is the calibration."""
-    from kneenlp.estimation.calibrate import NO_RECORD, SAME_POSE
+    from kneenlp.estimation.calibrated import NO_RECORD, SAME_POSE
     from kneenlp.estimation.identify import identification
     from kneenlp.prediction.predict import predict
 
@@ -1077,7 +1077,8 @@ def test_a_fit_does_not_depend_on_its_starts_rounding(s192803):
     the same minimum from its start and from the start moved by 1e-12 (starting poses: the
     equilibrium nearer each measurement; first trust radius: one scale per parameter).  Newton
     from the measured poses with a trust radius of the start's own norm ended them at 1949 and 4437."""
-    from kneenlp.estimation.calibrate import LOAD_POINT, MAX_EVALUATIONS, REGISTRATION
+    from kneenlp.estimation.calibrate import MAX_EVALUATIONS
+    from kneenlp.estimation.choice import LOAD_POINT, REGISTRATION
     from kneenlp.estimation.solve import reduced_fit
     from kneenlp.experiment.problem import IdentificationProblem
 

@@ -29,7 +29,7 @@ import tomli_w
 
 import kneenlp
 from kneenlp.base.resources import resource
-from kneenlp.estimation.calibrate import LOAD_POINT, REGISTRATION, engaged_probe
+from kneenlp.estimation.choice import LOAD_POINT, REGISTRATION, engaged_probe
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
 from kneenlp.model.params import default_free

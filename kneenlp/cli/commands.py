@@ -19,7 +19,8 @@ HELD_OUT_CANDIDATES = 2
 def cmd_diagnose(args) -> int:
     from kneenlp.adequacy.basefit import base_fit
     from kneenlp.adequacy.diagnosis import diagnose
-    from kneenlp.estimation.calibrate import calibrate, real_experiment
+    from kneenlp.estimation.calibrate import calibrate
+    from kneenlp.estimation.choice import real_experiment
     from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.validation import crossval, crossval_report
 
@@ -171,7 +172,7 @@ def held_out_judgements(knee, args) -> list:
 
 
 def cmd_identify(args) -> int:
-    from kneenlp.estimation.calibrate import NO_RECORD, posterior
+    from kneenlp.estimation.calibrated import NO_RECORD, posterior
     from kneenlp.estimation.identify import identification
     from kneenlp.estimation.profile import profile, profile_lines
     from kneenlp.figures.plots import waterfall
@@ -236,7 +237,7 @@ def _calibration_comparison(out: dict) -> str:
 
 
 def cmd_compare_methods(args) -> int:
-    from kneenlp.estimation.calibrate import real_experiment
+    from kneenlp.estimation.choice import real_experiment
     from kneenlp.estimation.compare import compare_calibration, compare_methods
     from kneenlp.experiment.kneemodel import KneeModel
 

@@ -11,7 +11,7 @@ writes them) differs from data the model produced in two ways the fit must take 
   ``valgus_flex60``, docs/real-experiment.md).
 
 Which ligament parameters the trials can determine is decided before the fit
-(:func:`calibration_free`): the sensitivities of the measured coordinates to every ligament
+(:func:`~kneenlp.estimation.choice.calibration_free`): the sensitivities of the measured coordinates to every ligament
 parameter at the knee's own values (through each trial's equilibrium), with the registration's
 columns, are ranked by a pivoted QR; a parameter is kept while its pivot is at least
 :data:`PIVOT_TOLERANCE` of the largest, i.e. while it changes the coordinates in a direction the
@@ -21,9 +21,9 @@ A ligament slack in every trial has no sensitivity at all, whatever the data say
 values a slack PCL cannot be told from an absent one, and the fit could never engage it (its
 gradient is zero).  So the sensitivities are taken at a *probe*: every group whose fibres stay
 slack in every trial at the knee's values has its reference-strain offset raised until its most
-stretched fibre reaches :data:`ENGAGE_STRAIN` in its most stretching trial.  The fit starts at
-the probe with those offsets free (the data then decide whether the group stays engaged), and the
-report names the groups engaged this way.
+stretched fibre reaches :data:`~kneenlp.estimation.choice.ENGAGE_STRAIN` in its most stretching
+trial.  The fit starts at the probe with those offsets free (the data then decide whether the
+group stays engaged), and the report names the groups engaged this way.
 
 A robot's joint loads act at the robot's load-reference point, registered to the tibia like the
 poses.  A few millimetres of mediolateral error there turn 200 N of drawer into an
@@ -47,271 +47,67 @@ after; :meth:`Calibration.parameter_set` is the calibrated parameter file's cont
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
-import scipy.linalg
 
-from kneenlp.base.conventions import COORDINATES
 from kneenlp.base.dask_cluster import DaskWorkers
-from kneenlp.base.errors import InputError
+from kneenlp.estimation.calibrated import (
+    Calibration,
+    CalibrationRecord,
+    noise_per_observation,
+    on_loading_path,
+    prediction_variances,
+)
+from kneenlp.estimation.choice import (
+    also_free_names,
+    calibration_choice,
+    check_calibration,
+    engaged_priors,
+    engaged_probe,
+    from_params,
+)
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.estimation.outliers import (
     MAX_OUTLIER_SHARE,
     SCREEN_ALPHA,
     Outlier,
     deletion_test,
-    prediction_variance,
     residual_factors,
     screen,
 )
 from kneenlp.estimation.search import DEFAULT_STARTS, SCREEN_EVALUATIONS, OutlierTest, Search, search
 from kneenlp.estimation.solve import reduced_fit, scatter_fit, solve_simultaneous
-from kneenlp.estimation.statistics import effective_parameters, gauss_newton_covariance
+from kneenlp.estimation.statistics import effective_parameters
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.model.parameters import ParameterSet
-from kneenlp.model.params import Parameters, declared_free, default_free, named_parameters
-from kneenlp.model.posterior import Posterior
-from kneenlp.model.priors import Prior
-from kneenlp.prediction.laxity import laxity_lines, laxity_records, laxity_table
-from kneenlp.prediction.predict import Prediction, predict, rms_by_coordinate
-from kneenlp.solvers.forward import forward_solver, unstable_equilibria
+from kneenlp.model.params import Parameters
+from kneenlp.prediction.predict import predict
 
-#: Smallest pivot (relative to the largest) of a parameter the calibration frees.
-PIVOT_TOLERANCE = 0.02
 #: Residual evaluations of the reduced-space Gauss-Newton calibration (S192803 converges in 40).
 MAX_EVALUATIONS = 150
 #: IPOPT iterations of the fallback (the simultaneous NLP) when the reduced solve fails.
 MAX_ITER = 80
-#: Strain (fraction) at which the probe engages a group slack in every trial: inside the toe region.
-ENGAGE_STRAIN = 0.02
-#: Largest difference (mm or deg) between the fit's pose of a trial and predict's for the same one.
-SAME_POSE = 0.05
 #: The misfit variance (mm^2, deg^2) a calibration's priors are weighed against by default: the
 #: misfit a calibrated laxity model reaches, about 1 mm and 1 deg.  Held out on S192803 it predicted
 #: better than the weight estimated from the fit (which grows with the model's error, 5-12 mm^2:
 #: the priors then hold the knee near values that do not fit; docs/priors.md).
 PRIOR_WEIGHT = 1.0
-REGISTRATION = [f"registration.{c}" for c in COORDINATES]
-#: The robot's load point, freed in the calibration of joint loads (module docstring).
-LOAD_POINT = "load_point.lateral"
 
 
-def real_experiment(data: MeasuredData) -> bool:
-    """Data from an experiment rather than from the model: a declared side or joint loads."""
-    return data.side is not None or any(t.axes == "jcs" for t in data.trials)
 
 
-def engaged_probe(model: KneeModel, data: MeasuredData, theta: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """(the probe's parameter vector, the groups it engaged): ``theta`` with every grouped ligament
-    slack in every trial engaged to :data:`ENGAGE_STRAIN` (module docstring)."""
-    solver = forward_solver(model)
-    probe, engaged = theta.copy(), []
-    for _ in range(3):  # the poses move with the engaged groups: a few passes settle them
-        solutions = [s for s in solver.solve(data.trials, probe) if s.converged]
-        moved = False
-        for element in model.elements:
-            offset = f"{element.name}.ref_strain_offset"
-            column = f"{element.name}_strain_pct"
-            if offset not in model.parameter_names or not solutions or column not in solutions[0].outputs:
-                continue
-            most = max(s.outputs[column] for s in solutions)
-            if most < ENGAGE_STRAIN / 2 and (most < 0 or element.name in engaged):
-                i = model.index(offset)
-                hi = model.parameter(offset).bounds[1]
-                probe[i] = min(hi, probe[i] + (ENGAGE_STRAIN - most) * (1 + probe[i]))
-                moved = True
-                if element.name not in engaged:
-                    engaged.append(element.name)
-        if not moved:
-            break
-    return probe, engaged
 
 
-def calibration_free(model: KneeModel, data: MeasuredData, theta: np.ndarray | None = None,
-                     pivot_tolerance: float | None = None) -> tuple[list[str], list[str]]:
-    """(parameters to fit, ligament parameters left fixed): the registration and the ligament
-    parameters the trials determine at ``theta`` (default: the knee's values; see
-    :func:`engaged_probe`): those whose pivot is at least ``pivot_tolerance`` (default
-    :data:`PIVOT_TOLERANCE`) of the largest."""
-    pivot_tolerance = PIVOT_TOLERANCE if pivot_tolerance is None else pivot_tolerance
-    candidates = default_free(model)
-    names = [*REGISTRATION, *candidates]
-    problem = IdentificationProblem.from_data(model, data, names)
-    theta = model.theta() if theta is None else theta
-    solutions = forward_solver(model).solve(data.trials, theta)
-    ok = np.array([s.converged for s in solutions])
-    q = np.array([s.q for s in solutions])
-    S = problem.sensitivities(q, theta, names)  # (T * 5) x n, mm or deg per SI unit
-    rows = np.repeat(ok, 5)
-    scaled = S[rows] * np.array([model.parameter(n).scale for n in names])
-    _, R, piv = scipy.linalg.qr(scaled, mode="economic", pivoting=True)
-    diag = np.abs(np.diag(R))
-    keep = {names[piv[i]] for i in range(len(diag)) if diag[i] >= pivot_tolerance * diag[0]}
-    free = [*REGISTRATION, *[n for n in candidates if n in keep]]
-    return free, [n for n in candidates if n not in keep]
 
 
-@dataclass(frozen=True)
-class CalibrationRecord:
-    """What a calibration found besides its fit: the prediction with the knee's own parameters, what
-    was left fixed, the groups engaged, predict's check, the outliers.  A calibrated
-    :class:`~kneenlp.estimation.fit.Fit` carries it (:class:`Calibration` holds the two)."""
-
-    before: Prediction | None  # None: an identification without the prediction before it
-    fixed: list[str]
-    #: ligament groups slack in every trial at the knee's values, engaged at the fit's start
-    engaged: list[str] = field(default_factory=list)
-    #: ``predict`` at the calibrated values: each trial solved from the knee's unloaded state, as a
-    #: user's ``predict --parameters calibrated.toml`` solves it (None: not checked)
-    check: Prediction | None = None
-    #: trials the outlier test set aside (:mod:`~kneenlp.estimation.outliers`), in the order found
-    outliers: list[Outlier] = field(default_factory=list)
-    #: ``predict`` of the set-aside trials at the calibrated values (None: none set aside)
-    set_aside: Prediction | None = None
-    #: the global search that found the fit, its competing minima (None: a local calibration)
-    search: Search | None = None
 
 
-#: The record of a fit that is no calibration (an identification): nothing found besides the fit.
-NO_RECORD = CalibrationRecord(None, [])
 
 
-@dataclass(frozen=True)
-class Calibration:
-    """A calibration: its fit and what it found besides (:class:`CalibrationRecord`; an
-    identification's fit has :data:`NO_RECORD`).  The record's fields read through."""
-
-    fit: Fit
-    record: CalibrationRecord = NO_RECORD
-
-    before = property(lambda self: self.record.before, doc=":attr:`CalibrationRecord.before`")
-    fixed = property(lambda self: self.record.fixed, doc=":attr:`CalibrationRecord.fixed`")
-    engaged = property(lambda self: self.record.engaged, doc=":attr:`CalibrationRecord.engaged`")
-    check = property(lambda self: self.record.check, doc=":attr:`CalibrationRecord.check`")
-    outliers = property(lambda self: self.record.outliers, doc=":attr:`CalibrationRecord.outliers`")
-    set_aside = property(lambda self: self.record.set_aside, doc=":attr:`CalibrationRecord.set_aside`")
-    search = property(lambda self: self.record.search, doc=":attr:`CalibrationRecord.search`")
-
-    @property
-    def elsewhere(self) -> list[str]:
-        """Trials whose calibrated equilibrium ``predict`` does not reach from the unloaded state (it
-        finds none, or another one more than :data:`SAME_POSE` away): the fit found them by
-        continuation in the parameters, on a branch a loading from neutral need not follow."""
-        if self.check is None:
-            return []
-        return [t.id for t, off in zip(self.fit.data.trials, off_loading_path(self.fit, self.check), strict=True)
-                if off]
-
-    @property
-    def rms_before(self) -> dict[str, float] | None:
-        return None if self.before is None else self.before.rms()
-
-    @property
-    def rms_after(self) -> dict[str, float]:
-        """RMS of measured minus fitted per coordinate column (mm, deg) over the fitted trials."""
-        return rms_by_coordinate(self.fit.data.q_user - self.fit.predicted_user)
-
-    @property
-    def rms_with_outliers(self) -> dict[str, float] | None:
-        """:attr:`rms_after` with the set-aside trials' predictions at the calibrated values (None:
-        none set aside)."""
-        if self.set_aside is None:
-            return None
-        return rms_by_coordinate(np.vstack([self.fit.data.q_user - self.fit.predicted_user,
-                                            self.set_aside.errors_user[self.set_aside.converged]]))
-
-    def parameter_set(self) -> ParameterSet:
-        """The knee's parameter set with the fitted values: ``--parameters`` of later commands."""
-        knee = self.fit.problem.model.knee
-        values = {n: self.fit.params[n] for n in self.fit.problem.free}
-        out = knee.parameters.with_values(values, name=f"{knee.name}-calibrated",
-                                          description=f"{knee.name} calibrated to {self.fit.data.source}")
-        return dataclasses.replace(out, posterior=posterior(self.fit))
-
-    def to_toml(self) -> str:
-        info = {p.name: p for p in self.fit.problem.model.parameters}
-        rms = ", ".join(f"{c} {v:.2f}" for c, v in self.rms_after.items())
-        return self.parameter_set().to_toml(info, [
-            f"Calibrated by kneenlp identify on {self.fit.data.source} ({len(self.fit.data)} trials).",
-            f"RMS of measured minus fitted after calibration: {rms} (mm, deg).",
-            "Values in [values] carry their units; the rest are the knee's own parameter set."])
-
-    def laxity(self) -> pd.DataFrame:
-        """Measured and fitted laxity per flexion and load pair (mm, deg; :mod:`~kneenlp.prediction.laxity`)."""
-        return laxity_table(self.fit.data.trials, self.fit.data.q_user, self.fit.predicted_user)
-
-    def summary(self) -> dict:
-        out = {"rms_after": self.rms_after, "laxity_after": laxity_records(self.laxity())}
-        if self.check is not None:
-            out |= {"rms_predicted": self.check.rms(), "predicted_converged": int(self.check.converged.sum()),
-                    "equilibrium_elsewhere": self.elsewhere}
-        if self.set_aside is not None:
-            out |= {"outliers": [o.record() for o in self.outliers], "rms_with_outliers": self.rms_with_outliers,
-                    "outliers_converged": int(self.set_aside.converged.sum())}
-        if self.before is not None:
-            out |= {"rms_before": self.rms_before, "fixed": self.fixed, "engaged": self.engaged,
-                    "converged_before": int(self.before.converged.sum())}
-        if self.search is not None:
-            out["search"] = self.search.summary()
-        return out
-
-    def report(self) -> str:
-        if self.before is None:
-            return self.fit.report()
-
-        def row(rms):
-            return ", ".join(f"{c.rsplit('_', 1)[0]} {v:.2f} {c.rsplit('_', 1)[1]}" for c, v in rms.items())
-
-        lines = [self.fit.report(), "[[Calibration]]",
-                 f"    RMS before (the knee's parameters, {int(self.before.converged.sum())}/"
-                 f"{len(self.before.solutions)} trials at equilibrium): {row(self.rms_before)}",
-                 f"    RMS after ({len(self.fit.data)} trials fitted): {row(self.rms_after)}",
-                 *self._outlier_lines(row),
-                 *self._check_lines(row),
-                 *laxity_lines(self.laxity(), "    laxity after calibration (mm, deg):"),
-                 f"    left at the knee's values (the trials do not determine them): {', '.join(self.fixed) or 'none'}",
-                 "    slack in every trial at the knee's values, engaged at the start: "
-                 f"{', '.join(self.engaged) or 'none'}",
-                 *(self.search.lines() if self.search is not None else [])]
-        return "\n".join(lines)
-
-    def _outlier_lines(self, row) -> list[str]:
-        if self.set_aside is None:
-            return []
-        lines = ["    set aside by the outlier test (fitted without them; --keep-outliers fits every trial):",
-                 *(f"      {o.line()}" for o in self.outliers)]
-        failed = [s.trial.id for s in self.set_aside.solutions if not s.converged]
-        if failed:
-            lines.append(f"      no equilibrium at the calibrated values: {', '.join(failed)}")
-        lines.append(f"    RMS after, with them predicted at the calibrated values: {row(self.rms_with_outliers)}")
-        return lines
-
-    def _check_lines(self, row) -> list[str]:
-        if self.check is None:
-            return []
-        n, ok = len(self.check.solutions), int(self.check.converged.sum())
-        lines = [f"    RMS as predict solves the calibrated knee (each trial from the unloaded state; {ok}/{n} at "
-                 f"equilibrium): {row(self.check.rms())}"]
-        if self.elsewhere:
-            lines.append("    equilibrium found only by the fit's continuation (from the unloaded state predict "
-                         f"reaches none or another): {', '.join(self.elsewhere)}")
-        return lines
 
 
-def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
-    """Model parameters named by ``names``: parameter names, effect names for all of an effect's
-    parameters (``PCLal_femoral_attachment`` is ``PCLal.femur_anterior``, ``.femur_proximal``,
-    ``.femur_lateral``) or element names for all of an element's (``tibial_origin``); an unknown
-    name is an :class:`InputError` listing the effects and elements.  In the model's order, whatever
-    the order named: the reduced-space fit stops within the mesh contact's cost noise, at a point
-    that depends on the order of its unknowns (S192803: sum of squares 113-117 for two orders of the
-    same six effects), and the same names must give the same calibration."""
-    return named_parameters(model, names, "--also-free")
 
 
 def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
@@ -331,12 +127,12 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     as :func:`~kneenlp.experiment.problem.resolve_priors`): with priors the fit is the MAP estimate
     and, unless ``free`` or ``pivot_tolerance`` says otherwise, every ligament parameter is fitted
     (each prior determines what the trials do not); without priors only those the trials determine
-    are (:func:`calibration_free`).  The priors are weighed against the misfit's variance
+    are (:func:`~kneenlp.estimation.choice.calibration_free`).  The priors are weighed against the misfit's variance
     ``prior_weight`` (mm^2 or deg^2 per unit weight; default :data:`PRIOR_WEIGHT`), or
     ``"estimate"``: estimated from the fit itself (:func:`map_fit`).  For a robot's joint loads and
     the default ``free``,
     ``load_point`` frees the lateral shift of the point the robot's force acts at too;
-    ``also_free``: parameters or effects (:func:`also_free_names`) fitted beside the default
+    ``also_free``: parameters or effects (:func:`~kneenlp.estimation.choice.also_free_names`) fitted beside the default
     ``free``, e.g. attachments a segmentation may have misplaced; unless ``keep_outliers``, trials
     the outlier test flags (:mod:`~kneenlp.estimation.outliers`) are set aside one at a time and the
     fit repeated without them.  ``weighted``, ``with_effects`` and ``start`` as
@@ -355,10 +151,10 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
 
     ``params`` (:class:`~kneenlp.model.params.Parameters`, instead of ``free`` and ``priors``):
     its varied parameters are fitted with its priors, bounds and ties; its values that differ from
-    the knee's start the fit there (:func:`from_params`)."""
+    the knee's start the fit there (:func:`~kneenlp.estimation.choice.from_params`)."""
     if params is not None:
         free, priors, start, ties = from_params(model, params, free, priors, start, also_free, pivot_tolerance)
-    _check_calibration(data, free, pivot_tolerance, also_free)
+    check_calibration(data, free, pivot_tolerance, also_free)
     with_priors, estimate = priors not in (None, "none"), prior_weight == "estimate"
     extra = also_free_names(model, also_free or [])
     before = predict(model, data)
@@ -392,27 +188,6 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     return Calibration(fit, record)
 
 
-def from_params(model: KneeModel, params: Parameters, *given) -> tuple[list[str], dict, dict, dict[str, str]]:
-    """(free, priors, start, ties) of a calibration given ``params``: its varied parameters, their
-    priors (None: none), the varied values that differ from the knee's (the start there) and its
-    ties; refused beside ``free``, ``priors``, ``start``, ``also_free`` or ``pivot_tolerance``
-    (``given``, in that order), or with a fixed value other than the knee's (a calibration starts
-    from the knee's parameter file: put it there)."""
-    names = ("free", "priors", "start", "also_free", "pivot_tolerance")
-    for name, value in zip(names, given, strict=True):
-        if value is not None and not (name == "priors" and value == "default"):
-            raise InputError(f"params says what is fitted and how: set it there (vary, prior, value), not by {name}",
-                             field=name)
-    params.check()
-    own, values = model.theta(), params.valuesdict()
-    moved = {n: v for n, v in values.items() if v != own[model.index(n)]}
-    fixed = [n for n in moved if not params[n].vary and n not in params.ties()]
-    if fixed:
-        raise InputError(f"{fixed[0]} is fixed at another value than the knee's: a calibration starts from the "
-                         "knee's parameter file; put the value there (--parameters, Knee.with_parameters)",
-                         field=f"parameters.{fixed[0]}")
-    free = params.free
-    return free, params.priors(), {n: moved[n] for n in free if n in moved}, params.ties()
 
 
 def local_fit(model: KneeModel, data: MeasuredData, free: list[str], extra: list[str], probe: np.ndarray,
@@ -493,83 +268,14 @@ def hopped(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarr
     return on_loading_path(fit) if fit.success else fit
 
 
-def on_loading_path(fit: Fit) -> Fit:
-    """``fit`` with the trials whose fitted equilibrium is not the one ``predict`` reaches by loading
-    from the unloaded state (:func:`off_loading_path`) named in its ``off_path``.
-
-    A laxity trial has several equilibria where the knee is bistable; the simultaneous NLP, whose
-    poses are free, may put a trial on any of them, and may fit its data better there.  Each choice
-    of branches is a minimum of its own: on S192803 the global search found 21 distinct minima in
-    28 solves, and the lowest four had 2-4 trials each on equilibria no loading from neutral
-    reaches (so that ``predict`` of the very trials fitted differs from the fit).  The trial was
-    loaded from neutral: the search ranks the minima with every trial on the loading path first
-    (:mod:`~kneenlp.estimation.search`).  Solving again from the loading path's poses did not help:
-    the NLP went back to another branch in every case tried, and bounding every pose to 2 mm / 2 deg
-    about the loading path's (16 starts, 25 trials) left 1 of 11 converged ends on it (MAP
-    objectives 370-428; free poses 362-395): as the parameters move, the loading path's branch moves
-    with them.  The equilibria in question lie 0.1-1.5 mm or deg apart (the knee's neutral zone)."""
-    check = predict(fit.problem.model, fit.data, fit.params)
-    ids = [t.id for t in fit.data.trials]
-    return dataclasses.replace(fit, off_path=tuple(i for i, o in zip(ids, off_loading_path(fit, check), strict=True)
-                                                   if o),
-                               unstable=tuple(i for i, u in zip(ids, unstable(fit), strict=True) if u))
 
 
-def unstable(fit: Fit) -> np.ndarray:
-    """Per trial of ``fit``: its fitted equilibrium is unstable
-    (:func:`~kneenlp.solvers.forward.unstable_equilibria`).  On S192803 most of the global search's
-    minima put varus_flex0 on one."""
-    problem = fit.problem
-    return unstable_equilibria(problem.model, fit.q_pred, fit.theta, problem.loads, problem.flexions)
 
 
-def off_loading_path(fit: Fit, check: Prediction) -> np.ndarray:
-    """Per trial of ``fit``: its fitted equilibrium is not what ``check`` (``predict`` at the fit's
-    values) reaches from the unloaded state (none, or one more than :data:`SAME_POSE` away)."""
-    gap = np.abs(check.observed_user - fit.predicted_user).max(axis=1)
-    return ~check.converged | ~(gap <= SAME_POSE)
 
 
-def _check_calibration(data: MeasuredData, free: list[str] | None, pivot_tolerance: float | None,
-                       also_free: list[str] | None) -> None:
-    """Refuse options that contradict each other, and data without a load (:func:`calibrate`)."""
-    if free is not None and pivot_tolerance is not None:
-        raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
-    if free is not None and also_free:
-        raise InputError("adds to what the calibration chooses, --free names it all: give one", field="--also-free")
-    if all(t.dominant == "none" for t in data.trials):
-        raise InputError(f"every trial of {data.source or 'the data'} is unloaded: laxity under load is what "
-                         "determines the ligaments", field="data")
 
 
-def calibration_choice(model: KneeModel, data: MeasuredData, free: list[str] | None, probe: np.ndarray,
-                       engaged: list[str], *, with_priors: bool, pivot_tolerance: float | None,
-                       load_point: bool) -> tuple[list[str], list[str]]:
-    """(parameters to fit, parameters left at the knee's values) of :func:`calibrate`: a user's
-    ``free`` as given, else the parameter table's ``free = true`` entries, else the calibration's
-    choice: with priors every ligament parameter (unless ``pivot_tolerance``), without them those the
-    trials determine at the ``probe`` (:func:`calibration_free`) and the offsets of the ``engaged``
-    groups; the load point for joint loads (``load_point``); less what the table declares fixed."""
-    declared = declared_free(model, [])  # the parameter table's free = true entries, if any
-    if free is None and declared:
-        free = declared
-    if free is not None:  # a user's --free (or the table's) is kept as given
-        return free, []
-    fixed: list[str] = []
-    if with_priors and pivot_tolerance is None:
-        free = [*REGISTRATION, *default_free(model)]
-    else:
-        free, fixed = calibration_free(model, data, probe, pivot_tolerance)
-        # an engaged group's offset is always fitted: the data, not the probe, decide how taut it is
-        offsets = [f"{g}.ref_strain_offset" for g in engaged]
-        free += [n for n in offsets if n not in free]
-        fixed = [n for n in fixed if n not in offsets]
-    if load_point and any(t.axes == "jcs" for t in data.trials):
-        free = [*free, LOAD_POINT]
-    # less what the parameter table declares fixed (free = false); in the model's order, as a parameter
-    # table's (the fit's path, and so its local minimum, depends on the order)
-    kept = declared_free(model, free)
-    return sorted(kept, key=model.index), fixed + [n for n in free if n not in kept]
 
 
 def first_fit(problem: IdentificationProblem, start: dict[str, float], *, estimate: bool, seed: int,
@@ -670,20 +376,6 @@ def polished(fit: Fit, threads: int = 2) -> Fit:
     return fit.with_note(f"the simultaneous NLP from the {start} did not improve it ({why}): the reduced fit is kept")
 
 
-def engaged_priors(model: KneeModel, probe: np.ndarray, engaged: list[str], free: list[str]) -> dict[str, Prior]:
-    """The priors of the reference-strain offsets of the groups the probe engaged
-    (:func:`engaged_probe`), centred on the probe's value instead of the knee's: a group slack in
-    every trial of a laxity experiment is the import's artefact (S192803: the FE model's slack
-    lengths were set with deformable cartilage, and leave the cruciates and collaterals slack on
-    rigid bones), not knowledge that it is slack; the probe's 2 % of toe strain in its most
-    stretching trial is the prior's mean, with the kind's width."""
-    out = {}
-    for group in engaged:
-        name = f"{group}.ref_strain_offset"
-        if name in free:
-            value = float(probe[model.index(name)])
-            out[name] = dataclasses.replace(model.parameter(name).default_prior(value), source="engaged probe")
-    return out
 
 
 #: Rounds of :func:`map_fit`'s prior weight (the misfit variance the priors are weighed against).
@@ -769,34 +461,7 @@ def outlier_verdict(without: Fit, held: MeasuredData, n_trials: int) -> tuple[Ou
     return outlier, ""
 
 
-def prediction_variances(fit: Fit, data: MeasuredData, q: np.ndarray) -> np.ndarray:
-    """Variance (T x 5, mm^2 or deg^2) of ``fit``'s prediction of the trials ``data`` at their
-    predicted poses ``q`` (T x 5, SI): the fitted parameters' covariance (the fit's weights, noise
-    from its residuals, :func:`noise_per_observation`) carried through each trial's sensitivities
-    (:func:`~kneenlp.estimation.outliers.prediction_variance`); the trials' own noise not included."""
-    problem = IdentificationProblem.from_data(fit.problem.model, data, fit.free)
-    sens = problem.sensitivities(np.asarray(q, float).reshape(-1, 5), fit.theta)
-    rows = fit.with_prior_rows(noise_per_observation(fit))
-    return np.array([prediction_variance(sens[5 * t:5 * t + 5], *rows) for t in range(len(data))])
 
 
-def posterior(fit: Fit) -> Posterior:
-    """The Laplace posterior of ``fit``'s free parameters (:mod:`~kneenlp.model.posterior`): the
-    Gauss-Newton covariance of its MAP problem, priors included (:meth:`Fit.with_prior_rows`), the
-    data's rows with the declared noise or, without one, each coordinate's from the residuals
-    (:func:`noise_per_observation`, as :func:`prediction_variances`); that noise's sd beside it."""
-    variance = fit.noise_variance if fit.problem.noise is not None else noise_per_observation(fit)
-    covariance = gauss_newton_covariance(*fit.with_prior_rows(variance), fit.scales, fit.free)
-    return Posterior(tuple(fit.free), covariance, np.sqrt(variance[0]))
 
 
-def noise_per_observation(fit: Fit) -> np.ndarray:
-    """The noise variance of each observation of ``fit`` (T x 5, mm^2 or deg^2), per coordinate
-    from the fit's residuals (sum of squares over ``T - p / 5``); NaN, not determined, when the
-    trials are too few for that (``T - p / 5 < 1``: the residuals of a fit with as many parameters
-    as observations say nothing of the misfit, and a zero would promise exact predictions)."""
-    residuals = fit.data.q_user - fit.predicted_user
-    dof = len(residuals) - len(fit.free) / 5
-    if dof < 1:
-        return np.full(residuals.shape, np.nan)
-    return np.broadcast_to(np.sum(residuals**2, axis=0) / dof, residuals.shape).copy()

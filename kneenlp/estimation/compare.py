@@ -51,12 +51,8 @@ def compare_calibration(model: KneeModel, data: MeasuredData, *, seed: int = 0, 
     equilibrium residual (N or N m), status and success (a fit stopped at a cap is not converged)."""
     import numpy as np
 
-    from kneenlp.estimation.calibrate import (
-        MAX_EVALUATIONS,
-        POLISH_ITER,
-        calibrate,
-        engaged_probe,
-    )
+    from kneenlp.estimation.calibrate import MAX_EVALUATIONS, POLISH_ITER, calibrate
+    from kneenlp.estimation.choice import engaged_probe
     from kneenlp.estimation.solve import nested_fit_of, reduced_fit, solve_simultaneous
 
     problem = calibrate(model, data, keep_outliers=True, seed=seed).fit.problem  # the calibration's problem

@@ -68,7 +68,7 @@ class Fit:
     #: trials whose fitted equilibrium is not the one ``predict`` reaches by loading from the
     #: unloaded state (a calibration's global search checks every end; empty: none, or not checked)
     off_path: tuple[str, ...] = ()
-    #: trials whose fitted equilibrium is unstable (:func:`~kneenlp.estimation.calibrate.unstable`;
+    #: trials whose fitted equilibrium is unstable (:func:`~kneenlp.estimation.calibrated.unstable`;
     #: empty: none, or not checked)
     unstable: tuple[str, ...] = ()
 

@@ -11,7 +11,7 @@ the one entry point of the Python API and of ``kneenlp identify``.
 * ``"scatter"``: the paper's identification: least squares by default, started at a seeded
   scatter around the knee's values, with restarts (below).
 * ``"auto"`` (default): ``"calibration"`` for data from an experiment (a declared side or a
-  robot's joint loads, :func:`~kneenlp.estimation.calibrate.real_experiment`) fitted by the
+  robot's joint loads, :func:`~kneenlp.estimation.choice.real_experiment`) fitted by the
   simultaneous method, ``"scatter"`` otherwise (data the model produced, and the nested method).
 
 ``method="simultaneous"`` solves the single NLP of :mod:`kneenlp.solvers.nlp` with IPOPT (or another
@@ -27,7 +27,9 @@ from pathlib import Path
 
 from kneenlp.base.errors import InputError
 from kneenlp.base.modes import Method, Strategy, checked
-from kneenlp.estimation.calibrate import Calibration, calibrate, real_experiment
+from kneenlp.estimation.calibrate import calibrate
+from kneenlp.estimation.calibrated import Calibration
+from kneenlp.estimation.choice import real_experiment
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.solve import scatter_fit, scatter_search
 from kneenlp.experiment.kneemodel import KneeModel
@@ -103,7 +105,7 @@ def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
         ``starts`` > 1: the global search, ``store`` the directory of its finished solves;
         :func:`~kneenlp.estimation.calibrate.calibrate`).
 
-    Returns the :class:`~kneenlp.estimation.calibrate.Calibration`: the :class:`Fit` and, for a real
+    Returns the :class:`~kneenlp.estimation.calibrated.Calibration`: the :class:`Fit` and, for a real
     experiment's calibration, what it found besides (its ``record``; an identification has none).
     """
     _check_names(params, method, strategy, calibration_options)

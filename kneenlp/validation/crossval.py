@@ -16,7 +16,7 @@ reach equilibrium (the others are counted and reported, never dropped silently).
 error, what the calibration itself expects it to be: the RMS over the held-out trials of the
 standard deviation of measured minus predicted, the noise the calibration estimated plus its
 parameters' covariance carried to the held-out trials
-(:func:`~kneenlp.estimation.calibrate.prediction_variances`, linearised).  An error well above it is
+(:func:`~kneenlp.estimation.calibrated.prediction_variances`, linearised).  An error well above it is
 a model that cannot be bent to what was held out; an expected error as large as the error is a
 calibration that says itself it cannot predict that (the held-out loads were the only ones to
 determine some of its parameters).  :func:`consistency` turns the comparison into a p-value: small,
@@ -47,7 +47,8 @@ import numpy as np
 from scipy import stats
 
 from kneenlp.base.dask_cluster import DaskWorkers
-from kneenlp.estimation.calibrate import Calibration, calibrate, noise_per_observation, prediction_variances
+from kneenlp.estimation.calibrate import calibrate
+from kneenlp.estimation.calibrated import Calibration, noise_per_observation, prediction_variances
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
@@ -419,7 +420,7 @@ def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[
               **calibrate_options) -> dict[str, np.ndarray]:
     """The hold-outs ``names`` on twin number ``draw`` of the experiment calibrated by ``fit`` (a
     :class:`~kneenlp.estimation.fit.Fit` on every trial): :func:`twin` at the fit's values with its
-    estimated noise (:func:`~kneenlp.estimation.calibrate.noise_per_observation`), drawn from the
+    estimated noise (:func:`~kneenlp.estimation.calibrated.noise_per_observation`), drawn from the
     generator seeded by ``(seed, draw)`` (``seed`` of ``calibrate_options``, default 0: any draw
     alone reproduces); held-out errors by hold-out name (T x 5, mm and deg, NaN without
     equilibrium; a hold-out whose trials the twin lacks is left out)."""
