@@ -40,7 +40,7 @@ def one(options: dict) -> dict:
     """The calibration under ``options`` in this process: its kept minimum and search, as a record."""
     import kneenlp
     from kneenlp.estimation.calibrate import calibrate
-    from kneenlp.estimation.search import standardised
+    from kneenlp.estimation.minima import standardised
     from kneenlp.experiment.kneemodel import KneeModel
     from kneenlp.experiment.measured import MeasuredData, read_measured
     from kneenlp.experiment.problem_file import ProblemFile

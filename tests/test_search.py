@@ -15,14 +15,8 @@ from scipy import stats
 
 import kneenlp
 from kneenlp.base.errors import InputError
-from kneenlp.estimation.search import (
-    CENTRAL,
-    SAME_PARAMETERS,
-    distinct_minima,
-    prior_starts,
-    search,
-    standardised,
-)
+from kneenlp.estimation.minima import SAME_PARAMETERS, distinct_minima, standardised
+from kneenlp.estimation.search import CENTRAL, prior_starts, search
 from kneenlp.estimation.solve import reduced_fit, solve_simultaneous
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
@@ -204,7 +198,7 @@ def test_an_interrupted_search_keeps_its_finished_solves_and_a_rerun_resumes_the
 
 
 def test_a_search_whose_solves_all_failed_keeps_the_best_failed_one_and_says_so():
-    from kneenlp.estimation.search import Search
+    from kneenlp.estimation.minima import Search
 
     problem = fake_problem(PRIORS)
     problem.equilibrium_tol = 1e-6

@@ -68,6 +68,7 @@ from kneenlp.estimation.choice import (
     from_params,
 )
 from kneenlp.estimation.fit import Fit, forked_fits
+from kneenlp.estimation.minima import Search
 from kneenlp.estimation.outliers import (
     MAX_OUTLIER_SHARE,
     SCREEN_ALPHA,
@@ -76,7 +77,7 @@ from kneenlp.estimation.outliers import (
     residual_factors,
     screen,
 )
-from kneenlp.estimation.search import DEFAULT_STARTS, SCREEN_EVALUATIONS, OutlierTest, Search, search
+from kneenlp.estimation.search import DEFAULT_STARTS, SCREEN_EVALUATIONS, OutlierTest, search
 from kneenlp.estimation.solve import reduced_fit, scatter_fit, solve_simultaneous
 from kneenlp.estimation.statistics import effective_parameters
 from kneenlp.experiment.kneemodel import KneeModel

@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 
 from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.minima import Search
 from kneenlp.estimation.outliers import Outlier, prediction_variance
-from kneenlp.estimation.search import Search
 from kneenlp.estimation.statistics import gauss_newton_covariance
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.problem import IdentificationProblem
