@@ -264,7 +264,7 @@ def test_the_global_search_is_the_default_calibration_of_a_real_experiment_and_a
     from argparse import Namespace
 
     from kneenlp.base.errors import InputError
-    from kneenlp.cli.commands import search_starts
+    from kneenlp.cli.starts import search_starts
     from kneenlp.estimation.search import DEFAULT_STARTS
 
     def args(**given):

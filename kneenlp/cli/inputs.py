@@ -93,7 +93,7 @@ def check_inputs(args) -> None:
 FROM_PROBLEM = {"noise": "noise", "strategy": "strategy", "priors": "priors", "prior_weight": "prior_weight",
                 "hold_out": "hold_outs", "also_free": "also_free", "multistart": "multistart",
                 "starts": "starts"}
-DEFAULTS = {"strategy": "auto", "multistart": 1}  # --starts: commands.search_starts
+DEFAULTS = {"strategy": "auto", "multistart": 1}  # --starts: starts.search_starts
 DIAGNOSE_NOISE = "uniform:0.5"
 
 

@@ -57,7 +57,7 @@ from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.geometry.graph_field import LAYOUTS
 from kneenlp.model.knee import Knee
-from kneenlp.solvers.forward import equilibrium_start
+from kneenlp.solvers.equilibria import equilibrium_start
 from kneenlp.solvers.nlp import nlp_expressions
 
 #: How the exported NLP holds mesh contact (module docstring).

@@ -41,7 +41,7 @@ from kneenlp.model.mesh_contact import RIM_SHARE
 from kneenlp.solvers.newton import EquilibriumNewton
 
 if TYPE_CHECKING:
-    from kneenlp.experiment.problem import IdentificationProblem
+    pass
 
 COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m from the reference pose: slightly penetrated
 #: Flexion step (deg) of the passive path from a knee's reference pose (:meth:`ForwardSolver.cold_start`).
@@ -439,36 +439,10 @@ class ForwardSolver:
         return solutions
 
 
-@dataclass
-class EquilibriumStart:
-    """Start poses of an identification: ``q`` (T x 5, SI) and ``q_user`` (mm and deg, the measured
-    values themselves where ``ok`` is false), and per trial whether it is an equilibrium inside the
-    pose envelope (``ok``)."""
-
-    q: np.ndarray
-    q_user: np.ndarray
-    ok: np.ndarray
 
 
-def equilibrium_start(problem: IdentificationProblem, theta: np.ndarray, threads: int = 2) -> EquilibriumStart:
-    """Start poses of an identification at parameters ``theta`` (SI).  Newton on all trials at once from the measured
-    poses, per-trial ramping for the few that fail, then the forward solver's own start (unloaded
-    pose first; measured poses far from the start's equilibrium, e.g. cartilage much softer than
-    the model's, defeat Newton from them).  A trial that still fails, or whose equilibrium lies
-    outside the NLP's pose envelope (IPOPT would move it onto its bound, far from equilibrium: a
-    slack scattered start reached 36 deg varus), starts at its data."""
-    data = problem.data
-    solver = forward_solver(problem.model, problem.equilibrium_tol)
-    q0, res0 = solver.solve_batch(data.trials, theta, data.q, threads)
-    ok = res0 <= problem.equilibrium_tol
-    if not ok.all():
-        failed = np.flatnonzero(~ok)
-        for i, sol in zip(failed, solver.solve([data.trials[i] for i in failed], theta), strict=True):
-            if sol.converged:
-                q0[i], ok[i] = sol.q, True
-    ok &= problem.inside_pose_bounds(q0)
-    return EquilibriumStart(np.where(ok[:, None], q0, data.q),
-                            np.where(ok[:, None], coords_to_user(q0), problem.measured), ok)
+
+
 
 
 def unstable_equilibria(model: KneeModel, q: np.ndarray, theta: np.ndarray, loads: np.ndarray,

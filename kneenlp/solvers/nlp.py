@@ -37,7 +37,7 @@ from kneenlp.base.errors import InputError
 from kneenlp.base.modes import Layout, WorkingSetSource
 from kneenlp.experiment.problem import prior_rows
 from kneenlp.model.solvercache import frozen
-from kneenlp.solvers.forward import equilibrium_start
+from kneenlp.solvers.equilibria import equilibrium_start
 from kneenlp.solvers.result import SolverResult
 
 if TYPE_CHECKING:
@@ -190,7 +190,7 @@ def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, t
 def solve_nlp(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
               solver_options: dict | None = None, threads: int = 2, q0: np.ndarray | None = None) -> SolverResult:
     """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter), poses
-    started at equilibrium (:func:`~kneenlp.solvers.forward.equilibrium_start`) or at ``q0`` (T x 5,
+    started at equilibrium (:func:`~kneenlp.solvers.equilibria.equilibrium_start`) or at ``q0`` (T x 5,
     SI: e.g. a reduced-space fit's, the equilibria its continuation followed, which a solve from the
     unloaded state need not reach)."""
     t0 = time.perf_counter()
