@@ -229,7 +229,7 @@ CALIBRATIONS = {
     "source values": ({"free": "source"}, 1),
     "MAP calibration": ({}, 2),
     "problems/s192803": ({"also_free": ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment",
-                                        "ACLam_femoral_attachment", "PCLal_bundles", "PFL_tibial_attachment"],
+                                        "ACLam_femoral_attachment", "PCLal_bundles"],
                           "starts": 16, "workers": 2}, 3),
 }
 
