@@ -33,6 +33,7 @@ Public API (see docstrings): :func:`read_osim`, :class:`OsimModel`
 """
 
 from kneenlp.io.osim.kinematics import OsimError, rot_body_xyz
+from kneenlp.io.osim.lines import LineElement, knee_line_elements, ligament_groups
 from kneenlp.io.osim.model import (
     BLANKEVOORT_DEFAULTS,
     JAM_ONLY_CLASSES,
@@ -49,7 +50,7 @@ from kneenlp.io.osim.model import (
     WrapObject,
     blankevoort_force,
 )
-from kneenlp.io.osim.read import LineElement, knee_line_elements, ligament_groups, read_osim
+from kneenlp.io.osim.read import read_osim
 from kneenlp.io.osim.write import write_calibrated, write_opensim_loadable_copy
 
 __all__ = [
