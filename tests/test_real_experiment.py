@@ -23,7 +23,8 @@ from kneenlp.base.resources import resource
 from kneenlp.cli import main
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
-from kneenlp.io.import_abaqus import import_abaqus, law_force, read_abaqus_knee, reference_pose, table_force
+from kneenlp.io.abaqus_fibres import law_force, table_force
+from kneenlp.io.import_abaqus import import_abaqus, read_abaqus_knee, reference_pose
 from kneenlp.io.laxity_mat import entry_trial, laxity_frame, read_laxity_mat
 from kneenlp.model.kinematics import joint_coordinates, tibial_pose
 from kneenlp.prediction.predict import predict
@@ -1058,7 +1059,7 @@ def test_a_group_without_its_fe_parameters_moves_per_fibre(tmp_path):
     """The import finds each group's L and EREF by perturbing the FE parameters (MCLa/m/p share
     MCL_L and MCL_K2, each its own EREF); a group whose reference length is not a parameter of
     that name keeps kneenlp's per-fibre offset, and the import says so."""
-    from kneenlp.io.import_abaqus import dependencies, group_shift, read_fibres
+    from kneenlp.io.abaqus_fibres import dependencies, group_shift, read_fibres
 
     lig = tmp_path / "ligaments"
     shutil.copytree(DEPOSIT / "ligaments", lig)

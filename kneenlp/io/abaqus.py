@@ -117,7 +117,7 @@ def evaluate_parameters(keywords: list[Keyword], names: dict[str, float] | None 
     """Values of every ``*PARAMETER`` assignment in ``keywords``, evaluated in order on top of
     ``names`` (parameters of files read before); a later assignment replaces an earlier one.
     ``scale`` multiplies the named parameters where they are assigned (what depends on a parameter:
-    :func:`kneenlp.io.import_abaqus.dependencies`)."""
+    :func:`kneenlp.io.abaqus_fibres.dependencies`)."""
     values = dict(names or {})
     scale = scale or {}
     for kw in keywords:

@@ -7,7 +7,7 @@ ligaments.  ``CALIBRATION`` is ``calibrated.toml`` (``identify --out``) or the f
 (``identify --json``).
 
 What is written, per ligament group (a connector element set; the FE parameters each group's
-table depends on are found by perturbing them, :func:`kneenlp.io.import_abaqus.dependencies`):
+table depends on are found by perturbing them, :func:`kneenlp.io.abaqus_fibres.dependencies`):
 
 * its reference-strain offset ``d`` as ``EREF' = EREF + d`` in ``LIG-PARAMETERS*.inp``: the FE
   group's slack length ``L / EREF`` is what an imported knee's
@@ -41,7 +41,7 @@ import numpy as np
 
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.experiment.kneemodel import KneeModel
-from kneenlp.io.import_abaqus import (
+from kneenlp.io.abaqus_fibres import (
     Fibre,
     assignments,
     dependencies,
