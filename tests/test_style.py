@@ -47,3 +47,19 @@ def test_functions_have_one_job():
                 if size > 80:
                     long.append(f"{rel}:{node.name} {size} lines")
     assert not long, long
+
+
+def test_classes_and_modules_stay_readable():
+    """No class of the package is longer than 350 lines and at most three modules are longer than
+    500 (a newcomer reads one job at a time: docs/architecture.md)."""
+    import ast
+
+    classes, modules = [], []
+    for f in sorted((ROOT / "kneenlp").rglob("*.py")):
+        text = f.read_text()
+        if text.count("\n") > 500:
+            modules.append(f.relative_to(ROOT).as_posix())
+        classes += [f"{f.name}:{node.name} {node.end_lineno - node.lineno + 1} lines" for node in ast.walk(ast.parse(text))
+                    if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > 350]
+    assert not classes, classes
+    assert len(modules) <= 3, modules

@@ -93,9 +93,7 @@ class ForwardSolver:
         self.model = model
         #: the knee's reference pose: where cold starts begin and the envelope is centred (rad, m)
         self.reference = np.asarray(model.knee.reference_pose[1], float)
-        self.tol = tol
-        self.max_iter = max_iter
-        self.newton = EquilibriumNewton(model)
+        self.tol, self.max_iter, self.newton = tol, max_iter, EquilibriumNewton(model)
         self._contact_columns = [o.column for e, o in model.outputs
                                  if isinstance(e, StagedElement) and o.name == "force"]
         #: the passive path of :meth:`cold_start` at the last parameters: (theta's bytes, {flexion: pose})
