@@ -19,7 +19,7 @@ its three hyperparameters (the signal and the noise sd, the length scales; one m
 by the marginal likelihood of the calibration's residuals, never the held-out ones.  Prints each
 hold-out's normalised error (its largest rotation RMS / 5 deg or translation RMS / 2 mm) without
 and with each term, the number within target and the mean: the term is accepted only if it lowers
-the mean (``crossval.judged_best``'s rule) by more than the digits printed.
+the mean by more than the spread the global searches leave (``crossval.judged_best``'s rule).
 """
 
 from __future__ import annotations
@@ -95,9 +95,13 @@ def main() -> None:
             scores[name].append(crossval.normalised_error(rms_by_coordinate((r.prediction.errors_user - shift)[ok])))
     print("held-out normalised error (<= 1 meets 2 mm and 5 deg): " + ", ".join(r.name for r in results))
     base = np.mean(scores["none"])
+    spreads = [r.spread() for r in results]
+    margin = max(SAME, float(np.nanmean(spreads))) if np.isfinite(spreads).any() else SAME
+    print(f"  (the held-out error's mean spread over each fold's lowest minima: {margin:.3f}; a smaller "
+          "change is a tie, crossval.tied)")
     for name, s in scores.items():
         change = np.mean(s) - base
-        verdict = "" if name == "none" else (": the same, not accepted" if abs(change) < SAME
+        verdict = "" if name == "none" else (f": a tie ({change:+.3f}), not accepted" if abs(change) <= margin
                                               else ": accepted" if change < 0 else ": not accepted")
         print(f"  {name:15s} " + " ".join(f"{v:5.2f}" for v in s)
               + f"   met {sum(v <= 1 for v in s)} of {len(s)}, mean {np.mean(s):.3f}{verdict}")
