@@ -157,10 +157,10 @@ def test_a_calibration_refuses_a_fixed_value_it_would_not_start_from():
     model = KneeModel.of(kneenlp.Knee.named("synthetic"))
     params = model.make_params().only(["ACL.k"])
     params["ACL.k"].set(value=12.0, unit="kN")
-    free, priors, start, _ = from_params(model, params, None, "default", None, None, None)
+    free, priors, start, _ = from_params(model, params)
     assert free == ["ACL.k"] and priors == {"ACL.k": None} and start == {"ACL.k": 12e3}
     params["PCL.k"].set(value=1.0, unit="kN")
     with pytest.raises(InputError, match=r"PCL\.k is fixed at another value than the knee's"):
-        from_params(model, params, None, "default", None, None, None)
+        from_params(model, params)
     with pytest.raises(InputError, match="not by free"):
-        from_params(model, params, ["ACL.k"], "default", None, None, None)
+        from_params(model, params, free=["ACL.k"])

@@ -154,7 +154,9 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     its varied parameters are fitted with its priors, bounds and ties; its values that differ from
     the knee's start the fit there (:func:`~kneenlp.estimation.choice.from_params`)."""
     if params is not None:
-        free, priors, start, ties = from_params(model, params, free, priors, start, also_free, pivot_tolerance)
+        given = {"free": free, "priors": None if priors == "default" else priors, "start": start,
+                 "also_free": also_free, "pivot_tolerance": pivot_tolerance}
+        free, priors, start, ties = from_params(model, params, **given)
     check_calibration(data, free, pivot_tolerance, also_free)
     with_priors, estimate = priors not in (None, "none"), prior_weight == "estimate"
     extra = also_free_names(model, also_free or [])

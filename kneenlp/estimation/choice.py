@@ -99,27 +99,19 @@ def also_free_names(model: KneeModel, names: list[str]) -> list[str]:
     return named_parameters(model, names, "--also-free")
 
 
-def from_params(model: KneeModel, params: Parameters, *given) -> tuple[list[str], dict, dict, dict[str, str]]:
+def from_params(model: KneeModel, params: Parameters, **given) -> tuple[list[str], dict, dict, dict[str, str]]:
     """(free, priors, start, ties) of a calibration given ``params``: its varied parameters, their
     priors (None: none), the varied values that differ from the knee's (the start there) and its
-    ties; refused beside ``free``, ``priors``, ``start``, ``also_free`` or ``pivot_tolerance``
-    (``given``, in that order), or with a fixed value other than the knee's (a calibration starts
-    from the knee's parameter file: put it there)."""
-    names = ("free", "priors", "start", "also_free", "pivot_tolerance")
-    for name, value in zip(names, given, strict=True):
-        if value is not None and not (name == "priors" and value == "default"):
-            raise InputError(f"params says what is fitted and how: set it there (vary, prior, value), not by {name}",
-                             field=name)
-    params.check()
-    own, values = model.theta(), params.valuesdict()
-    moved = {n: v for n, v in values.items() if v != own[model.index(n)]}
-    fixed = [n for n in moved if not params[n].vary and n not in params.ties()]
+    ties; refused beside any of ``given`` (:meth:`~kneenlp.model.params.Parameters.checked_against`),
+    or with a fixed value other than the knee's (a calibration starts from the knee's parameter
+    file: put it there)."""
+    moved = params.checked_against(dict(zip(model.parameter_names, model.theta(), strict=True)), given)
+    fixed = [n for n in moved if not params[n].vary]
     if fixed:
         raise InputError(f"{fixed[0]} is fixed at another value than the knee's: a calibration starts from the "
                          "knee's parameter file; put the value there (--parameters, Knee.with_parameters)",
                          field=f"parameters.{fixed[0]}")
-    free = params.free
-    return free, params.priors(), {n: moved[n] for n in free if n in moved}, params.ties()
+    return params.free, params.priors(), moved, params.ties()
 
 
 def check_calibration(data: MeasuredData, free: list[str] | None, pivot_tolerance: float | None,

@@ -141,13 +141,7 @@ def scatter_params(model: KneeModel, params: Parameters, given: dict) -> dict:
     arguments): its varied parameters, every value that differs from the knee's (the fixed values
     and the varied ones' reference), their priors (None: none), bounds and ties; refused beside any
     of ``given`` (``free``, ``fixed``, ``priors``, ``with_effects``)."""
-    for name, value in given.items():
-        if value:
-            raise InputError(f"params says what is fitted and how: set it there (vary, prior, value), not by {name}",
-                             field=name)
-    params.check()
-    own, values = model.theta(), params.valuesdict()
-    moved = {n: v for n, v in values.items() if v != own[model.index(n)] and n not in params.ties()}
+    moved = params.checked_against(dict(zip(model.parameter_names, model.theta(), strict=True)), given)
     return {"free": params.free, "fixed": moved, "priors": params.priors(), "bounds": params.bounds(),
             "ties": params.ties()}
 

@@ -226,6 +226,18 @@ class Parameters(Mapping[str, Param]):
             p.vary = p.name in names
         return out
 
+    def checked_against(self, own: Mapping[str, float], given: Mapping[str, object]) -> dict[str, float]:
+        """The values (SI, ties evaluated, tied ones left out) that differ from ``own`` (the knee's),
+        after :meth:`check`; a one-line error if any of ``given`` (a fit's other ways of saying what
+        it fits: ``free``, ``priors``, ...) is set beside these parameters."""
+        for name, value in given.items():
+            if value:
+                raise InputError(f"params says what is fitted and how: set it there (vary, prior, value), not by "
+                                 f"{name}", field=name)
+        self.check()
+        ties = self.ties()
+        return {n: v for n, v in self.valuesdict().items() if v != own[n] and n not in ties}
+
     # ------------------------------------------------------------------ showing and writing
     def report(self, names: Iterable[str] | None = None) -> str:
         """A table of ``names`` (default: the varied and tied ones) in display units."""
