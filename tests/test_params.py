@@ -164,3 +164,26 @@ def test_a_calibration_refuses_a_fixed_value_it_would_not_start_from():
         from_params(model, params)
     with pytest.raises(InputError, match="not by free"):
         from_params(model, params, free=["ACL.k"])
+
+
+@pytest.mark.slow
+def test_a_calibration_of_the_real_knee_with_a_tie():
+    """S192803 calibrated with one stiffness scale for the anterior and middle superficial MCL
+    (``MCLm.k_scale = MCLa.k_scale``): the fit converges, the tie holds at its end, the tied scale
+    is not fitted, and its poses and parameters give the same misfit in the untied problem (the
+    tie reached the NLP's parameter vector, not a copy of it)."""
+    from kneenlp.base.resources import resource
+    from kneenlp.estimation.calibrate import calibrate
+
+    model = KneeModel.of(kneenlp.Knee.named("s192803"))
+    data = read_measured(resource("datasets", "s192803_laxity.csv"))
+    base = calibrate(model, data, starts=1, keep_outliers=True)
+    params = model.make_params(priors="default").only(base.fit.free)
+    for name in base.fit.free:
+        params[name].set(prior=base.fit.problem.priors.get(name))
+    params["MCLm.k_scale"].set(expr="MCLa.k_scale")
+    tied = calibrate(model, data, params=params, starts=1, keep_outliers=True)
+    assert tied.fit.success and "MCLm.k_scale" not in tied.fit.free
+    theta = tied.fit.theta
+    assert theta[model.index("MCLm.k_scale")] == pytest.approx(theta[model.index("MCLa.k_scale")], rel=1e-12)
+    assert base.fit.problem.objective(tied.fit.q_pred, theta) == pytest.approx(tied.fit.objective, rel=1e-12)
