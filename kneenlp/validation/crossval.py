@@ -34,9 +34,8 @@ a model that is exactly right, calibrated the same way from the same trials
 run of many twins resumes).  Errors like the twin's are what these trials and a misfit of this
 size allow any model; errors well above the twin's are the model's (:func:`against_reference`, a
 p-value).  ``problems/s192803`` (docs/real-experiment.md, benchmarks/bench_twins.py): at the
-calibration's misfit (1.2-1.5 mm, 1.6-1.7 deg) the twin meets 2 mm and 5 deg in 1-4 of 7
-hold-outs, at half of it in 4-6; the real knee's errors are the twin's in every hold-out (p
-0.07-0.82)."""
+calibration's misfit (1.1-1.6 mm, 1.6-1.7 deg) the twin meets 2 mm and 5 deg in 2-4 of 7
+hold-outs, at half of it in 5-6."""
 
 from __future__ import annotations
 
