@@ -19,7 +19,7 @@ import numpy as np
 from kneenlp.model import ties as tie_rules
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ParameterSpace:
     """``names``: every parameter in ``theta``'s order; ``free`` the fitted ones with their
     ``scales`` and bounds (SI); ``ties`` the tied parameters' expressions (:mod:`kneenlp.model.ties`)."""
