@@ -105,7 +105,7 @@ def from_params(model: KneeModel, params: Parameters, **given) -> tuple[list[str
     ties; refused beside any of ``given`` (:meth:`~kneenlp.model.params.Parameters.checked_against`),
     or with a fixed value other than the knee's (a calibration starts from the knee's parameter
     file: put it there)."""
-    moved = params.checked_against(dict(zip(model.parameter_names, model.theta(), strict=True)), given)
+    moved = params.checked_against(model, given)
     fixed = [n for n in moved if not params[n].vary]
     if fixed:
         raise InputError(f"{fixed[0]} is fixed at another value than the knee's: a calibration starts from the "

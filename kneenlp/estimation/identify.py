@@ -141,7 +141,7 @@ def scatter_params(model: KneeModel, params: Parameters, given: dict) -> dict:
     arguments): its varied parameters, every value that differs from the knee's (the fixed values
     and the varied ones' reference), their priors (None: none), bounds and ties; refused beside any
     of ``given`` (``free``, ``fixed``, ``priors``, ``with_effects``)."""
-    moved = params.checked_against(dict(zip(model.parameter_names, model.theta(), strict=True)), given)
+    moved = params.checked_against(model, given)
     return {"free": params.free, "fixed": moved, "priors": params.priors(), "bounds": params.bounds(),
             "ties": params.ties()}
 

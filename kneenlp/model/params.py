@@ -226,8 +226,8 @@ class Parameters(Mapping[str, Param]):
             p.vary = p.name in names
         return out
 
-    def checked_against(self, own: Mapping[str, float], given: Mapping[str, object]) -> dict[str, float]:
-        """The values (SI, ties evaluated, tied ones left out) that differ from ``own`` (the knee's),
+    def checked_against(self, model: ParameterModel, given: Mapping[str, object]) -> dict[str, float]:
+        """The values (SI, ties evaluated, tied ones left out) that differ from ``model``'s (the knee's),
         after :meth:`check`; a one-line error if any of ``given`` (a fit's other ways of saying what
         it fits: ``free``, ``priors``, ...) is set beside these parameters."""
         for name, value in given.items():
@@ -235,7 +235,7 @@ class Parameters(Mapping[str, Param]):
                 raise InputError(f"params says what is fitted and how: set it there (vary, prior, value), not by "
                                  f"{name}", field=name)
         self.check()
-        ties = self.ties()
+        own, ties = dict(zip(model.parameter_names, model.theta(), strict=True)), self.ties()
         return {n: v for n, v in self.valuesdict().items() if v != own[n] and n not in ties}
 
     # ------------------------------------------------------------------ showing and writing
