@@ -12,6 +12,7 @@ import pandas as pd
 
 from kneenlp.base.atomic import write_csv_atomic
 from kneenlp.base.conventions import EQUILIBRIUM_TOL, coords_to_user
+from kneenlp.experiment.kind import SIMULATED, Experiment
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import measured_frame
 from kneenlp.experiment.noise import NoiseModel
@@ -30,6 +31,8 @@ class SimulationResult:
     seconds: float
     parameters: dict[str, float]
     model: KneeModel | None = None
+    #: the experiment simulated: what its data observe, where its force acts
+    experiment: Experiment = SIMULATED
 
     @property
     def converged(self) -> int:
@@ -53,7 +56,7 @@ class SimulationResult:
         strain in % and force in N, contact force per compartment in N and penetration in mm; the
         unit is in each column name), convergence."""
         trials = [s.trial for s in self.solutions]
-        df = measured_frame(trials, coords_to_user(self.q), self.protocol.name)
+        df = measured_frame(trials, coords_to_user(self.q), self.protocol.name, experiment=self.experiment)
         model = self.model or KneeModel.of(self.knee)
         theta = model.theta(self.parameters)
         for element, out in model.outputs:
@@ -101,7 +104,7 @@ class SimulationResult:
         # what the instrument reads, biases included
         y = model.observe(self.q, model.theta(self.parameters), [s.trial.flexion for s in self.solutions])
         return measured_frame([s.trial for s in self.solutions], y + noise.sample(rng, self.q.shape),
-                              self.protocol.name)
+                              self.protocol.name, experiment=self.experiment)
 
     def to_csv(self, path: str | Path) -> Path:
         return write_csv_atomic(self.table(), path, index=False, float_format="%.10g")
@@ -124,8 +127,10 @@ class SimulationResult:
 
 
 def simulate(knee: Knee | KneeModel | None = None, protocol: Protocol | str = "set3",
-             parameters: dict[str, float] | None = None, tol: float = EQUILIBRIUM_TOL) -> SimulationResult:
-    """Solve every trial of ``protocol`` on ``knee`` (default: the embedded knee).
+             parameters: dict[str, float] | None = None, tol: float = EQUILIBRIUM_TOL, *,
+             experiment: Experiment = SIMULATED) -> SimulationResult:
+    """Solve every trial of ``protocol`` on ``knee`` (default: the embedded knee), loaded as
+    ``experiment`` loads it (its load point; its data observe its coordinates).
 
     ``parameters`` overrides values of the knee's parameter set (SI, by name, e.g.
     ``{"ACL.k": 12000.0}``).  Returns a :class:`SimulationResult`; trials that do not converge are
@@ -138,7 +143,7 @@ def simulate(knee: Knee | KneeModel | None = None, protocol: Protocol | str = "s
     theta = model.theta(parameters)
     solver = forward_solver(model, tol)
     t0 = time.perf_counter()
-    sols = solver.solve(protocol.trials, theta)
+    sols = solver.solve(experiment.applied_to(list(protocol.trials)), theta)
     seconds = time.perf_counter() - t0
     return SimulationResult(knee, protocol, sols, seconds, dict(zip(model.parameter_names, theta, strict=True)),
-                            model)
+                            model, experiment)

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 import kneenlp
+from kneenlp.base.conventions import load_vector
 from kneenlp.base.errors import InputError
 from kneenlp.cli import main
 from kneenlp.experiment.measured import read_measured
@@ -177,7 +178,7 @@ def test_knee_in_scanner_coordinates_loads_to_the_same_model(tmp_path):
     ref = Knee.named("synthetic")
     m1, m2 = KneeModel.of(ref), KneeModel.of(scan)
     q = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
-    load = np.r_[50.0, 0, 0, 2.0, 0.5, 0, np.zeros(5)]
+    load = load_vector({"anterior_force": 50.0, "varus_moment": 2.0, "internal_moment": 0.5})
     r1 = np.asarray(m1.evaluate(q, m1.theta(), load, 0.3)).ravel()
     r2 = np.asarray(m2.evaluate(q, m2.theta(), load, 0.3)).ravel()
     assert np.allclose(r1, r2, rtol=1e-5, atol=1e-5), (r1, r2)

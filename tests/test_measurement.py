@@ -7,6 +7,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from kneenlp.base.conventions import LOAD_SIZE
 from kneenlp.base.errors import InputError
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measurement import ExperimentPart, Measurement
@@ -51,7 +52,7 @@ def test_the_standard_experiment_at_zero_is_the_bare_knee(knee):
     theta_s, theta_b = standard.theta(), bare.theta()
     for _ in range(5):
         q = rng.normal(0, [0.05, 0.1, 1e-3, 2e-3, 1e-3])
-        load, flexion = rng.normal(0, 10, 11), rng.uniform(0, 1.5)
+        load, flexion = rng.normal(0, 10, LOAD_SIZE), rng.uniform(0, 1.5)
         ws_s = standard.working_data(q, theta_s, flexion)
         ws_b = bare.working_data(q, theta_b, flexion)
         r_s = np.asarray(standard.residual(q, theta_s, load, flexion, ws_s)).ravel()
@@ -68,7 +69,7 @@ def test_a_user_part_changes_the_reading_not_the_forces(knee):
     y0, y1 = model.observe(q, theta0, flexion)[0], model.observe(q, theta1, flexion)[0]
     np.testing.assert_allclose(y1 - y0, [0, 0, 0, 1.5, 0], atol=1e-12)  # mm
     ws = model.working_data(q, theta0, flexion)
-    load = np.zeros(11)
+    load = np.zeros(LOAD_SIZE)
     np.testing.assert_array_equal(np.asarray(model.residual(q, theta0, load, flexion, ws)),
                                   np.asarray(model.residual(q, theta1, load, flexion, ws)))
 

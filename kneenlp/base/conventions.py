@@ -89,9 +89,10 @@ EXTRA_LOAD_UNITS: tuple[str, ...] = ("N", "N", "Nm")
 #: Every load component and its unit.
 ALL_LOAD_COMPONENTS: tuple[str, ...] = LOAD_COMPONENTS + EXTRA_LOAD_COMPONENTS
 ALL_LOAD_UNITS: tuple[str, ...] = LOAD_UNITS + EXTRA_LOAD_UNITS
-#: Size of the internal load vector (:func:`load_vector`): a force at the tuberosity (3), a pure
-#: moment (3), both in the femoral frame, and generalised forces of the five free coordinates (5).
-LOAD_SIZE = 11
+#: Size of the internal load vector (:func:`load_vector`): a force (3), a pure moment (3), both in
+#: the femoral frame, generalised forces of the five free coordinates (5), and where the force acts:
+#: a tibial point (3, tibial frame, m) plus the knee's tuberosity times a weight (1).
+LOAD_SIZE = 15
 
 #: Load directions of the paper's Table 2: (component, sign).
 DIRECTIONS: dict[str, tuple[str | None, float]] = {
@@ -165,13 +166,16 @@ def load_columns(extra: bool = False) -> list[str]:
 LOAD_AXES: tuple[str, ...] = names(LoadAxes)
 
 
-def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes = "femoral") -> np.ndarray:
+def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes = "femoral",
+                point: np.ndarray | None = None) -> np.ndarray:
     """Internal load vector (:data:`LOAD_SIZE`) of signed load components (N, N m; absent = 0).
 
-    ``[F (3), M (3), Q (5)]``: a force ``F`` at the tibial tuberosity and a pure moment ``M``, both
-    in the femoral frame, and generalised forces ``Q`` added to the equilibrium residual as they are
-    (order of :data:`COORDINATES`).  ``axes`` (module docstring): ``"femoral"`` along femoral X, Y,
-    Z; ``"joint"`` along the floating axis ``e2 = (cos f, -sin f, 0)``, the unvarused tibial axis
+    ``[F (3), M (3), Q (5), a (3), w (1)]``: a force ``F`` and a pure moment ``M``, both in the
+    femoral frame, generalised forces ``Q`` added to the equilibrium residual as they are (order of
+    :data:`COORDINATES`), and the tibial point ``F`` acts at, ``a + w t`` (tibial frame, m; ``t`` the
+    knee's tuberosity): ``point`` (``a``, ``w = 0``) or by default the tuberosity (``a = 0``,
+    ``w = 1``).  ``axes`` (module docstring): ``"femoral"`` along femoral X, Y, Z; ``"joint"``
+    along the floating axis ``e2 = (cos f, -sin f, 0)``, the unvarused tibial axis
     ``e3 = (sin f, cos f, 0)`` at flexion ``f`` (rad) and ``e1 = Z``; ``"jcs"`` all in ``Q``.  The
     flexion moment is never applied (the prescribed flexion carries it).
     """
@@ -180,8 +184,9 @@ def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes
     if unknown:
         raise ValueError(f"unknown load component {sorted(unknown)[0]!r}; known: {', '.join(ALL_LOAD_COMPONENTS)}")
     out = np.zeros(LOAD_SIZE)
+    out[11:] = (0.0, 0.0, 0.0, 1.0) if point is None else (*np.asarray(point, float).reshape(3), 0.0)
     if axes == "jcs":
-        out[6:] = [get["varus_moment"], get["internal_moment"], get["lateral_force"], get["anterior_force"],
+        out[6:11] = [get["varus_moment"], get["internal_moment"], get["lateral_force"], get["anterior_force"],
                    get["proximal_force"]]
         return out
     if axes == "femoral":

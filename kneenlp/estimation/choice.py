@@ -34,8 +34,9 @@ LOAD_POINT = "load_point.lateral"
 
 
 def real_experiment(data: MeasuredData) -> bool:
-    """Data from an experiment rather than from the model: a declared side or joint loads."""
-    return data.side is not None or any(t.axes == "jcs" for t in data.trials)
+    """Data from a real knee's experiment rather than from the model: as the data declare
+    (:class:`~kneenlp.experiment.kind.Experiment`)."""
+    return data.experiment.laboratory
 
 
 def engaged_probe(model: KneeModel, data: MeasuredData, theta: np.ndarray) -> tuple[np.ndarray, list[str]]:

@@ -129,7 +129,8 @@ class Fit:
 
     @property
     def n_observations(self) -> int:
-        return 5 * self.problem.n_trials
+        """The measured coordinates (those the experiment observes) of every trial."""
+        return int(self.problem.observed.sum())
 
     @property
     def dof(self) -> int:

@@ -25,7 +25,8 @@ def noise_variance(noise: NoiseModel | None, objective: float, weights: np.ndarr
     if noise is not None:
         return (np.full(weights.shape, noise.std**2),
                 f"given ({noise}: std {noise.std:.4g} mm or deg)")
-    s2 = objective / max(weights.size - n_free, 1) / float(np.mean(weights))
+    seen = weights[weights > 0]  # the observed coordinates: an experiment may not measure some
+    s2 = objective / max(seen.size - n_free, 1) / float(np.mean(seen))
     return np.full(weights.shape, s2), f"estimated from residuals (std {np.sqrt(s2):.4g} mm or deg)"
 
 
@@ -35,6 +36,8 @@ def chi_square_test(residuals: np.ndarray, weights: np.ndarray | None, variance:
     ``N - n_free`` degrees of freedom; ``weights`` is accepted for a uniform call signature."""
     r = np.asarray(residuals, float).ravel()
     var = np.broadcast_to(np.asarray(variance, float), np.shape(residuals)).ravel()
+    seen = np.isfinite(r)  # NaN: a coordinate the experiment does not observe
+    r, var = r[seen], var[seen]
     chi2 = float(np.sum(r**2 / var))
     dof = max(r.size - n_free, 1)
     return chi2, dof, float(stats.chi2.sf(chi2, dof))

@@ -4,9 +4,10 @@
 
 * ``q`` (5): free coordinates ``[varus, internal, lateral, anterior, proximal]`` (rad, m),
 * ``theta`` (n): all model parameters in :attr:`KneeModel.parameter_names` order (SI),
-* ``load`` (:data:`~kneenlp.base.conventions.LOAD_SIZE`): ``[F, M, Q]``, a force at the tibial
-  tuberosity and a pure moment in the femoral frame (N, N m) and generalised forces added to ``r``
-  as they are (a robot's joint loads; :func:`~kneenlp.base.conventions.load_vector`),
+* ``load`` (:data:`~kneenlp.base.conventions.LOAD_SIZE`): ``[F, M, Q, a, w]``, a force and a pure
+  moment in the femoral frame (N, N m), generalised forces added to ``r`` as they are (a robot's
+  joint loads) and the force's tibial point (the trial's, or the tuberosity; the experiment's
+  :class:`~kneenlp.experiment.kind.Experiment`; :func:`~kneenlp.base.conventions.load_vector`),
 * ``flexion`` (1): prescribed flexion (rad),
 * ``ws``: the contact working sets of the trial *taken at the pose q* (:meth:`KneeModel.working_set`:
   the points that can touch and, for mesh contact, the expansion of the contact at q; empty when no
@@ -210,7 +211,7 @@ class KneeModel(ContactSets):
             f_e, m_e = e.wrench(pose, values)
             force += f_e
             moment += m_e
-        # the applied force acts at the tuberosity (femoral or joint axes) or, for a robot's joint
+        # the applied force acts at the trial's point (the tuberosity by default) or, for a robot's joint
         # loads, at the tibial origin; the experiment may shift that point (LoadPoint), and its
         # tibial origin may be elsewhere (TibialOrigin): the joint loads' force (the vector whose
         # projections on e1, e2, e3 are the joint forces) then adds the couple of the shift
@@ -219,9 +220,10 @@ class KneeModel(ContactSets):
         e1, e2, e3 = axes
         joint_force = ca.solve(ca.horzcat(e1, e2, e3).T, load[8:11])
         force += load[0:3]
-        moment += ca.cross(R @ (ca.DM(self.knee.tuberosity) + shift), load[0:3]) + load[3:6]
+        at = ca.DM(self.knee.tuberosity) * load[14] + load[11:14]  # the trial's point, or the tuberosity
+        moment += ca.cross(R @ (at + shift), load[0:3]) + load[3:6]
         moment += ca.cross(R_exp @ (shift + origin), joint_force)  # the experiment's tibial axes
-        residual = generalized_forces(q, p, axes, force, moment) + load[6:LOAD_SIZE]
+        residual = generalized_forces(q, p, axes, force, moment) + load[6:11]
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 

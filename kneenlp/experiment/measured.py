@@ -23,6 +23,9 @@ column                         meaning
 ``flexion_moment_Nm`` (optional) moment, + flexion (N m): reported, carried by the prescribed flexion
 ``side`` (optional)            ``left`` or ``right``: the knee the data come from; a fit refuses
                                a knee of the other side
+``experiment`` (optional)      the experiment (:mod:`kneenlp.experiment.kind`): ``simulated``,
+                               ``laboratory`` or ``NAME`` of a ``NAME.toml`` beside the data; the
+                               coordinate columns are those it observes
 =============================  ===============================================================
 
 Real experiments (``kneenlp import-laxity``) give every trial its measured flexion and all six load
@@ -62,7 +65,7 @@ from __future__ import annotations
 import difflib
 import logging
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +83,7 @@ from kneenlp.base.conventions import (
     load_columns,
 )
 from kneenlp.base.errors import InputError
+from kneenlp.experiment.kind import SIMULATED, Experiment, experiment_of
 from kneenlp.experiment.protocol import (
     FLEXION_RANGE,
     TYPICAL,
@@ -109,22 +113,24 @@ log = logging.getLogger("kneenlp")
 
 @dataclass
 class MeasuredData:
-    """Measured poses of a set of trials (``q`` in SI: rad, m; one row per trial)."""
+    """Measured poses of a set of trials (``q`` in SI: rad, m; one row per trial; NaN in the
+    coordinates the experiment does not observe)."""
 
     trials: list[Trial]
     q: np.ndarray  # (n_trials, 5)
     protocol: str | None = None
     source: str | None = None
     side: str | None = None  # "left" or "right" if the file says so
+    experiment: Experiment = SIMULATED
 
     def __len__(self) -> int:
         return len(self.trials)
 
     @classmethod
     def from_user(cls, trials: list[Trial], q_user: np.ndarray, protocol: str | None = None,
-                  source: str | None = None, side: str | None = None) -> MeasuredData:
-        """Measured data from poses in user units (T x 5, mm and deg)."""
-        return cls(list(trials), coords_from_user(q_user), protocol, source, side)
+                  source: str | None = None, side: str | None = None, **experiment: Experiment) -> MeasuredData:
+        """Measured data from poses in user units (T x 5, mm and deg; ``experiment=``: the field)."""
+        return cls(list(trials), coords_from_user(q_user), protocol, source, side, **experiment)
 
     @property
     def q_user(self) -> np.ndarray:
@@ -135,7 +141,7 @@ class MeasuredData:
         """The trials where the boolean mask ``keep`` is true, in order."""
         keep = np.asarray(keep, bool)
         return MeasuredData([t for t, k in zip(self.trials, keep, strict=True) if k], self.q[keep],
-                            self.protocol, self.source, self.side)
+                            self.protocol, self.source, self.side, self.experiment)
 
     def check_knee(self, knee) -> None:
         """The data fit ``knee`` (a :class:`~kneenlp.model.knee.Knee`): the same side, if the data
@@ -165,7 +171,8 @@ class MeasuredData:
                 raise InputError(f"trial {t.id!r} is not in protocol {protocol.name!r}", source=src,
                                  field="trial")
             ref = known[t.id]
-            if abs(ref.flexion_deg - t.flexion_deg) > 1e-9 or not np.allclose(ref.load, t.load):
+            same_load = np.allclose(ref.load, replace(t, point=ref.point).load)  # the experiment's own load point
+            if abs(ref.flexion_deg - t.flexion_deg) > 1e-9 or not same_load:
                 raise InputError(f"trial {t.id!r}: flexion or load differs from protocol {protocol.name!r}",
                                  source=src, field="trial")
         have = {t.id for t in self.trials}
@@ -176,9 +183,10 @@ class MeasuredData:
 
 
 def measured_frame(trials: list[Trial], q_user: np.ndarray, protocol: str | None = None,
-                   side: str | None = None) -> pd.DataFrame:
+                   side: str | None = None, experiment: Experiment | None = None) -> pd.DataFrame:
     """Build the measured-data table (user units) from trials and poses (n x 5, mm/deg); the
-    optional load columns only where a trial has such a load, ``side`` only if given."""
+    optional load columns only where a trial has such a load, ``side`` and ``experiment`` only if
+    given, and the coordinates the experiment observes (all without one)."""
     rows = {
         "protocol": [protocol or ""] * len(trials),
         "trial": [t.id for t in trials],
@@ -187,12 +195,16 @@ def measured_frame(trials: list[Trial], q_user: np.ndarray, protocol: str | None
     }
     if side is not None:
         rows["side"] = [side] * len(trials)
+    if experiment is not None:
+        rows["experiment"] = [experiment.name] * len(trials)
     used = {c for t in trials for c in t.loads}
     for comp, col in zip(ALL_LOAD_COMPONENTS, load_columns(extra=True), strict=True):
         if comp in LOAD_COMPONENTS or comp in used:
             rows[col] = [t.loads.get(comp, 0.0) for t in trials]
+    seen = np.ones(5, bool) if experiment is None else experiment.mask
     for j, col in enumerate(coordinate_columns()):
-        rows[col] = np.asarray(q_user)[:, j]
+        if seen[j]:
+            rows[col] = np.asarray(q_user)[:, j]
     return pd.DataFrame(rows)
 
 
@@ -204,7 +216,8 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     path = Path(path)
     src = str(path)
     df = _read_table(path)
-    _check_columns(df, src)
+    experiment = experiment_of(df, path)
+    _check_columns(df, src, experiment)
     df = df.reset_index(drop=True)
     if df["trial"].isna().any():
         raise InputError(f"row {int(np.argmax(df['trial'].isna())) + 2}: empty trial id", source=src, field="trial")
@@ -215,9 +228,11 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     axes = _load_axes(df, src)
     side = _side(df, src)
     check_plausible(df, src)
-    trials = _trials(df, axes)
+    trials = experiment.applied_to(_trials(df, axes))
     name = _protocol_name(df, src)
-    data = MeasuredData.from_user(trials, df[coordinate_columns()].to_numpy(dtype=float), name, src, side)
+    q_user = np.column_stack([df[c].to_numpy(dtype=float) if c in df.columns else np.full(len(df), np.nan)
+                              for c in coordinate_columns()])
+    data = MeasuredData.from_user(trials, q_user, name, src, side, experiment=experiment)
     if name is not None and protocol is None:
         _check_protocol_name(data, path)
     return data
@@ -231,7 +246,7 @@ def _read_table(path: Path) -> pd.DataFrame:
     if not path.is_file():
         raise InputError("file not found", source=src)
     try:
-        df = pd.read_csv(path, dtype={"trial": str, "protocol": str, "load_axes": str, "side": str})
+        df = pd.read_csv(path, dtype={"trial": str, "protocol": str, "load_axes": str, "side": str, "experiment": str})
     except OSError as exc:
         raise InputError(f"cannot read ({exc.strerror or exc})", source=src) from None
     except Exception as exc:  # pandas raises many kinds for garbage (ParserError, UnicodeDecodeError, ...)
@@ -241,9 +256,10 @@ def _read_table(path: Path) -> pd.DataFrame:
     return df
 
 
-def _check_columns(df: pd.DataFrame, src: str) -> None:
-    """The table's columns have the expected units, none of ours twice, all required ones, and
-    between one and :data:`MAX_TRIALS` rows (a note on the logger above :data:`LARGE_TRIALS`)."""
+def _check_columns(df: pd.DataFrame, src: str, experiment: Experiment) -> None:
+    """The table's columns have the expected units, none of ours twice, all required ones (the
+    coordinates ``experiment`` observes, and no other), and between one and :data:`MAX_TRIALS` rows
+    (a note on the logger above :data:`LARGE_TRIALS`)."""
     expected_units = dict(zip([*COORDINATES, *ALL_LOAD_COMPONENTS, "flexion"],
                               [*[c.rsplit("_", 1)[1] for c in coordinate_columns()],
                                *[c.rsplit("_", 1)[1] for c in load_columns(extra=True)], "deg"], strict=True))
@@ -255,9 +271,14 @@ def _check_columns(df: pd.DataFrame, src: str) -> None:
     dup_cols = sorted({c for c in df.columns if list(df.columns).count(c) > 1} & set(REQUIRED + OPTIONAL_LOADS))
     if dup_cols:
         raise InputError("column given twice", source=src, field=dup_cols[0])
-    missing = [c for c in REQUIRED if c not in df.columns]
+    unseen = [c for c, seen in zip(coordinate_columns(), experiment.mask, strict=True) if not seen]
+    missing = [c for c in REQUIRED if c not in df.columns and c not in unseen]
     if missing:
         raise InputError(f"missing column(s) {', '.join(missing)}", source=src)
+    extra = [c for c in unseen if c in df.columns]
+    if extra:
+        raise InputError(f"experiment {experiment.name!r} does not observe this coordinate (it observes "
+                         f"{', '.join(experiment.observed)})", source=src, field=extra[0])
     if df.empty:
         raise InputError("no data rows", source=src)
     if len(df) > MAX_TRIALS:
@@ -345,9 +366,10 @@ def check_plausible(df: pd.DataFrame, src: str) -> None:
                 check_load(comp, float(v), src, col)
             except InputError as exc:
                 raise InputError(f"row {i + 2}: {exc.message}", source=src, field=col) from None
-    trans = [c for c in coordinate_columns() if c.endswith("_mm")]
-    rots = [c for c in coordinate_columns() if c.endswith("_deg")]
-    t, r = np.abs(df[trans].to_numpy()), np.abs(df[rots].to_numpy())
+    trans = [c for c in coordinate_columns() if c.endswith("_mm") and c in df.columns]
+    rots = [c for c in coordinate_columns() if c.endswith("_deg") and c in df.columns]
+    t = np.abs(df[trans].to_numpy()) if trans else np.full((len(df), 1), MIN_TRANSLATION_MM)
+    r = np.abs(df[rots].to_numpy()) if rots else np.full((len(df), 1), MIN_ROTATION_DEG)
     force = np.abs(df["anterior_force_N"].to_numpy())
     moment = np.abs(df[["varus_moment_Nm", "internal_moment_Nm"]].to_numpy()).max(axis=1)
     if t.max() > MAX_TRANSLATION_MM:
@@ -389,7 +411,7 @@ def _check_force_unit(df: pd.DataFrame, src: str, force: np.ndarray, moment: np.
     :data:`KN_SLIP_MM` along their largest load and at most a quarter as many against it, the
     loads were given in kN (or kN m).  A knee's neutral zone moves an unloaded pose too, but not
     along the noise of its load cell."""
-    columns = [c for c in PULLS if c in df.columns]
+    columns = [c for c in PULLS if c in df.columns and PULLS[c] in df.columns]
     loads = df[columns].to_numpy(float)
     typical = np.array([TYPICAL[c.rsplit("_", 1)[0]] for c in columns])
     forces = np.array([c.endswith("_N") for c in columns])

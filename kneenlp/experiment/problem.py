@@ -41,6 +41,7 @@ from kneenlp.base.conventions import (
     pose_envelope_user,
 )
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.experiment.kind import SIMULATED, Experiment
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
@@ -201,6 +202,8 @@ class IdentificationProblem:
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     #: ties (:mod:`kneenlp.model.ties`) over the knee's own: a tied parameter follows the free ones
     ties: dict[str, str] = field(default_factory=dict)
+    #: the experiment the data come from (what it observes; its load point is in the trials' loads)
+    experiment: Experiment = SIMULATED
 
     def __post_init__(self) -> None:
         self.trials = tuple(self.trials)
@@ -233,6 +236,15 @@ class IdentificationProblem:
             if self.measured.shape != (len(self.trials), 5):
                 raise InputError(f"measured coordinates have shape {self.measured.shape}, "
                                  f"expected ({len(self.trials)}, 5)", source=self.source)
+            self.weights = np.where(self.observed, self.weights, 0.0)
+
+    @property
+    def observed(self) -> np.ndarray:
+        """Which coordinates of which trial were measured (T x 5, bool; NaN in ``measured``: not
+        observed by the experiment, weighed zero)."""
+        if self.measured is None:
+            return np.ones((len(self.trials), 5), bool)
+        return np.isfinite(self.measured)
 
     @classmethod
     def from_data(cls, model: KneeModel, data: MeasuredData, free: Sequence[str] | None = None, *,
@@ -257,7 +269,7 @@ class IdentificationProblem:
         fixed = dict(fixed or {})
         return cls(model, tuple(data.trials), free, data.q_user, weights, noise_model, fixed,
                    data.source, data.protocol, resolve_priors(model, free, priors, fixed), float(prior_weight),
-                   {n: b for n, b in (bounds or {}).items() if n in free}, dict(ties or {}))
+                   {n: b for n, b in (bounds or {}).items() if n in free}, dict(ties or {}), data.experiment)
 
     def without_trials(self, ids: Sequence[str]) -> IdentificationProblem:
         """The same problem without the trials ``ids`` (their measurements and weights too)."""
@@ -363,7 +375,8 @@ class IdentificationProblem:
         """The measurements as :class:`MeasuredData` (SI poses)."""
         if self.measured is None:
             raise InputError("this problem has no measurements (a design problem)")
-        return MeasuredData.from_user(list(self.trials), self.measured, self.protocol, self.source)
+        return MeasuredData.from_user(list(self.trials), self.measured, self.protocol, self.source,
+                                      experiment=self.experiment)
 
     def theta(self, values: Mapping[str, float] | Sequence[float] | np.ndarray | None = None) -> np.ndarray:
         """Full parameter vector (SI): fixed values, then the free ``values`` (dict or in order)."""
@@ -421,7 +434,7 @@ class IdentificationProblem:
         """The NLP's parameter vector (:class:`DataLayout`): the full parameter vector (fixed
         values, SI) and the trials' data; for a program with its working sets as data (export),
         ``ws`` (T x ws_size, from :meth:`working_sets`).  Refitting other data never rebuilds the NLP."""
-        meas = self.measured if self.measured is not None else np.zeros((self.n_trials, 5))
+        meas = np.zeros((self.n_trials, 5)) if self.measured is None else np.where(self.observed, self.measured, 0.0)
         layout = self.layout(working_sets=ws is not None and np.size(ws) > 0)
         return layout.pack(self.theta(), self.prior_data(), meas, self.weights, self.loads, self.flexions,
                            None if ws is None or not np.size(ws) else ws)
@@ -445,8 +458,8 @@ class IdentificationProblem:
 
     def objective(self, q: np.ndarray, theta: np.ndarray) -> float:
         """Weighted sum of squared residuals (mm^2 + deg^2 times the weights): the paper's Psi'Psi."""
-        r = self.residuals(q, theta)
-        return float(np.sum(self.weights * r**2)) if np.all(np.isfinite(r)) else np.inf
+        r, seen = self.residuals(q, theta), self.observed
+        return float(np.sum(self.weights * np.where(seen, r, 0.0)**2)) if np.all(np.isfinite(r[seen])) else np.inf
 
     def sensitivities(self, q: np.ndarray, theta: np.ndarray, names: Sequence[str] | None = None,
                       with_poses: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:

@@ -52,6 +52,9 @@ class Trial:
     direction: str = "none"
     magnitude: float = 0.0
     axes: LoadAxes = "femoral"  # see module docstring
+    #: where the applied force acts (tibial frame, m; None: the knee's tuberosity), the experiment's
+    #: load point (:class:`~kneenlp.experiment.kind.Experiment`)
+    point: tuple[float, float, float] | None = None
 
     @property
     def flexion(self) -> float:
@@ -61,7 +64,7 @@ class Trial:
     @property
     def load(self) -> np.ndarray:
         """Internal load vector (N, N m; :func:`~kneenlp.base.conventions.load_vector`)."""
-        return load_vector(self.loads, flexion=self.flexion, axes=self.axes)
+        return load_vector(self.loads, flexion=self.flexion, axes=self.axes, point=self.point)
 
     @property
     def dominant(self) -> str:

@@ -46,6 +46,7 @@ import pandas as pd
 from scipy import stats
 
 from kneenlp.base.errors import InputError
+from kneenlp.experiment.kind import LABORATORY
 from kneenlp.experiment.measured import check_plausible, measured_frame
 from kneenlp.experiment.protocol import DIRECTION_WORDS, MAX_FORCE, MAX_MOMENT, Trial, dominant_direction
 from kneenlp.model.kinematics import tibial_pose
@@ -188,7 +189,7 @@ def laxity_frame(path: str | Path, side: str) -> pd.DataFrame:
         if total[t.id] > 1:
             seen[t.id] += 1
             trials[i] = dataclasses.replace(t, id=f"{t.id}_{seen[t.id]}")
-    df = measured_frame(trials, np.array(poses), protocol="", side=side)
+    df = measured_frame(trials, np.array(poses), protocol="", side=side, experiment=LABORATORY)
     df["source_label"] = [e.label for e in entries]
     df["source_entry"] = [e.index + 1 for e in entries]
     words = np.array([t.dominant for t in trials])

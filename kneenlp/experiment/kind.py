@@ -1,0 +1,143 @@
+"""The kind of experiment measured data come from: one unit, declared in the data.
+
+A measured-data file names its experiment in an ``experiment`` column (one value for every row);
+an :class:`Experiment` says what that experiment is:
+
+* ``laboratory``: a real knee on a real apparatus (a calibration with priors fits it, ``identify``'s
+  ``strategy="auto"``), or a simulation (the paper's scatter of starts);
+* ``observed``: the coordinates it measures (:data:`~kneenlp.base.conventions.COORDINATES`; the
+  others are not in the file, and the fit weighs them zero);
+* ``load_point``: the named tibial point its applied force acts at: ``tibial_tuberosity`` (the
+  knee's, the paper's), ``tibial_origin``, or a point of its own ``points`` (mm, tibial frame).
+
+Two kinds are shipped: ``simulated`` (every coordinate, the tuberosity: what ``simulate`` writes)
+and ``laboratory`` (the same, on a real knee: what ``import-laxity`` writes).  Any other name is an
+experiment file ``NAME.toml`` beside the data::
+
+    name = "strap"
+    laboratory = false
+    observed = ["varus_rotation", "internal_rotation"]
+    load_point = "ankle"
+    [points]
+    ankle = [0.0, -350.0, 0.0]   # mm, tibial frame (X anterior, Y proximal, Z lateral)
+
+A file without the column was written before it existed: it is ``laboratory`` if it states a
+``side`` or has a robot's joint loads (``load_axes = jcs``), else ``simulated``; that is the one
+place this is inferred.  The experiment's load point is written into each trial's load vector
+(:func:`~kneenlp.base.conventions.load_vector`), so the one model serves every experiment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import pandas as pd
+from pydantic import Field
+
+from kneenlp.base.conventions import COORDINATES
+from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.schema import Name, Table, one_of, validated
+from kneenlp.base.tomlfile import read_toml
+from kneenlp.experiment.protocol import Trial
+
+#: Named tibial points every experiment knows (the tuberosity is the knee's own).
+KNOWN_POINTS = ("tibial_tuberosity", "tibial_origin")
+
+
+class ExperimentFile(Table):
+    """An experiment file: its name, whether it is a real knee's, what it observes, where it loads."""
+
+    name: Name
+    description: str = ""
+    laboratory: bool = False
+    observed: list[Annotated[str, one_of("coordinate", COORDINATES)]] = Field(
+        default_factory=lambda: list(COORDINATES), min_length=1)
+    load_point: Name = "tibial_tuberosity"
+    points: dict[Name, Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """What an experiment is (module docstring); ``points`` in the tibial frame, m."""
+
+    name: str
+    laboratory: bool = False
+    observed: tuple[str, ...] = COORDINATES
+    load_point: str = "tibial_tuberosity"
+    points: dict[str, tuple[float, float, float]] = field(default_factory=dict, compare=False)
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        known = (*KNOWN_POINTS, *self.points)
+        if self.load_point not in known:
+            raise unknown_name("load point", self.load_point, known)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Experiment:
+        """An experiment file (module docstring; points in mm), checked."""
+        src = str(path)
+        doc = validated(ExperimentFile, read_toml(Path(path)), src)
+        try:
+            return cls(doc.name, doc.laboratory, tuple(c for c in COORDINATES if c in doc.observed),
+                       doc.load_point, {n: tuple(np.asarray(p, float) / 1e3) for n, p in doc.points.items()},
+                       doc.description)
+        except InputError as exc:
+            raise exc.with_context(source=src, field="load_point") from None
+
+    @property
+    def mask(self) -> np.ndarray:
+        """Which of the five coordinates it observes (bool, :data:`COORDINATES` order)."""
+        return np.array([c in self.observed for c in COORDINATES])
+
+    def point(self) -> np.ndarray | None:
+        """Where its applied force acts (tibial frame, m); ``None``: the knee's tuberosity."""
+        if self.load_point == "tibial_tuberosity":
+            return None
+        return np.zeros(3) if self.load_point == "tibial_origin" else np.asarray(self.points[self.load_point], float)
+
+    def applied_to(self, trials: list[Trial]) -> list[Trial]:
+        """``trials`` with their force applied at this experiment's load point."""
+        at = self.point()
+        return [t if at is None and t.point is None else replace(t, point=None if at is None else tuple(at))
+                for t in trials]
+
+
+#: The shipped experiments (module docstring).
+SIMULATED = Experiment("simulated", description="simulated data: every coordinate, the force at the tuberosity")
+LABORATORY = Experiment("laboratory", laboratory=True, description="a real knee on a real apparatus")
+
+
+def experiment_named(name: str, beside: Path | None = None) -> Experiment:
+    """The shipped experiment ``name``, or the experiment file ``NAME.toml`` in ``beside`` (a folder)."""
+    shipped = {e.name: e for e in (SIMULATED, LABORATORY)}
+    if name in shipped:
+        return shipped[name]
+    path = None if beside is None else beside / f"{name}.toml"
+    if path is None or not path.is_file():
+        raise InputError(f"unknown experiment {name!r}: not one of {', '.join(shipped)} and no {name}.toml beside "
+                         "the data", field="experiment")
+    found = Experiment.load(path)
+    if found.name != name:
+        raise InputError(f"the file declares experiment {found.name!r}, the data name {name!r}", source=str(path),
+                         field="name")
+    return found
+
+
+def experiment_of(df: pd.DataFrame, path: Path) -> Experiment:
+    """The experiment a measured-data table declares in its ``experiment`` column (one value for
+    every row), files beside it included; without the column, as the module docstring says."""
+    if "experiment" not in df.columns:
+        side = "side" in df.columns and df["side"].notna().any()
+        robot = "load_axes" in df.columns and (df["load_axes"].astype(str).str.strip() == "jcs").any()
+        return LABORATORY if side or robot else SIMULATED
+    names = {str(v).strip() for v in df["experiment"].dropna()}
+    if len(names) != 1:
+        raise InputError(f"expected one experiment for every row, got {', '.join(sorted(names)) or 'none'}",
+                         source=str(path), field="experiment")
+    try:
+        return experiment_named(names.pop(), path.parent)
+    except InputError as exc:
+        raise exc.with_context(source=str(path), field="experiment") from None

@@ -1,0 +1,103 @@
+"""The experiment as one unit (kneenlp.experiment.kind), and its worked example: a device that
+reads only two coordinates and pushes at a named point, added by one file (tests/data/strap.toml)."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import kneenlp
+from kneenlp.base.errors import InputError
+from kneenlp.experiment.kind import Experiment
+from kneenlp.experiment.kneemodel import KneeModel
+from kneenlp.experiment.measured import read_measured
+from kneenlp.experiment.protocol import Protocol
+
+STRAP = Path(__file__).parent / "data" / "strap.toml"
+#: sideways pushes at the ankle and internal-external moments, at two flexions (N, N m, deg)
+PROTOCOL = {"name": "strap_test", "cases": [
+    *({"name": f"push{f:+g}", "loads": {"lateral_force": f}, "flexion": [0.0, 30.0]} for f in (-15.0, 15.0)),
+    *({"name": f"turn{m:+g}", "loads": {"internal_moment": m}, "flexion": [0.0, 30.0]} for m in (-3.0, 3.0)),
+]}
+FREE = ["MCL.k", "LCL.k"]
+
+
+@pytest.fixture(scope="module")
+def strap_data(tmp_path_factory, knee):
+    """The device's noise-free data of the synthetic knee, as a file beside the device's file."""
+    device = Experiment.load(STRAP)
+    folder = tmp_path_factory.mktemp("strap")
+    shutil.copy(STRAP, folder / "strap.toml")
+    protocol = Protocol.from_dict(PROTOCOL)
+    sim = kneenlp.simulate(knee, protocol, experiment=device)
+    assert sim.converged == len(protocol)
+    sim.measured().to_csv(folder / "data.csv", index=False)
+    return read_measured(folder / "data.csv", protocol=protocol), sim
+
+
+def test_the_data_declare_the_device_and_carry_only_what_it_reads(strap_data):
+    data, _ = strap_data
+    assert data.experiment.name == "strap" and not data.experiment.laboratory
+    assert data.experiment.observed == ("varus_rotation", "internal_rotation")
+    assert np.isfinite(data.q[:, :2]).all() and np.isnan(data.q[:, 2:]).all()
+    assert all(np.allclose(t.point, [0.0, -0.35, 0.0]) for t in data.trials)
+
+
+def test_the_force_acts_at_the_ankle(knee, strap_data):
+    """The push at the ankle is the push at the tuberosity plus the couple of the arm between them
+    (a pure moment, femoral frame); the knee pushed at the ankle ends elsewhere."""
+    data, sim = strap_data
+    model = KneeModel.of(knee)
+    i, push = next((i, t) for i, t in enumerate(data.trials) if "push" in t.id)
+    q, flexion, theta = sim.q[i], push.flexion, model.theta()
+    R = np.asarray(model.pose(q, flexion, theta)[0])
+    at_tuberosity = replace(push, point=None).load
+    at_tuberosity[3:6] += np.cross(R @ (np.array([0.0, -0.35, 0.0]) - knee.tuberosity), push.load[0:3])
+    np.testing.assert_allclose(np.asarray(model.evaluate(q, theta, push.load, flexion)).ravel(),
+                               np.asarray(model.evaluate(q, theta, at_tuberosity, flexion)).ravel(), atol=1e-9)
+    pushed_at_tuberosity = kneenlp.simulate(knee, Protocol.from_dict(PROTOCOL))
+    assert np.abs(pushed_at_tuberosity.q[:, :2] - sim.q[:, :2]).max() > np.deg2rad(0.5)
+
+
+def test_a_fit_of_the_device_data_recovers_the_knee_from_two_coordinates(knee, strap_data):
+    data, sim = strap_data
+    truth = {n: sim.parameters[n] for n in FREE}
+    fit = kneenlp.identify(knee, data, free=FREE, start={n: 0.7 * v for n, v in truth.items()})
+    assert fit.success and fit.n_observations == 2 * len(data)
+    for n, v in truth.items():
+        assert fit.params[n] == pytest.approx(v, rel=1e-4)
+    assert np.isnan(fit.residuals[:, 2:]).all() and np.abs(fit.residuals[:, :2]).max() < 1e-4
+
+
+def test_a_device_file_that_names_an_unknown_point_is_one_line(tmp_path):
+    bad = tmp_path / "strap.toml"
+    bad.write_text(STRAP.read_text().replace('load_point = "ankle"', 'load_point = "heel"'))
+    with pytest.raises(InputError, match=r"strap.toml: load_point: unknown load point 'heel'; known: ankle"):
+        Experiment.load(bad)
+
+
+def test_data_with_a_coordinate_the_device_does_not_read_are_refused(tmp_path, strap_data):
+    _, sim = strap_data
+    shutil.copy(STRAP, tmp_path / "strap.toml")
+    df = sim.measured()
+    df["lateral_translation_mm"] = 0.0
+    df.to_csv(tmp_path / "data.csv", index=False)
+    with pytest.raises(InputError, match="lateral_translation_mm: experiment 'strap' does not observe"):
+        read_measured(tmp_path / "data.csv")
+    df.drop(columns="lateral_translation_mm").assign(experiment="stirrup").to_csv(tmp_path / "data.csv", index=False)
+    with pytest.raises(InputError, match="unknown experiment 'stirrup'"):
+        read_measured(tmp_path / "data.csv")
+
+
+def test_older_files_keep_their_meaning(tmp_path):
+    """A file without the column: laboratory with a side or joint loads, else simulated."""
+    folder = Path(kneenlp.__file__).parent / "resources" / "datasets"
+    real = read_measured(folder / "s192803_laxity.csv")
+    assert real.experiment.laboratory
+    text = (folder / "s192803_laxity.csv").read_text().replace(",experiment", "", 1).replace(",laboratory", "")
+    (tmp_path / "old.csv").write_text(text)
+    assert read_measured(tmp_path / "old.csv").experiment.laboratory
