@@ -5,6 +5,7 @@ posterior written to ``calibrated.toml``).  :mod:`kneenlp.estimation.calibrate` 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -131,46 +132,8 @@ class Calibration:
         return out
 
     def report(self) -> str:
-        if self.before is None:
-            return self.fit.report()
-
-        def row(rms):
-            return ", ".join(f"{c.rsplit('_', 1)[0]} {v:.2f} {c.rsplit('_', 1)[1]}" for c, v in rms.items())
-
-        lines = [self.fit.report(), "[[Calibration]]",
-                 f"    RMS before (the knee's parameters, {int(self.before.converged.sum())}/"
-                 f"{len(self.before.solutions)} trials at equilibrium): {row(self.rms_before)}",
-                 f"    RMS after ({len(self.fit.data)} trials fitted): {row(self.rms_after)}",
-                 *self._outlier_lines(row),
-                 *self._check_lines(row),
-                 *laxity_lines(self.laxity(), "    laxity after calibration (mm, deg):"),
-                 f"    left at the knee's values (the trials do not determine them): {', '.join(self.fixed) or 'none'}",
-                 "    slack in every trial at the knee's values, engaged at the start: "
-                 f"{', '.join(self.engaged) or 'none'}",
-                 *(self.search.lines() if self.search is not None else [])]
-        return "\n".join(lines)
-
-    def _outlier_lines(self, row) -> list[str]:
-        if self.set_aside is None:
-            return []
-        lines = ["    set aside by the outlier test (fitted without them; --keep-outliers fits every trial):",
-                 *(f"      {o.line()}" for o in self.outliers)]
-        failed = [s.trial.id for s in self.set_aside.solutions if not s.converged]
-        if failed:
-            lines.append(f"      no equilibrium at the calibrated values: {', '.join(failed)}")
-        lines.append(f"    RMS after, with them predicted at the calibrated values: {row(self.rms_with_outliers)}")
-        return lines
-
-    def _check_lines(self, row) -> list[str]:
-        if self.check is None:
-            return []
-        n, ok = len(self.check.solutions), int(self.check.converged.sum())
-        lines = [f"    RMS as predict solves the calibrated knee (each trial from the unloaded state; {ok}/{n} at "
-                 f"equilibrium): {row(self.check.rms())}"]
-        if self.elsewhere:
-            lines.append("    equilibrium found only by the fit's continuation (from the unloaded state predict "
-                         f"reaches none or another): {', '.join(self.elsewhere)}")
-        return lines
+        """The fit's report and what the calibration found besides (:func:`calibration_report`)."""
+        return calibration_report(self)
 
 
 def on_loading_path(fit: Fit) -> Fit:
@@ -241,3 +204,49 @@ def noise_per_observation(fit: Fit) -> np.ndarray:
     if dof < 1:
         return np.full(residuals.shape, np.nan)
     return np.broadcast_to(np.sum(residuals**2, axis=0) / dof, residuals.shape).copy()
+
+
+def calibration_report(calibration: Calibration) -> str:
+    """The report of ``calibration``: its fit's (:func:`~kneenlp.estimation.fit.fit_report`), then
+    the prediction before it, the outliers, the check and the search (mm and deg)."""
+    if calibration.before is None:
+        return calibration.fit.report()
+
+    def row(rms):
+        return ", ".join(f"{c.rsplit('_', 1)[0]} {v:.2f} {c.rsplit('_', 1)[1]}" for c, v in rms.items())
+
+    lines = [calibration.fit.report(), "[[Calibration]]",
+             f"    RMS before (the knee's parameters, {int(calibration.before.converged.sum())}/"
+             f"{len(calibration.before.solutions)} trials at equilibrium): {row(calibration.rms_before)}",
+             f"    RMS after ({len(calibration.fit.data)} trials fitted): {row(calibration.rms_after)}",
+             *_outlier_lines(calibration, row),
+             *_check_lines(calibration, row),
+             *laxity_lines(calibration.laxity(), "    laxity after calibration (mm, deg):"),
+             "    left at the knee's values (the trials do not determine them): "
+             f"{', '.join(calibration.fixed) or 'none'}",
+             "    slack in every trial at the knee's values, engaged at the start: "
+             f"{', '.join(calibration.engaged) or 'none'}",
+             *(calibration.search.lines() if calibration.search is not None else [])]
+    return "\n".join(lines)
+
+def _outlier_lines(calibration: Calibration, row: Callable) -> list[str]:
+    if calibration.set_aside is None:
+        return []
+    lines = ["    set aside by the outlier test (fitted without them; --keep-outliers fits every trial):",
+             *(f"      {o.line()}" for o in calibration.outliers)]
+    failed = [s.trial.id for s in calibration.set_aside.solutions if not s.converged]
+    if failed:
+        lines.append(f"      no equilibrium at the calibrated values: {', '.join(failed)}")
+    lines.append(f"    RMS after, with them predicted at the calibrated values: {row(calibration.rms_with_outliers)}")
+    return lines
+
+def _check_lines(calibration: Calibration, row: Callable) -> list[str]:
+    if calibration.check is None:
+        return []
+    n, ok = len(calibration.check.solutions), int(calibration.check.converged.sum())
+    lines = [f"    RMS as predict solves the calibrated knee (each trial from the unloaded state; {ok}/{n} at "
+             f"equilibrium): {row(calibration.check.rms())}"]
+    if calibration.elsewhere:
+        lines.append("    equilibrium found only by the fit's continuation (from the unloaded state predict "
+                     f"reaches none or another): {', '.join(calibration.elsewhere)}")
+    return lines

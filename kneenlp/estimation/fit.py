@@ -308,73 +308,9 @@ class Fit:
                 out.append(name)
         return out
 
-    def _rank_note(self) -> str:
-        """What the rank (of the data's sensitivities) leaves: with a prior on every free parameter the
-        priors determine the directions the data do not."""
-        if self.identifiable:
-            return ""
-        if self.problem.priors and all(n in self.problem.priors for n in self.free):
-            return f" from the data; the priors determine the other {len(self.free) - self.rank} direction(s)"
-        return "  ** NOT ALL PARAMETERS IDENTIFIABLE **"
-
-    def _prior_lines(self) -> list[str]:
-        if not self.problem.priors:
-            return []
-        outside = set(self.outside_prior())
-        lines = [f"[[Priors]] MAP estimate: the priors' share of the objective {self.prior_objective:.4g}, weighed "
-                 f"against a misfit variance of {self.problem.prior_weight:.4g} (mm^2, deg^2)"]
-        for name in self.free:
-            prior = self.problem.priors.get(name)
-            if prior is None:
-                lines.append(f"    {name:18s}   none (the data alone)")
-                continue
-            info = self.info(name)
-            flag = "  ** OUTSIDE ITS PRIOR'S 99.7 % RANGE **" if name in outside else ""
-            lines.append(f"    {name:18s}   {prior.describe(info.to_user, info.unit)} ({prior.source}){flag}")
-        return lines
-
     def report(self) -> str:
-        """lmfit-like text report (display units: N per unit strain, %, GN/m^3; mm and deg)."""
-        lines = [
-            f"[[Fit]] {self.method} ({self.solver}) on {self.data.source or 'data'}",
-            f"    status          = {self.status} ({'success' if self.success else 'FAILED'})",
-            f"    trials          = {len(self.data)}  (observations {5 * len(self.data)}, "
-            f"free parameters {len(self.free)})",
-            f"    objective       = {self.objective:.6g}  (sum of squared residuals, mm^2 + deg^2)",
-            f"    RMS residual    = {self.rms:.4g} (mm, deg)",
-            f"    chi-square      = {self.chi_square():.4g}  reduced = {self.reduced_chi_square:.4g}  "
-            f"(dof {self.dof})",
-            f"    AIC, BIC        = {self.aic:.4g}, {self.bic:.4g}",
-            f"    iterations      = {self.iterations}   evaluations = {self.evaluations}",
-            f"    time            = {self.seconds:.3f} s (build {self.build_seconds:.3f} s)",
-            f"    max equilibrium residual = {self.max_residual:.2e} (N, N m)",
-            f"    rank            = {self.rank} of {len(self.free)}" + self._rank_note(),
-            f"    noise variance  = {self.noise_source}",
-            "[[Parameters]]",
-        ]
-        pu, su, bound = self.params_user(), self.stderr_user(), set(self.at_bounds())
-        for n in self.free:
-            unit = self.info(n).unit
-            se = su[n]
-            rel = f"({100 * se / abs(pu[n]):.2f}%)" if np.isfinite(se) and pu[n] != 0 else ""
-            se_txt = f"+/- {se:.4g} {rel}" if np.isfinite(se) else "+/- (not identifiable)"
-            if n in bound:
-                se_txt = "AT ITS BOUND (the optimum lies beyond; no standard error)"
-            start = self.start.get(n)
-            init = f"(init = {start * self.info(n).to_user:.6g})" if start is not None else ""
-            lines.append(f"    {n:18s} = {pu[n]:12.6g} {unit:7s} {se_txt} {init}")
-        for d in self.unidentifiable_directions():
-            lines.append(("    direction the data do not determine (its priors do): " if self.problem.priors else
-                          "    unidentified direction: ") + ", ".join(f"{v:+.2f} {k}" for k, v in d.items()))
-        lines += self._prior_lines()
-        lines.append("[[Residuals]] largest |model - measured| per coordinate")
-        res = self.residuals
-        for j, (c, u) in enumerate(zip(COORDINATES, COORDINATE_UNITS, strict=True)):
-            i = int(np.argmax(np.abs(res[:, j])))
-            lines.append(f"    {c:22s} {res[i, j]:+8.3f} {u}  ({self.data.trials[i].id})")
-        if self.message:
-            lines.append(f"[[Message]] {self.message}")
-        return "\n".join(lines)
+        """lmfit-like text report (:func:`fit_report`)."""
+        return fit_report(self)
 
 
 Item = TypeVar("Item")
@@ -393,3 +329,77 @@ def forked_fits(work: Callable[[Item], Result], items: list[Item], workers: int,
         return result
 
     return forked_map(work, items, workers, pack=lambda r: with_model(r, None), unpack=lambda r: with_model(r, model))
+
+
+def _rank_note(fit: Fit) -> str:
+    """What the rank (of the data's sensitivities) leaves: with a prior on every free parameter the
+    priors determine the directions the data do not."""
+    if fit.identifiable:
+        return ""
+    if fit.problem.priors and all(n in fit.problem.priors for n in fit.free):
+        return f" from the data; the priors determine the other {len(fit.free) - fit.rank} direction(s)"
+    return "  ** NOT ALL PARAMETERS IDENTIFIABLE **"
+
+
+def _prior_lines(fit: Fit) -> list[str]:
+    if not fit.problem.priors:
+        return []
+    outside = set(fit.outside_prior())
+    lines = [f"[[Priors]] MAP estimate: the priors' share of the objective {fit.prior_objective:.4g}, weighed "
+             f"against a misfit variance of {fit.problem.prior_weight:.4g} (mm^2, deg^2)"]
+    for name in fit.free:
+        prior = fit.problem.priors.get(name)
+        if prior is None:
+            lines.append(f"    {name:18s}   none (the data alone)")
+            continue
+        info = fit.info(name)
+        flag = "  ** OUTSIDE ITS PRIOR'S 99.7 % RANGE **" if name in outside else ""
+        lines.append(f"    {name:18s}   {prior.describe(info.to_user, info.unit)} ({prior.source}){flag}")
+    return lines
+
+
+def fit_report(fit: Fit) -> str:
+    """lmfit-like text report of ``fit`` (display units: N per unit strain, %, GN/m^3; mm and deg)."""
+    lines = [
+        f"[[Fit]] {fit.method} ({fit.solver}) on {fit.data.source or 'data'}",
+        f"    status          = {fit.status} ({'success' if fit.success else 'FAILED'})",
+        f"    trials          = {len(fit.data)}  (observations {fit.n_observations}, "
+        f"free parameters {len(fit.free)})",
+        f"    objective       = {fit.objective:.6g}  (sum of squared residuals, mm^2 + deg^2)",
+        f"    RMS residual    = {fit.rms:.4g} (mm, deg)",
+        f"    chi-square      = {fit.chi_square():.4g}  reduced = {fit.reduced_chi_square:.4g}  "
+        f"(dof {fit.dof})",
+        f"    AIC, BIC        = {fit.aic:.4g}, {fit.bic:.4g}",
+        f"    iterations      = {fit.iterations}   evaluations = {fit.evaluations}",
+        f"    time            = {fit.seconds:.3f} s (build {fit.build_seconds:.3f} s)",
+        f"    max equilibrium residual = {fit.max_residual:.2e} (N, N m)",
+        f"    rank            = {fit.rank} of {len(fit.free)}" + _rank_note(fit),
+        f"    noise variance  = {fit.noise_source}",
+        "[[Parameters]]",
+    ]
+    pu, su, bound = fit.params_user(), fit.stderr_user(), set(fit.at_bounds())
+    for n in fit.free:
+        unit = fit.info(n).unit
+        se = su[n]
+        rel = f"({100 * se / abs(pu[n]):.2f}%)" if np.isfinite(se) and pu[n] != 0 else ""
+        se_txt = f"+/- {se:.4g} {rel}" if np.isfinite(se) else "+/- (not identifiable)"
+        if n in bound:
+            se_txt = "AT ITS BOUND (the optimum lies beyond; no standard error)"
+        start = fit.start.get(n)
+        init = f"(init = {start * fit.info(n).to_user:.6g})" if start is not None else ""
+        lines.append(f"    {n:18s} = {pu[n]:12.6g} {unit:7s} {se_txt} {init}")
+    for d in fit.unidentifiable_directions():
+        lines.append(("    direction the data do not determine (its priors do): " if fit.problem.priors else
+                      "    unidentified direction: ") + ", ".join(f"{v:+.2f} {k}" for k, v in d.items()))
+    lines += _prior_lines(fit)
+    lines.append("[[Residuals]] largest |model - measured| per coordinate")
+    res = fit.residuals
+    for j, (c, u) in enumerate(zip(COORDINATES, COORDINATE_UNITS, strict=True)):
+        if np.isnan(res[:, j]).all():
+            lines.append(f"    {c:22s} not observed")
+            continue
+        i = int(np.nanargmax(np.abs(res[:, j])))
+        lines.append(f"    {c:22s} {res[i, j]:+8.3f} {u}  ({fit.data.trials[i].id})")
+    if fit.message:
+        lines.append(f"[[Message]] {fit.message}")
+    return "\n".join(lines)
