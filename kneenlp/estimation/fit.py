@@ -217,8 +217,8 @@ class Fit:
 
     @property
     def rms(self) -> float:
-        """RMS of all coordinate residuals (mm and deg together)."""
-        return float(np.sqrt(np.mean(self.residuals**2)))
+        """RMS of all observed coordinate residuals (mm and deg together)."""
+        return float(np.sqrt(np.mean(self.residuals[self.problem.observed] ** 2)))
 
     # ------------------------------------------------------------------ presentation
     def info(self, name: str) -> Parameter:
