@@ -9,6 +9,7 @@ import pytest
 
 import kneenlp
 import kneenlp.base.resources
+from kneenlp.base.conventions import load_vector
 from kneenlp.adequacy.basefit import base_fit
 from kneenlp.adequacy.detection import noncentrality_needed
 from kneenlp.adequacy.diagnosis import diagnose
@@ -112,7 +113,7 @@ def test_cli_diagnose_clean_data_smoke(tmp_path, capsys):
 def test_neutral_effects_leave_the_model_unchanged(model):
     theta = model.theta()
     q = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
-    load = np.r_[50.0, 0, 0, 2.0, 0.5, 0, np.zeros(5)]
+    load = load_vector({"anterior_force": 50.0, "varus_moment": 2.0, "internal_moment": 0.5})
     r0 = np.asarray(model.evaluate(q, theta, load, 0.5)).ravel()
     on = model.theta({"posterior_capsule.k": 5000.0, "meniscus.k": 1e5, "flexion_offset.delta": 0.02})
     r1 = np.asarray(model.evaluate(q, on, load, 0.5)).ravel()
