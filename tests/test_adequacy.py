@@ -9,12 +9,12 @@ import pytest
 
 import kneenlp
 import kneenlp.base.resources
-from kneenlp.base.conventions import load_vector
 from kneenlp.adequacy.basefit import base_fit
 from kneenlp.adequacy.detection import noncentrality_needed
 from kneenlp.adequacy.diagnosis import diagnose
 from kneenlp.adequacy.patterns import failure_patterns
 from kneenlp.adequacy.verdict import holm
+from kneenlp.base.conventions import load_vector
 from kneenlp.cli import main
 from kneenlp.estimation.identify import identify
 from kneenlp.experiment.kneemodel import KneeModel

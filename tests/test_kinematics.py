@@ -50,7 +50,7 @@ def test_sign_conventions_right_knee():
 
 def test_residual_jacobian_matches_finite_differences(model):
     theta = model.theta()
-    load = np.r_[50.0, 0, 0, 2.0, 0.5, 0, np.zeros(5)]
+    load = load_vector({"anterior_force": 50.0, "varus_moment": 2.0, "internal_moment": 0.5})
     q0 = np.array([0.01, 0.05, 0.0005, -0.001, 0.0003])
     flex = np.deg2rad(30)
     jac = np.asarray(model.jacobians(q0, theta, load, flex, model.working_set(q0, theta, flex)[1])[0])
@@ -71,7 +71,7 @@ def test_residual_is_virtual_work_of_a_pure_moment(model):
     theta = model.theta()
     q = np.array([0.0, 0.0, 0.0, 0.0, -5e-3])  # far from contact
     r0 = np.asarray(model.evaluate(q, theta, np.zeros(LOAD_SIZE), 0.0)).ravel()
-    r1 = np.asarray(model.evaluate(q, theta, np.r_[0, 0, 0, 0, 3.0, 0, np.zeros(5)], 0.0)).ravel()
+    r1 = np.asarray(model.evaluate(q, theta, load_vector({"internal_moment": 3.0}), 0.0)).ravel()
     assert np.allclose(r1 - r0, [0, 3.0, 0, 0, 0], atol=1e-9)
 
 
