@@ -9,6 +9,7 @@ import trimesh
 from kneenlp.geometry.axes import fit_cylinder, rotation_about
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.sdf import DistanceField
+from kneenlp.model.articular import Compartment
 from kneenlp.model.laws import ElasticFoundation, PowerFoundation
 
 
@@ -353,18 +354,19 @@ def test_the_brute_force_reference_ends_a_cropped_surface_at_its_rim(half_plate)
     (the weight's fall is symmetric about the rim) agrees with it to 1 %."""
     from kneenlp.geometry.rim import OpenEdges
     from kneenlp.model.mesh_contact import MeshContact
-    from kneenlp.testing.reference import reference_contact
+    from kneenlp.testing.reference import ExactSurface, reference_contact
 
     mesh, fld = half_plate
     gx, gy = np.meshgrid(np.arange(-4.9e-3, 5e-3, 0.2e-3), np.arange(-5e-3, 5.01e-3, 0.2e-3), indexing="ij")
     points = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, -0.4e-3)])
     areas = np.full(len(points), 0.04e-6)
     K = 1e10
-    ref = reference_contact(MeshDistance(mesh), 0.0, points, areas, np.eye(3), np.zeros(3), K, 1e-5,
-                            rim=OpenEdges(mesh))
+    contact = MeshContact(Compartment("medial", None, points, areas, np.zeros(3)), fld, 1e-5)
+    ref = reference_contact(ExactSurface(MeshDistance(mesh), 0.0, OpenEdges(mesh)), contact, (np.eye(3), np.zeros(3)),
+                            K)
     under = points[:, 0] < 0
     assert ref.force[2] == pytest.approx(K * 0.4e-3 * areas[under].sum(), rel=1e-3)
-    got = MeshContact("medial", fld, points, areas, 1e-5).pressure(np.eye(3), np.zeros(3), K)
+    got = contact.pressure(np.eye(3), np.zeros(3), K)
     assert got["force"][2] == pytest.approx(ref.force[2], rel=0.01)
 
 
@@ -380,7 +382,7 @@ def test_the_exported_contact_of_a_cropped_surface_is_the_compiled_one(half_plat
     _, fld = half_plate
     rng = np.random.default_rng(11)
     points = np.column_stack([rng.uniform(-4e-3, 3e-3, 300), rng.uniform(-5e-3, 5e-3, 300), np.zeros(300)])
-    contact = MeshContact("medial", fld, points, np.full(300, 0.04e-6), 1e-5)
+    contact = MeshContact(Compartment("medial", None, points, np.full(300, 0.04e-6), np.zeros(3)), fld, 1e-5)
     R, p, K = np.asarray(rot_x(0.02), float), np.array([0.1e-3, 0.0, -0.5e-3]), 1e10
     probe = ca.MX(ca.DM(np.concatenate([R.ravel(order="F"), p, [K]])))
     got = np.asarray(ca.evalf(ca.vertcat(*contact.exact_wrench(probe, layout)))).ravel()

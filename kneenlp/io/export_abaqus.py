@@ -236,8 +236,8 @@ def round_trip(knee: Knee, values: dict[str, float], before: list[Fibre], after:
                              "from this model?", field=f.name)
         imaged = f.law.length
         own = Bundle(f.femur, f.tibia, f.name, f.law.stiffness, imaged / f.law.slack_length - 1, f.law.lin_strain)
-        slack, k, lin = bundle_law(own, imaged, imaged, values[f"{f.group}.k_scale"],
-                                   values[f"{f.group}.ref_strain_offset"], lig.shift)
+        group = (values[f"{f.group}.k_scale"], values[f"{f.group}.ref_strain_offset"])
+        slack, k, lin = bundle_law(own, imaged, imaged, group, lig.shift)
         change = imaged * ROUND_TRIP_STRAINS
         expected = force_strain_numpy((imaged + change) / slack - 1, k, lin)
         got = law_force(g.law, change * 1e3)

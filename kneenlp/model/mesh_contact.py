@@ -30,6 +30,8 @@ solve reported as failed.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import casadi as ca
 import numpy as np
 from scipy.spatial import cKDTree
@@ -41,6 +43,9 @@ from kneenlp.model.contact import MODULUS
 from kneenlp.model.elements import Output, Pose, StagedElement, share_out
 from kneenlp.model.laws import CASADI, NUMPY, ElasticFoundation, PressureLaw
 from kneenlp.model.parameters import Parameter
+
+if TYPE_CHECKING:
+    from kneenlp.model.articular import Compartment, FemoralSurface
 
 #: Points that may be nearer the femoral surface than this (m) are the candidates the checks look at
 #: (:meth:`MeshContact.candidates`; the contact sums themselves pass over every point that cannot
@@ -151,9 +156,10 @@ def wrench_expansion(field: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
 class MeshContact(StagedElement):
     """Contact of one compartment: a femoral distance field against tibial cartilage samples.
 
-    ``field`` femoral frame, m; ``points`` (N x 3) tibial frame, m; ``areas`` (N,) m^2; ``gate``
-    m; ``femur_vertices`` (femoral frame, m) with ``offset`` (m) bound the gap of points outside
-    the field's grid.  A cropped surface ends at its rim (its open edges): every
+    ``field`` femoral frame, m; the ``compartment``'s tibial ``points`` (N x 3) tibial frame, m,
+    ``areas`` (N,) m^2 and pressure law; ``gate`` m; the ``femur``'s mesh vertices (femoral frame,
+    m) with its ``offset`` (m) bound the gap of points outside the field's grid (None: no bound,
+    such points never touch).  A cropped surface ends at its rim (its open edges): every
     pressure is multiplied by the field's rim weight (:attr:`~kneenlp.geometry.sdf.DistanceField.
     weights`, 1 on the surface, 0 beyond the rim), and a pose is noted where more than
     :data:`RIM_SHARE` of a compartment's force would come from beyond it (:meth:`rim_batch`).
@@ -164,14 +170,15 @@ class MeshContact(StagedElement):
     wrench_frame = "femoral"
     working_set_size = 1  # one expansion per compartment and trial
 
-    def __init__(self, compartment: str, field: DistanceField, points: np.ndarray, areas: np.ndarray, gate: float,
-                 femur_vertices: np.ndarray | None = None, offset: float = 0.0, law: PressureLaw | None = None):
-        self.name, self.compartment = f"contact_{compartment}", compartment
-        self.law = law or ElasticFoundation()
+    def __init__(self, compartment: Compartment, field: DistanceField, gate: float,
+                 femur: FemoralSurface | None = None):
+        self.name, self.compartment = f"contact_{compartment.name}", compartment.name
+        self.law = compartment.law or ElasticFoundation()
         self.field = field
-        self.points, self.areas = np.asarray(points, float), np.asarray(areas, float)
+        self.points, self.areas = np.asarray(compartment.points, float), np.asarray(compartment.areas, float)
         self.gate = float(gate)
-        self.description = f"{compartment} compartment: femoral surface (distance field) vs tibial cartilage"
+        self.description = f"{compartment.name} compartment: femoral surface (distance field) vs tibial cartilage"
+        femur_vertices, offset = (femur.mesh.vertices, femur.offset) if femur is not None else (None, 0.0)
         self._outside = (cKDTree(np.asarray(femur_vertices)), float(offset)) if femur_vertices is not None else None
         #: where a point outside the field's grid can be within reach of a femoral vertex (an empty box without them)
         reach = float(offset) + self.field.spacing + self.field.band
