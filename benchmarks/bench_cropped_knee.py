@@ -38,7 +38,7 @@ def main() -> None:
         t1 = time.perf_counter()
         for s in sim.solutions:
             share = model.rim_share(s.q, theta, s.trial.flexion)
-            q, res = reference_equilibrium(model, s.trial, s.q, theta)
+            q, res = reference_equilibrium(model, s, theta)
             diff = np.abs(coords_to_user(q) - coords_to_user(s.q))
             print(f"  {s.trial.id:24s} rim share {100 * share:5.2f} %  brute force residual {res:.1e}  "
                   f"|pose difference| {diff[:2].max():.3f} deg, {diff[2:].max():.3f} mm")

@@ -9,6 +9,7 @@ import trimesh
 from kneenlp.geometry.axes import fit_cylinder, rotation_about
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.sdf import DistanceField
+from kneenlp.model.articular import Compartment
 from kneenlp.model.laws import ElasticFoundation, PowerFoundation
 
 
@@ -84,11 +85,11 @@ def test_cylinder_fit_recovers_a_known_cylinder():
 
 
 def test_compiled_kernels_equal_the_numpy_references(box):
-    """kneenlp.geometry.kernels (numba) against DistanceField.evaluate and mesh_contact.wrench_expansion
-    (NumPy), and the field's values against scipy's own B-spline interpolation."""
+    """kneenlp.geometry.kernels and spline_kernels (numba) against DistanceField.evaluate and
+    mesh_contact.wrench_expansion (NumPy), and the field's values against scipy's own B-spline interpolation."""
     from scipy.ndimage import map_coordinates
 
-    from kneenlp.geometry import kernels
+    from kneenlp.geometry import kernels, spline_kernels
     from kneenlp.model.mesh_contact import wrench_expansion
 
     mesh, half = box
@@ -99,21 +100,22 @@ def test_compiled_kernels_equal_the_numpy_references(box):
     assert np.allclose(fld.evaluate(pts)[0], scipy_values, rtol=0, atol=1e-15)
     n = len(pts)
     d, g, h, t3 = np.empty(n), np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3, 3))
-    kernels.field_derivatives(fld.coeffs, fld.origin, fld.spacing, pts, d, g, h, t3)
+    spline_kernels.field_derivatives(fld.spline, pts, (d, g, h, t3))
     for got, ref in zip((d, g, h, t3), fld.evaluate(pts, order=3), strict=True):
         assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
     r = pts - [0.0, -0.02, 0.0]  # arms from a tibial origin below the plateau
     areas = rng.uniform(0.2e-6, 0.6e-6, n)
     law = ElasticFoundation()
     one, zero = np.ones(n), np.zeros((n, 3, 3))
-    for got, ref in zip(kernels.wrench_expansion(d, g, h, t3, r, areas, law.kernel, 1e-5, 2, one, zero[:, 0], zero),
-                        wrench_expansion(d, g, h, t3, pts, r, areas, 1e-5), strict=True):
+    for got, ref in zip(kernels.wrench_expansion((d, g, h, t3), (r, areas), (one, zero[:, 0], zero),
+                                                 (law.kernel, 1e-5), 2),
+                        wrench_expansion((d, g, h, t3), (r, areas), 1e-5), strict=True):
         assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
 
 
 def test_cell_minimum_is_the_smallest_coefficient_of_each_cell():
     """Brute force: every cell's 64 coefficients (lower node i: coefficients i-1 .. i+2 per axis)."""
-    from kneenlp.geometry.kernels import cell_minimum
+    from kneenlp.geometry.spline_kernels import cell_minimum
 
     c = np.random.default_rng(0).normal(size=(7, 6, 8))
     got = cell_minimum(c)
@@ -125,7 +127,7 @@ def test_cell_minimum_is_the_smallest_coefficient_of_each_cell():
 def test_cell_lower_bound_bounds_the_spline_in_every_cell_and_passes_over_more_than_the_smallest_coefficient():
     """Oracle: the spline evaluated at 20 000 random points of a distance field's grid is never below
     its cell's bound, and the bound is above the smallest coefficient in most cells near the surface."""
-    from kneenlp.geometry.kernels import cell_lower_bound, cell_minimum
+    from kneenlp.geometry.spline_kernels import cell_lower_bound, cell_minimum
 
     x, y, z = np.meshgrid(*[np.arange(12) * 1e-3] * 3, indexing="ij")
     coeffs = np.sqrt((x - 5.5e-3) ** 2 + (y - 5e-3) ** 2 + (z - 6e-3) ** 2) - 3e-3  # a sphere's distance
@@ -178,8 +180,8 @@ from kneenlp.model.laws import ElasticFoundation
 c = np.zeros((6, 6, 6)); pts = np.zeros((1, 3)); R = np.eye(3)[None]; p = np.zeros((1, 3))
 out = np.empty((1, 271))
 none = np.zeros((0, 0, 0))
-kernels.contact_batch(c, c, none, none, np.zeros(3), 1e-3, np.zeros(3), np.ones(3) * 1e-3, 1e-3, pts, np.ones(1), R, p,
-                      ElasticFoundation().kernel, 1e-5, 2, 0, 1, out)
+femur = ((c, np.zeros(3), 1e-3), c, (none, none), (np.zeros(3), np.ones(3) * 1e-3), 1e-3)
+kernels.contact_batch((femur, (pts, np.ones(1))), (R, p, 0, 1), (ElasticFoundation().kernel, 1e-5), 2, out)
 print(len(kernels.contact_batch.stats.cache_misses), len(kernels.contact_batch.stats.cache_hits))
 """
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
@@ -208,20 +210,17 @@ def test_batched_contact_pass_equals_the_numpy_expansion_over_every_point(box, l
     T = 4
     R = np.stack([np.asarray(rot_x(0.02 * t) @ rot_y(-0.03 * t), float) for t in range(T)])
     p = np.array([[0.0, half[1] - 0.3e-3 * (t + 1), 0.1e-3 * t] for t in range(T)])  # 0.3 .. 1.2 mm into the top
-    lo, hi = fld.bounds
     rows = {}
     for order in (2, 1, 0):
         out = np.empty((T, WS_SIZE))
-        kernels.contact_batch(fld.coeffs, fld.cell_min, np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), fld.origin,
-                              fld.spacing, lo, hi,
-                              0.99 * fld.depth, points, areas, R, p, law.kernel, 1e-5, order, 0, T, out)
+        kernels.contact_batch(kernels.compartment(fld, points, areas), (R, p, 0, T), (law.kernel, 1e-5), order, out)
         rows[order] = out
     for t in range(T):
         X = points @ R[t].T + p[t]
         d = fld.evaluate(X)[0]
         sel = (d < 0) & (d > -0.99 * fld.depth)
         d, g, h, t3 = fld.evaluate(X[sel], order=3)
-        W, J, H = wrench_expansion(d, g, h, t3, X[sel], X[sel] - p[t], areas[sel], 1e-5, law)
+        W, J, H = wrench_expansion((d, g, h, t3), (X[sel] - p[t], areas[sel]), 1e-5, law)
         row = rows[2][t]
         assert np.allclose(row[:9].reshape(3, 3, order="F"), R[t]) and np.allclose(row[9:12], p[t])
         for got, ref in ((row[12:18], W), (row[18:54].reshape(6, 6, order="F"), J),
@@ -315,13 +314,10 @@ def test_the_weighted_contact_pass_equals_the_numpy_expansion_and_its_own_deriva
     rng = np.random.default_rng(7)
     points = np.column_stack([rng.uniform(-5e-3, 3e-3, 500), rng.uniform(-6e-3, 6e-3, 500), np.zeros(500)])
     areas = rng.uniform(0.2e-6, 0.4e-6, 500)
-    lo, hi = fld.bounds
 
     def rows(R: np.ndarray, p: np.ndarray, order: int = 2) -> np.ndarray:
         out = np.empty((len(R), WS_SIZE))
-        kernels.contact_batch(fld.coeffs, fld.cell_min, fld.weights, fld.weight_spline.cell_min, fld.origin,
-                              fld.spacing, lo, hi,
-                              0.99 * fld.depth, points, areas, R, p, 1.0, 1e-5, order, 0, len(R), out)
+        kernels.contact_batch(kernels.compartment(fld, points, areas), (R, p, 0, len(R)), (1.0, 1e-5), order, out)
         return out
 
     R0, p0 = np.asarray(rot_x(0.03) @ rot_z(-0.02), float), np.array([0.2e-3, 0.1e-3, -0.6e-3])
@@ -331,7 +327,7 @@ def test_the_weighted_contact_pass_equals_the_numpy_expansion_and_its_own_deriva
     sel = (d < 0) & (d > -0.99 * fld.depth)
     d, g, h, t3 = fld.evaluate(X[sel], order=3)
     weight = fld.weight_spline.evaluate(X[sel], order=2)
-    W, J, H = wrench_expansion(d, g, h, t3, X[sel], X[sel] - p0, areas[sel], 1e-5, None, weight)
+    W, J, H = wrench_expansion((d, g, h, t3), (X[sel] - p0, areas[sel]), 1e-5, None, weight)
     assert 0.05 < np.mean(weight[0]) < 0.95  # the contact straddles the rim
     for got, ref in ((row[12:18], W), (row[18:54].reshape(6, 6, order="F"), J),
                      (row[54:-1].reshape(6, 6, 6).transpose(0, 2, 1), H)):
@@ -358,18 +354,19 @@ def test_the_brute_force_reference_ends_a_cropped_surface_at_its_rim(half_plate)
     (the weight's fall is symmetric about the rim) agrees with it to 1 %."""
     from kneenlp.geometry.rim import OpenEdges
     from kneenlp.model.mesh_contact import MeshContact
-    from kneenlp.testing.reference import reference_contact
+    from kneenlp.testing.reference import ExactSurface, reference_contact
 
     mesh, fld = half_plate
     gx, gy = np.meshgrid(np.arange(-4.9e-3, 5e-3, 0.2e-3), np.arange(-5e-3, 5.01e-3, 0.2e-3), indexing="ij")
     points = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, -0.4e-3)])
     areas = np.full(len(points), 0.04e-6)
     K = 1e10
-    ref = reference_contact(MeshDistance(mesh), 0.0, points, areas, np.eye(3), np.zeros(3), K, 1e-5,
-                            rim=OpenEdges(mesh))
+    contact = MeshContact(Compartment("medial", None, points, areas, np.zeros(3)), fld, 1e-5)
+    ref = reference_contact(ExactSurface(MeshDistance(mesh), 0.0, OpenEdges(mesh)), contact, (np.eye(3), np.zeros(3)),
+                            K)
     under = points[:, 0] < 0
     assert ref.force[2] == pytest.approx(K * 0.4e-3 * areas[under].sum(), rel=1e-3)
-    got = MeshContact("medial", fld, points, areas, 1e-5).pressure(np.eye(3), np.zeros(3), K)
+    got = contact.pressure(np.eye(3), np.zeros(3), K)
     assert got["force"][2] == pytest.approx(ref.force[2], rel=0.01)
 
 
@@ -385,7 +382,7 @@ def test_the_exported_contact_of_a_cropped_surface_is_the_compiled_one(half_plat
     _, fld = half_plate
     rng = np.random.default_rng(11)
     points = np.column_stack([rng.uniform(-4e-3, 3e-3, 300), rng.uniform(-5e-3, 5e-3, 300), np.zeros(300)])
-    contact = MeshContact("medial", fld, points, np.full(300, 0.04e-6), 1e-5)
+    contact = MeshContact(Compartment("medial", None, points, np.full(300, 0.04e-6), np.zeros(3)), fld, 1e-5)
     R, p, K = np.asarray(rot_x(0.02), float), np.array([0.1e-3, 0.0, -0.5e-3]), 1e10
     probe = ca.MX(ca.DM(np.concatenate([R.ravel(order="F"), p, [K]])))
     got = np.asarray(ca.evalf(ca.vertcat(*contact.exact_wrench(probe, layout)))).ravel()

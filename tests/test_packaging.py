@@ -60,8 +60,8 @@ def test_compiled_loops_are_cached_in_the_users_cache(tmp_path):
     import kneenlp.geometry.kernels as kernels
 
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"} | {"KNEENLP_CACHE": str(tmp_path)}
-    code = ("import numpy as np\nfrom kneenlp.geometry.kernels import field_values\n"
-            "field_values(np.zeros((5, 5, 5)), np.zeros(3), 1.0, np.full((1, 3), 1.5), np.empty(1))\n")
+    code = ("import numpy as np\nfrom kneenlp.geometry.spline_kernels import field_values\n"
+            "field_values((np.zeros((5, 5, 5)), np.zeros(3), 1.0), np.full((1, 3), 1.5), np.empty(1))\n")
     subprocess.run([sys.executable, "-c", code], env=env, check=True, timeout=300)
     assert list((tmp_path / "numba").rglob("*field_values*.nbi"))
     package = Path(kernels.__file__).parent

@@ -919,7 +919,7 @@ def _law(lig, b, scale, offset):
     from kneenlp.model.ligament import bundle_law
 
     imaged = lig.bundle_length(b)
-    return bundle_law(b, imaged, imaged, scale, offset, lig.shift)
+    return bundle_law(b, imaged, imaged, (scale, offset), lig.shift)
 
 
 def _forces(law, lengths):

@@ -166,9 +166,7 @@ def cmd_identify(args) -> int:
                 write_csv_atomic(calibration.set_aside.table(), stage.path / "set_aside.csv", index=False,
                                  float_format="%.10g")
             if inferencedata.available():  # the posterior's draws for ArviZ
-                units = {n: (fit.info(n).unit, fit.info(n).to_user) for n in fit.free}
-                inferencedata.write_inference_data(stage.path / "posterior.nc", posterior(fit), fit.params, units,
-                                                   fit.data, seed=args.seed)
+                inferencedata.write_inference_data(stage.path / "posterior.nc", fit, posterior(fit), seed=args.seed)
     notes = [] if not args.out or inferencedata.available() else [
         "posterior.nc (ArviZ InferenceData) not written: pip install 'kneenlp[arviz]'"]
     if args.json:

@@ -97,14 +97,12 @@ def ligament_forces(table: pd.DataFrame, ligaments: list[str], path: str | Path,
     return _save(fig, path)
 
 
-def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str | Path, factors: dict[str, float],
-                   title: str = "") -> Path:
+def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str | Path, title: str = "") -> Path:
     """The paper's Fig. 3: estimates per set as boxplots, true values marked, linearised +-2 sigma.
 
     One column per ligament, one row per parameter of the Table 3 analogue (e.g. stiffness k in kN
     per unit strain and reference strain in %, or a group's stiffness scale and reference-strain
-    offset), in the units of ``table`` (its ``unit`` column); ``factors`` converts each estimates
-    column from SI to those units.
+    offset), in the units of ``table`` (its ``unit`` column), as the ``estimates`` columns are.
     """
     ligs = list(dict.fromkeys(table["ligament"])) if len(table) else []
     kinds = list(dict.fromkeys(table["parameter"])) if len(table) else []
@@ -121,7 +119,7 @@ def study_boxplots(estimates: pd.DataFrame, table: pd.DataFrame, sets, path: str
             unit = rows["unit"].iloc[0]
             true = rows["true"].iloc[0]
             col = f"{lig}.{kind}"
-            data = [estimates.loc[estimates["set"] == s, col].to_numpy(dtype=float) * factors[col]
+            data = [estimates.loc[estimates["set"] == s, col].to_numpy(dtype=float)
                     if col in estimates else np.array([]) for s in sets]
             pos = np.arange(1, len(sets) + 1)
             ax.boxplot(data, positions=pos, widths=0.5, flierprops={"marker": "x"})

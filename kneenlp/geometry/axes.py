@@ -144,11 +144,12 @@ def fit_cylinder(points: np.ndarray, axis_guess: np.ndarray) -> CylinderFit:
     return CylinderFit(a, q, float(abs(t[4])), float(np.sqrt(np.mean(r**2))), len(pts))
 
 
-def condyle_region(normals: np.ndarray, up: np.ndarray, anterior: np.ndarray, lateral: np.ndarray,
+def condyle_region(normals: np.ndarray, axes: tuple[np.ndarray, np.ndarray, np.ndarray],
                    sector_deg: tuple[float, float] = (30.0, 120.0), max_axial: float = 0.5) -> np.ndarray:
     """Mask of the distal-posterior articular part of a condyle: sagittal normal direction between
     ``sector_deg`` measured from distal (0 deg) towards posterior (90 deg), side walls excluded
-    (``|n . lateral| < max_axial``)."""
+    (``|n . lateral| < max_axial``); ``axes = (up, anterior, lateral)``, the femur's directions."""
+    up, anterior, lateral = axes
     n = np.asarray(normals)
     ang = np.degrees(np.arctan2(n @ (-_unit(anterior)), n @ (-_unit(up))))
     return (ang >= sector_deg[0]) & (ang <= sector_deg[1]) & (np.abs(n @ _unit(lateral)) < max_axial)
@@ -186,7 +187,7 @@ def fit_flexion_axis(femur: trimesh.Trimesh, split: CondyleSplit, up: np.ndarray
     the flexion axis joins their centres.  ``femur`` may be the articular surface or the bone
     under it (an offset surface has the same axes)."""
     v, n = np.asarray(femur.vertices), np.asarray(femur.vertex_normals)
-    region = condyle_region(n, up, anterior, lateral)
+    region = condyle_region(n, (up, anterior, lateral))
     side = split.lateral_side(v)
     fits = [fit_cylinder(v[region & (side == lat)], lateral) for lat in (False, True)]
     direction = _unit(fits[1].centre - fits[0].centre)

@@ -38,7 +38,7 @@ _ROWS = [(a, b, c) for a in range(4) for b in range(4) for c in range(4)]
 
 def _basis(t):
     """Cubic B-spline weights at fraction ``t`` (any shape, MX or SX) and their derivatives in
-    ``t`` (:func:`kneenlp.geometry.kernels._basis`, rows 0 and 1)."""
+    ``t`` (:func:`kneenlp.geometry.spline_kernels._basis`, rows 0 and 1)."""
     s = 1 - t
     w = [s * s * s / 6, (3 * t * t * t - 6 * t * t + 4) / 6, (-3 * t * t * t + 3 * t * t + 3 * t + 1) / 6,
          t * t * t / 6]

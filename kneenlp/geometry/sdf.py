@@ -35,9 +35,9 @@ from scipy.spatial import cKDTree
 from kneenlp.base.atomic import atomic_target
 from kneenlp.base.cache import cache_dir
 from kneenlp.geometry.distance import MeshDistance
-from kneenlp.geometry.kernels import cell_lower_bound, field_values
 from kneenlp.geometry.rim import OpenEdges, rim_weights
 from kneenlp.geometry.shell import ShellDistance
+from kneenlp.geometry.spline_kernels import cell_lower_bound, field_values
 
 #: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
 FORMAT_VERSION = 5
@@ -106,12 +106,18 @@ class DistanceField:
         return DistanceField(self.origin, self.spacing, self.weights, band=1.0, depth=0.0)
 
     @property
+    def spline(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(coeffs, origin, spacing)``: the spline as the compiled loops read it
+        (:mod:`kneenlp.geometry.spline_kernels`)."""
+        return self.coeffs, self.origin, self.spacing
+
+    @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(int(s) for s in self.coeffs.shape)
 
     @cached_property
     def cell_min(self) -> np.ndarray:
-        """A lower bound of the field in each grid cell (m; :func:`~kneenlp.geometry.kernels.cell_lower_bound`,
+        """A lower bound of the field in each grid cell (m; :func:`~kneenlp.geometry.spline_kernels.cell_lower_bound`,
         at least the smallest coefficient shaping the cell), derived once from :attr:`coeffs`: a point
         in a cell whose bound is not negative cannot penetrate, and is passed over with one look-up."""
         return cell_lower_bound(self.coeffs)
@@ -235,7 +241,7 @@ class DistanceField:
             return tuple(out)
         if order == 0:  # compiled (kernels); the same spline as below and as scipy's map_coordinates
             values = np.empty(int(ok.sum()))
-            field_values(self.coeffs, self.origin, self.spacing, x[ok], values)
+            field_values(self.spline, x[ok], values)
             out[0][ok] = values
             return tuple(out)
         t = u[ok] - i0[ok]

@@ -36,7 +36,7 @@ Objective: the sum of squared model-minus-measured coordinates (mm^2 + deg^2).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import casadi as ca
@@ -101,25 +101,49 @@ class ExportProblem:
         return ca.Function("nlp", [self.x, self.p], [self.f, self.g], ["x", "p"], ["f", "g"])
 
 
-def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, *,
-                   free: list[str] | None = None, start: dict[str, float] | None = None, seed: int = 0,
-                   with_effects: list[str] | None = None, fixed: dict[str, float] | None = None,
-                   contact: ContactForm = "exact", layout: Layout = "vector") -> ExportProblem:
+@dataclass(frozen=True)
+class ExportOptions:
+    """The keyword options of :func:`export_problem` (its docstring), checked in one place (:meth:`of`)."""
+
+    free: list[str] | None = None
+    start: dict[str, float] | None = None
+    seed: int = 0
+    with_effects: list[str] | None = None
+    fixed: dict[str, float] | None = None
+    contact: ContactForm = "exact"
+    layout: Layout = "vector"
+
+    def __post_init__(self) -> None:
+        if self.contact not in CONTACT_FORMS:
+            raise ValueError(f"contact must be one of {CONTACT_FORMS}, not {self.contact!r}")
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {LAYOUTS}, not {self.layout!r}")
+
+    @classmethod
+    def of(cls, options: dict) -> ExportOptions:
+        """The options given as keyword arguments; an unknown name is a TypeError, as Python's own."""
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"export_problem() got unexpected keyword argument(s): {', '.join(unknown)}")
+        return cls(**options)
+
+
+def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, **options) -> ExportProblem:
     """Build the identification NLP of ``data`` with a start like
-    :func:`kneenlp.estimation.identify.identify`'s (``knee`` may be a model with user elements);
-    ``contact``: ``"exact"`` (CasADi, C) or ``"expansion"`` (what ``.nl`` can hold; module docstring);
-    ``layout``: the exact contact's graph shape (``"vector"`` for CasADi files, ``"loop"`` for C)."""
-    if contact not in CONTACT_FORMS:
-        raise ValueError(f"contact must be one of {CONTACT_FORMS}, not {contact!r}")
-    if layout not in LAYOUTS:
-        raise ValueError(f"layout must be one of {LAYOUTS}, not {layout!r}")
+    :func:`kneenlp.estimation.identify.identify`'s (``knee`` may be a model with user elements).
+    Keyword options (:class:`ExportOptions`): ``free``, ``start``, ``seed`` (0), ``with_effects``
+    and ``fixed`` as :func:`~kneenlp.estimation.identify.identify`'s; ``contact``: ``"exact"``
+    (CasADi, C) or ``"expansion"`` (what ``.nl`` can hold; module docstring); ``layout``: the exact
+    contact's graph shape (``"vector"`` for CasADi files, ``"loop"`` for C)."""
+    opts = ExportOptions.of(options)
+    free, start, seed, layout = opts.free, opts.start, opts.seed, opts.layout
     model = KneeModel.of(knee or Knee.default())
     if not isinstance(data, MeasuredData):
         data = read_measured(data)
-    problem = IdentificationProblem.from_data(model, data, free, fixed=fixed, with_effects=with_effects or ())
+    problem = IdentificationProblem.from_data(model, data, free, fixed=opts.fixed, with_effects=opts.with_effects or ())
     free = problem.free
     T = problem.n_trials
-    contact = contact if model.ws_size else "exact"  # no working sets: the one form is exact
+    contact = opts.contact if model.ws_size else "exact"  # no working sets: the one form is exact
     e = nlp_expressions(problem, parallel="serial", working_sets="graph" if contact == "exact" else "data",
                         layout=layout)
     values = problem.scatter(np.random.default_rng(seed))
@@ -202,18 +226,17 @@ def write_export(prob: ExportProblem, fmt: ExportFormat, out: str | Path, *,
     files: list[Path] = []
     extra: dict = {}
     if fmt == "nl":
-        from kneenlp.io.nlwriter import write_nl
+        from kneenlp.io.nlwriter import Bounds, NlInput, write_nl
 
         if prob.contact == "exact" and prob.meta.get("working_sets"):
             raise InputError("the .nl format cannot hold mesh contact exactly: build the problem with "
                              "contact='expansion' (what `kneenlp export --format nl` does)", field="--format")
         fn, order = nl_function(prob)
         nq = len(order) - prob.n_free
-        extra = write_nl(out / "kneenlp.nl", fn, n_both=nq, x0=prob.x0[order], lbx=prob.lbx[order],
-                         ubx=prob.ubx[order], lbg=np.zeros(len(prob.con_names)), ubg=np.zeros(len(prob.con_names)),
-                         var_names=[prob.var_names[i] for i in order], con_names=prob.con_names,
-                         objective_name="sum_squared_residuals", title=_nl_title(prob),
-                         common=nl_common)
+        bounds = Bounds(prob.lbx[order], prob.ubx[order], np.zeros(len(prob.con_names)), np.zeros(len(prob.con_names)))
+        nl_input = NlInput(nq, prob.x0[order], bounds, [prob.var_names[i] for i in order], prob.con_names,
+                           "sum_squared_residuals")
+        extra = write_nl(out / "kneenlp.nl", fn, nl_input, title=_nl_title(prob), common=nl_common)
         extra["variable_order"] = "nl: coordinates first, then free parameters (see kneenlp.col)"
         files += [out / "kneenlp.nl", out / "kneenlp.row", out / "kneenlp.col"]
     elif fmt == "casadi":

@@ -163,12 +163,12 @@ def planned_changes(knee: Knee, values: dict[str, float], ligaments: Path) -> li
             for n in names:
                 uses.setdefault(n, []).append(g)
     plan: list[tuple[str, float, str]] = []
+    model = _FeModel(src, deps, fe, uses)
     for g, lig in groups.items():
         offset, scale = values[f"{g}.ref_strain_offset"], values[f"{g}.k_scale"]
         own = deps[_elset(g, deps, src)]
         if offset != 0.0:
-            plan += _reference_strain(g, lig, offset, _one(own, "_EREF", g, src), _one(own, "_L", g, src), fe,
-                                      uses, values, src)
+            plan += _reference_strain(model, g, lig, values)
         if scale != 1.0:
             if not scale > 0:
                 raise InputError(f"{g}.k_scale is {scale:g}: an FE connector without stiffness has no table; remove "
@@ -186,9 +186,26 @@ def planned_changes(knee: Knee, values: dict[str, float], ligaments: Path) -> li
     return list(dict.fromkeys(plan))
 
 
-def _reference_strain(group: str, lig: Ligament, offset: float, eref: str, length: str, fe: dict[str, float],
-                      uses: dict[str, list[str]], values: dict[str, float], src: str) -> list[tuple[str, float, str]]:
-    """The ``EREF`` that carries ``group``'s reference-strain ``offset`` (module docstring)."""
+@dataclass(frozen=True)
+class _FeModel:
+    """What :func:`planned_changes` reads of the model's ligament folder ``src``: its parameters'
+    dependencies per connector section (``deps``) and values (``fe``), and the knee's groups whose
+    table depends on each parameter (``uses``)."""
+
+    src: str
+    deps: dict[str, dict[str, list[str]]]
+    fe: dict[str, float]
+    uses: dict[str, list[str]]
+
+
+def _reference_strain(model: _FeModel, group: str, lig: Ligament,
+                      values: dict[str, float]) -> list[tuple[str, float, str]]:
+    """The ``EREF`` that carries the reference-strain offset of ``group`` (the knee's ligament
+    ``lig``) among the calibrated ``values`` (SI; module docstring)."""
+    src, fe, uses = model.src, model.fe, model.uses
+    own = model.deps[_elset(group, model.deps, src)]
+    eref, length = _one(own, "_EREF", group, src), _one(own, "_L", group, src)
+    offset = values[f"{group}.ref_strain_offset"]
     shift = lig.shift
     if shift is None:
         raise InputError(f"{group} moves its fibres' slack each by its own strain (no slack_shift in the knee file): "
@@ -236,8 +253,8 @@ def round_trip(knee: Knee, values: dict[str, float], before: list[Fibre], after:
                              "from this model?", field=f.name)
         imaged = f.law.length
         own = Bundle(f.femur, f.tibia, f.name, f.law.stiffness, imaged / f.law.slack_length - 1, f.law.lin_strain)
-        slack, k, lin = bundle_law(own, imaged, imaged, values[f"{f.group}.k_scale"],
-                                   values[f"{f.group}.ref_strain_offset"], lig.shift)
+        group = (values[f"{f.group}.k_scale"], values[f"{f.group}.ref_strain_offset"])
+        slack, k, lin = bundle_law(own, imaged, imaged, group, lig.shift)
         change = imaged * ROUND_TRIP_STRAINS
         expected = force_strain_numpy((imaged + change) / slack - 1, k, lin)
         got = law_force(g.law, change * 1e3)

@@ -35,8 +35,8 @@ def calibrated_values(knee: Knee, params: dict[str, float]) -> dict[str, dict[st
         for b in lig.bundles:
             values = {}
             imaged = lig.bundle_length(b)
-            slack, k, _ = bundle_law(b, imaged, imaged, 1.0 if scale is None else scale,
-                                     0.0 if offset is None else offset, lig.shift)
+            group = (1.0 if scale is None else scale, 0.0 if offset is None else offset)
+            slack, k, _ = bundle_law(b, imaged, imaged, group, lig.shift)
             if scale is not None:
                 values["linear_stiffness"] = k
             if offset is not None:

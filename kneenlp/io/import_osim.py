@@ -21,7 +21,7 @@ the subchondral bone) with ``femur_offset`` (its distance inside the articular s
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -65,13 +65,49 @@ def _find_mesh(name: str, folders: list[Path], source: str) -> Path:
                      field="Smith2018ContactMesh")
 
 
-def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | None = None, groups: Groups = "fine",
-                femur_body: str = "femur_distal_r", tibia_body: str = "tibia_proximal_r",
-                femur_mesh: str | Path | None = None, femur_offset: float = 0.0,
-                tuberosity: tuple[float, float, float] | None = None) -> ImportReport:
+@dataclass(frozen=True)
+class OsimImport:
+    """The keyword options of :func:`import_osim` (its docstring), checked in one place (:meth:`of`)."""
+
+    geometry: str | Path | None = None
+    groups: Groups = "fine"
+    femur_body: str = "femur_distal_r"
+    tibia_body: str = "tibia_proximal_r"
+    femur_mesh: str | Path | None = None
+    femur_offset: float = 0.0
+    tuberosity: tuple[float, float, float] | None = None
+
+    @classmethod
+    def of(cls, options: dict) -> OsimImport:
+        """The options given as keyword arguments; an unknown name is a TypeError, as Python's own."""
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"import_osim() got unexpected keyword argument(s): {', '.join(unknown)}")
+        return cls(**options)
+
+
+@dataclass(frozen=True)
+class _MeshCopy:
+    """Where :func:`_copy_contact_mesh` looks for a mesh file (``folders``), the model its errors
+    name (``source``), the knee's directory it copies into (``out``) and the notes it adds to
+    (``skipped``)."""
+
+    folders: list[Path]
+    source: str
+    out: Path
+    skipped: list[str]
+
+
+def import_osim(osim: str | Path, out: str | Path, **options) -> ImportReport:
     """Write a kneenlp knee from an OpenSim model (see module docstring); lengths in metres.
-    ``tuberosity``: the tibial tuberosity in the tibia body's frame (m), for a model without
-    patellar-tendon bundles (:func:`_tuberosity`)."""
+    Keyword options (:class:`OsimImport`): ``geometry`` (a folder of the model's mesh files),
+    ``groups`` ("fine"), ``femur_body`` ("femur_distal_r"), ``tibia_body`` ("tibia_proximal_r"),
+    ``femur_mesh`` (the femoral contact mesh's file in place of the model's), ``femur_offset`` (m,
+    the cartilage on it, 0), ``tuberosity``: the tibial tuberosity in the tibia body's frame (m),
+    for a model without patellar-tendon bundles (:func:`_tuberosity`)."""
+    opts = OsimImport.of(options)
+    groups, femur_body, tibia_body = opts.groups, opts.femur_body, opts.tibia_body
+    femur_offset = opts.femur_offset
     osim = Path(osim)
     _check_femur_offset(femur_offset)
     model = _read_model(osim, groups, (femur_body, tibia_body))
@@ -79,11 +115,10 @@ def import_osim(osim: str | Path, out: str | Path, *, geometry: str | Path | Non
     grouped = ligament_groups(list(keep))[groups]
     out = Path(out)
     (out / "meshes").mkdir(parents=True, exist_ok=True)
-    folders = ([Path(geometry)] if geometry else []) + [osim.parent]
-    meshes = {role: _copy_contact_mesh(model, role, body, femur_mesh if role == "femur" else None, folders,
-                                       str(osim), out, skipped)
+    copying = _MeshCopy(([Path(opts.geometry)] if opts.geometry else []) + [osim.parent], str(osim), out, skipped)
+    meshes = {role: _copy_contact_mesh(model, role, body, opts.femur_mesh if role == "femur" else None, copying)
               for role, body in (("femur", femur_body), ("tibia", tibia_body))}
-    landmarks, where = _landmarks(model, femur_body, tibia_body, tuberosity, out / meshes["tibia"])
+    landmarks, where = _landmarks(model, femur_body, tibia_body, opts.tuberosity, out / meshes["tibia"])
     skipped.append(f"tibial tuberosity {where}")
     doc: dict = {
         "name": osim.stem, "side": "right", "units": "m", "coordinates": "scan", "frame": "cylinders",
@@ -148,11 +183,11 @@ def _straight_bundles(model: OsimModel, femur_body: str, tibia_body: str) -> tup
     return keep, skipped
 
 
-def _copy_contact_mesh(model: OsimModel, role: str, body: str, given: str | Path | None, folders: list[Path],
-                       source: str, out: Path, skipped: list[str]) -> str:
+def _copy_contact_mesh(model: OsimModel, role: str, body: str, given: str | Path | None, copying: _MeshCopy) -> str:
     """Copy the tibiofemoral contact mesh of ``body`` (or the ``given`` file) into ``out/meshes``
     and return its path relative to ``out``; a mesh placed with an offset in its body is noted in
-    ``skipped``."""
+    ``skipped`` (``copying``: those two, the folders searched and the source named)."""
+    folders, source, out, skipped = copying.folders, copying.source, copying.out, copying.skipped
     found = [c for c in model.contact_meshes.values() if c.body == body]
     if given is not None:
         path = Path(given)

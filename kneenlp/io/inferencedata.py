@@ -14,12 +14,15 @@ import importlib.util
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from kneenlp.base.conventions import coordinate_columns
-from kneenlp.experiment.measured import MeasuredData
 from kneenlp.model.posterior import Posterior
+
+if TYPE_CHECKING:
+    from kneenlp.estimation.fit import Fit
 
 CHAINS = 4
 DRAWS = 1000
@@ -44,10 +47,11 @@ def posterior_draws(posterior: Posterior, values: Mapping[str, float], seed: int
                                                          if not f]
 
 
-def write_inference_data(path: str | Path, posterior: Posterior, values: Mapping[str, float],
-                         units: Mapping[str, tuple[str, float]], data: MeasuredData, seed: int = 0) -> Path:
-    """Write ``path`` (netCDF; module docstring); ``units``: per parameter (display unit, SI ->
-    display factor)."""
+def write_inference_data(path: str | Path, fit: Fit, posterior: Posterior, seed: int = 0) -> Path:
+    """Write ``path`` (netCDF; module docstring): draws of ``fit``'s free parameters from its
+    ``posterior`` about its values, in their display units, beside its data."""
+    values, data = fit.params, fit.data
+    units = {n: (fit.info(n).unit, fit.info(n).to_user) for n in fit.free}
     with warnings.catch_warnings():  # ArviZ announces its refactor on import: not the user's concern here
         warnings.simplefilter("ignore", FutureWarning)
         import arviz as az

@@ -48,6 +48,7 @@ class _Graph:
         self.uses: list[int] = []
         self.f_node: int | None = None
         self.g_nodes: list[int | None] = [None] * fn.nnz_out(1)
+        self.n_vars = fn.nnz_in(0)
         reg: dict[int, int] = {}
         for k in range(fn.n_instructions()):
             op = fn.instruction_id(k)
@@ -196,12 +197,35 @@ def _leaves(graph: _Graph, node: int | None, cut: dict[int, int], n: int) -> set
     return out
 
 
-def write_nl(path: str | Path, fn: ca.Function, *, n_both: int, x0: Sequence[float], lbx: Sequence[float],
-             ubx: Sequence[float], lbg: Sequence[float], ubg: Sequence[float], var_names: Sequence[str],
-             con_names: Sequence[str], objective_name: str = "objective", title: str = "kneenlp",
+@dataclass(frozen=True)
+class Bounds:
+    """Bounds of the variables (``lbx``, ``ubx``) and of the constraints (``lbg``, ``ubg``)."""
+
+    lbx: Sequence[float]
+    ubx: Sequence[float]
+    lbg: Sequence[float]
+    ubg: Sequence[float]
+
+
+@dataclass(frozen=True)
+class NlInput:
+    """What a .nl file states beside the expressions: ``n_both`` (the variables nonlinear in both
+    the objective and the constraints, first), the start ``x0``, the :class:`Bounds` and the names
+    of the variables, the constraints and the objective."""
+
+    n_both: int
+    x0: Sequence[float]
+    bounds: Bounds
+    var_names: Sequence[str]
+    con_names: Sequence[str]
+    objective_name: str = "objective"
+
+
+def write_nl(path: str | Path, fn: ca.Function, nl_input: NlInput, *, title: str = "kneenlp",
              common: str = "defined") -> dict:
-    """Write ``fn`` (SX, ``x -> (f, g)``, variables already in .nl order) to ``path`` (.nl) with
-    ``.row``/``.col`` name files beside it.  Returns counts for the caller's metadata.
+    """Write ``fn`` (SX, ``x -> (f, g)``, variables already in .nl order) with ``nl_input`` to
+    ``path`` (.nl) with ``.row``/``.col`` name files beside it.  Returns counts for the caller's
+    metadata.
 
     ``common`` says how subexpressions used more than once are written: ``"defined"`` as .nl
     defined variables (compact, the same NLP), or ``"lifted"`` as auxiliary variables ``aux_j``
@@ -212,25 +236,15 @@ def write_nl(path: str | Path, fn: ca.Function, *, n_both: int, x0: Sequence[flo
         raise ValueError(f"common must be 'defined' or 'lifted', got {common!r}")
     if not fn.is_a("SXFunction"):
         fn = fn.expand()
-    nl = _NlProblem.build(fn, n_both, common == "lifted", np.asarray(x0, dtype=float), _Bounds(lbx, ubx, lbg, ubg),
-                          var_names, con_names)
+    nl = _NlProblem.build(fn, nl_input, common == "lifted")
     path = Path(path)
     with atomic_target(path) as tmp, tmp.open("w") as fh:
         nl.write(fh.write, title)
-    write_text_atomic(path.with_suffix(".row"), "".join(f"{c}\n" for c in nl.con_names) + f"{objective_name}\n")
+    names = [*nl.con_names, nl_input.objective_name]
+    write_text_atomic(path.with_suffix(".row"), "".join(f"{c}\n" for c in names))
     write_text_atomic(path.with_suffix(".col"), "".join(f"{v}\n" for v in nl.var_names))
     return {"variables": nl.n, "constraints": nl.m, "common": common, "shared_subexpressions": len(nl.shared),
             "instructions": fn.n_instructions(), "jacobian_nonzeros": int(nl.col_counts.sum())}
-
-
-@dataclass(frozen=True)
-class _Bounds:
-    """Bounds of the variables (``lbx``, ``ubx``) and of the constraints (``lbg``, ``ubg``)."""
-
-    lbx: Sequence[float]
-    ubx: Sequence[float]
-    lbg: Sequence[float]
-    ubg: Sequence[float]
 
 
 @dataclass(frozen=True)
@@ -252,16 +266,16 @@ class _NlProblem:
     gcols: list[int]
     col_counts: np.ndarray
     x: np.ndarray
-    bounds: _Bounds
+    bounds: Bounds
     var_names: Sequence[str]
     con_names: Sequence[str]
 
     @classmethod
-    def build(cls, fn: ca.Function, n_both: int, lifted: bool, x0: np.ndarray, bounds: _Bounds,
-              var_names: Sequence[str], con_names: Sequence[str]) -> _NlProblem:
-        """The .nl statement of the SX function ``fn`` (``n_both`` variables nonlinear in both the
-        objective and the constraints, first)."""
+    def build(cls, fn: ca.Function, nl_input: NlInput, lifted: bool) -> _NlProblem:
+        """The .nl statement of the SX function ``fn`` with ``nl_input`` (lifted or not)."""
         n0, m0 = fn.nnz_in(0), fn.nnz_out(1)
+        x0, bounds, n_both = np.asarray(nl_input.x0, dtype=float), nl_input.bounds, nl_input.n_both
+        var_names, con_names = nl_input.var_names, nl_input.con_names
         graph = _Graph(fn)
         shared = [i for i in range(len(graph.kind)) if graph.kind[i] == "o" and graph.uses[i] > 1]
         cut = {node: n0 + j for j, node in enumerate(shared)}
@@ -269,7 +283,7 @@ class _NlProblem:
         m = m0 + (len(shared) if lifted else 0)
         em = _Emitter(graph, np.arange(n0), n0)
         em.defined = dict(cut)
-        rows, gcols = _sparsity(graph, shared, cut, n0, m0, lifted)
+        rows, gcols = _sparsity(graph, cut, lifted)
         col_counts = np.zeros(n, dtype=int)
         for r in rows:
             col_counts[r] += 1
@@ -278,7 +292,7 @@ class _NlProblem:
                        bounds, var_names, con_names)
         aux = len(shared)
         x_all = np.concatenate([x0, _node_values(graph, x0)[shared]])
-        lifted_bounds = _Bounds(np.concatenate([bounds.lbx, np.full(aux, -np.inf)]),
+        lifted_bounds = Bounds(np.concatenate([bounds.lbx, np.full(aux, -np.inf)]),
                                 np.concatenate([bounds.ubx, np.full(aux, np.inf)]),
                                 np.concatenate([bounds.lbg, np.zeros(aux)]),
                                 np.concatenate([bounds.ubg, np.zeros(aux)]))
@@ -327,11 +341,11 @@ class _NlProblem:
         w(f"G0 {len(self.gcols)}\n" + "".join(f"{c} 0\n" for c in self.gcols))
 
 
-def _sparsity(graph: _Graph, shared: list[int], cut: dict[int, int], n0: int, m0: int,
-              lifted: bool) -> tuple[list[list[int]], list[int]]:
+def _sparsity(graph: _Graph, cut: dict[int, int], lifted: bool) -> tuple[list[list[int]], list[int]]:
     """The variables each constraint depends on (its Jacobian row) and those the objective depends
-    on (its gradient).  Defined variables are not variables: without ``lifted`` a row lists the
-    variables behind them instead."""
+    on (its gradient), the shared nodes being the keys of ``cut`` (in their order).  Defined
+    variables are not variables: without ``lifted`` a row lists the variables behind them instead."""
+    shared, n0, m0 = list(cut), graph.n_vars, len(graph.g_nodes)
     con_nodes = list(graph.g_nodes) + (shared if lifted else [])
     rows = [sorted(_leaves(graph, node, cut, n0) | ({cut[node]} if lifted and i >= m0 else set()))
             for i, node in enumerate(con_nodes)]

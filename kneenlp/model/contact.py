@@ -23,6 +23,8 @@ and SI units.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import casadi as ca
 import numpy as np
 
@@ -30,16 +32,22 @@ from kneenlp.model.elements import Output, Pose, StagedElement
 from kneenlp.model.laws import NUMPY, ElasticFoundation, PressureLaw
 from kneenlp.model.parameters import Parameter
 
+if TYPE_CHECKING:
+    from kneenlp.model.articular import Compartment
+
 #: The cartilage pressure modulus, shared by every contact element.
 MODULUS = Parameter("contact.modulus", "modulus", "elastic-foundation pressure modulus")
 
 
-def sphere_wrench(c, modulus, radius, x, areas, delta: float, law: PressureLaw | None = None):
-    """Force and moment (about the tibial origin) on the tibia of a sphere (centre ``c``, tibial
-    frame, radius in m) pressed into sample points ``x`` (3 x N) with ``areas`` (1 x N), tibial
-    frame; the points may be constants or symbols.  A few vector operations whatever ``N`` is:
-    with ``s_i = p_i A_i / |x_i - c|``, ``S0 = sum s_i`` and ``S1 = sum s_i x_i``,
+def sphere_wrench(sphere: tuple, modulus, samples: tuple, delta: float, law: PressureLaw | None = None):
+    """Force and moment (about the tibial origin) on the tibia of a sphere ``sphere = (c, radius)``
+    (centre ``c``, tibial frame, radius in m) with the pressure ``modulus`` pressed into ``samples
+    = (x, areas)``: sample points ``x`` (3 x N) with ``areas`` (1 x N), tibial frame; the points may
+    be constants or symbols; ``delta`` the gate width (m).  A few vector operations whatever ``N``
+    is: with ``s_i = p_i A_i / |x_i - c|``, ``S0 = sum s_i`` and ``S1 = sum s_i x_i``,
     force ``F = S1 - c S0`` and moment ``M = c x S1``."""
+    c, radius = sphere
+    x, areas = samples
     sq = ca.sum1(x * x)  # 1 x N
     dist = ca.sqrt(sq - 2 * (c.T @ x) + ca.dot(c, c))
     s = (law or ElasticFoundation()).pressure(radius - dist, modulus, delta) * areas / dist
@@ -57,7 +65,7 @@ def compartment_function(name: str, points: np.ndarray, areas: np.ndarray, delta
     """
     points = np.asarray(points, dtype=float)
     c, modulus, radius = ca.MX.sym("c", 3), ca.MX.sym("K"), ca.MX.sym("R")
-    force, moment = sphere_wrench(c, modulus, radius, ca.DM(points.T), ca.DM(np.asarray(areas, float).ravel()).T,
+    force, moment = sphere_wrench((c, radius), modulus, (ca.DM(points.T), ca.DM(np.asarray(areas, float).ravel()).T),
                                   delta)
     return ca.Function(f"contact_{name}", [c, modulus, radius], [force, moment], ["c", "K", "R"],
                        ["force", "moment"])
@@ -75,21 +83,22 @@ def sphere_plane_force(modulus: float, radius: float, depth: float) -> float:
 
 class SphereContact(StagedElement):
     """Elastic-foundation contact of one compartment: a femoral sphere (centre in the femoral
-    frame, radius, m) against tibial cartilage samples (tibial frame, m; areas m^2).
+    frame, radius, m) against tibial cartilage samples (tibial frame, m; areas m^2): those of
+    ``compartment``, with its pressure law; ``gate`` its width (m).
 
     The sphere is an explicit analytic choice of the knee file, never an approximation of a mesh.
     Parameter: ``contact.modulus`` (shared by every compartment).  Outputs: the contact force
     magnitude (N) and the largest penetration (mm).
     """
 
-    def __init__(self, compartment: str, centre: np.ndarray, radius: float, points: np.ndarray,
-                 areas: np.ndarray, gate: float, working_set_size: int = 0, law: PressureLaw | None = None):
-        self.name, self.compartment = f"contact_{compartment}", compartment
-        self.law = law or ElasticFoundation()
-        self.centre, self.radius = np.asarray(centre, float), float(radius)
-        self.points, self.areas, self.gate = np.asarray(points, float), np.asarray(areas, float), float(gate)
+    def __init__(self, compartment: Compartment, gate: float, working_set_size: int = 0):
+        self.name, self.compartment = f"contact_{compartment.name}", compartment.name
+        self.law = compartment.law or ElasticFoundation()
+        self.centre, self.radius = np.asarray(compartment.centre, float), float(compartment.sphere_radius)
+        self.points, self.areas = np.asarray(compartment.points, float), np.asarray(compartment.areas, float)
+        self.gate = float(gate)
         self.working_set_size = int(working_set_size)
-        self.description = f"{compartment} compartment: sphere vs tibial cartilage"
+        self.description = f"{compartment.name} compartment: sphere vs tibial cartilage"
 
     def parameters(self) -> list[Parameter]:
         return [MODULUS]
@@ -98,7 +107,7 @@ class SphereContact(StagedElement):
         return ca.vertcat(pose.to_tibial(self.centre), values[MODULUS.name])
 
     def surface_wrench(self, probe, data):
-        return sphere_wrench(probe[:3], probe[3], self.radius, data[:3, :], data[3, :], self.gate, self.law)
+        return sphere_wrench((probe[:3], self.radius), probe[3], (data[:3, :], data[3, :]), self.gate, self.law)
 
     def clearance(self, R, p, values):
         centre = np.asarray(R).T @ (self.centre - np.asarray(p).ravel())

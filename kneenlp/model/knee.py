@@ -103,11 +103,9 @@ class Knee:
         contact: list[ForceElement] = []
         for c in self.compartments.values():
             if c.sphere:
-                contact.append(SphereContact(c.name, c.centre, c.sphere_radius, c.points, c.areas, self.gate,
-                                             self.working_set, c.law))
+                contact.append(SphereContact(c, self.gate, self.working_set))
             else:
-                contact.append(MeshContact(c.name, self.femur.field, c.points, c.areas, self.gate,
-                                           self.femur.mesh.vertices, self.femur.offset, c.law))
+                contact.append(MeshContact(c, self.femur.field, self.gate, self.femur))
         structures = [e for t in structure_tables() if t.name in self.structures
                       for e in t.declared(self, self.structures[t.name])]
         return [*self.ligaments.values(), *contact, *structures, *self.candidates]

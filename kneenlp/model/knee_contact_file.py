@@ -83,6 +83,26 @@ class ContactReading:
                              f"mm): check {where}, femur_offset ({offset * 1e3:g} mm) and that both bones are in the "
                              "same frame and unit", source=self.src, field="contact.tibia")
 
+    def check_bone_order(self, femur: trimesh.Trimesh, tibiae: dict[str, trimesh.Trimesh], hip: np.ndarray | None,
+                         proximal: np.ndarray) -> None:
+        """The femoral and tibial meshes are two bones, the femur's on the hip's side of the tibia's
+        (scan coordinates, the tibia placed by :meth:`at_reference`; towards ``hip`` when the file has
+        it, else along ``proximal``): a mesh given twice or the two swapped is an input error naming the
+        slip, not a failed fit later."""
+        src = self.src
+        tibia = trimesh.util.concatenate(list(tibiae.values()))
+        gap, _ = cKDTree(np.asarray(femur.vertices)).query(np.asarray(tibia.vertices), 1)
+        scale = float(np.median(tibia.edges_unique_length)) or 1.0
+        if np.mean(gap < 1e-6 * scale) > 0.5:
+            raise InputError("the tibial mesh is (part of) the femoral mesh: the same file given twice?", source=src,
+                             field="contact.tibia")
+        centre = self.at_reference(tibia.vertices).mean(axis=0)
+        up = (hip - centre) if hip is not None else np.asarray(proximal, float)
+        if (femur.vertices.mean(axis=0) - centre) @ up < 0:
+            towards = "the hip centre" if hip is not None else "the scan's proximal axis"
+            raise InputError(f"the tibial mesh lies above the femoral one (towards {towards}): the femoral and tibial "
+                             "meshes swapped?", source=src, field="contact.tibia")
+
     def contact(self, raw_landmarks: dict[str, np.ndarray]) -> dict:
         """The articular geometry in the femoral frame (m): read the tibial cartilage and the femoral
         surfaces (scan coordinates), fit the flexion axis, build the femoral frame from them and map
@@ -147,7 +167,7 @@ class ContactReading:
                              f"(at least {MIN_FEMUR_FACES}; real femoral meshes have 10,000-30,000): a placeholder or "
                              "over-decimated file?", source=src, field="contact.femur")
         if femur_raw is not None:
-            check_bone_order(femur_raw, tibiae, self.at_reference, raw_landmarks.get("hip_center"), approx[1], src)
+            self.check_bone_order(femur_raw, tibiae, raw_landmarks.get("hip_center"), approx[1])
         offset = self.length(contact.femur_offset, "femur_offset", 0.0, "contact.femur_offset", positive=False)
         if femur_raw is not None and mesh_compartments:
             self.check_facing(femur_raw, {n: tibiae[n] for n in mesh_compartments}, offset,
@@ -302,26 +322,6 @@ class ContactReading:
             return np.array([0.0, 0.0, np.sign(points[:, 2].mean()) * 0.02])
         side = (points.mean(axis=0) - axis.point) @ axis.direction
         return axis.lateral.centre if side >= 0 else axis.medial.centre
-
-
-def check_bone_order(femur: trimesh.Trimesh, tibiae: dict[str, trimesh.Trimesh], at_reference,
-                     hip: np.ndarray | None, proximal: np.ndarray, src: str) -> None:
-    """The femoral and tibial meshes are two bones, the femur's on the hip's side of the tibia's
-    (scan coordinates, the tibia placed by ``at_reference``; towards ``hip`` when the file has it,
-    else along ``proximal``): a mesh given twice or the two swapped is an input error naming the
-    slip, not a failed fit later."""
-    tibia = trimesh.util.concatenate(list(tibiae.values()))
-    gap, _ = cKDTree(np.asarray(femur.vertices)).query(np.asarray(tibia.vertices), 1)
-    scale = float(np.median(tibia.edges_unique_length)) or 1.0
-    if np.mean(gap < 1e-6 * scale) > 0.5:
-        raise InputError("the tibial mesh is (part of) the femoral mesh: the same file given twice?", source=src,
-                         field="contact.tibia")
-    centre = at_reference(tibia.vertices).mean(axis=0)
-    up = (hip - centre) if hip is not None else np.asarray(proximal, float)
-    if (femur.vertices.mean(axis=0) - centre) @ up < 0:
-        towards = "the hip centre" if hip is not None else "the scan's proximal axis"
-        raise InputError(f"the tibial mesh lies above the femoral one (towards {towards}): the femoral and tibial "
-                         "meshes swapped?", source=src, field="contact.tibia")
 
 
 def centroid_volume(mesh: trimesh.Trimesh) -> float:

@@ -392,7 +392,7 @@ def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_
     if binary_faces > MAX_MESH_FACES:  # a lean reader (trimesh's takes 1.9 GB for 2 M faces)
         mesh = trimesh.Trimesh(*read_binary_stl(path, binary_faces), process=False)
         mesh.metadata["faces_read"] = binary_faces
-        return _checked_mesh(mesh, path, scale, mirror, knee_file, field, merge=False)
+        return _checked_mesh(mesh, path, (scale, mirror), (knee_file, field), merge=False)
     size = path.stat().st_size
     if size > MAX_TEXT_MESH_BYTES:
         raise InputError(f"mesh {path.name} is {size / 1e6:.0f} MB, more than the {MAX_TEXT_MESH_BYTES / 1e6:.0f} "
@@ -406,12 +406,16 @@ def read_mesh(path: Path, scale: float, mirror: np.ndarray, *, field: str, knee_
     except Exception as exc:  # trimesh raises many exception types for broken files
         raise InputError(f"cannot read mesh {path.name} ({type(exc).__name__}: {' '.join(str(exc).split())})",
                          source=knee_file, field=field) from None
-    return _checked_mesh(mesh, path, scale, mirror, knee_file, field)
+    return _checked_mesh(mesh, path, (scale, mirror), (knee_file, field))
 
 
-def _checked_mesh(mesh: object, path: Path, scale: float, mirror: np.ndarray, knee_file: str, field: str,
+def _checked_mesh(mesh: object, path: Path, convert: tuple[float, np.ndarray], where: tuple[str, str],
                   merge: bool = True) -> trimesh.Trimesh:
-    """:func:`read_mesh`'s checks and conversion of a mesh as read (``merge``: merge duplicate vertices)."""
+    """:func:`read_mesh`'s checks and conversion of a mesh as read: ``convert = (scale, mirror)`` to
+    metres, mirrored; ``where = (knee_file, field)`` the errors name; ``merge``: merge duplicate
+    vertices."""
+    scale, mirror = convert
+    knee_file, field = where
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(f"mesh {path.name} has no triangles (empty, truncated or not a mesh?)", source=knee_file,
                          field=field)

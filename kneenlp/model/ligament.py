@@ -33,7 +33,7 @@ adequacy frees them as geometry candidates (:func:`kneenlp.model.effects.attachm
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import casadi as ca
 import numpy as np
@@ -89,10 +89,10 @@ class SlackShift:
         return slack_length(self.length, self.ref_strain + offset)
 
 
-def bundle_law(b: Bundle, imaged: float, reference, scale, offset, shift: SlackShift | None = None):
-    """``(slack length, stiffness, linear strain limit)`` of bundle ``b`` of a group with stiffness
-    scale ``scale`` and reference-strain offset ``offset`` (numbers or CasADi expressions): the one
-    place the group parameters act.  ``imaged`` is the bundle's length in the reference pose as the
+def bundle_law(b: Bundle, imaged: float, reference, group: tuple, shift: SlackShift | None = None):
+    """``(slack length, stiffness, linear strain limit)`` of bundle ``b`` of a group with the
+    parameters ``group = (scale, offset)``: stiffness scale and reference-strain offset (numbers or
+    CasADi expressions), the one place they act.  ``imaged`` is the bundle's length in the reference pose as the
     knee file gives it (m), ``reference`` the same length after attachment shifts.
 
     Without ``shift``: slack ``reference / (1 + eps_r + offset)``, stiffness ``scale k``, the
@@ -101,6 +101,7 @@ def bundle_law(b: Bundle, imaged: float, reference, scale, offset, shift: SlackS
     slack length moves by the group's ``L0(offset) - L0(0)``, the stiffness per unit length
     ``k / s`` (N/m) is the bundle's times ``scale``, and the toe's length ``2 eps_l s`` scales with
     ``L0`` (the FE's toe is ``2 ET L0``)."""
+    scale, offset = group
     if shift is None:
         return slack_length(reference, b.ref_strain + offset), scale * b.stiffness, b.lin_strain
     own = slack_length(imaged, b.ref_strain)
@@ -133,20 +134,45 @@ class Bundle:
         return float(np.linalg.norm(np.asarray(self.femur) - np.asarray(self.tibia)))
 
 
+@dataclass(frozen=True)
+class LigamentOptions:
+    """The keyword options of :class:`Ligament` (its docstring), checked in one place (:meth:`of`)."""
+
+    law: LigamentLaw | None = None
+    candidate: bool = False
+    defaults: dict[str, float] | None = None
+    description: str = ""
+    reference: tuple[np.ndarray, np.ndarray] | None = None
+    shift: SlackShift | None = None
+
+    @classmethod
+    def of(cls, options: dict) -> LigamentOptions:
+        """The options given as keyword arguments; an unknown name is a TypeError, as Python's own."""
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"Ligament() got unexpected keyword argument(s): {', '.join(unknown)}")
+        return cls(**options)
+
+
 class Ligament(ForceElement):
     """A ligament: one or more bundles (line elements) sharing one law (``law``, default the paper's
     :class:`~kneenlp.model.laws.ToeLinearLaw`), its parameters and a reference strain.  A
     *candidate* ligament (e.g. the posterior capsule named in a knee file) has stiffness 0 in the
     knee's parameter set; adding it as an effect frees its stiffness.
 
+    Keyword options (:class:`LigamentOptions`): ``law``; ``candidate`` (False); ``defaults`` (its
+    parameters' values other than the defaults, by kind); ``description``; ``reference`` (the
+    reference pose, below); ``shift`` (a :class:`SlackShift`, below).
+
     Outputs: strain (%, the largest over the bundles) and force (N, the sum over the bundles).
     """
 
-    def __init__(self, name: str, bundles: list[Bundle], *, law: LigamentLaw | None = None,
-                 candidate: bool = False, defaults: dict[str, float] | None = None, description: str = "",
-                 reference: tuple[np.ndarray, np.ndarray] | None = None, shift: SlackShift | None = None):
+    def __init__(self, name: str, bundles: list[Bundle], **options):
         if not bundles:
             raise ValueError(f"ligament {name} has no bundles")
+        opts = LigamentOptions.of(options)
+        law, candidate, defaults, description, reference, shift = (
+            opts.law, opts.candidate, opts.defaults, opts.description, opts.reference, opts.shift)
         self.name, self.bundles, self.law = name, list(bundles), law or ToeLinearLaw()
         #: the reference pose (rotation tibial -> femoral, tibial origin in the femoral frame, m)
         #: where reference strains are defined: the knee's imaged pose (identity by default)
@@ -238,7 +264,7 @@ class Ligament(ForceElement):
             route = b.path.route(femur, tibia, pose)
             length = route.length
             if self.grouped:
-                slack, k, lin = bundle_law(b, self.bundle_length(b), reference, scale, offset, self.shift)
+                slack, k, lin = bundle_law(b, self.bundle_length(b), reference, (scale, offset), self.shift)
                 strain = length / slack - 1
                 tension = self.law.tension(strain, k, lin)
             else:

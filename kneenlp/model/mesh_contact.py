@@ -30,6 +30,8 @@ solve reported as failed.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import casadi as ca
 import numpy as np
 from scipy.spatial import cKDTree
@@ -41,6 +43,9 @@ from kneenlp.model.contact import MODULUS
 from kneenlp.model.elements import Output, Pose, StagedElement, share_out
 from kneenlp.model.laws import CASADI, NUMPY, ElasticFoundation, PressureLaw
 from kneenlp.model.parameters import Parameter
+
+if TYPE_CHECKING:
+    from kneenlp.model.articular import Compartment, FemoralSurface
 
 #: Points that may be nearer the femoral surface than this (m) are the candidates the checks look at
 #: (:meth:`MeshContact.candidates`; the contact sums themselves pass over every point that cannot
@@ -81,14 +86,16 @@ def _pressure_derivatives(s: np.ndarray, law: PressureLaw, gate: float) -> tuple
     return out[:, 0], out[:, 1], out[:, 2]
 
 
-def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray, X: np.ndarray, r: np.ndarray,
-                     areas: np.ndarray, gate: float, law: PressureLaw | None = None,
+def wrench_expansion(field: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                     arms: tuple[np.ndarray, np.ndarray], gate: float, law: PressureLaw | None = None,
                      weight: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Wrench (6), Jacobian (6 x 6) and Hessian (6 x 6 x 6) per unit modulus of the contact of the
-    points with field values ``d``, gradients ``g``, Hessians ``h`` and third derivatives ``t3``
-    (n, n x 3, n x 3 x 3, n x 3 x 3 x 3) at femoral-frame positions ``X``, arms ``r = X - p`` from
-    the tibial origin and ``areas`` (m^2), with respect to ``xi = (u, w)`` (see module docstring).
+    points with ``field = (d, g, h, t3)``: field values, gradients, Hessians and third derivatives
+    (n, n x 3, n x 3 x 3, n x 3 x 3 x 3; :meth:`~kneenlp.geometry.sdf.DistanceField.evaluate` with
+    ``order=3`` at the femoral-frame positions ``X``), ``arms = (r, areas)``: arms ``r = X - p``
+    from the tibial origin (m) and areas (m^2); ``gate`` the gate width (m); with respect to
+    ``xi = (u, w)`` (see module docstring).
 
     Per point, ``f = A q n`` with the weighted pressure ``q = w(X) g(s)``, ``s = -d``, ``n = grad d /
     |grad d|``; ``m = r x f``; ``weight``: the rim weight's value, gradient and Hessian at the points
@@ -97,6 +104,8 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
     ``P = I - n n'`` and ``rho = |grad d|``), those of ``X`` and ``r`` with respect to ``xi`` from
     ``X(xi) = X + u + w x r + w x (w x r) / 2``.
     """
+    d, g, h, t3 = field
+    r, areas = arms
     n_pts = len(d)
     if n_pts == 0:
         return np.zeros(6), np.zeros((6, 6)), np.zeros((6, 6, 6))
@@ -147,9 +156,10 @@ def wrench_expansion(d: np.ndarray, g: np.ndarray, h: np.ndarray, t3: np.ndarray
 class MeshContact(StagedElement):
     """Contact of one compartment: a femoral distance field against tibial cartilage samples.
 
-    ``field`` femoral frame, m; ``points`` (N x 3) tibial frame, m; ``areas`` (N,) m^2; ``gate``
-    m; ``femur_vertices`` (femoral frame, m) with ``offset`` (m) bound the gap of points outside
-    the field's grid.  A cropped surface ends at its rim (its open edges): every
+    ``field`` femoral frame, m; the ``compartment``'s tibial ``points`` (N x 3) tibial frame, m,
+    ``areas`` (N,) m^2 and pressure law; ``gate`` m; the ``femur``'s mesh vertices (femoral frame,
+    m) with its ``offset`` (m) bound the gap of points outside the field's grid (None: no bound,
+    such points never touch).  A cropped surface ends at its rim (its open edges): every
     pressure is multiplied by the field's rim weight (:attr:`~kneenlp.geometry.sdf.DistanceField.
     weights`, 1 on the surface, 0 beyond the rim), and a pose is noted where more than
     :data:`RIM_SHARE` of a compartment's force would come from beyond it (:meth:`rim_batch`).
@@ -160,14 +170,15 @@ class MeshContact(StagedElement):
     wrench_frame = "femoral"
     working_set_size = 1  # one expansion per compartment and trial
 
-    def __init__(self, compartment: str, field: DistanceField, points: np.ndarray, areas: np.ndarray, gate: float,
-                 femur_vertices: np.ndarray | None = None, offset: float = 0.0, law: PressureLaw | None = None):
-        self.name, self.compartment = f"contact_{compartment}", compartment
-        self.law = law or ElasticFoundation()
+    def __init__(self, compartment: Compartment, field: DistanceField, gate: float,
+                 femur: FemoralSurface | None = None):
+        self.name, self.compartment = f"contact_{compartment.name}", compartment.name
+        self.law = compartment.law or ElasticFoundation()
         self.field = field
-        self.points, self.areas = np.asarray(points, float), np.asarray(areas, float)
+        self.points, self.areas = np.asarray(compartment.points, float), np.asarray(compartment.areas, float)
         self.gate = float(gate)
-        self.description = f"{compartment} compartment: femoral surface (distance field) vs tibial cartilage"
+        self.description = f"{compartment.name} compartment: femoral surface (distance field) vs tibial cartilage"
+        femur_vertices, offset = (femur.mesh.vertices, femur.offset) if femur is not None else (None, 0.0)
         self._outside = (cKDTree(np.asarray(femur_vertices)), float(offset)) if femur_vertices is not None else None
         #: where a point outside the field's grid can be within reach of a femoral vertex (an empty box without them)
         reach = float(offset) + self.field.spacing + self.field.band
@@ -262,6 +273,10 @@ class MeshContact(StagedElement):
         d = self.field.evaluate(X)[0]
         return cand[(d < 0) & (d > -0.99 * self.field.depth) & self.in_field(X)]
 
+    def _compartment(self) -> tuple:
+        """The compartment as the compiled passes read it (:func:`kneenlp.geometry.kernels.compartment`)."""
+        return kernels.compartment(self.field, self.points, self.areas)
+
     @property
     def min_share(self) -> int:
         """The fewest poses of a compiled pass's share that get a thread (:data:`SHARE_POINTS`)."""
@@ -276,17 +291,11 @@ class MeshContact(StagedElement):
         Jacobian too; 2: its Hessian too)."""
         R = np.ascontiguousarray(R, dtype=float).reshape(-1, 3, 3)
         p = np.ascontiguousarray(p, dtype=float).reshape(-1, 3)
-        fld = self.field
-        lo, hi = fld.bounds
         out = np.empty((len(R), WS_SIZE))
-
-        weight = fld.weight_spline  # and its cells' smallest coefficients: the cells away from the rim weigh 1
-        weights, wmin = (weight.coeffs, weight.cell_min) if weight is not None else (np.zeros((0, 0, 0)),) * 2
+        compartment, law = self._compartment(), (self.law.kernel, self.gate)
 
         def run(first: int, last: int) -> None:
-            kernels.contact_batch(fld.coeffs, fld.cell_min, weights, wmin, fld.origin, fld.spacing, lo, hi,
-                                  0.99 * fld.depth, self.points, self.areas, R, p, self.law.kernel, self.gate, order,
-                                  first, last, out)
+            kernels.contact_batch(compartment, (R, p, first, last), law, order, out)
 
         share_out(run, len(R), threads, self.min_share)
         return out
@@ -298,12 +307,11 @@ class MeshContact(StagedElement):
         R = np.ascontiguousarray(R, dtype=float).reshape(-1, 3, 3)
         p = np.ascontiguousarray(p, dtype=float).reshape(-1, 3)
         fld = self.field
-        lo, hi = fld.bounds
         deep, outside = np.empty(len(R)), np.empty((len(R), len(self.points)), dtype=np.bool_)
+        compartment = self._compartment()
 
         def run(first: int, last: int) -> None:
-            kernels.left_out_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                                   self.points, R, p, first, last, *self._near, deep, outside)
+            kernels.left_out_batch(compartment, (R, p, first, last), self._near, deep, outside)
 
         share_out(run, len(R), threads, self.min_share)
         trial, point = np.nonzero(outside)
@@ -325,10 +333,9 @@ class MeshContact(StagedElement):
         fld = self.field
         if fld.weight_spline is None:
             return share
-        lo, hi = fld.bounds
         counted = np.empty((len(R), len(self.points)), dtype=np.bool_)  # the points the contact counts
-        kernels.counted_batch(fld.coeffs, fld.cell_min, fld.origin, fld.spacing, lo, hi, 0.99 * fld.depth,
-                              self.points, np.ascontiguousarray(R), np.ascontiguousarray(p), 0, len(R), counted)
+        kernels.counted_batch(self._compartment(), (np.ascontiguousarray(R), np.ascontiguousarray(p), 0, len(R)),
+                              counted)
         trial, point = np.nonzero(counted)
         if not len(trial):
             return share

@@ -50,7 +50,8 @@ class ParameterModel(Protocol):
     def index(self, name: str) -> int: ...
 
 
-_KEEP: Any = object()  # set(): "leave as it is" (None means "none" for prior and expr)
+#: What :meth:`Param.set` changes beside the value (an absent name leaves it as it is)
+SETTABLE = ("unit", "vary", "min", "max", "prior", "expr")
 
 
 @dataclass
@@ -80,28 +81,31 @@ class Param:
     def to_user(self) -> float:
         return self.info.to_user
 
-    def set(self, value: float | None = None, *, unit: str | None = None, vary: bool | None = None,
-            min: float | None = None, max: float | None = None, prior: Prior | None = _KEEP,
-            expr: str | None = _KEEP) -> Param:
-        """Change what is given (``value``, ``min``, ``max`` in ``unit`` if given, else SI); returns
-        the parameter.  ``prior=None`` removes the prior, ``expr=None`` the tie; a tie stops the
-        parameter varying."""
+    def set(self, value: float | None = None, **changes: Any) -> Param:
+        """Change what is given (:data:`SETTABLE`; ``value``, ``min``, ``max`` in ``unit`` if
+        given, else SI; ``vary``; ``prior``, a :class:`~kneenlp.model.priors.Prior`; ``expr``, a
+        tie); returns the parameter.  ``prior=None`` removes the prior, ``expr=None`` the tie; a tie
+        stops the parameter varying.  An unknown name is a TypeError, as Python's own."""
+        unknown = sorted(set(changes) - set(SETTABLE))
+        if unknown:
+            raise TypeError(f"set() got unexpected keyword argument(s): {', '.join(unknown)}")
+        unit = changes.get("unit")
         factor = 1.0 if unit is None else _factor(unit, self.name)
         if value is not None:
             self.value = float(value) * factor
-        if min is not None:
-            self.min = float(min) * factor
-        if max is not None:
-            self.max = float(max) * factor
-        if vary is not None:
-            self.vary = bool(vary)
-        if prior is not _KEEP:
-            self.prior = prior
-        if expr is not _KEEP:
-            self.expr = expr
-            if expr is not None:  # a tie neither varies nor takes a prior
+        if changes.get("min") is not None:
+            self.min = float(changes["min"]) * factor
+        if changes.get("max") is not None:
+            self.max = float(changes["max"]) * factor
+        if changes.get("vary") is not None:
+            self.vary = bool(changes["vary"])
+        if "prior" in changes:
+            self.prior = changes["prior"]
+        if "expr" in changes:
+            self.expr = changes["expr"]
+            if self.expr is not None:  # a tie neither varies nor takes a prior
                 self.vary = False
-                self.prior = None if prior is _KEEP else self.prior
+                self.prior = changes.get("prior")
         return self
 
     def check(self, source: str | None = None) -> None:

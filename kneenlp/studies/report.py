@@ -93,8 +93,9 @@ def analyse_study(study, truths: StudyTruths | None = None) -> dict:
     if not table.empty:
         table["std_ratio"] = table["mc_std"] / table["predicted_std"]
     _write_csv(table, out / "table3.csv")
-    factors = {p: _USER_UNITS[model.parameter(p).kind][1] for p in params}
-    plots.study_boxplots(ok, table, study.spec.sets, out / "fig3_boxplots.png", factors,
+    shown = ok.assign(**{p: ok[p].to_numpy(dtype=float) * _USER_UNITS[model.parameter(p).kind][1]
+                         for p in params if p in ok})  # in the units of the table
+    plots.study_boxplots(shown, table, study.spec.sets, out / "fig3_boxplots.png",
                          f"{len(ok)} fits, noise {study.spec.noise}")
     fig2_set = "set3" if "set3" in study.spec.sets else study.spec.sets[0]
     truth = truths.truth(fig2_set)

@@ -26,7 +26,7 @@ import numpy as np
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.rim import OpenEdges
-from kneenlp.model.laws import NUMPY, ElasticFoundation, PressureLaw
+from kneenlp.model.laws import NUMPY, ElasticFoundation
 
 
 @dataclass(frozen=True)
@@ -44,17 +44,33 @@ class ContactState:
         return float(np.linalg.norm(self.force))
 
 
-def reference_contact(distance: MeshDistance, offset: float, points: np.ndarray, areas: np.ndarray,
-                      R: np.ndarray, p: np.ndarray, modulus: float, gate: float,
-                      law: PressureLaw | None = None, rim: OpenEdges | None = None) -> ContactState:
-    """Contact of tibial ``points`` (tibial frame, m) with ``areas`` (m^2) against the surface
-    ``offset`` (m) outside the mesh of ``distance``, at pose ``(R, p)``, modulus in N/m^3, gate in m,
-    pressure by ``law`` (default the paper's elastic foundation).  ``rim``: the mesh's open edges
-    (:class:`~kneenlp.geometry.rim.OpenEdges` of the mesh itself, offset 0); a point whose nearest mesh
-    point lies on one presses nothing (the surface ends where the mesh ends: a sharp edge, where the
-    model's weight falls to 0 within a grid spacing)."""
+@dataclass(frozen=True)
+class ExactSurface:
+    """The femoral surface by exact distances: ``offset`` (m) outside the mesh of ``distance``.
+    ``rim``: the mesh's open edges (:class:`~kneenlp.geometry.rim.OpenEdges` of the mesh itself,
+    offset 0; None: none); a point whose nearest mesh point lies on one presses nothing (the surface
+    ends where the mesh ends: a sharp edge, where the model's weight falls to 0 within a grid
+    spacing)."""
+
+    distance: MeshDistance
+    offset: float = 0.0
+    rim: OpenEdges | None = None
+
+    @classmethod
+    def of(cls, femur, distance: MeshDistance | None = None) -> ExactSurface:
+        """The surface of a knee's ``femur`` (:class:`~kneenlp.model.articular.FemoralSurface`)."""
+        return cls(distance or MeshDistance(femur.mesh), femur.offset, OpenEdges(femur.mesh))
+
+
+def reference_contact(surface: ExactSurface, contact, pose: tuple[np.ndarray, np.ndarray],
+                      modulus: float) -> ContactState:
+    """Contact of the tibial points of ``contact`` (a contact element: its ``points``, tibial frame,
+    m, ``areas``, m^2, ``gate``, m, and pressure ``law``) against ``surface`` at ``pose = (R, p)``,
+    modulus in N/m^3."""
+    distance, offset, rim = surface.distance, surface.offset, surface.rim
+    R, p = pose
     p = np.asarray(p, float).ravel()
-    X = np.asarray(points, float) @ np.asarray(R, float).T + p
+    X = np.asarray(contact.points, float) @ np.asarray(R, float).T + p
     # the others are certainly clear of the surface, or inside the mesh deeper than any contact (5 mm)
     near = distance.lower_bound(X) < max(offset + 1e-4, 5e-3)
     d, normal = np.full(len(X), np.inf), np.zeros((len(X), 3))
@@ -64,8 +80,8 @@ def reference_contact(distance: MeshDistance, offset: float, points: np.ndarray,
             beyond = np.flatnonzero(near)[rim.distance(closest) <= 1e-9 * distance.unit]
             d[beyond] = np.inf
     pen = offset - d
-    pres = (law or ElasticFoundation()).pressure(pen, modulus, gate, NUMPY)
-    w = pres * np.asarray(areas, float)
+    pres = (contact.law or ElasticFoundation()).pressure(pen, modulus, contact.gate, NUMPY)
+    w = pres * np.asarray(contact.areas, float)
     f = normal * w[:, None]
     cop = (X * w[:, None]).sum(axis=0) / w.sum() if w.sum() > 0 else np.full(3, np.nan)
     return ContactState(f.sum(axis=0), np.cross(X - p, f).sum(axis=0), cop, pen, pres)
@@ -80,13 +96,12 @@ def compare_contact(knee, q: np.ndarray, theta: np.ndarray, flexion: float,
     model = KneeModel.of(knee)
     R, p = (np.asarray(v) for v in model.pose(q, flexion, theta))
     modulus = float(theta[model.index("contact.modulus")])
-    distance = distance or MeshDistance(knee.femur.mesh)
-    rim = OpenEdges(knee.femur.mesh)
+    surface = ExactSurface.of(knee.femur, distance)
     out = {}
     for e in model.staged:
         if not hasattr(e, "field"):
             continue
-        ref = reference_contact(distance, knee.femur.offset, e.points, e.areas, R, p, modulus, e.gate, e.law, rim)
+        ref = reference_contact(surface, e, (R, p), modulus)
         got = e.pressure(R, p, modulus)
         out[e.compartment] = {
             "load_N": float(np.linalg.norm(got["force"])), "reference_load_N": ref.load,
@@ -122,24 +137,23 @@ def cropped_knee_file(name: str, cut: float, directory: Path) -> Path:
     return out
 
 
-def reference_equilibrium(model: KneeModel, trial, q: np.ndarray, theta: np.ndarray, tol: float = 1e-6,
+def reference_equilibrium(model: KneeModel, solution, theta: np.ndarray, tol: float = 1e-6,
                           max_iter: int = 30) -> tuple[np.ndarray, float]:
-    """The trial's equilibrium with the brute-force contact (:func:`reference_contact` for every
-    mesh compartment, the model's other forces as they are) near the model's own equilibrium ``q``
-    (SI): chord Newton with the model's Jacobian at ``q``.  Returns the pose (SI) and the largest
-    residual (N, N m)."""
-    knee = model.knee
+    """The equilibrium of the ``solution``'s trial with the brute-force contact
+    (:func:`reference_contact` for every mesh compartment, the model's other forces as they are)
+    near the model's own equilibrium (its pose ``q``, SI; a
+    :class:`~kneenlp.solvers.forward.TrialSolution`): chord Newton with the model's Jacobian at
+    ``q``.  Returns the pose (SI) and the largest residual (N, N m)."""
     if not all(hasattr(e, "field") for e in model.staged):
         raise ValueError("the brute-force equilibrium needs mesh contact in every staged element")
-    distance, rim = MeshDistance(knee.femur.mesh), OpenEdges(knee.femur.mesh)
+    surface = ExactSurface.of(model.knee.femur)
     modulus = float(theta[model.index("contact.modulus")])
-    q = np.asarray(q, float).copy()
+    trial, q = solution.trial, np.asarray(solution.q, float).copy()
     jac = model.trial_derivatives(q[None], theta, np.asarray(trial.load)[None], np.array([trial.flexion]), 1)[1][0]
     res = np.inf
     for _ in range(max_iter):
         R, p = (np.asarray(v) for v in model.pose(q, trial.flexion, theta))
-        states = [reference_contact(distance, knee.femur.offset, e.points, e.areas, R, p.ravel(), modulus, e.gate,
-                                    e.law, rim) for e in model.staged]
+        states = [reference_contact(surface, e, (R, p.ravel()), modulus) for e in model.staged]
         r = model.residual_given(q, theta, trial.load, trial.flexion, [(s.force, s.moment) for s in states])
         res = float(np.max(np.abs(r)))
         if res <= tol:
