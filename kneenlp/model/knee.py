@@ -35,13 +35,12 @@ from kneenlp.model.articular import (
     field_summary,
     swept_tibia,
 )
-from kneenlp.model.contact import SphereContact
 from kneenlp.model.elements import ForceElement
 from kneenlp.model.kinematics import reference_transform
 from kneenlp.model.knee_file import KneeFile, check_parameter_set, default_knee_file, knee_file, resolve_knee
 from kneenlp.model.laws import DEFAULT_PRESSURE_LAW
 from kneenlp.model.ligament import Ligament
-from kneenlp.model.mesh_contact import RIM_SHARE, MeshContact
+from kneenlp.model.mesh_contact import RIM_SHARE
 from kneenlp.model.parameters import ParameterSet
 from kneenlp.model.structures import structure_tables
 
@@ -98,22 +97,18 @@ class Knee:
         return list(self.ligaments)
 
     def elements(self) -> list[ForceElement]:
-        """The knee's force elements: its ligaments, one contact element per compartment, the
-        structures its file declares and the candidate bundles of its file (neutral: stiffness 0)."""
-        contact: list[ForceElement] = []
-        for c in self.compartments.values():
-            if c.sphere:
-                contact.append(SphereContact(c, self.gate, self.working_set))
-            else:
-                contact.append(MeshContact(c, self.femur.field, self.gate, self.femur))
-        structures = [e for t in structure_tables() if t.name in self.structures
-                      for e in t.declared(self, self.structures[t.name])]
-        return [*self.ligaments.values(), *contact, *structures, *self.candidates]
+        """The knee's force elements: its ligaments, the built-in structures (the contact of each
+        compartment, and those its file declares: :mod:`kneenlp.model.structures`) and the candidate
+        bundles of its file (neutral: stiffness 0)."""
+        structures = [e for t in structure_tables() if t.read is None or t.name in self.structures
+                      for e in t.declared(self, self.structures.get(t.name))]
+        return [*self.ligaments.values(), *structures, *self.candidates]
 
     def structure_candidates(self) -> list[ForceElement]:
         """The neutral candidates of the built-in structures its file does not declare (model
         adequacy may free them; :mod:`kneenlp.model.structures`)."""
-        return [e for t in structure_tables() if t.name not in self.structures for e in t.candidates(self)]
+        return [e for t in structure_tables() if t.read is not None and t.name not in self.structures
+                for e in t.candidates(self)]
 
     def condyle_centres(self) -> list[np.ndarray]:
         """Centre of each femoral condyle (femoral frame, m): where the meniscus springs act."""
@@ -134,7 +129,8 @@ class Knee:
         """How the knee file became this model: frames, splits, fits and surface representations
         (builds the femoral distance field if it is not built yet)."""
         lines = [f"knee {self.name!r} ({self.source or 'in memory'})", *self.notes]
-        lines += [t.describe(self.structures[t.name]) for t in structure_tables() if t.name in self.structures]
+        lines += [t.describe(self.structures[t.name]) for t in structure_tables()
+                  if t.describe is not None and t.name in self.structures]
         for c in self.compartments.values():
             what = (f"explicit sphere, radius {c.sphere_radius * 1e3:.1f} mm, centre "
                     f"({', '.join(f'{v * 1e3:.1f}' for v in c.centre)}) mm" if c.sphere else "femoral mesh surface")

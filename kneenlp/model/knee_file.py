@@ -298,7 +298,7 @@ class KneeFile(ContactReading, LigamentReading):
         """The knee's value of every built-in structure's table the file declares (SI, checked;
         :mod:`kneenlp.model.structures`), by table name."""
         return {t.name: t.read(getattr(self.spec, t.name), self.src) for t in structure_tables()
-                if getattr(self.spec, t.name) is not None}
+                if t.read is not None and getattr(self.spec, t.name) is not None}
 
     def parameter_set(self, parameters, ligaments: dict[str, Ligament]) -> ParameterSet:
         """The knee's parameter set (SI): ``parameters`` (a set or its file) or the file's own,

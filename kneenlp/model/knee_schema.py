@@ -245,4 +245,4 @@ def knee_document() -> type[KneeTables]:
 @functools.cache
 def _knee_document(tables: tuple[StructureTable, ...]) -> type[KneeTables]:
     return create_model("KneeDocument", __base__=KneeTables, __doc__=KneeTables.__doc__,
-                        **{t.name: (t.schema | None, None) for t in tables})
+                        **{t.name: (t.schema | None, None) for t in tables if t.schema is not None})
