@@ -44,7 +44,7 @@ from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
-from kneenlp.experiment.protocol import Trial
+from kneenlp.experiment.protocol import Loading, Trial
 from kneenlp.model.parameters import Parameter
 from kneenlp.model.params import declared_free, default_free
 from kneenlp.model.priors import Prior
@@ -458,7 +458,7 @@ class IdentificationProblem:
         idx = [model.index(n) for n in (self.free if names is None else names)]
         q = np.asarray(q, dtype=float).reshape(-1, 5)
         T = len(q)
-        dq, dth = model.trial_derivatives(q, theta, self.loads, self.flexions, wrt_theta=True)
+        dq, dth = model.trial_derivatives(q, theta, Loading.of(self.trials), wrt_theta=True)
         dy_dq, dy_dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
                          for v in model.observation_jacobians.map(T)(q.T, theta, self.flexions[None, :]))
         dr_dp, dy_dp_direct = dth[:, :, idx], dy_dth[:, :, idx]

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.base.conventions import DIRECTIONS, load_vector
+from kneenlp.base.conventions import DIRECTIONS, LOAD_SIZE, load_vector
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.modes import LoadAxes
 from kneenlp.base.resources import resource
@@ -96,6 +96,31 @@ class Trial:
             what = f"{self.direction} {self.magnitude:g} {unit}"
         return f"{what} at {self.flexion_deg:g} deg flexion"
 
+
+
+@dataclass(frozen=True, eq=False)
+class Loading:
+    """What a batch of T trials' equilibria depend on besides the poses and the parameters: the load
+    vectors (T x :data:`~kneenlp.base.conventions.LOAD_SIZE`, N and N m) and the flexions (T, rad)."""
+
+    loads: np.ndarray
+    flexions: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "loads", np.asarray(self.loads, dtype=float).reshape(-1, LOAD_SIZE))
+        object.__setattr__(self, "flexions", np.asarray(self.flexions, dtype=float).ravel())
+
+    @classmethod
+    def of(cls, trials) -> Loading:
+        """The loading of ``trials`` (:attr:`Trial.load`, :attr:`Trial.flexion`)."""
+        return cls(np.array([t.load for t in trials]), np.array([t.flexion for t in trials]))
+
+    def __len__(self) -> int:
+        return len(self.flexions)
+
+    def __getitem__(self, index) -> Loading:
+        """The loading of the trials ``index`` selects (an index array or a boolean mask)."""
+        return Loading(self.loads[index], self.flexions[index])
 
 #: Names of the dominant load of a trial (component, sign) -> direction word.
 DIRECTION_WORDS = {("anterior_force", 1): "anterior", ("anterior_force", -1): "posterior",

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from kneenlp.solvers.boxcomplex import minimize_complex
-from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.forward import BatchStart, forward_solver
 from kneenlp.solvers.result import SolverResult
 
 if TYPE_CHECKING:
@@ -108,7 +108,7 @@ class NestedObjective:
         theta = self.theta(x_scaled)
         trials = list(self.problem.trials)
         q_ref, guess = self.start(x_scaled, theta)
-        q, res = self.solver.solve_batch(trials, theta, q_ref, guess=guess)
+        q, res = self.solver.solve_batch(trials, theta, BatchStart(q_ref, guess=guess))
         self.trial_solves += len(trials)
         ok = res <= CONSTRAINT_TOL
         psi = self.problem.map_objective(q, theta)

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import optimize
 
-from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.forward import BatchStart, forward_solver
 from kneenlp.solvers.result import SolverResult
 
 #: After the first point at equilibrium, the trials a step loses are retried (load ramps, fresh
@@ -105,8 +105,8 @@ class ReducedSpace:
         retries = None if self.best is None else int(MAX_RETRIED_SHARE * len(trials))
         q_from = self.q_start if self.best is None else self.best.q
         theta_from = None if self.best is None else self.best.theta
-        q, res = self.solver.solve_batch(trials, theta, q_from, self.threads, max_retries=retries,
-                                         theta0=theta_from, guess=self.predicted_poses(theta))
+        start = BatchStart(q_from, theta0=theta_from, guess=self.predicted_poses(theta))
+        q, res = self.solver.solve_batch(trials, theta, start, self.threads, max_retries=retries)
         bad = np.flatnonzero(~(res <= tol_eq))
         if len(bad) and (retries is None or len(bad) <= retries):  # try from the forward solver's own start
             for i, sol in zip(bad, self.solver.solve([trials[i] for i in bad], theta, snap=False), strict=True):
@@ -182,7 +182,8 @@ def start_poses(problem: IdentificationProblem, theta: np.ndarray, threads: int 
     state alone, the MAP calibration followed branches far from the data (MAP objective 731, not 452)."""
     tol = problem.equilibrium_tol
     solver = forward_solver(problem.model)
-    measured, res = solver.solve_batch(problem.trials, theta, np.array(problem.data.q, float), threads, max_retries=0)
+    measured, res = solver.solve_batch(problem.trials, theta, BatchStart(np.array(problem.data.q, float)), threads,
+                                       max_retries=0)
     forward = np.array(problem.data.q, float)
     reached = np.zeros(len(forward), bool)
     for i, sol in enumerate(solver.solve(problem.trials, theta)):

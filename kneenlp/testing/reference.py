@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from kneenlp.experiment.kneemodel import KneeModel
+from kneenlp.experiment.protocol import Loading
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.rim import OpenEdges
 from kneenlp.model.laws import NUMPY, ElasticFoundation, PressureLaw
@@ -134,7 +135,7 @@ def reference_equilibrium(model: KneeModel, trial, q: np.ndarray, theta: np.ndar
     distance, rim = MeshDistance(knee.femur.mesh), OpenEdges(knee.femur.mesh)
     modulus = float(theta[model.index("contact.modulus")])
     q = np.asarray(q, float).copy()
-    jac = model.trial_derivatives(q[None], theta, np.asarray(trial.load)[None], np.array([trial.flexion]), 1)[1][0]
+    jac = model.trial_derivatives(q[None], theta, Loading.of([trial]), 1)[1][0]
     res = np.inf
     for _ in range(max_iter):
         R, p = (np.asarray(v) for v in model.pose(q, trial.flexion, theta))
