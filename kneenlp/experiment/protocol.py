@@ -37,7 +37,7 @@ from kneenlp.base.modes import LoadAxes
 from kneenlp.base.resources import resource
 from kneenlp.base.schema import validated
 from kneenlp.base.tomlfile import read_toml
-from kneenlp.experiment.protocol_schema import Case, Exclusion, ProtocolFile
+from kneenlp.experiment.protocol_schema import Case, ProtocolFile
 
 PROTOCOL_DIR = resource("protocols")
 
@@ -318,7 +318,7 @@ def _case_trials(case: Case, fld: str, i: int, axes: LoadAxes, source: str) -> l
                              source=source, field=f"{fld}.magnitude")
         for m in magnitudes:
             check_load(component, m, source, f"{fld}.magnitude")
-    excluded = _excluded(case.exclude or [], direction, magnitudes, flexions, f"{fld}.exclude", source)
+    excluded = _excluded(case, magnitudes, flexions, fld, source)
     trials = []
     for f in flexions:
         for m in magnitudes:
@@ -329,13 +329,14 @@ def _case_trials(case: Case, fld: str, i: int, axes: LoadAxes, source: str) -> l
     return trials
 
 
-def _excluded(entries: list[Exclusion], direction: str, magnitudes: list[float], flexions: list[float], fld: str,
+def _excluded(case: Case, magnitudes: list[float], flexions: list[float], fld: str,
               source: str) -> set[tuple[float, float]]:
-    """``exclude = [{magnitude = M, flexion = F}, ...]``: each entry must name one of the case's
+    """The (magnitude, flexion) pairs of the case's ``exclude = [{magnitude = M, flexion = F}, ...]`` (the
+    case at ``fld``, its trials' ``magnitudes`` and ``flexions``): each entry must name one of the case's
     trials (an entry that excludes nothing is a typo that would silently keep the trial)."""
-    out = set()
-    for j, entry in enumerate(entries):
-        efld = f"{fld}[{j}]"
+    out, direction = set(), case.direction
+    for j, entry in enumerate(case.exclude or []):
+        efld = f"{fld}.exclude[{j}]"
         if entry.magnitude is None and direction != "none":
             raise InputError("missing magnitude", source=source, field=f"{efld}.magnitude")
         m = entry.magnitude if entry.magnitude is not None else 0.0

@@ -197,14 +197,37 @@ def start_poses(problem: IdentificationProblem, theta: np.ndarray, threads: int 
     return np.where(use_forward[:, None], forward, np.where((res <= tol)[:, None], measured, problem.data.q))
 
 
+@dataclass(frozen=True)
+class ReducedSettings:
+    """The settings of :func:`reduced_least_squares`: at most ``max_evaluations`` residual evaluations,
+    the relative cost change ``tol`` it stops at (None: :func:`tolerance`), the ``threads`` of the
+    trials' Newton."""
+
+    max_evaluations: int = 60
+    tol: float | None = None
+    threads: int = 2
+
+    @classmethod
+    def from_kwargs(cls, **options) -> ReducedSettings:
+        """The settings of :func:`reduced_least_squares`'s keyword arguments; ``TypeError`` names every
+        unknown one."""
+        unknown = sorted(set(options) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise TypeError(f"reduced_least_squares() got unexpected keyword argument(s): {', '.join(unknown)}")
+        return cls(**options)
+
+
 def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float], *, q0: np.ndarray | None = None,
-                          max_evaluations: int = 60, tol: float | None = None, threads: int = 2) -> SolverResult:
+                          **options) -> SolverResult:
     """Minimise the problem's weighted residual sum over its free parameters from ``start`` (SI),
     with every trial at equilibrium (module docstring); ``q0`` warm-starts the first poses (SI,
     default :func:`start_poses`).  Parameters scaled by
     their scales; stops at relative cost change ``tol`` (default :func:`tolerance`) or after
-    ``max_evaluations`` residual evaluations; ``threads`` of the trials' Newton."""
-    tol = tolerance(problem.model) if tol is None else tol
+    ``max_evaluations`` (60) residual evaluations; ``threads`` (2) of the trials' Newton
+    (``options``: :class:`ReducedSettings`)."""
+    settings = ReducedSettings.from_kwargs(**options)
+    threads, max_evaluations = settings.threads, settings.max_evaluations
+    tol = tolerance(problem.model) if settings.tol is None else settings.tol
     t0 = time.perf_counter()
     lower, upper = problem.scaled_bounds
     x0 = np.clip(problem.to_scaled(start), lower, upper)
