@@ -102,7 +102,7 @@ class DataLayout:
         return {name: p[sl] if name in self.ONCE else ca.reshape(p[sl], rows[name], self.n_trials)
                 for name, sl in self.slices().items()}
 
-    def pack(self, parts: Mapping[str, np.ndarray]) -> np.ndarray:
+    def pack(self, parts: Mapping[str, np.ndarray | None]) -> np.ndarray:
         """``p`` from its ``parts`` by name (:attr:`PARTS`, what :meth:`split` returns; the per-trial parts
         as ``T x rows`` arrays; ``working_sets`` may be left out for a layout without them)."""
         T = self.n_trials
