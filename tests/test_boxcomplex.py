@@ -380,3 +380,8 @@ def test_validation_errors(kwargs: dict, match: str) -> None:
 def test_non_scalar_objective_is_rejected() -> None:
     with pytest.raises(ValueError, match="scalar"):
         minimize_complex(lambda x: x, [(0.0, 1.0)] * 2, seed=0)
+
+
+def test_unknown_option_is_a_type_error() -> None:
+    with pytest.raises(TypeError, match=r"minimize_complex\(\) got unexpected keyword argument\(s\): maxiter, tol"):
+        minimize_complex(sphere, [(0.0, 1.0)] * 2, seed=0, tol=1e-3, maxiter=5)

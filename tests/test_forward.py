@@ -8,8 +8,8 @@ import pytest
 import kneenlp
 import kneenlp.base.resources
 from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
-from kneenlp.experiment.protocol import Protocol, Trial
-from kneenlp.solvers.forward import ForwardSolver
+from kneenlp.experiment.protocol import Loading, Protocol, Trial
+from kneenlp.solvers.forward import BatchStart, ForwardSolver
 
 PRIMARY = {"anterior": (3, 1), "posterior": (3, -1), "varus": (0, 1), "valgus": (0, -1),
            "internal": (1, 1), "external": (1, -1)}
@@ -122,9 +122,9 @@ def test_parameter_continuation_reaches_the_cold_solution(model):
     # a batch solve's retry takes that path: 4 Newton iterations do not reach the new equilibrium
     # from the old one, but do from the continuation's halfway pose
     short = ForwardSolver(model, max_iter=4)
-    direct = short.newton.solve(q0[None, :], theta, trial.load[None, :], np.array([trial.flexion]), short.tol, 4)
+    direct = short.newton.solve(q0[None, :], theta, Loading.of([trial]), 4)
     assert not direct.residual[0] <= short.tol
-    q_batch, res_batch = short.solve_batch([trial], theta, q0[None, :], threads=1, theta0=theta0)
+    q_batch, res_batch = short.solve_batch([trial], theta, BatchStart(q0[None, :], theta0=theta0), threads=1)
     assert res_batch[0] <= short.tol and np.allclose(q_batch[0], cold.q, atol=1e-8)
 
 
@@ -247,7 +247,7 @@ class _SingularAtStart:
     """r = 1000 (q - 1e-3) in four coordinates and 1e6 (q4^2 - 1e-6) in the fifth (SI; steps of a
     millimetre or a milliradian): the Jacobian is singular at q4 = 0."""
 
-    def trial_derivatives(self, q, theta, loads, flexions, threads):
+    def trial_derivatives(self, q, theta, loading, threads):
         r = np.column_stack([1e3 * (q[:, :4] - 1e-3), 1e6 * (q[:, 4] ** 2 - 1e-6)])
         jac = np.zeros((len(q), 5, 5))
         jac[:, range(4), range(4)] = 1e3
@@ -259,7 +259,8 @@ def test_a_singular_jacobian_stops_its_trial_only():
     from kneenlp.solvers.newton import EquilibriumNewton
 
     q0 = np.array([[0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 5e-4]])
-    out = EquilibriumNewton(_SingularAtStart()).solve(q0, None, np.zeros((2, LOAD_SIZE)), np.zeros(2), max_iter=30)
+    out = EquilibriumNewton(_SingularAtStart()).solve(q0, None, Loading(np.zeros((2, LOAD_SIZE)), np.zeros(2)),
+                                                      max_iter=30)
     assert out.residual[1] <= 1e-6 and np.allclose(out.q[1], 1e-3)  # its neighbour converges
     assert out.residual[0] >= 0.99 and np.allclose(out.q[0, :4], 1e-3)  # the singular one moves where it can
 
@@ -269,9 +270,9 @@ class _Bistable:
     r5 = 1e6 (q5 - q5^3 / (1 mm)^2) + f (f the load's first component): at f = 0 a stable
     equilibrium at +-1 mm and an unstable one at 0; the left well's fold at f = 1e6 * 2 / 3^1.5 mm."""
 
-    def trial_derivatives(self, q, theta, loads, flexions, threads):
+    def trial_derivatives(self, q, theta, loading, threads):
         c2 = 1e-6
-        r = np.column_stack([1e3 * (1e-3 - q[:, :4]), 1e6 * (q[:, 4] - q[:, 4] ** 3 / c2) + loads[:, 0]])
+        r = np.column_stack([1e3 * (1e-3 - q[:, :4]), 1e6 * (q[:, 4] - q[:, 4] ** 3 / c2) + loading.loads[:, 0]])
         jac = np.zeros((len(q), 5, 5))
         jac[:, range(4), range(4)] = -1e3
         jac[:, 4, 4] = 1e6 * (1 - 3 * q[:, 4] ** 2 / c2)
@@ -287,15 +288,15 @@ def test_settling_finds_the_stable_equilibrium_newton_misses():
     newton = EquilibriumNewton(_Bistable())
     q0 = np.array([[0.0, 0.0, 0.0, 0.0, 1e-5]])
     loads = np.zeros((1, LOAD_SIZE))
-    root = newton.solve(q0, None, loads, np.zeros(1))
+    root = newton.solve(q0, None, Loading(loads, np.zeros(1)))
     assert root.residual[0] <= 1e-6 and abs(root.q[0, 4]) < 1e-12  # the hump
-    rest = newton.settle(q0, None, loads, np.zeros(1))
+    rest = newton.settle(q0, None, Loading(loads, np.zeros(1)))
     assert rest.residual[0] <= 1e-6 and rest.q[0, 4] == pytest.approx(1e-3, rel=1e-9)
     assert np.allclose(rest.q[0, :4], 1e-3)
     left = np.array([[1e-3, 1e-3, 1e-3, 1e-3, -1e-3]])
     pushed = loads.copy()
     pushed[0, 0] = 400.0  # beyond the left well's fold: no equilibrium near -1 mm
-    snap = newton.settle(left, None, pushed, np.zeros(1))
+    snap = newton.settle(left, None, Loading(pushed, np.zeros(1)))
     assert snap.residual[0] <= 1e-6 and snap.q[0, 4] > 1e-3
 
 
@@ -326,8 +327,8 @@ def test_a_knee_written_another_way_has_the_same_forces_and_solves_the_same():
     rng = np.random.default_rng(5)
     q = np.asarray(knee.reference_pose[1], float) + rng.normal(0, 1, (20, 5)) * [0.02, 0.05, 1e-3, 1e-3, 3e-4]
     loads, flexions = np.zeros((20, LOAD_SIZE)), np.radians(rng.uniform(0, 90, 20))
-    ra = ForwardSolver(a).newton.evaluate(q, a.theta(), loads, flexions)[0]
-    rb = ForwardSolver(b).newton.evaluate(q, b.theta(), loads, flexions)[0]
+    ra = ForwardSolver(a).newton.evaluate(q, a.theta(), Loading(loads, flexions))[0]
+    rb = ForwardSolver(b).newton.evaluate(q, b.theta(), Loading(loads, flexions))[0]
     assert np.max(np.abs(ra - rb)) <= 1e-9 * np.max(np.abs(ra))  # ... the forces do not
     for s, t in zip(kneenlp.simulate(knee, "set1").solutions, kneenlp.simulate(other, "set1").solutions, strict=True):
         assert s.converged and t.converged and s.strategy == t.strategy
@@ -363,8 +364,8 @@ def test_an_unstable_equilibrium_is_named_by_the_sign_of_its_stiffness_whatever_
     saddle = -basis @ np.diag([1e5, 3e4, 2e3, 40.0, -5.0]) @ basis.T
     units = np.diag([1.0, 1.0, 1e3, 1e3, 1e3])  # rad and mm for rad and m
     jacobians = np.stack([stable, saddle, units @ stable @ units, units @ saddle @ units])
-    model = SimpleNamespace(trial_derivatives=lambda q, theta, loads, flexions, threads: (None, jacobians))
-    flags = unstable_equilibria(model, np.zeros((4, 5)), np.zeros(1), np.zeros((4, LOAD_SIZE)), np.zeros(4))
+    model = SimpleNamespace(trial_derivatives=lambda q, theta, loading, threads: (None, jacobians))
+    flags = unstable_equilibria(model, np.zeros((4, 5)), np.zeros(1), Loading(np.zeros((4, LOAD_SIZE)), np.zeros(4)))
     assert flags.tolist() == [False, True, False, True]
     solutions = kneenlp.simulate(kneenlp.Knee.default(), "set3").solutions
     assert all(s.converged and s.stable for s in solutions)

@@ -92,3 +92,14 @@ def test_nested_fit_object_and_cli(knee, tmp_path, capsys):
     for m in out["methods"]:
         assert {"objective", "params", "evaluations", "seconds", "max_residual"} <= set(m)
     assert code in (0, 1)  # 60 evaluations do not converge the Complex; the table is still printed
+
+
+def test_solver_options_are_checked_in_one_place():
+    """An unknown option of the nested and reduced-space fits is named before anything is solved."""
+    from kneenlp.solvers.nested import nested_fit
+    from kneenlp.solvers.reduced import reduced_least_squares
+
+    with pytest.raises(TypeError, match=r"nested_fit\(\) got unexpected keyword argument\(s\): maxevals"):
+        nested_fit(None, np.zeros((3, 1)), maxevals=10)
+    with pytest.raises(TypeError, match=r"reduced_least_squares\(\) got unexpected keyword argument\(s\): max_evals"):
+        reduced_least_squares(None, {}, max_evals=10)

@@ -104,6 +104,8 @@ def test_bad_priors_are_refused_with_the_parameters_name(model, tmp_path):
         IdentificationProblem.from_data(model, data, priors={"ACLx.k": Prior("normal", 1.0, 1.0)})
     with pytest.raises(InputError, match="not free"):
         IdentificationProblem.from_data(model, data, priors={"ACL.lin_strain": Prior("normal", 0.03, 0.01)})
+    with pytest.raises(TypeError, match=r"from_data\(\) got unexpected keyword argument\(s\): prior"):
+        IdentificationProblem.from_data(model, data, prior={"ACL.k": Prior("normal", 1.0, 1.0)})
 
 
 @pytest.mark.parametrize("entry, field", [

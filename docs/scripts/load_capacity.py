@@ -15,6 +15,7 @@ import numpy as np
 import kneenlp
 from kneenlp.base.conventions import LOAD_SIZE, TO_USER
 from kneenlp.experiment.kneemodel import KneeModel
+from kneenlp.experiment.protocol import Loading
 from kneenlp.solvers.forward import COLD_START, forward_solver
 
 #: (name, load component, sign, steps): internal/external moment is component 4 (N m about Y),
@@ -28,12 +29,12 @@ def capacity(knee: kneenlp.Knee, theta: np.ndarray, flexion_deg: float, componen
     """Largest magnitude carried (N m) and the pose there (mm, deg)."""
     newton = forward_solver(KneeModel.of(knee)).newton
     flexion = np.array([np.radians(flexion_deg)])
-    q = newton.solve(COLD_START[None, :], theta, np.zeros((1, LOAD_SIZE)), flexion).q
+    q = newton.solve(COLD_START[None, :], theta, Loading(np.zeros((1, LOAD_SIZE)), flexion)).q
     carried, pose = 0.0, q[0] * TO_USER
     for magnitude in steps:
         load = np.zeros((1, LOAD_SIZE))
         load[0, component] = sign * magnitude
-        out = newton.solve(q, theta, load, flexion)
+        out = newton.solve(q, theta, Loading(load, flexion))
         if not out.residual[0] <= 1e-6:
             break
         q, carried, pose = out.q, float(magnitude), out.q[0] * TO_USER

@@ -17,6 +17,7 @@ from kneenlp.estimation.outliers import Outlier, prediction_variance
 from kneenlp.estimation.statistics import gauss_newton_covariance
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.problem import IdentificationProblem
+from kneenlp.experiment.protocol import Loading
 from kneenlp.model.parameters import ParameterSet
 from kneenlp.model.posterior import Posterior
 from kneenlp.prediction.laxity import laxity_lines, laxity_records, laxity_table
@@ -163,7 +164,7 @@ def unstable(fit: Fit) -> np.ndarray:
     (:func:`~kneenlp.solvers.forward.unstable_equilibria`).  On S192803 most of the global search's
     minima put varus_flex0 on one."""
     problem = fit.problem
-    return unstable_equilibria(problem.model, fit.q_pred, fit.theta, problem.loads, problem.flexions)
+    return unstable_equilibria(problem.model, fit.q_pred, fit.theta, Loading.of(problem.trials))
 
 
 def off_loading_path(fit: Fit, check: Prediction) -> np.ndarray:

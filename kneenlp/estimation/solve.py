@@ -27,7 +27,7 @@ from kneenlp.estimation.starts import best_fit, run_starts
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.model.mesh_contact import RIM_SHARE
 from kneenlp.solvers.forward import rim_note
-from kneenlp.solvers.nlp import solve_nlp
+from kneenlp.solvers.nlp import NlpSolver, solve_nlp
 from kneenlp.solvers.reduced import reduced_least_squares, tolerance
 
 #: Relative cost change at which a reduced-space fit hands over to IPOPT (:func:`reduced_then_nlp`,
@@ -200,7 +200,7 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     at equilibrium (:attr:`~kneenlp.experiment.problem.IdentificationProblem.equilibrium_tol`) and no
     contact point left out of the working sets; more than :data:`~kneenlp.model.mesh_contact.RIM_SHARE`
     of a compartment's force from beyond the femoral surface's open edge is noted."""
-    r = solve_nlp(problem, start, solver, solver_options, threads, q0)
+    r = solve_nlp(problem, start, NlpSolver(solver, solver_options, threads), q0)
     tol = problem.equilibrium_tol
     success = r.success and r.max_residual <= tol and r.left_out <= 0
     notes = []

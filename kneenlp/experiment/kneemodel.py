@@ -49,6 +49,7 @@ from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.modes import Layout, PriorChoice
 from kneenlp.experiment.contact_sets import ContactSets
 from kneenlp.experiment.measurement import ExperimentPart, Measurement, registration_effects
+from kneenlp.experiment.protocol import Loading
 from kneenlp.model import ties as tie_rules
 from kneenlp.model.effects import (
     Effect,
@@ -268,10 +269,10 @@ class KneeModel(ContactSets):
                                    [res, ca.vertcat(*columns) if columns else ca.MX(0, 1)], names_in,
                                    ["r", "outputs"])
 
-    def trial_derivatives(self, q: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
-                          threads: int = 2, wrt_theta: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def trial_derivatives(self, q: np.ndarray, theta: np.ndarray, loading: Loading, threads: int = 2,
+                          wrt_theta: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """The residuals (T x 5) and dr/dq (T x 5 x 5), or with ``wrt_theta`` dr/dq and dr/dtheta (T x 5 x
-        n_theta), at the poses ``q`` (T x 5, SI), ``loads`` (T x LOAD_SIZE), ``flexions`` (T, rad), each
+        n_theta), at the poses ``q`` (T x 5, SI) under ``loading`` (loads and flexions of T trials), each
         with the working sets of its own pose (order 1, :meth:`working_data_batch`): what Newton's
         iteration and the implicit-function sensitivities evaluate.  One buffered call
         (:class:`~kneenlp.base.compiled.BufferedCall`) of :attr:`jacobians` (or its ``(r, dr/dq)`` twin)
@@ -280,7 +281,7 @@ class KneeModel(ContactSets):
         threads did not pay up to 64 trials; S192803, 2 cores)."""
         q = np.ascontiguousarray(q, dtype=float).reshape(-1, 5)
         n, threads = len(q), min(threads, len(q))
-        ws = self.working_data_batch(q, theta, flexions, threads, order=1)
+        ws = self.working_data_batch(q, theta, loading.flexions, threads, order=1)
 
         def build() -> BufferedCall:
             one = self.jacobians if wrt_theta else self._residual_and_jacobian
@@ -288,7 +289,7 @@ class KneeModel(ContactSets):
             return BufferedCall(one.map(n, "thread", threads) if threads > 1 and vm else one.map(n))
 
         first, second = self.solvers.get(("trial_derivatives", n, threads, wrt_theta), build)(
-            q, np.tile(theta, n), loads, flexions, ws)  # column-major: trial by trial
+            q, np.tile(theta, n), loading.loads, loading.flexions, ws)  # column-major: trial by trial
         width = len(self.parameter_names) if wrt_theta else 5
         first = first.reshape(n, 5, 5).transpose(0, 2, 1) if wrt_theta else first.reshape(n, 5)
         return first, second.reshape(n, width, 5).transpose(0, 2, 1)

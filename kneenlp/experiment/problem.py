@@ -45,59 +45,11 @@ from kneenlp.experiment.kind import SIMULATED, Experiment
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.noise import NoiseModel
-from kneenlp.experiment.protocol import Trial
+from kneenlp.experiment.problem_choices import ProblemChoices, check_free, free_names, resolve_priors
+from kneenlp.experiment.protocol import Loading, Trial
 from kneenlp.model.parameters import Parameter
-from kneenlp.model.params import declared_free, default_free
 from kneenlp.model.priors import Prior
 from kneenlp.model.space import ParameterSpace
-
-
-def free_names(model: KneeModel, free: Sequence[str] | None = None, with_effects: Sequence[str] = ()) -> list[str]:
-    """``free`` (default: :func:`declared_free` over :func:`default_free`) and the parameters of the
-    candidate effects ``with_effects``, each once."""
-    out = list(free or declared_free(model, default_free(model)))
-    for name in with_effects:
-        out += [n for n in model.effect(name).free_names() if n not in out]
-    return out
-
-
-def check_free(model: KneeModel, free: Sequence[str]) -> list[str]:
-    """The free parameter names, validated (known, not repeated, not empty)."""
-    for name in free:
-        model.index(name)
-    if len(set(free)) != len(free):
-        raise InputError(f"free parameters repeated: {', '.join(free)}", field="free")
-    if not free:
-        raise InputError("no free parameters", field="free")
-    return list(free)
-
-
-def resolve_priors(model: KneeModel, free: Sequence[str], priors: str | Mapping[str, Prior | None] | None,
-                   fixed: Mapping[str, float] | None = None) -> dict[str, Prior]:
-    """The priors of the ``free`` parameters: none for ``None`` or ``"none"`` (the data-only fit);
-    for ``"default"`` each parameter's prior from the knee's parameter file, else its shipped
-    default (:meth:`~kneenlp.model.parameters.Parameter.default_prior`) centred on its value in the
-    knee's parameter set (or ``fixed``); a mapping gives its own by name over those defaults
-    (``None`` removes one).  A prior on a parameter that is not free is an error naming it."""
-    if priors is None or (isinstance(priors, str) and priors == "none"):
-        return {}
-    if isinstance(priors, str) and priors != "default":
-        raise InputError(f"unknown priors {priors!r}; known: default, none", field="priors")
-    given = {} if isinstance(priors, str) else dict(priors)
-    for name in given:
-        model.index(name)
-        if name not in free:
-            raise InputError("has a prior but is not free: free it or drop its prior", field=f"priors.{name}")
-    theta = model.theta(dict(fixed or {}))
-    declared = model.knee.parameters.priors
-    out = {}
-    for name in free:
-        prior = given[name] if name in given else declared.get(name)
-        if name not in given and prior is None:
-            prior = model.parameter(name).default_prior(float(theta[model.index(name)]))
-        if prior is not None:
-            out[name] = prior  # checked against the parameter by the problem
-    return out
 
 
 def prior_rows(values, centre, inv_sd, logs: Sequence[bool]):
@@ -151,20 +103,23 @@ class DataLayout:
         return {name: p[sl] if name in self.ONCE else ca.reshape(p[sl], rows[name], self.n_trials)
                 for name, sl in self.slices().items()}
 
-    def pack(self, theta: np.ndarray, prior: tuple[np.ndarray, np.ndarray], measured: np.ndarray,
-             weights: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
-             working_sets: np.ndarray | None = None) -> np.ndarray:
-        """``p`` from its parts (``prior``: centres and inverse widths; per-trial parts as ``T x rows`` arrays)."""
+    def pack(self, parts: Mapping[str, np.ndarray | None]) -> np.ndarray:
+        """``p`` from its ``parts`` by name (:attr:`PARTS`, what :meth:`split` returns; the per-trial parts
+        as ``T x rows`` arrays; ``working_sets`` may be left out for a layout without them)."""
         T = self.n_trials
+        missing = [name for name in self.PARTS[:-1] if name not in parts]
+        if missing or set(parts) - set(self.PARTS):
+            raise ValueError(f"data parts {sorted(parts)}, expected {list(self.PARTS)}")
+        working_sets = parts.get("working_sets")
         ws = np.zeros((T, 0)) if working_sets is None else np.asarray(working_sets, float)
         if ws.shape != (T, self.n_ws):
             raise ValueError(f"working sets of shape {ws.shape}, expected ({T}, {self.n_ws})")
-        centre, inv_sd = (np.asarray(a, float).ravel() for a in prior)
+        centre, inv_sd = (np.asarray(parts[n], float).ravel() for n in ("prior_centre", "prior_inv_sd"))
         if centre.size != self.n_prior or inv_sd.size != self.n_prior:
             raise ValueError(f"prior parts of sizes {centre.size}, {inv_sd.size}, expected {self.n_prior}")
-        return np.concatenate([np.asarray(theta, float).ravel(), centre, inv_sd,
-                               *(np.asarray(a, float).reshape(T, -1).ravel()
-                                 for a in (measured, weights, loads, flexions)), ws.ravel()])
+        return np.concatenate([np.asarray(parts["theta"], float).ravel(), centre, inv_sd,
+                               *(np.asarray(parts[n], float).reshape(T, -1).ravel()
+                                 for n in ("measured", "weights", "loads", "flexions")), ws.ravel()])
 
     def describe(self) -> str:
         """The layout in words (units included), for export's sidecar."""
@@ -247,29 +202,29 @@ class IdentificationProblem:
         return np.isfinite(self.measured)
 
     @classmethod
-    def from_data(cls, model: KneeModel, data: MeasuredData, free: Sequence[str] | None = None, *,
-                  noise: str | NoiseModel | None = None, weighted: bool = False,
-                  fixed: Mapping[str, float] | None = None,
-                  with_effects: Sequence[str] = (), priors: str | Mapping[str, Prior | None] | None = None,
-                  prior_weight: float | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
-                  ties: Mapping[str, str] | None = None) -> IdentificationProblem:
+    def from_data(cls, model: KneeModel, data: MeasuredData, free: Sequence[str] | None = None,
+                  **choices) -> IdentificationProblem:
         """The problem of identifying ``free`` (default: k and ref_strain of every ligament, plus
-        the parameters of ``with_effects``) from measured ``data``; ``priors`` as
+        the parameters of ``with_effects``) from measured ``data``; ``choices`` (checked together,
+        :class:`~kneenlp.experiment.problem_choices.ProblemChoices`): ``noise`` (a noise model or its
+        spec), ``weighted`` (by 1/variance), ``fixed`` values (SI), ``with_effects``, ``priors`` as
         :func:`resolve_priors`; ``prior_weight`` the noise variance per unit weight the priors are
         weighed against (default: 1 for a weighted fit, the declared noise variance, else 1);
         ``bounds`` and ``ties`` as the fields'."""
+        c = ProblemChoices.from_kwargs(**choices)
         model.knee.check_flexions(data.trials, data.source)
-        free = free_names(model, free, with_effects)
-        noise_model = NoiseModel.parse(noise) if noise is not None else None
+        free = free_names(model, free, c.with_effects)
+        noise_model = NoiseModel.parse(c.noise) if c.noise is not None else None
+        weighted, prior_weight = c.weighted, c.prior_weight
         if weighted and (noise_model is None or noise_model.std == 0):
             raise InputError("weighted fit needs a noise model with non-zero level", field="noise")
         weights = np.full((len(data), 5), 1.0 / noise_model.std**2 if weighted else 1.0)
         if prior_weight is None:
             prior_weight = 1.0 if weighted or noise_model is None or noise_model.std == 0 else noise_model.std**2
-        fixed = dict(fixed or {})
+        fixed = dict(c.fixed or {})
         return cls(model, tuple(data.trials), free, data.q_user, weights, noise_model, fixed,
-                   data.source, data.protocol, resolve_priors(model, free, priors, fixed), float(prior_weight),
-                   {n: b for n, b in (bounds or {}).items() if n in free}, dict(ties or {}), data.experiment)
+                   data.source, data.protocol, resolve_priors(model, free, c.priors, fixed), float(prior_weight),
+                   {n: b for n, b in (c.bounds or {}).items() if n in free}, dict(c.ties or {}), data.experiment)
 
     def without_trials(self, ids: Sequence[str]) -> IdentificationProblem:
         """The same problem without the trials ``ids`` (their measurements and weights too)."""
@@ -436,8 +391,10 @@ class IdentificationProblem:
         ``ws`` (T x ws_size, from :meth:`working_sets`).  Refitting other data never rebuilds the NLP."""
         meas = np.zeros((self.n_trials, 5)) if self.measured is None else np.where(self.observed, self.measured, 0.0)
         layout = self.layout(working_sets=ws is not None and np.size(ws) > 0)
-        return layout.pack(self.theta(), self.prior_data(), meas, self.weights, self.loads, self.flexions,
-                           None if ws is None or not np.size(ws) else ws)
+        centre, inv_sd = self.prior_data()
+        return layout.pack({"theta": self.theta(), "prior_centre": centre, "prior_inv_sd": inv_sd, "measured": meas,
+                            "weights": self.weights, "loads": self.loads, "flexions": self.flexions,
+                            "working_sets": None if ws is None or not np.size(ws) else ws})
 
     def working_sets(self, q: np.ndarray, theta: np.ndarray) -> tuple[list[list[np.ndarray]], np.ndarray]:
         """Each trial's contact working sets at poses ``q`` (T x 5, SI): indices and the packed
@@ -471,7 +428,7 @@ class IdentificationProblem:
         idx = [model.index(n) for n in (self.free if names is None else names)]
         q = np.asarray(q, dtype=float).reshape(-1, 5)
         T = len(q)
-        dq, dth = model.trial_derivatives(q, theta, self.loads, self.flexions, wrt_theta=True)
+        dq, dth = model.trial_derivatives(q, theta, Loading.of(self.trials), wrt_theta=True)
         dy_dq, dy_dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
                          for v in model.observation_jacobians.map(T)(q.T, theta, self.flexions[None, :]))
         dr_dp, dy_dp_direct = dth[:, :, idx], dy_dth[:, :, idx]

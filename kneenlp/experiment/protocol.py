@@ -31,13 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.base.conventions import DIRECTIONS, load_vector
+from kneenlp.base.conventions import DIRECTIONS, LOAD_SIZE, load_vector
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.modes import LoadAxes
 from kneenlp.base.resources import resource
 from kneenlp.base.schema import validated
 from kneenlp.base.tomlfile import read_toml
-from kneenlp.experiment.protocol_schema import Case, Exclusion, ProtocolFile
+from kneenlp.experiment.protocol_schema import Case, ProtocolFile
 
 PROTOCOL_DIR = resource("protocols")
 
@@ -98,6 +98,32 @@ class Trial:
             unit = "N" if self.direction in ("anterior", "posterior") else "N m"
             what = f"{self.direction} {self.magnitude:g} {unit}"
         return f"{what} at {self.flexion_deg:g} deg flexion"
+
+
+
+@dataclass(frozen=True, eq=False)
+class Loading:
+    """What a batch of T trials' equilibria depend on besides the poses and the parameters: the load
+    vectors (T x :data:`~kneenlp.base.conventions.LOAD_SIZE`, N and N m) and the flexions (T, rad)."""
+
+    loads: np.ndarray
+    flexions: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "loads", np.asarray(self.loads, dtype=float).reshape(-1, LOAD_SIZE))
+        object.__setattr__(self, "flexions", np.asarray(self.flexions, dtype=float).ravel())
+
+    @classmethod
+    def of(cls, trials) -> Loading:
+        """The loading of ``trials`` (:attr:`Trial.load`, :attr:`Trial.flexion`)."""
+        return cls(np.array([t.load for t in trials]), np.array([t.flexion for t in trials]))
+
+    def __len__(self) -> int:
+        return len(self.flexions)
+
+    def __getitem__(self, index) -> Loading:
+        """The loading of the trials ``index`` selects (an index array or a boolean mask)."""
+        return Loading(self.loads[index], self.flexions[index])
 
 
 #: Names of the dominant load of a trial (component, sign) -> direction word.
@@ -296,7 +322,7 @@ def _case_trials(case: Case, fld: str, i: int, axes: LoadAxes, source: str) -> l
                              source=source, field=f"{fld}.magnitude")
         for m in magnitudes:
             check_load(component, m, source, f"{fld}.magnitude")
-    excluded = _excluded(case.exclude or [], direction, magnitudes, flexions, f"{fld}.exclude", source)
+    excluded = _excluded(case, magnitudes, flexions, fld, source)
     trials = []
     for f in flexions:
         for m in magnitudes:
@@ -307,13 +333,14 @@ def _case_trials(case: Case, fld: str, i: int, axes: LoadAxes, source: str) -> l
     return trials
 
 
-def _excluded(entries: list[Exclusion], direction: str, magnitudes: list[float], flexions: list[float], fld: str,
+def _excluded(case: Case, magnitudes: list[float], flexions: list[float], fld: str,
               source: str) -> set[tuple[float, float]]:
-    """``exclude = [{magnitude = M, flexion = F}, ...]``: each entry must name one of the case's
+    """The (magnitude, flexion) pairs of the case's ``exclude = [{magnitude = M, flexion = F}, ...]`` (the
+    case at ``fld``, its trials' ``magnitudes`` and ``flexions``): each entry must name one of the case's
     trials (an entry that excludes nothing is a typo that would silently keep the trial)."""
-    out = set()
-    for j, entry in enumerate(entries):
-        efld = f"{fld}[{j}]"
+    out, direction = set(), case.direction
+    for j, entry in enumerate(case.exclude or []):
+        efld = f"{fld}.exclude[{j}]"
         if entry.magnitude is None and direction != "none":
             raise InputError("missing magnitude", source=source, field=f"{efld}.magnitude")
         m = entry.magnitude if entry.magnitude is not None else 0.0

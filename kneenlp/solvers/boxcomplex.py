@@ -126,13 +126,14 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from scipy.optimize import OptimizeResult
 
-from kneenlp.solvers.boxcomplex_inputs import Options, Start, as_float, as_int, parse_bounds
+from kneenlp.solvers.boxcomplex_inputs import ComplexOptions, Options, Start, as_float, as_int, parse_bounds
 
 __all__ = [
     "RESULT_FIELDS",
@@ -209,15 +210,50 @@ class _Evaluator:
         self.history.append((float(self.nfev), self.best_f))
         return f
 
+    def result(self, population: _Population, nit: int, status: int, scale: FloatArray) -> OptimizeResult:
+        """The result of a run (fields :data:`RESULT_FIELDS`) ending with ``population`` after ``nit``
+        iterations."""
+        pop, pop_f = population.points, population.values
+        n_done = pop.shape[0]
+        best_x = self.best_x.copy() if self.best_x is not None else pop[0].copy()
+        history = np.asarray(self.history, dtype=float).reshape(-1, 2)
+        return OptimizeResult(
+            x=best_x,
+            fun=self.best_f,
+            nfev=self.nfev,
+            nit=nit,
+            success=status == STATUS_CONVERGED,
+            status=status,
+            message=_MESSAGES[status],
+            history=history,
+            population=pop,
+            population_f=pop_f,
+            x_spread=_relative_spread(pop, scale) if n_done else math.inf,
+            f_spread=_f_spread(pop_f) if n_done else math.inf,
+        )
 
 
+@dataclass(frozen=True)
+class _Population:
+    """The complex: its ``(k, n)`` points and their ``(k,)`` raw values (non-finite ones ``inf``),
+    updated in place by the iterations."""
+
+    points: FloatArray
+    values: FloatArray
+
+    def first(self, n: int) -> _Population:
+        """A copy of the first ``n`` points and values."""
+        return _Population(self.points[:n].copy(), self.values[:n].copy())
 
 
+@dataclass(frozen=True)
+class _Box:
+    """The design domain ``lo <= x <= hi`` and the per-variable scales ``s_j`` that compare spreads
+    (module docstring, *Notation*)."""
 
-
-
-
-
+    lo: FloatArray
+    hi: FloatArray
+    scale: FloatArray
 
 
 def forgetting_factor(alpha: float, gamma: float, k: int) -> float:
@@ -241,17 +277,12 @@ def _f_spread(values: FloatArray) -> float:
     return hi - float(values.min()) if math.isfinite(hi) else math.inf
 
 
-def minimize_complex(
-    fun: Callable[..., Any], bounds: Sequence[tuple[float | None, float | None]] | Any, *,
-    args: tuple[Any, ...] = (), x0: ArrayLike | None = None, spread: ArrayLike | None = None,
-    initial: ArrayLike | None = None, n_points: int | None = None, alpha: float = 1.3, max_retries: int = 4,
-    rfak: float = 0.3, gamma: float = 0.3, xtol: float = 1e-6, ftol: float = 1e-9, max_evals: int = 10000,
-    max_seconds: float | None = None, seed: int | np.random.Generator | None = None,
-    callback: Callable[[FloatArray, float, int], Any] | None = None, refinements: bool = True,
-) -> OptimizeResult:
+def minimize_complex(fun: Callable[..., Any], bounds: Sequence[tuple[float | None, float | None]] | Any,
+                     **options: Any) -> OptimizeResult:
     """Minimise ``fun`` over a box with Box's Complex method and the Complex-RF refinements.
 
-    The exact algorithm is described in the module docstring.
+    The exact algorithm is described in the module docstring. The keyword options (``args`` to
+    ``refinements``) are checked in one place (:class:`ComplexOptions`); an unknown name raises ``TypeError``.
 
     Parameters
     ----------
@@ -298,36 +329,33 @@ def minimize_complex(
         For inconsistent shapes, ``lo > hi``, points outside the bounds, ``n_points < n + 1``,
         ``max_evals < n_points``, invalid coefficients or a non-scalar objective value.
     """
+    given = ComplexOptions.from_kwargs(options)
     if not callable(fun):
         raise ValueError("fun must be callable")
     lo, hi = parse_bounds(bounds)
-    options = Options.checked(alpha=alpha, max_retries=max_retries, rfak=rfak, gamma=gamma, xtol=xtol, ftol=ftol,
-                              max_seconds=max_seconds, callback=callback, refinements=refinements)
-    start = Start.checked(lo, hi, initial=initial, x0=x0, spread=spread, n_points=n_points)
-    max_evals = as_int("max_evals", max_evals, start.k)
-    rng = np.random.default_rng(seed)
+    checked = Options.checked(given)
+    start = Start.checked(lo, hi, given)
+    max_evals = as_int("max_evals", given.max_evals, start.k)
+    rng = np.random.default_rng(given.seed)
     points = start.points(lo, hi, rng)
     x_ref = start.x0 if start.x0 is not None else points.mean(axis=0)
     width = hi - lo
-    scale = np.where(np.isfinite(width) & (width > 0), width, np.maximum(1.0, np.abs(x_ref)))
-    evaluate = _Evaluator(fun, tuple(args), max_evals, options.max_seconds)
-    values = np.full(start.k, math.inf)
-    n_done, status = _evaluate_initial(evaluate, points, values)
+    box = _Box(lo, hi, np.where(np.isfinite(width) & (width > 0), width, np.maximum(1.0, np.abs(x_ref))))
+    evaluate = _Evaluator(fun, tuple(given.args), max_evals, checked.max_seconds)
+    population = _Population(points, np.full(start.k, math.inf))
+    n_done, status = _evaluate_initial(evaluate, population)
     nit = 0
     if status is None:
-        optimizer = _ComplexIterations(evaluate, points, values, lo, hi, scale, options, rng)
+        optimizer = _ComplexIterations(evaluate, population, box, checked, rng)
         status = optimizer.run()
         nit = optimizer.nit
-    return _result(evaluate, points[:n_done].copy(), values[:n_done].copy(), nit, status, scale)
+    return evaluate.result(population.first(n_done), nit, status, box.scale)
 
 
-
-
-
-
-def _evaluate_initial(evaluate: _Evaluator, points: FloatArray, values: FloatArray) -> tuple[int, int | None]:
-    """Evaluate the initial complex in order into ``values``; return how many points were
+def _evaluate_initial(evaluate: _Evaluator, population: _Population) -> tuple[int, int | None]:
+    """Evaluate the initial complex in order into its ``values``; return how many points were
     evaluated and the status if a budget ran out (None otherwise)."""
+    points, values = population.points, population.values
     n_done = 0
     try:
         for i in range(points.shape[0]):
@@ -338,41 +366,20 @@ def _evaluate_initial(evaluate: _Evaluator, points: FloatArray, values: FloatArr
     return n_done, None
 
 
-def _result(evaluate: _Evaluator, pop: FloatArray, pop_f: FloatArray, nit: int, status: int,
-            scale: FloatArray) -> OptimizeResult:
-    """The result of a run (fields :data:`RESULT_FIELDS`) from its evaluator and final complex."""
-    n_done = pop.shape[0]
-    best_x = evaluate.best_x.copy() if evaluate.best_x is not None else pop[0].copy()
-    history = np.asarray(evaluate.history, dtype=float).reshape(-1, 2)
-    return OptimizeResult(
-        x=best_x,
-        fun=evaluate.best_f,
-        nfev=evaluate.nfev,
-        nit=nit,
-        success=status == STATUS_CONVERGED,
-        status=status,
-        message=_MESSAGES[status],
-        history=history,
-        population=pop,
-        population_f=pop_f,
-        x_spread=_relative_spread(pop, scale) if n_done else math.inf,
-        f_spread=_f_spread(pop_f) if n_done else math.inf,
-    )
-
-
 class _ComplexIterations:
     """State and main loop of the iterations; updates ``points`` and ``values`` in place."""
 
-    def __init__(self, evaluate: _Evaluator, points: FloatArray, values: FloatArray, lo: FloatArray,
-                 hi: FloatArray, scale: FloatArray, options: Options, rng: np.random.Generator) -> None:
+    def __init__(self, evaluate: _Evaluator, population: _Population, box: _Box, options: Options,
+                 rng: np.random.Generator) -> None:
         refinements = options.refinements
+        points = population.points
         self.evaluate = evaluate
         self.points = points
-        self.values = values
-        self.eff = values.copy()  # effective (aged) values, used for every comparison
-        self.lo = lo
-        self.hi = hi
-        self.scale = scale
+        self.values = population.values
+        self.eff = population.values.copy()  # effective (aged) values, used for every comparison
+        self.lo = box.lo
+        self.hi = box.hi
+        self.scale = box.scale
         self.alpha = options.alpha
         self.max_retries = options.max_retries
         self.rfak = options.rfak if refinements else 0.0

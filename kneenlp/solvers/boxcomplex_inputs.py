@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -105,6 +105,38 @@ def as_vector(name: str, value: ArrayLike, n: int) -> FloatArray:
 
 
 @dataclass(frozen=True)
+class ComplexOptions:
+    """The keyword options of :func:`~kneenlp.solvers.boxcomplex.minimize_complex` as given, with
+    their defaults (their meanings and units: that function's docstring); :class:`Options` and
+    :class:`Start` check their values."""
+
+    args: tuple[Any, ...] = ()
+    x0: ArrayLike | None = None
+    spread: ArrayLike | None = None
+    initial: ArrayLike | None = None
+    n_points: int | None = None
+    alpha: float = 1.3
+    max_retries: int = 4
+    rfak: float = 0.3
+    gamma: float = 0.3
+    xtol: float = 1e-6
+    ftol: float = 1e-9
+    max_evals: int = 10000
+    max_seconds: float | None = None
+    seed: int | np.random.Generator | None = None
+    callback: Callable[[FloatArray, float, int], Any] | None = None
+    refinements: bool = True
+
+    @classmethod
+    def from_kwargs(cls, options: dict[str, Any]) -> ComplexOptions:
+        """The options of a call's keywords; ``TypeError`` names every unknown one."""
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"minimize_complex() got unexpected keyword argument(s): {', '.join(unknown)}")
+        return cls(**options)
+
+
+@dataclass(frozen=True)
 class Options:
     """The checked coefficients, tolerances, time budget (s) and callback of a run (see
     :func:`minimize_complex`)."""
@@ -120,20 +152,21 @@ class Options:
     refinements: bool
 
     @classmethod
-    def checked(cls, *, alpha: Any, max_retries: Any, rfak: Any, gamma: Any, xtol: Any, ftol: Any,
-                max_seconds: Any, callback: Any, refinements: bool) -> Options:
-        """The options after their checks; ``ValueError`` names the first invalid one."""
-        alpha = as_nonneg_float("alpha", alpha, allow_zero=False)
-        rfak = as_nonneg_float("rfak", rfak)
-        gamma = as_nonneg_float("gamma", gamma)
-        xtol = as_nonneg_float("xtol", xtol)
-        ftol = as_nonneg_float("ftol", ftol)
+    def checked(cls, given: ComplexOptions) -> Options:
+        """The options of ``given`` after their checks; ``ValueError`` names the first invalid one."""
+        alpha = as_nonneg_float("alpha", given.alpha, allow_zero=False)
+        rfak = as_nonneg_float("rfak", given.rfak)
+        gamma = as_nonneg_float("gamma", given.gamma)
+        xtol = as_nonneg_float("xtol", given.xtol)
+        ftol = as_nonneg_float("ftol", given.ftol)
+        max_seconds = given.max_seconds
         if max_seconds is not None:
             max_seconds = as_nonneg_float("max_seconds", max_seconds, allow_zero=False)
-        max_retries = as_int("max_retries", max_retries, 0)
+        max_retries = as_int("max_retries", given.max_retries, 0)
+        callback = given.callback
         if callback is not None and not callable(callback):
             raise ValueError("callback must be callable or None")
-        return cls(alpha, max_retries, rfak, gamma, xtol, ftol, max_seconds, callback, refinements)
+        return cls(alpha, max_retries, rfak, gamma, xtol, ftol, max_seconds, callback, given.refinements)
 
 
 @dataclass(frozen=True)
@@ -148,10 +181,10 @@ class Start:
     spread: FloatArray | None
 
     @classmethod
-    def checked(cls, lo: FloatArray, hi: FloatArray, *, initial: ArrayLike | None, x0: ArrayLike | None,
-                spread: ArrayLike | None, n_points: int | None) -> Start:
-        """The start after its checks against the bounds ``lo``, ``hi``; ``ValueError`` names the
-        first inconsistency."""
+    def checked(cls, lo: FloatArray, hi: FloatArray, given: ComplexOptions) -> Start:
+        """The start of ``given`` (its ``initial``, ``x0``, ``spread`` and ``n_points``) after its checks
+        against the bounds ``lo``, ``hi``; ``ValueError`` names the first inconsistency."""
+        initial, x0, spread, n_points = given.initial, given.x0, given.spread, given.n_points
         n = lo.size
         x0_arr: FloatArray | None = None
         init_arr: FloatArray | None = None

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from kneenlp.base.conventions import coords_to_user
-from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.forward import BatchStart, forward_solver
 
 if TYPE_CHECKING:
     from kneenlp.experiment.problem import IdentificationProblem
@@ -35,7 +35,7 @@ def equilibrium_start(problem: IdentificationProblem, theta: np.ndarray, threads
     slack scattered start reached 36 deg varus), starts at its data."""
     data = problem.data
     solver = forward_solver(problem.model, problem.equilibrium_tol)
-    q0, res0 = solver.solve_batch(data.trials, theta, data.q, threads)
+    q0, res0 = solver.solve_batch(data.trials, theta, BatchStart(data.q), threads)
     ok = res0 <= problem.equilibrium_tol
     if not ok.all():
         failed = np.flatnonzero(~ok)

@@ -28,20 +28,16 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from kneenlp.base.conventions import EQUILIBRIUM_TOL, POSE_ENVELOPE_USER, coords_from_user, coords_to_user
 from kneenlp.base.modes import SolveStrategy
 from kneenlp.experiment.kneemodel import KneeModel
-from kneenlp.experiment.protocol import Trial
+from kneenlp.experiment.protocol import Loading, Trial
 from kneenlp.model.elements import StagedElement
 from kneenlp.model.mesh_contact import RIM_SHARE
 from kneenlp.solvers.newton import EquilibriumNewton
-
-if TYPE_CHECKING:
-    pass
 
 COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m from the reference pose: slightly penetrated
 #: Flexion step (deg) of the passive path from a knee's reference pose (:meth:`ForwardSolver.cold_start`).
@@ -60,6 +56,17 @@ ENVELOPE = coords_from_user(POSE_ENVELOPE_USER)
 
 #: An unloaded equilibrium: pose (rad, m), residual (N or N m), how it was reached.
 Unloaded = tuple[np.ndarray, float, SolveStrategy]
+
+
+@dataclass(frozen=True, eq=False)
+class BatchStart:
+    """Where :meth:`ForwardSolver.solve_batch` starts its trials (T x 5, SI): ``q0``, equilibria at the
+    parameters ``theta0`` when these are given (an outer fit's previous iterate: its retries follow the
+    parameters from there), and the ``guess`` Newton tries first (a prediction of the poses)."""
+
+    q0: np.ndarray
+    theta0: np.ndarray | None = None
+    guess: np.ndarray | None = None
 
 
 @dataclass
@@ -93,7 +100,7 @@ class ForwardSolver:
         self.model = model
         #: the knee's reference pose: where cold starts begin and the envelope is centred (rad, m)
         self.reference = np.asarray(model.knee.reference_pose[1], float)
-        self.tol, self.max_iter, self.newton = tol, max_iter, EquilibriumNewton(model)
+        self.tol, self.max_iter, self.newton = tol, max_iter, EquilibriumNewton(model, tol)
         self._contact_columns = [o.column for e, o in model.outputs
                                  if isinstance(e, StagedElement) and o.name == "force"]
         #: the passive path of :meth:`cold_start` at the last parameters: (theta's bytes, {flexion: pose})
@@ -135,16 +142,15 @@ class ForwardSolver:
                         q = path[f_ref] = q_ref
                     def passive_at(s, q, a=f_last, b=f):
                         return self._newton(q, theta, _passive(a + s * (b - a)))
-                    q_new, res = self._follow(passive_at, q, 0.5, 1 / 64, theta, _passive(f))
+                    q_new, res = self._follow(passive_at, q, 1 / 64, theta, _passive(f))
                 if not res <= self.tol:
                     return q.copy()
                 path[f] = q_new
             q, f_last = path[f], f
         return q.copy()
 
-    def solve_batch(self, trials, theta: np.ndarray, q0: np.ndarray, threads: int = 2,
-                    max_retries: int | None = None, theta0: np.ndarray | None = None,
-                    guess: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def solve_batch(self, trials, theta: np.ndarray, start: BatchStart, threads: int = 2,
+                    max_retries: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Newton on all trials at once (one mapped CasADi call per iteration over ``threads``
         threads; the fast path for repeated solves).
 
@@ -152,22 +158,22 @@ class ForwardSolver:
         retried before being returned, unless more than ``max_retries`` failed (then they are
         returned as they are: a caller probing a step, such as a trust-region method, learns
         cheaply that it went too far).  The retries, one by one: following the parameters from
-        ``theta0`` to ``theta`` (:meth:`continue_parameters`) when ``q0`` are equilibria at
-        ``theta0`` (an outer fit's previous iterate: the same branch of equilibria, a few close
+        ``start.theta0`` to ``theta`` (:meth:`continue_parameters`) when ``start.q0`` are equilibria
+        at ``theta0`` (an outer fit's previous iterate: the same branch of equilibria, a few close
         Newton solves), then ramping the load from the cold start.  Without ``theta0`` they are
         first tried all at once from the equilibrium of the converged trial nearest in load at the
         same flexion (the forward solver's own warm start; a measured pose a few tenths of a
-        millimetre into stiff cartilage can defeat Newton).  ``guess`` (T x 5, SI): where Newton
-        starts instead of ``q0`` (a prediction of the poses at ``theta``); the trials it fails are
-        started again from ``q0`` first.
+        millimetre into stiff cartilage can defeat Newton).  With ``start.guess`` (T x 5, SI), Newton
+        starts there instead of ``q0`` (a prediction of the poses at ``theta``); the trials it fails
+        are started again from ``q0`` first.
         """
-        q0 = np.asarray(q0, dtype=float)
-        loads, flexions = np.array([t.load for t in trials]), np.array([t.flexion for t in trials])
-        q, res = self._batch(q0 if guess is None else np.asarray(guess, float), theta, loads, flexions, threads)
+        q0, theta0, guess = np.asarray(start.q0, dtype=float), start.theta0, start.guess
+        loading = Loading.of(trials)
+        q, res = self._batch(q0 if guess is None else np.asarray(guess, float), theta, loading, threads)
 
         def again(failed: np.ndarray, starts: np.ndarray) -> np.ndarray:
             """Newton on the ``failed`` trials from ``starts``, kept where better; those still failing."""
-            q_f, res_f = self._batch(starts, theta, loads[failed], flexions[failed], threads)
+            q_f, res_f = self._batch(starts, theta, loading[failed], threads)
             better = res_f < res[failed]
             q[failed[better]], res[failed[better]] = q_f[better], res_f[better]
             return np.flatnonzero(~(res <= self.tol))
@@ -176,7 +182,7 @@ class ForwardSolver:
         if guess is not None and len(failed):
             failed = again(failed, q0[failed])
         retry = max_retries is None or len(failed) <= max_retries
-        near = _nearest_converged(loads, flexions, res <= self.tol, failed) if retry and theta0 is None else None
+        near = _nearest_converged(loading, res <= self.tol, failed) if retry and theta0 is None else None
         if near is not None:
             failed = again(failed, q[near])
         for i in failed if retry else ():
@@ -189,14 +195,14 @@ class ForwardSolver:
                 q[i], res[i] = q_i, res_i
         return q, res
 
-    def _batch(self, q0: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
+    def _batch(self, q0: np.ndarray, theta: np.ndarray, loading: Loading,
                threads: int) -> tuple[np.ndarray, np.ndarray]:
-        """Newton on the trials of ``loads`` (T x LOAD_SIZE) at ``flexions`` (T, rad) from ``q0``:
-        poses and residuals, inf where a contact point their working sets leave out penetrates."""
-        out = self.newton.solve(q0, theta, loads, flexions, self.tol, self.max_iter, threads)
+        """Newton on the trials of ``loading`` from ``q0``: poses and residuals, inf where a contact
+        point their working sets leave out penetrates."""
+        out = self.newton.solve(q0, theta, loading, self.max_iter, threads)
         res = out.residual
         if self.model.ws_size:
-            res = np.where(self.model.left_out_batch(out.q, theta, flexions, threads) > 0, np.inf, res)
+            res = np.where(self.model.left_out_batch(out.q, theta, loading.flexions, threads) > 0, np.inf, res)
         return out.q, res
 
     def continue_parameters(self, trial: Trial, theta0: np.ndarray, theta: np.ndarray, q0: np.ndarray,
@@ -205,14 +211,14 @@ class ForwardSolver:
         (SI), through parameters ``theta0 + s (theta - theta0)`` (:meth:`_follow`, steps of at most
         1/2 down to ``min_step``): the pose and its residual at ``theta``."""
         return self._follow(lambda s, q: self._newton(q, theta0 + s * (theta - theta0), trial),
-                            np.asarray(q0, float), 0.5, min_step, theta, trial)
+                            np.asarray(q0, float), min_step, theta, trial)
 
-    def _follow(self, newton_at, q: np.ndarray, step: float, min_step: float, theta: np.ndarray,
+    def _follow(self, newton_at, q: np.ndarray, min_step: float, theta: np.ndarray,
                 trial: Trial) -> tuple[np.ndarray, float]:
         """A homotopy from s = 0 (``q`` solves it) to s = 1: ``newton_at(s, q)`` (pose, residual) from
-        the last solved pose, the step doubled after a success (at most 1/2), halved after a failure;
-        below ``min_step`` it stops with the last try and its residual for ``trial`` at ``theta``."""
-        done, res = 0.0, np.inf
+        the last solved pose, the step 1/2 first, doubled after a success (at most 1/2), halved after a
+        failure; below ``min_step`` it stops with the last try and its residual for ``trial`` at ``theta``."""
+        done, res, step = 0.0, np.inf, 0.5
         while done < 1.0:
             target = min(1.0, done + step)
             q_try, res = newton_at(target, q)
@@ -234,13 +240,13 @@ class ForwardSolver:
     def residual_norms(self, q: np.ndarray, theta: np.ndarray, trials, threads: int = 2) -> np.ndarray:
         """:meth:`residual_norm` of every trial of ``trials`` at its pose ``q`` (T x 5, SI), all at once."""
         q = np.asarray(q, float).reshape(-1, 5)
-        flexions = np.array([t.flexion for t in trials])
+        loading = Loading.of(trials)
         finite = np.all(np.isfinite(q), axis=1)
         q_eval = np.where(finite[:, None], q, self.reference)
-        r = self.newton.evaluate(q_eval, theta, np.array([t.load for t in trials]), flexions, threads)[0]
+        r = self.newton.evaluate(q_eval, theta, loading, threads)[0]
         out = np.max(np.abs(r), axis=1)
         if self.model.ws_size:
-            out = np.where(self.model.left_out_batch(q_eval, theta, flexions, threads) > 0, np.inf, out)
+            out = np.where(self.model.left_out_batch(q_eval, theta, loading.flexions, threads) > 0, np.inf, out)
         return np.where(finite & np.isfinite(out), out, np.inf)
 
     def _newton(self, q0: np.ndarray, theta: np.ndarray, trial: Trial, scale: float = 1.0):
@@ -267,7 +273,7 @@ class ForwardSolver:
             known = [self._solved.get(k) for k in keys]
         todo = [i for i, k in enumerate(known) if k is None]
         if todo:
-            out = self.newton.solve(q0[todo], theta, loads[todo], flexions[todo], self.tol, self.max_iter)
+            out = self.newton.solve(q0[todo], theta, Loading(loads, flexions)[todo], self.max_iter)
             res = out.residual.copy()
             ok = np.flatnonzero(res <= self.tol)
             if self.model.ws_size and len(ok):  # the pose's working sets left a penetrating point out
@@ -334,8 +340,8 @@ class ForwardSolver:
         """Where the knee comes to rest from ``q0`` under ``scale`` times the trial's load
         (:meth:`EquilibriumNewton.settle`): the pose and its residual (inf where a contact point the
         working sets leave out penetrates)."""
-        out = self.newton.settle(np.asarray(q0, float)[None], theta, scale * np.asarray(trial.load, float)[None],
-                                 np.array([trial.flexion]), self.tol, threads=1)
+        loading = Loading(scale * np.asarray(trial.load, float)[None], np.array([trial.flexion]))
+        out = self.newton.settle(np.asarray(q0, float)[None], theta, loading, threads=1)
         res = float(out.residual[0])
         if res <= self.tol and self.model.ws_size and self.model.left_out_batch(out.q, theta, [trial.flexion])[0] > 0:
             res = np.inf
@@ -430,27 +436,19 @@ class ForwardSolver:
         done = [s for s in solutions if s.converged]
         if done:  # every equilibrium's stability, in one batch
             flags = unstable_equilibria(self.model, np.array([s.q for s in done]), theta,
-                                        np.array([s.trial.load for s in done]),
-                                        np.array([s.trial.flexion for s in done]), threads=2)
+                                        Loading.of([s.trial for s in done]), threads=2)
             for s, unstable in zip(done, flags, strict=True):
                 s.stable = not unstable
         return solutions
 
 
-
-
-
-
-
-
-def unstable_equilibria(model: KneeModel, q: np.ndarray, theta: np.ndarray, loads: np.ndarray,
-                        flexions: np.ndarray, threads: int = 1) -> np.ndarray:
-    """Per pose of ``q`` (T x 5, SI, equilibria under ``loads`` T x 6 at ``flexions`` T, rad): it is
+def unstable_equilibria(model: KneeModel, q: np.ndarray, theta: np.ndarray, loading: Loading,
+                        threads: int = 1) -> np.ndarray:
+    """Per pose of ``q`` (T x 5, SI, equilibria under ``loading``, the loads and flexions of T trials): it is
     unstable, ``det(-dr/dq) <= 0``: an odd number of directions in which the tibia moves away under
     its loads (a pose no loading ends at, though Newton converges to it as to any root).  The
     determinant's sign does not depend on the units of the coordinates."""
-    jacobians = model.trial_derivatives(np.asarray(q, float), theta, np.asarray(loads, float),
-                                        np.asarray(flexions, float), threads)[1]
+    jacobians = model.trial_derivatives(np.asarray(q, float), theta, loading, threads)[1]
     return np.linalg.det(-np.asarray(jacobians)) <= 0
 
 
@@ -463,11 +461,11 @@ def rim_note(share: float) -> str:
             "the cropped surface; a whole one would carry more there (the knee report says where it is open)")
 
 
-def _nearest_converged(loads: np.ndarray, flexions: np.ndarray, converged: np.ndarray,
-                       failed: np.ndarray) -> np.ndarray | None:
+def _nearest_converged(loading: Loading, converged: np.ndarray, failed: np.ndarray) -> np.ndarray | None:
     """For each ``failed`` trial, the converged trial at the nearest flexion, nearest in load among
     those (each load component scaled by its largest magnitude over the trials); None when no
     trial converged."""
+    loads, flexions = loading.loads, loading.flexions
     done = np.flatnonzero(converged)
     if not len(done) or not len(failed):
         return None

@@ -23,13 +23,13 @@ estimate, against 1.816239 and 0.001 % from a fixed start).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from kneenlp.solvers.boxcomplex import minimize_complex
-from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.forward import BatchStart, forward_solver
 from kneenlp.solvers.result import SolverResult
 
 if TYPE_CHECKING:
@@ -108,7 +108,7 @@ class NestedObjective:
         theta = self.theta(x_scaled)
         trials = list(self.problem.trials)
         q_ref, guess = self.start(x_scaled, theta)
-        q, res = self.solver.solve_batch(trials, theta, q_ref, guess=guess)
+        q, res = self.solver.solve_batch(trials, theta, BatchStart(q_ref, guess=guess))
         self.trial_solves += len(trials)
         ok = res <= CONSTRAINT_TOL
         psi = self.problem.map_objective(q, theta)
@@ -122,20 +122,44 @@ class NestedObjective:
         return self.evaluate(x_scaled)[0]
 
 
-def nested_fit(problem: IdentificationProblem, initial: np.ndarray, *, seed: int = 0, max_evals: int = 20000,
-               max_seconds: float | None = None, xtol: float = 1e-5, ftol: float = 1e-10) -> SolverResult:
+@dataclass(frozen=True)
+class NestedSettings:
+    """The Complex search of :func:`nested_fit` (:func:`~kneenlp.solvers.boxcomplex.minimize_complex`'s
+    options of the same names): its ``seed``, budgets ``max_evals`` (objective evaluations) and
+    ``max_seconds`` (s, None: none), tolerances ``xtol`` (relative spread of the scaled parameters) and
+    ``ftol`` (objective, mm^2 + deg^2)."""
+
+    seed: int = 0
+    max_evals: int = 20000
+    max_seconds: float | None = None
+    xtol: float = 1e-5
+    ftol: float = 1e-10
+
+    @classmethod
+    def from_kwargs(cls, **options) -> NestedSettings:
+        """The settings of :func:`nested_fit`'s keyword arguments; ``TypeError`` names every unknown one."""
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"nested_fit() got unexpected keyword argument(s): {', '.join(unknown)}")
+        return cls(**options)
+
+
+def nested_fit(problem: IdentificationProblem, initial: np.ndarray, **options) -> SolverResult:
     """Run the Complex optimizer from the ``initial`` cloud (SI parameter values, k x n); every
     rootfinder starts from the equilibria of the nearest point of that cloud (:class:`NestedObjective`).
+    ``options``: ``seed`` (0), ``max_evals`` (20000), ``max_seconds`` (None), ``xtol`` (1e-5) and ``ftol``
+    (1e-10), as :class:`NestedSettings`.
 
     The result's objective is without penalties when every trial is in equilibrium; its
     evaluations are the Complex's objective evaluations, ``equilibrium_solves`` the trial
     equilibria solved, ``residuals`` the largest residual per trial (N or N m) at the best point."""
+    settings = NestedSettings.from_kwargs(**options)
     bounds = list(zip(*problem.scaled_bounds, strict=True))
     t0 = time.perf_counter()
     cloud = problem.to_scaled(initial)
     obj = NestedObjective(problem, cloud)
-    result = minimize_complex(obj, bounds, initial=cloud, seed=seed, max_evals=max_evals,
-                              max_seconds=max_seconds, xtol=xtol, ftol=ftol)
+    result = minimize_complex(obj, bounds, initial=cloud, seed=settings.seed, max_evals=settings.max_evals,
+                              max_seconds=settings.max_seconds, xtol=settings.xtol, ftol=settings.ftol)
     seconds = time.perf_counter() - t0
     f, q, res = obj.evaluate(result.x)
     return SolverResult(solver="complex", values=dict(zip(problem.free, problem.from_scaled(result.x), strict=True)),

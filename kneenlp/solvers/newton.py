@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kneenlp.base.conventions import EQUILIBRIUM_TOL, LOAD_SIZE, TO_USER
+from kneenlp.base.conventions import EQUILIBRIUM_TOL, TO_USER
+from kneenlp.experiment.protocol import Loading
 
 #: Largest Newton step (mm for translations, deg for rotations).
 MAX_STEP = 5.0
@@ -61,28 +62,29 @@ class NewtonResult:
 
 
 class EquilibriumNewton:
-    """Newton's method on ``KneeModel.residual`` with the working sets of each iterate."""
+    """Newton's method on ``KneeModel.residual`` with the working sets of each iterate; a trial is
+    solved when its largest residual is at most ``tol`` (N or N m)."""
 
-    def __init__(self, model):
+    def __init__(self, model, tol: float = EQUILIBRIUM_TOL):
         self.model = model
+        self.tol = tol
 
-    def evaluate(self, q: np.ndarray, theta: np.ndarray, loads: np.ndarray,
-                 flexions: np.ndarray, threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (T x 5) and Jacobians dr/dq (T x 5 x 5) at poses ``q`` (T x 5, SI); the
-        trials are mapped over ``threads`` threads (1 in study workers, which run one process per
-        core), each with the working sets of its own pose (:meth:`KneeModel.trial_derivatives`)."""
-        return self.model.trial_derivatives(q, theta, loads, flexions, threads)
+    def evaluate(self, q: np.ndarray, theta: np.ndarray, loading: Loading,
+                 threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (T x 5) and Jacobians dr/dq (T x 5 x 5) at poses ``q`` (T x 5, SI) under
+        ``loading``; the trials are mapped over ``threads`` threads (1 in study workers, which run one
+        process per core), each with the working sets of its own pose (:meth:`KneeModel.trial_derivatives`)."""
+        return self.model.trial_derivatives(q, theta, loading, threads)
 
-    def solve(self, q0: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
-              tol: float = EQUILIBRIUM_TOL, max_iter: int = 60, threads: int = 2) -> NewtonResult:
-        """Solve ``r(q) = 0`` for every trial from ``q0`` (T x 5, SI); ``loads`` T x 6, ``flexions``
-        (T,) rad; ``threads`` as in :meth:`evaluate`.  Converged trials have ``residual <= tol``."""
+    def solve(self, q0: np.ndarray, theta: np.ndarray, loading: Loading, max_iter: int = 60,
+              threads: int = 2) -> NewtonResult:
+        """Solve ``r(q) = 0`` for every trial of ``loading`` from ``q0`` (T x 5, SI); ``threads`` as in
+        :meth:`evaluate`.  Converged trials have ``residual <= tol``."""
+        tol = self.tol
         q = np.array(q0, dtype=float).reshape(-1, 5)
-        loads = np.asarray(loads, dtype=float).reshape(-1, LOAD_SIZE)
-        flexions = np.asarray(flexions, dtype=float).ravel()
         T = len(q)
         w = np.asarray(TO_USER)
-        r, jac = self.evaluate(q, theta, loads, flexions, threads)
+        r, jac = self.evaluate(q, theta, loading, threads)
         evaluations = 1
         lam = np.ones(T)
         active = np.ones(T, dtype=bool)
@@ -101,7 +103,7 @@ class EquilibriumNewton:
                 j = idx[pending]
                 step = np.minimum(lam[j], cap[pending])  # damping, and the step cap as a damping
                 qt = q[j] + step[:, None] * dq[pending]
-                rt, jt = self.evaluate(qt, theta, loads[j], flexions[j], threads)
+                rt, jt = self.evaluate(qt, theta, loading[j], threads)
                 evaluations += 1
                 finite = np.all(np.isfinite(rt), axis=1)
                 bar = np.full(len(j), np.inf)
@@ -117,9 +119,9 @@ class EquilibriumNewton:
         res[~np.isfinite(res)] = np.inf
         return NewtonResult(q, res, it, evaluations)
 
-    def settle(self, q0: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions: np.ndarray,
-               tol: float = EQUILIBRIUM_TOL, max_iter: int = 2000, threads: int = 2) -> NewtonResult:
-        """Let every trial settle from ``q0`` (T x 5, SI) into a stable equilibrium, where the knee
+    def settle(self, q0: np.ndarray, theta: np.ndarray, loading: Loading, max_iter: int = 2000,
+               threads: int = 2) -> NewtonResult:
+        """Let every trial of ``loading`` settle from ``q0`` (T x 5, SI) into a stable equilibrium, where the knee
         comes to rest (what it does when a load passes a fold of its equilibrium path, or where
         Newton stalls or runs to a saddle): pseudo-transient continuation, implicit Euler steps of
         the flow ``M dq/dt = r(q)`` (``M`` = :data:`SETTLE_METRIC`), ``(M/dt - J) dq = r``.  The
@@ -130,11 +132,10 @@ class EquilibriumNewton:
         positive definite: every step goes downhill, never onto the hump.  Steps are capped at
         :data:`SETTLE_STEP` (mm / deg); a step into a pose that cannot be evaluated is retried with a
         quarter of the time step."""
+        tol = self.tol
         q = np.array(q0, dtype=float).reshape(-1, 5)
-        loads = np.asarray(loads, dtype=float).reshape(-1, LOAD_SIZE)
-        flexions = np.asarray(flexions, dtype=float).ravel()
         w = np.asarray(TO_USER)
-        r, jac = self.evaluate(q, theta, loads, flexions, threads)
+        r, jac = self.evaluate(q, theta, loading, threads)
         res = np.max(np.abs(r), axis=1)
         dt = np.ones(len(q))
         evaluations, it = 1, 0
@@ -149,7 +150,7 @@ class EquilibriumNewton:
             dq = newton_steps(lhs, r[idx])
             dq *= np.minimum(1.0, SETTLE_STEP / np.maximum(np.max(np.abs(dq * w), axis=1), 1e-300))[:, None]
             qt = q[idx] + dq
-            rt, jt = self.evaluate(qt, theta, loads[idx], flexions[idx], threads)
+            rt, jt = self.evaluate(qt, theta, loading[idx], threads)
             evaluations += 1
             rest = np.max(np.abs(rt), axis=1)
             ok = np.isfinite(rest)

@@ -187,14 +187,26 @@ def get_nlp(problem: IdentificationProblem, solver: str, options: dict | None, t
     return problem.model.solvers.get(key, lambda: build_nlp(problem, solver, options, threads))
 
 
-def solve_nlp(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
-              solver_options: dict | None = None, threads: int = 2, q0: np.ndarray | None = None) -> SolverResult:
-    """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter), poses
-    started at equilibrium (:func:`~kneenlp.solvers.equilibria.equilibrium_start`) or at ``q0`` (T x 5,
-    SI: e.g. a reduced-space fit's, the equilibria its continuation followed, which a solve from the
-    unloaded state need not reach)."""
+@dataclass(frozen=True)
+class NlpSolver:
+    """How the simultaneous NLP is solved: the CasADi ``nlpsol`` plugin ``name`` (``ipopt``,
+    ``sqpmethod``, ...), its ``options`` (by plugin, e.g. ``{"ipopt": {"max_iter": 150}}``) and the
+    ``threads`` of its trial map."""
+
+    name: str = "ipopt"
+    options: dict | None = None
+    threads: int = 2
+
+
+def solve_nlp(problem: IdentificationProblem, start: dict[str, float], how: NlpSolver = NlpSolver(),
+              q0: np.ndarray | None = None) -> SolverResult:
+    """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter) as ``how``
+    says, poses started at equilibrium (:func:`~kneenlp.solvers.equilibria.equilibrium_start`) or at ``q0``
+    (T x 5, SI: e.g. a reduced-space fit's, the equilibria its continuation followed, which a solve from
+    the unloaded state need not reach)."""
     t0 = time.perf_counter()
-    nlp = get_nlp(problem, solver, solver_options, threads)
+    threads = how.threads
+    nlp = get_nlp(problem, how.name, how.options, threads)
     if q0 is None:
         eq = equilibrium_start(problem, problem.theta(start), threads)
         q_user, started_at_data = eq.q_user, int(np.sum(~eq.ok))

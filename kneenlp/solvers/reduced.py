@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import optimize
 
-from kneenlp.solvers.forward import forward_solver
+from kneenlp.solvers.forward import BatchStart, forward_solver
 from kneenlp.solvers.result import SolverResult
 
 #: After the first point at equilibrium, the trials a step loses are retried (load ramps, fresh
@@ -105,8 +105,8 @@ class ReducedSpace:
         retries = None if self.best is None else int(MAX_RETRIED_SHARE * len(trials))
         q_from = self.q_start if self.best is None else self.best.q
         theta_from = None if self.best is None else self.best.theta
-        q, res = self.solver.solve_batch(trials, theta, q_from, self.threads, max_retries=retries,
-                                         theta0=theta_from, guess=self.predicted_poses(theta))
+        start = BatchStart(q_from, theta0=theta_from, guess=self.predicted_poses(theta))
+        q, res = self.solver.solve_batch(trials, theta, start, self.threads, max_retries=retries)
         bad = np.flatnonzero(~(res <= tol_eq))
         if len(bad) and (retries is None or len(bad) <= retries):  # try from the forward solver's own start
             for i, sol in zip(bad, self.solver.solve([trials[i] for i in bad], theta, snap=False), strict=True):
@@ -182,7 +182,8 @@ def start_poses(problem: IdentificationProblem, theta: np.ndarray, threads: int 
     state alone, the MAP calibration followed branches far from the data (MAP objective 731, not 452)."""
     tol = problem.equilibrium_tol
     solver = forward_solver(problem.model)
-    measured, res = solver.solve_batch(problem.trials, theta, np.array(problem.data.q, float), threads, max_retries=0)
+    measured, res = solver.solve_batch(problem.trials, theta, BatchStart(np.array(problem.data.q, float)), threads,
+                                       max_retries=0)
     forward = np.array(problem.data.q, float)
     reached = np.zeros(len(forward), bool)
     for i, sol in enumerate(solver.solve(problem.trials, theta)):
@@ -196,14 +197,37 @@ def start_poses(problem: IdentificationProblem, theta: np.ndarray, threads: int 
     return np.where(use_forward[:, None], forward, np.where((res <= tol)[:, None], measured, problem.data.q))
 
 
+@dataclass(frozen=True)
+class ReducedSettings:
+    """The settings of :func:`reduced_least_squares`: at most ``max_evaluations`` residual evaluations,
+    the relative cost change ``tol`` it stops at (None: :func:`tolerance`), the ``threads`` of the
+    trials' Newton."""
+
+    max_evaluations: int = 60
+    tol: float | None = None
+    threads: int = 2
+
+    @classmethod
+    def from_kwargs(cls, **options) -> ReducedSettings:
+        """The settings of :func:`reduced_least_squares`'s keyword arguments; ``TypeError`` names every
+        unknown one."""
+        unknown = sorted(set(options) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise TypeError(f"reduced_least_squares() got unexpected keyword argument(s): {', '.join(unknown)}")
+        return cls(**options)
+
+
 def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float], *, q0: np.ndarray | None = None,
-                          max_evaluations: int = 60, tol: float | None = None, threads: int = 2) -> SolverResult:
+                          **options) -> SolverResult:
     """Minimise the problem's weighted residual sum over its free parameters from ``start`` (SI),
     with every trial at equilibrium (module docstring); ``q0`` warm-starts the first poses (SI,
     default :func:`start_poses`).  Parameters scaled by
     their scales; stops at relative cost change ``tol`` (default :func:`tolerance`) or after
-    ``max_evaluations`` residual evaluations; ``threads`` of the trials' Newton."""
-    tol = tolerance(problem.model) if tol is None else tol
+    ``max_evaluations`` (60) residual evaluations; ``threads`` (2) of the trials' Newton
+    (``options``: :class:`ReducedSettings`)."""
+    settings = ReducedSettings.from_kwargs(**options)
+    threads, max_evaluations = settings.threads, settings.max_evaluations
+    tol = tolerance(problem.model) if settings.tol is None else settings.tol
     t0 = time.perf_counter()
     lower, upper = problem.scaled_bounds
     x0 = np.clip(problem.to_scaled(start), lower, upper)

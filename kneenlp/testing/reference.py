@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from kneenlp.experiment.kneemodel import KneeModel
+from kneenlp.experiment.protocol import Loading
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.rim import OpenEdges
 from kneenlp.model.laws import NUMPY, ElasticFoundation
@@ -149,7 +150,7 @@ def reference_equilibrium(model: KneeModel, solution, theta: np.ndarray, tol: fl
     surface = ExactSurface.of(model.knee.femur)
     modulus = float(theta[model.index("contact.modulus")])
     trial, q = solution.trial, np.asarray(solution.q, float).copy()
-    jac = model.trial_derivatives(q[None], theta, np.asarray(trial.load)[None], np.array([trial.flexion]), 1)[1][0]
+    jac = model.trial_derivatives(q[None], theta, Loading.of([trial]), 1)[1][0]
     res = np.inf
     for _ in range(max_iter):
         R, p = (np.asarray(v) for v in model.pose(q, trial.flexion, theta))
