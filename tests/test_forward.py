@@ -9,7 +9,7 @@ import kneenlp
 import kneenlp.base.resources
 from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.experiment.protocol import Loading, Protocol, Trial
-from kneenlp.solvers.forward import BatchStart, ForwardSolver
+from kneenlp.solvers.forward import BatchStart, ForwardMemory, ForwardSolver, forward_solver
 
 PRIMARY = {"anterior": (3, 1), "posterior": (3, -1), "varus": (0, 1), "valgus": (0, -1),
            "internal": (1, 1), "external": (1, -1)}
@@ -128,6 +128,19 @@ def test_parameter_continuation_reaches_the_cold_solution(model):
     assert res_batch[0] <= short.tol and np.allclose(q_batch[0], cold.q, atol=1e-8)
 
 
+def test_a_workspace_is_the_callers_and_changes_no_result(model, set3):
+    """Solvers share what they remember only through a workspace their caller passes; a solver with
+    another (or a new one) computes the same poses, bit for bit."""
+    trials, theta = [s.trial for s in set3.solutions], model.theta()
+    memory = ForwardMemory()
+    first = forward_solver(model, memory=memory).solve(trials, theta)
+    assert memory.solved and forward_solver(model).memory is not memory and not forward_solver(model).memory.solved
+    again = forward_solver(model, memory=memory).solve(trials, theta)
+    fresh = forward_solver(model).solve(trials, theta)
+    for a, b, c in zip(first, again, fresh, strict=True):
+        assert np.array_equal(a.q, b.q) and np.array_equal(a.q, c.q)
+
+
 def test_cold_start_remembers_the_passive_path():
     """A knee imaged at another pose walks from its reference flexion to each trial's; the walk of
     the last parameters is remembered, and what a flexion gets does not depend on the flexions
@@ -142,12 +155,12 @@ def test_cold_start_remembers_the_passive_path():
     reverse = [backwards.cold_start(f, theta) for f in flexions[::-1]][::-1]
     for a, b, c in zip(fresh, in_order, reverse, strict=True):
         assert np.array_equal(a, b) and np.array_equal(a, c)
-    assert np.radians(30.0) in solver._passive[1] and np.radians(60.0) in solver._passive[1]
+    assert np.radians(30.0) in solver.memory.passive[1] and np.radians(60.0) in solver.memory.passive[1]
     reference = model.knee.reference_pose[0]
     assert not np.allclose(fresh[0], ForwardSolver(model).reference)  # it did walk
     theta[model.index("ACLam.k_scale")] *= 2  # other parameters: a new path
     solver.cold_start(np.radians(60.0), theta)
-    assert max(abs(f - reference) for f in solver._passive[1]) == pytest.approx(abs(np.radians(60.0) - reference))
+    assert max(abs(f - reference) for f in solver.memory.passive[1]) == pytest.approx(abs(np.radians(60.0) - reference))
 
 
 def test_fig2_axes_scan_script_runs(capsys):

@@ -93,21 +93,34 @@ class TrialSolution:
         return self.converged and self.strategy == "settle" and bool(np.any(self.trial.load))
 
 
-class ForwardSolver:
-    """Per-trial equilibrium solver for one model; the rootfinder is built once."""
+@dataclass
+class ForwardMemory:
+    """A forward solver's workspace: what it remembers between solves.  Every entry is a
+    deterministic function of its inputs, so a memory changes how long a solve takes, never its
+    result; a caller that solves one model again and again (a fit's retries, a calibration's checks)
+    keeps one and passes it (:func:`forward_solver`), and nothing is shared behind its back."""
 
-    def __init__(self, model: KneeModel, tol: float = EQUILIBRIUM_TOL, max_iter: int = 60):
+    #: the passive path of :meth:`ForwardSolver.cold_start` at the last parameters: (theta's bytes,
+    #: {flexion: pose})
+    passive: tuple[bytes | None, dict[float, np.ndarray]] = (None, {})
+    #: the last :data:`NEWTON_MEMORY` single-trial Newton solves: inputs' bytes -> (pose, residual)
+    solved: dict[bytes, tuple[np.ndarray, float]] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+
+class ForwardSolver:
+    """Per-trial equilibrium solver for one model (its CasADi functions are the model's, built once)
+    with a workspace, ``memory`` (a new one by default)."""
+
+    def __init__(self, model: KneeModel, tol: float = EQUILIBRIUM_TOL, max_iter: int = 60,
+                 memory: ForwardMemory | None = None):
         self.model = model
         #: the knee's reference pose: where cold starts begin and the envelope is centred (rad, m)
         self.reference = np.asarray(model.knee.reference_pose[1], float)
         self.tol, self.max_iter, self.newton = tol, max_iter, EquilibriumNewton(model, tol)
         self._contact_columns = [o.column for e, o in model.outputs
                                  if isinstance(e, StagedElement) and o.name == "force"]
-        #: the passive path of :meth:`cold_start` at the last parameters: (theta's bytes, {flexion: pose})
-        self._passive: tuple[bytes | None, dict[float, np.ndarray]] = (None, {})
-        #: the last :data:`NEWTON_MEMORY` single-trial Newton solves: inputs' bytes -> (pose, residual)
-        self._solved: dict[bytes, tuple[np.ndarray, float]] = {}
-        self._solved_lock = threading.Lock()
+        self.memory = ForwardMemory() if memory is None else memory
 
     def cold_start(self, flexion: float, theta: np.ndarray) -> np.ndarray:
         """Where a trial without a warm start begins (rad, m): 0.3 mm proximal of the reference
@@ -123,9 +136,9 @@ class ForwardSolver:
         if not np.any(reference) and f_ref == 0.0:
             return q
         key = np.asarray(theta, float).tobytes()
-        if self._passive[0] != key:
-            self._passive = (key, {})
-        path = self._passive[1]
+        if self.memory.passive[0] != key:
+            self.memory.passive = (key, {})
+        path = self.memory.passive[1]
         if flexion in path:
             return path[flexion].copy()
         step, side = np.radians(PASSIVE_STEP_DEG), np.sign(flexion - f_ref)
@@ -269,8 +282,9 @@ class ForwardSolver:
         flexions = np.array([t.flexion for t in trials], float)
         keys = [b"".join((q.tobytes(), theta.tobytes(), load.tobytes(), f.tobytes()))
                 for q, load, f in zip(q0, loads, flexions, strict=True)]
-        with self._solved_lock:
-            known = [self._solved.get(k) for k in keys]
+        memory = self.memory
+        with memory.lock:
+            known = [memory.solved.get(k) for k in keys]
         todo = [i for i, k in enumerate(known) if k is None]
         if todo:
             out = self.newton.solve(q0[todo], theta, Loading(loads, flexions)[todo], self.max_iter)
@@ -278,11 +292,11 @@ class ForwardSolver:
             ok = np.flatnonzero(res <= self.tol)
             if self.model.ws_size and len(ok):  # the pose's working sets left a penetrating point out
                 res[ok[self.model.left_out_batch(out.q[ok], theta, flexions[todo][ok]) > 0]] = np.inf
-            with self._solved_lock:
+            with memory.lock:
                 for j, i in enumerate(todo):
-                    while self._solved and len(self._solved) >= NEWTON_MEMORY:
-                        del self._solved[next(iter(self._solved))]  # the oldest
-                    known[i] = self._solved[keys[i]] = (out.q[j].copy(), float(res[j]))
+                    while memory.solved and len(memory.solved) >= NEWTON_MEMORY:
+                        del memory.solved[next(iter(memory.solved))]  # the oldest
+                    known[i] = memory.solved[keys[i]] = (out.q[j].copy(), float(res[j]))
         return [(q.copy(), res) for q, res in known]
 
     def solve_trial(self, trial: Trial, theta: np.ndarray, q0: np.ndarray | None = None) -> TrialSolution:
@@ -488,6 +502,8 @@ def _is_unloaded(t: Trial) -> bool:
     return not any(v != 0 for v in t.loads.values())
 
 
-def forward_solver(model: KneeModel, tol: float = EQUILIBRIUM_TOL) -> ForwardSolver:
-    """The model's forward solver for ``tol`` (N or N m), built once per model (``model.solvers``)."""
-    return model.solvers.get(("forward", tol), lambda: ForwardSolver(model, tol=tol))
+def forward_solver(model: KneeModel, tol: float = EQUILIBRIUM_TOL,
+                   memory: ForwardMemory | None = None) -> ForwardSolver:
+    """A forward solver of ``model`` for ``tol`` (N or N m) working in ``memory`` (the caller's
+    workspace; a new one by default: see :class:`ForwardMemory`)."""
+    return ForwardSolver(model, tol=tol, memory=memory)
