@@ -134,6 +134,8 @@ def experiment_of(df: pd.DataFrame, path: Path) -> Experiment:
         robot = "load_axes" in df.columns and (df["load_axes"].astype(str).str.strip() == "jcs").any()
         return LABORATORY if side or robot else SIMULATED
     names = {str(v).strip() for v in df["experiment"].dropna()}
+    if not len(df):
+        return SIMULATED  # no rows: the reader's own check says so
     if len(names) != 1:
         raise InputError(f"expected one experiment for every row, got {', '.join(sorted(names)) or 'none'}",
                          source=str(path), field="experiment")

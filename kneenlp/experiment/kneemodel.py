@@ -4,10 +4,9 @@
 
 * ``q`` (5): free coordinates ``[varus, internal, lateral, anterior, proximal]`` (rad, m),
 * ``theta`` (n): all model parameters in :attr:`KneeModel.parameter_names` order (SI),
-* ``load`` (:data:`~kneenlp.base.conventions.LOAD_SIZE`): ``[F, M, Q, a, w]``, a force and a pure
-  moment in the femoral frame (N, N m), generalised forces added to ``r`` as they are (a robot's
-  joint loads) and the force's tibial point (the trial's, or the tuberosity; the experiment's
-  :class:`~kneenlp.experiment.kind.Experiment`; :func:`~kneenlp.base.conventions.load_vector`),
+* ``load`` (:data:`~kneenlp.base.conventions.LOAD_SIZE`, :func:`~kneenlp.base.conventions.load_vector`):
+  a force and a pure moment (femoral frame, N, N m), generalised forces added to ``r`` as they are
+  (a robot's joint loads) and the force's tibial point (the experiment's, or the tuberosity),
 * ``flexion`` (1): prescribed flexion (rad),
 * ``ws``: the contact working sets of the trial *taken at the pose q* (:meth:`KneeModel.working_set`:
   the points that can touch and, for mesh contact, the expansion of the contact at q; empty when no
@@ -212,10 +211,9 @@ class KneeModel(ContactSets):
             f_e, m_e = e.wrench(pose, values)
             force += f_e
             moment += m_e
-        # the applied force acts at the trial's point (the tuberosity by default) or, for a robot's joint
-        # loads, at the tibial origin; the experiment may shift that point (LoadPoint), and its
-        # tibial origin may be elsewhere (TibialOrigin): the joint loads' force (the vector whose
-        # projections on e1, e2, e3 are the joint forces) then adds the couple of the shift
+        # the force acts at the trial's point (the tuberosity by default; a robot's joint loads at the
+        # tibial origin), shifted by LoadPoint; with the tibial origin elsewhere (TibialOrigin) the
+        # joint loads' force (projections on e1, e2, e3: the joint forces) adds the shift's couple
         shift = self.measurement.load_point_shift(values)
         origin = self.measurement.joint_origin_shift(values)
         e1, e2, e3 = axes
