@@ -56,7 +56,7 @@ def one(options: dict) -> dict:
     data = read_measured(problem.data)
     if options.get("perturb_data"):
         data = MeasuredData.from_user(data.trials, data.q_user * (1 + options["perturb_data"]), data.protocol,
-                                      data.source, data.side, experiment=data.experiment)
+                                      data.source, side=data.side, experiment=data.experiment)
     model = KneeModel.of(knee)
     workers = options.get("workers", 2)
     if workers == "dask":  # a local Dask cluster of two single-threaded worker processes

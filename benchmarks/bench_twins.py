@@ -48,7 +48,7 @@ def with_half_loads(data: MeasuredData) -> MeasuredData:
                                  loads={k: v / 2 if k in TEST_LOADS else v for k, v in t.loads.items()})
              for t in (data.trials[i] for i in loaded)]
     return MeasuredData.from_user([*data.trials, *extra], np.vstack([data.q_user, data.q_user[loaded]]),
-                                  data.protocol, data.source, data.side, experiment=data.experiment)
+                                  data.protocol, data.source, side=data.side, experiment=data.experiment)
 
 
 def judged(result: crossval.HeldOut, data: MeasuredData) -> float:

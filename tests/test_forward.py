@@ -9,7 +9,8 @@ import kneenlp
 import kneenlp.base.resources
 from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.experiment.protocol import Loading, Protocol, Trial
-from kneenlp.solvers.forward import BatchStart, ForwardMemory, ForwardSolver, forward_solver
+from kneenlp.solvers.forward import BatchStart, ForwardSolver, forward_solver
+from kneenlp.solvers.workspace import ForwardMemory
 
 PRIMARY = {"anterior": (3, 1), "posterior": (3, -1), "varus": (0, 1), "valgus": (0, -1),
            "internal": (1, 1), "external": (1, -1)}

@@ -128,9 +128,10 @@ class MeasuredData:
 
     @classmethod
     def from_user(cls, trials: list[Trial], q_user: np.ndarray, protocol: str | None = None,
-                  source: str | None = None, side: str | None = None, **experiment: Experiment) -> MeasuredData:
-        """Measured data from poses in user units (T x 5, mm and deg; ``experiment=``: the field)."""
-        return cls(list(trials), coords_from_user(q_user), protocol, source, side, **experiment)
+                  source: str | None = None, **labels: str | Experiment | None) -> MeasuredData:
+        """Measured data from poses in user units (T x 5, mm and deg); ``labels``: the fields
+        ``side`` and ``experiment``."""
+        return cls(list(trials), coords_from_user(q_user), protocol, source, **labels)
 
     @property
     def q_user(self) -> np.ndarray:
@@ -232,7 +233,7 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     name = _protocol_name(df, src)
     q_user = np.column_stack([df[c].to_numpy(dtype=float) if c in df.columns else np.full(len(df), np.nan)
                               for c in coordinate_columns()])
-    data = MeasuredData.from_user(trials, q_user, name, src, side, experiment=experiment)
+    data = MeasuredData.from_user(trials, q_user, name, src, side=side, experiment=experiment)
     if name is not None and protocol is None:
         _check_protocol_name(data, path)
     return data

@@ -26,7 +26,6 @@ The loading path a laxity test describes, the same for every way of writing the 
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +37,7 @@ from kneenlp.experiment.protocol import Loading, Trial
 from kneenlp.model.elements import StagedElement
 from kneenlp.model.mesh_contact import RIM_SHARE
 from kneenlp.solvers.newton import EquilibriumNewton
+from kneenlp.solvers.workspace import ForwardMemory
 
 COLD_START = np.array([0.0, 0.0, 0.0, 0.0, 0.3e-3])  # rad, m from the reference pose: slightly penetrated
 #: Flexion step (deg) of the passive path from a knee's reference pose (:meth:`ForwardSolver.cold_start`).
@@ -91,21 +91,6 @@ class TrialSolution:
     def snapped(self) -> bool:
         """Its loading path passed a fold (several equilibria there): the knee settled into this one."""
         return self.converged and self.strategy == "settle" and bool(np.any(self.trial.load))
-
-
-@dataclass
-class ForwardMemory:
-    """A forward solver's workspace: what it remembers between solves.  Every entry is a
-    deterministic function of its inputs, so a memory changes how long a solve takes, never its
-    result; a caller that solves one model again and again (a fit's retries, a calibration's checks)
-    keeps one and passes it (:func:`forward_solver`), and nothing is shared behind its back."""
-
-    #: the passive path of :meth:`ForwardSolver.cold_start` at the last parameters: (theta's bytes,
-    #: {flexion: pose})
-    passive: tuple[bytes | None, dict[float, np.ndarray]] = (None, {})
-    #: the last :data:`NEWTON_MEMORY` single-trial Newton solves: inputs' bytes -> (pose, residual)
-    solved: dict[bytes, tuple[np.ndarray, float]] = field(default_factory=dict)
-    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
 
 class ForwardSolver:

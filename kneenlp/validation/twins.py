@@ -31,7 +31,7 @@ def twin(model: KneeModel, data: MeasuredData, parameters: dict[str, float], sd:
     ok = truth.converged
     q = truth.predicted_user[ok] + NoiseModel("gaussian", 1.0).sample(rng, (int(ok.sum()), 5)) * sd
     trials = [t for t, k in zip(data.trials, ok, strict=True) if k]
-    return MeasuredData.from_user(trials, q, data.protocol, f"twin of {data.source}", data.side,
+    return MeasuredData.from_user(trials, q, data.protocol, f"twin of {data.source}", side=data.side,
                                   experiment=data.experiment)
 
 
