@@ -33,7 +33,7 @@ import numpy as np
 import kneenlp
 from kneenlp.adequacy.basefit import base_fit
 from kneenlp.adequacy.diagnosis import diagnose
-from kneenlp.estimation.solve import scatter_fit
+from kneenlp.estimation.solve import ScatterSettings, scatter_fit
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
@@ -63,7 +63,7 @@ def held_out_error(model: KneeModel, data: MeasuredData, extra: list[str], sigma
     errors = []
     for _, held in folds(data):
         problem = IdentificationProblem.from_data(model, data.subset(~held), with_effects=extra, noise=NOISE)
-        fit = scatter_fit(problem, {}, seed=seed)  # the paper's least squares, as diagnose's base fit
+        fit = scatter_fit(problem, {}, ScatterSettings(seed=seed))  # the paper's least squares, as diagnose's base fit
         pred = predict(model, data.subset(held), fit.params)
         if not pred.converged.all():
             return None

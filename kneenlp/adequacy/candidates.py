@@ -144,6 +144,7 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
     AIC and BIC changes, parameters SI with standard errors) and the refitted :class:`Fit`."""
     from kneenlp.estimation.identify import identify
     from kneenlp.estimation.solve import reduced_fit, solve_simultaneous
+    from kneenlp.solvers.nlp import NlpSolver
 
     model = fit.model
     start = dict(fit.params)
@@ -160,7 +161,7 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
     new = reduced_fit(problem, problem.values(fit.theta), q0=fit.q_pred, tol=REFIT_TOL)
     if not new.success:
         polished = solve_simultaneous(problem, dict(new.params),
-                                      solver_options={"ipopt": {"max_iter": POLISH_ITERATIONS}})
+                                      NlpSolver(options={"ipopt": {"max_iter": POLISH_ITERATIONS}}))
         if polished.success:
             new = polished
     if not new.success or new.objective > fit.objective:
@@ -168,7 +169,7 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
         # its polish and the one-step start all failed (~4 min a candidate), while this
         # converged in 50-120 iterations (15-40 s)
         warm = solve_simultaneous(problem, problem.values(fit.theta),
-                                  solver_options={"ipopt": {"max_iter": WARM_ITERATIONS}})
+                                  NlpSolver(options={"ipopt": {"max_iter": WARM_ITERATIONS}}))
         if warm.success and (not new.success or warm.objective < new.objective):
             new = warm
     if not new.success or new.objective > fit.objective:

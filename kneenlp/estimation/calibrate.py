@@ -47,11 +47,9 @@ after; :meth:`Calibration.parameter_set` is the calibrated parameter file's cont
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 
-from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.estimation.calibrated import (
     Calibration,
     CalibrationRecord,
@@ -59,13 +57,14 @@ from kneenlp.estimation.calibrated import (
     on_loading_path,
     prediction_variances,
 )
+from kneenlp.estimation.calibration_options import PRIOR_WEIGHT as PRIOR_WEIGHT
+from kneenlp.estimation.calibration_options import CalibrationInputs, CalibrationOptions
 from kneenlp.estimation.choice import (
     also_free_names,
     calibration_choice,
     check_calibration,
     engaged_priors,
     engaged_probe,
-    from_params,
 )
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.estimation.minima import Search
@@ -77,48 +76,22 @@ from kneenlp.estimation.outliers import (
     residual_factors,
     screen,
 )
-from kneenlp.estimation.search import DEFAULT_STARTS, SCREEN_EVALUATIONS, OutlierTest, search
-from kneenlp.estimation.solve import reduced_fit, scatter_fit, solve_simultaneous
+from kneenlp.estimation.search import SCREEN_EVALUATIONS, OutlierTest, SearchSettings, Solves, search
+from kneenlp.estimation.solve import ScatterSettings, reduced_fit, scatter_fit, solve_simultaneous
 from kneenlp.estimation.statistics import effective_parameters
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.experiment.problem import IdentificationProblem
-from kneenlp.model.params import Parameters
 from kneenlp.prediction.predict import predict
+from kneenlp.solvers.nlp import NlpSolver
 
 #: Residual evaluations of the reduced-space Gauss-Newton calibration (S192803 converges in 40).
 MAX_EVALUATIONS = 150
 #: IPOPT iterations of the fallback (the simultaneous NLP) when the reduced solve fails.
 MAX_ITER = 80
-#: The misfit variance (mm^2, deg^2) a calibration's priors are weighed against by default: the
-#: misfit a calibrated laxity model reaches, about 1 mm and 1 deg.  Held out on S192803 it predicted
-#: better than the weight estimated from the fit (which grows with the model's error, 5-12 mm^2:
-#: the priors then hold the knee near values that do not fit; docs/priors.md).
-PRIOR_WEIGHT = 1.0
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, *, seed: int = 0,
-              noise=None, load_point: bool = True, pivot_tolerance: float | None = None,
-              also_free: list[str] | None = None, keep_outliers: bool = False, priors="default",
-              prior_weight: float | str = PRIOR_WEIGHT, weighted: bool = False,
-              with_effects: list[str] | tuple = (), start: dict[str, float] | None = None, solver: str = "ipopt",
-              solver_options: dict | None = None, multistart: int = 1, threads: int = 2,
-              workers: int | DaskWorkers = 1, starts: int | None = None,
-              store: str | Path | None = None, params: Parameters | None = None) -> Calibration:
+def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = None, **options) -> Calibration:
     """Fit ``free`` to the real experiment ``data``: reduced-space Gauss-Newton from the knee's
     values (or the probe), then the simultaneous NLP from there (:func:`polished`); the NLP with the
     scatter strategy's rescue where the reduced fit fails.  ``free`` defaults to the parameter
@@ -153,93 +126,81 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     ``params`` (:class:`~kneenlp.model.params.Parameters`, instead of ``free`` and ``priors``):
     its varied parameters are fitted with its priors, bounds and ties; its values that differ from
     the knee's start the fit there (:func:`~kneenlp.estimation.choice.from_params`)."""
-    if params is not None:
-        given = {"free": free, "priors": None if priors == "default" else priors, "start": start,
-                 "also_free": also_free, "pivot_tolerance": pivot_tolerance}
-        free, priors, start, ties = from_params(model, params, **given)
-    check_calibration(data, free, pivot_tolerance, also_free)
-    with_priors, estimate = priors not in (None, "none"), prior_weight == "estimate"
-    extra = also_free_names(model, also_free or [])
+    options, ties = CalibrationOptions.from_kwargs(free=free, **options).resolved(model)
+    check_calibration(data, options)
+    extra = also_free_names(model, options.also_free or [])
     before = predict(model, data)
     before.check_side()
     theta, engaged = engaged_probe(model, data, model.theta())
-    free, fixed = calibration_choice(model, data, free, theta, engaged, with_priors=with_priors,
-                                     pivot_tolerance=pivot_tolerance, load_point=load_point)
-    if with_priors and engaged and isinstance(priors, str):
+    free, fixed = calibration_choice(model, data, options, theta, engaged)
+    priors = options.priors
+    if options.with_priors and engaged and isinstance(priors, str):
         priors = engaged_priors(model, theta, engaged, free)
     extra = [n for n in extra if n not in free]
     fixed = [n for n in fixed if n not in extra]
     # the misfit is estimated from the residuals, whatever noise is declared: on a real knee the model's
     # error, not the instrument's noise, is what the parameters' and predictions' uncertainty must carry
     # (S192803: declared 0.2 mm, misfit about 1.5 mm); a declared noise serves diagnose's verdict
-    options = {"noise": noise if weighted else None, "weighted": weighted, "with_effects": with_effects or (),
-               "priors": priors, "prior_weight": None if estimate else float(prior_weight),
-               **({} if params is None else {"bounds": params.bounds(), "ties": ties})}
+    problem = {"noise": options.noise if options.weighted else None, "weighted": options.weighted,
+               "with_effects": options.with_effects or (), "priors": priors,
+               "prior_weight": None if options.estimate else float(options.prior_weight),
+               **({} if options.params is None else {"bounds": options.params.bounds(), "ties": ties})}
+    inputs = CalibrationInputs(model, data, theta, problem, options)
     found = None
-    if starts is None:
-        starts = 1 if multistart > 1 else DEFAULT_STARTS
-    if starts > 1:
-        fit, outliers, found = global_fit(model, data, [*free, *extra], theta, start, options, keep_outliers,
-                                          starts=starts, seed=seed, workers=workers, threads=threads, store=store)
+    if options.starts > 1:
+        fit, outliers, found = global_fit(inputs, [*free, *extra])
     else:
-        fit, outliers = local_fit(model, data, free, extra, theta, start, options, keep_outliers, estimate=estimate,
-                                  seed=seed, solver=solver, solver_options=solver_options, multistart=multistart,
-                                  threads=threads, workers=workers)
+        fit, outliers = local_fit(inputs, free, extra)
     aside = np.array([t.id in {o.trial for o in outliers} for t in data.trials])
     record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
                                predict(model, data.subset(aside), fit.params) if outliers else None, found)
     return Calibration(fit, record)
 
 
-
-
-def local_fit(model: KneeModel, data: MeasuredData, free: list[str], extra: list[str], probe: np.ndarray,
-              start: dict[str, float] | None, options: dict, keep_outliers: bool, *, estimate: bool, seed: int,
-              solver: str, solver_options: dict | None, multistart: int, threads: int,
-              workers: int) -> tuple[Fit, list[Outlier]]:
+def local_fit(inputs: CalibrationInputs, free: list[str], extra: list[str]) -> tuple[Fit, list[Outlier]]:
     """(the fit, the outliers set aside) of :func:`calibrate`'s chain of local steps: the reduced fit
-    of ``free`` from the ``probe`` (``start`` over it; :func:`first_fit`), ``extra`` freed from there
-    (:func:`with_also_free`), the outliers set aside unless ``keep_outliers``, the NLP's polish and
-    ``multistart`` further starts about the fit (:func:`lowest_of_starts`)."""
-    options = dict(options)
-    problem = IdentificationProblem.from_data(model, data, free, **options)
+    of ``free`` from the probe (the options' ``start`` over it; :func:`first_fit`), ``extra`` freed from
+    there (:func:`with_also_free`), the outliers set aside unless ``keep_outliers``, the NLP's polish
+    and ``multistart`` further starts about the fit (:func:`lowest_of_starts`)."""
+    model, settings = inputs.model, inputs.options
+    options = dict(inputs.problem)
+    problem = IdentificationProblem.from_data(model, inputs.data, free, **options)
     # the start is the knee (or the probe), not a scatter draw; every iterate at equilibrium (module
     # docstring: IPOPT wandered on this problem, and from a good point made it worse)
-    start = {n: float(probe[model.index(n)]) for n in problem.free} | problem.check_start(start)
-    fit = first_fit(problem, start, estimate=estimate, seed=seed, solver=solver, solver_options=solver_options,
-                    threads=threads)
+    start = inputs.probe_values(problem.free) | problem.check_start(settings.start)
+    fit = first_fit(problem, start, settings)
     options["prior_weight"] = fit.problem.prior_weight
     if extra:
-        fit = with_also_free(fit, data, extra, probe, options, estimate=estimate)
+        fit = with_also_free(fit, inputs, extra, options)
         options["prior_weight"] = fit.problem.prior_weight
     outliers: list[Outlier] = []
-    if not keep_outliers:
+    if not settings.keep_outliers:
         fit, outliers = without_outliers(fit, options)
     if fit.method == "reduced":
-        fit = polished(fit, threads)
-    if multistart > 1:
-        fit = lowest_of_starts(fit, multistart, seed, threads, workers)
+        fit = polished(fit, settings.threads)
+    if settings.multistart > 1:
+        fit = lowest_of_starts(fit, settings.multistart, settings.seed, settings.threads, settings.workers)
     return fit, outliers
 
-def global_fit(model: KneeModel, data: MeasuredData, free: list[str], probe: np.ndarray,
-               start: dict[str, float] | None, options: dict, keep_outliers: bool, *, starts: int, seed: int,
-               workers: int | DaskWorkers, threads: int, store: str | Path | None) -> tuple[Fit, list[Outlier], Search]:
+def global_fit(inputs: CalibrationInputs, free: list[str]) -> tuple[Fit, list[Outlier], Search]:
     """(the fit, the outliers set aside, the search) of :func:`calibrate`'s global search
     (:func:`~kneenlp.estimation.search.search`): ``free`` (the also-free parameters among them) from
-    the ``probe`` (and ``start`` over it) and Sobol points over the priors; the outlier test at the
-    search's lowest minimum unless ``keep_outliers``; without priors the starts cover the default
-    priors about the probe; ``options`` the problem's (a weight
-    ``None`` in them: estimated once from the probe's fit, :func:`map_fit`, then held)."""
-    problem = IdentificationProblem.from_data(model, data, sorted(free, key=model.index), **options)
-    centre = {n: float(probe[model.index(n)]) for n in problem.free} | problem.check_start(start)
-    if options["prior_weight"] is None and problem.priors:
-        problem = map_fit(problem, centre, estimate=True, threads=threads).problem
-        options = options | {"prior_weight": problem.prior_weight}
-    test = None if keep_outliers else OutlierTest(outlier_candidate, outlier_verdict, MAX_OUTLIER_SHARE)
+    the probe (and the options' ``start`` over it) and Sobol points over the priors; the outlier test
+    at the search's lowest minimum unless ``keep_outliers``; without priors the starts cover the
+    default priors about the probe; a prior weight ``None`` in the problem's options: estimated once
+    from the probe's fit (:func:`map_fit`), then held."""
+    model, settings = inputs.model, inputs.options
+    problem = IdentificationProblem.from_data(model, inputs.data, sorted(free, key=model.index), **inputs.problem)
+    centre = inputs.probe_values(problem.free) | problem.check_start(settings.start)
+    if inputs.problem["prior_weight"] is None and problem.priors:
+        problem = map_fit(problem, centre, estimate=True, threads=settings.threads).problem
+    test = None if settings.keep_outliers else OutlierTest(outlier_candidate, outlier_verdict, MAX_OUTLIER_SHARE)
     # a least-squares calibration's starts cover the default priors about the probe (it has none to draw from)
-    draws = problem.priors or {n: model.parameter(n).default_prior(float(probe[model.index(n)])) for n in problem.free}
-    found = search(problem, centre, screen=screened, refine=refined, hop=hopped, starts=starts, seed=seed,
-                   workers=workers, threads=threads, outliers=test, store=store, priors=draws)
+    draws = problem.priors or {n: model.parameter(n).default_prior(float(inputs.probe[model.index(n)]))
+                               for n in problem.free}
+    found = search(problem, centre, Solves(screen=screened, refine=refined, hop=hopped),
+                   SearchSettings(starts=settings.starts, seed=settings.seed, workers=settings.workers,
+                                  threads=settings.threads, outliers=test, store=settings.store, priors=draws))
     fit = found.best.fit.with_note(f"global search: {found.advice()}")
     for note in found.notes:
         fit = fit.with_note(note)
@@ -267,47 +228,37 @@ def hopped(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarr
     """A hop of the global search: the simultaneous NLP from ``start`` and the poses ``q0``, nothing
     more (a hop the NLP cannot converge is a failed hop: the reduced-space rescue cost 5-8 s on
     S192803 and found no lower minimum than the hops that converged)."""
-    fit = solve_simultaneous(problem, start, "ipopt", {"ipopt": {"max_iter": POLISH_ITER}}, threads, q0=q0)
+    fit = solve_simultaneous(problem, start, polish_solver(threads), q0=q0)
     return on_loading_path(fit) if fit.success else fit
 
 
-
-
-
-
-
-
-
-
-
-
-def first_fit(problem: IdentificationProblem, start: dict[str, float], *, estimate: bool, seed: int,
-              solver: str, solver_options: dict | None, threads: int) -> Fit:
+def first_fit(problem: IdentificationProblem, start: dict[str, float], options: CalibrationOptions) -> Fit:
     """The calibration's fit of ``problem`` from ``start`` (SI): :func:`map_fit`, and where it does not
     converge the simultaneous NLP with the scatter strategy's rescue (at most :data:`MAX_ITER`
-    iterations unless ``solver_options`` say otherwise), kept if it converges or ends lower."""
-    fit = map_fit(problem, start, estimate=estimate)
+    iterations unless the ``options``' ``solver_options`` say otherwise; their ``seed``, ``solver``
+    and ``threads``), kept if it converges or ends lower."""
+    fit = map_fit(problem, start, estimate=options.estimate)
     if fit.success:
         return fit
-    fallback = scatter_fit(fit.problem, start, seed=seed, restarts=0, solver=solver,
-                           solver_options=solver_options or {"ipopt": {"max_iter": MAX_ITER}}, threads=threads)
+    fallback = scatter_fit(fit.problem, start, ScatterSettings(
+        seed=options.seed, restarts=0, solver=options.solver,
+        solver_options=options.solver_options or {"ipopt": {"max_iter": MAX_ITER}}, threads=options.threads))
     fallback = fallback.with_note(f"reduced-space Gauss-Newton did not converge ({fit.status}); the simultaneous "
                                   "NLP followed")
     return fallback if fallback.success or fallback.map_objective < fit.map_objective else fit
 
 
-def with_also_free(fit: Fit, data: MeasuredData, extra: list[str], probe: np.ndarray, options: dict, *,
-                   estimate: bool) -> Fit:
-    """``fit`` of ``data`` refitted with the parameters ``extra`` free as well, started at their values
-    in the ``probe`` (neutral) and the fit's (``options``: those of the fit's problem); the refit is
-    kept if it does not end higher."""
+def with_also_free(fit: Fit, inputs: CalibrationInputs, extra: list[str], options: dict) -> Fit:
+    """``fit`` of the ``inputs``' data refitted with the parameters ``extra`` free as well, started at
+    their values in the probe (neutral) and the fit's (``options``: those of the fit's problem); the
+    refit is kept if it does not end higher."""
     # the extra parameters join from this fit, at their neutral values: from the probe, with the
     # ligaments not yet placed, S192803's cruciate attachments ran 8-11 mm to another minimum
     # (sum of squares 344; from the fit 296, docs/real-experiment.md)
     model = fit.problem.model
-    problem = IdentificationProblem.from_data(model, data, [*fit.problem.free, *extra], **options)
-    start = fit.params | {n: float(probe[model.index(n)]) for n in extra}
-    refit = map_fit(problem, start, q0=fit.q_pred, estimate=estimate)
+    problem = IdentificationProblem.from_data(model, inputs.data, [*fit.problem.free, *extra], **options)
+    start = fit.params | inputs.probe_values(extra)
+    refit = map_fit(problem, start, q0=fit.q_pred, estimate=inputs.options.estimate)
     if refit.map_objective <= fit.map_objective:
         return refit
     return fit.with_note(f"fitting {', '.join(extra)} as well did not lower the sum of squares: they stay at "
@@ -359,6 +310,11 @@ POLISH_ITER = 150
 POLISH_RTOL = 1e-9
 
 
+def polish_solver(threads: int = 2) -> NlpSolver:
+    """IPOPT limited to :data:`POLISH_ITER` iterations: the NLP of :func:`polished` and of the global search's hops."""
+    return NlpSolver("ipopt", {"ipopt": {"max_iter": POLISH_ITER}}, threads)
+
+
 def polished(fit: Fit, threads: int = 2) -> Fit:
     """The simultaneous NLP (every trial's equilibrium a constraint; :func:`solve_simultaneous`)
     started at the reduced-space ``fit``: the calibration's solver.  The reduced fit is its
@@ -369,16 +325,13 @@ def polished(fit: Fit, threads: int = 2) -> Fit:
     ends in another minimum.  S192803 (benchmarks/bench_compare_real.py): MAP objective 561.76
     reduced, 552.94 after 52 IPOPT iterations (1.4 s).  The reduced fit is kept, and the message says
     so, when the NLP fails or ends above it."""
-    nlp = solve_simultaneous(fit.problem, fit.params, "ipopt", {"ipopt": {"max_iter": POLISH_ITER}}, threads,
-                             q0=fit.q_pred)
+    nlp = solve_simultaneous(fit.problem, fit.params, polish_solver(threads), q0=fit.q_pred)
     start = f"reduced-space Gauss-Newton ({fit.iterations} evaluations, MAP objective {fit.map_objective:.6g})"
     if nlp.success and nlp.map_objective <= fit.map_objective * (1 + POLISH_RTOL):
         return nlp.with_note(f"started at the {start}", seconds=nlp.seconds + fit.seconds,
                              evaluations=nlp.evaluations + fit.evaluations)
     why = nlp.status if not nlp.success else f"it ended above ({nlp.map_objective:.6g})"
     return fit.with_note(f"the simultaneous NLP from the {start} did not improve it ({why}): the reduced fit is kept")
-
-
 
 
 #: Rounds of :func:`map_fit`'s prior weight (the misfit variance the priors are weighed against).
@@ -462,9 +415,3 @@ def outlier_verdict(without: Fit, held: MeasuredData, n_trials: int) -> tuple[Ou
                             prediction_variances(without, held, np.array([alone.solutions[0].q]))[0],
                             max(len(without.data) - len(without.free) / 5, 1.0), n_trials)
     return outlier, ""
-
-
-
-
-
-

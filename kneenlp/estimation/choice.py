@@ -5,6 +5,7 @@ the extras by name and the priors of the engaged groups.  :mod:`kneenlp.estimati
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
@@ -17,6 +18,9 @@ from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.model.params import Parameters, declared_free, default_free, named_parameters
 from kneenlp.model.priors import Prior
 from kneenlp.solvers.forward import forward_solver
+
+if TYPE_CHECKING:
+    from kneenlp.estimation.calibrate import CalibrationOptions
 
 #: Smallest pivot (relative to the largest) of a parameter the calibration frees.
 PIVOT_TOLERANCE = 0.02
@@ -115,9 +119,9 @@ def from_params(model: KneeModel, params: Parameters, **given) -> tuple[list[str
     return params.free, params.priors(), moved, params.ties()
 
 
-def check_calibration(data: MeasuredData, free: list[str] | None, pivot_tolerance: float | None,
-                       also_free: list[str] | None) -> None:
+def check_calibration(data: MeasuredData, options: CalibrationOptions) -> None:
     """Refuse options that contradict each other, and data without a load (:func:`calibrate`)."""
+    free, pivot_tolerance, also_free = options.free, options.pivot_tolerance, options.also_free
     if free is not None and pivot_tolerance is not None:
         raise InputError("chooses what the calibration fits, --free names it: give one", field="--pivot-tolerance")
     if free is not None and also_free:
@@ -127,21 +131,22 @@ def check_calibration(data: MeasuredData, free: list[str] | None, pivot_toleranc
                          "determines the ligaments", field="data")
 
 
-def calibration_choice(model: KneeModel, data: MeasuredData, free: list[str] | None, probe: np.ndarray,
-                       engaged: list[str], *, with_priors: bool, pivot_tolerance: float | None,
-                       load_point: bool) -> tuple[list[str], list[str]]:
+def calibration_choice(model: KneeModel, data: MeasuredData, options: CalibrationOptions, probe: np.ndarray,
+                       engaged: list[str]) -> tuple[list[str], list[str]]:
     """(parameters to fit, parameters left at the knee's values) of :func:`calibrate`: a user's
-    ``free`` as given, else the parameter table's ``free = true`` entries, else the calibration's
-    choice: with priors every ligament parameter (unless ``pivot_tolerance``), without them those the
-    trials determine at the ``probe`` (:func:`calibration_free`) and the offsets of the ``engaged``
-    groups; the load point for joint loads (``load_point``); less what the table declares fixed."""
+    ``free`` (of the ``options``) as given, else the parameter table's ``free = true`` entries, else the
+    calibration's choice: with priors every ligament parameter (unless ``pivot_tolerance``), without
+    them those the trials determine at the ``probe`` (:func:`calibration_free`) and the offsets of the
+    ``engaged`` groups; the load point for joint loads (``load_point``); less what the table declares
+    fixed."""
+    free, pivot_tolerance = options.free, options.pivot_tolerance
     declared = declared_free(model, [])  # the parameter table's free = true entries, if any
     if free is None and declared:
         free = declared
     if free is not None:  # a user's --free (or the table's) is kept as given
         return free, []
     fixed: list[str] = []
-    if with_priors and pivot_tolerance is None:
+    if options.with_priors and pivot_tolerance is None:
         free = [*REGISTRATION, *default_free(model)]
     else:
         free, fixed = calibration_free(model, data, probe, pivot_tolerance)
@@ -149,7 +154,7 @@ def calibration_choice(model: KneeModel, data: MeasuredData, free: list[str] | N
         offsets = [f"{g}.ref_strain_offset" for g in engaged]
         free += [n for n in offsets if n not in free]
         fixed = [n for n in fixed if n not in offsets]
-    if load_point and any(t.axes == "jcs" for t in data.trials):
+    if options.load_point and any(t.axes == "jcs" for t in data.trials):
         free = [*free, LOAD_POINT]
     # less what the parameter table declares fixed (free = false); in the model's order, as a parameter
     # table's (the fit's path, and so its local minimum, depends on the order)

@@ -51,16 +51,17 @@ def compare_calibration(model: KneeModel, data: MeasuredData, *, seed: int = 0, 
     equilibrium residual (N or N m), status and success (a fit stopped at a cap is not converged)."""
     import numpy as np
 
-    from kneenlp.estimation.calibrate import MAX_EVALUATIONS, POLISH_ITER, calibrate
+    from kneenlp.estimation.calibrate import MAX_EVALUATIONS, calibrate, polish_solver
     from kneenlp.estimation.choice import engaged_probe
     from kneenlp.estimation.solve import nested_fit_of, reduced_fit, solve_simultaneous
+    from kneenlp.solvers.nlp import NlpSolver
 
     problem = calibrate(model, data, keep_outliers=True, seed=seed).fit.problem  # the calibration's problem
     theta, _ = engaged_probe(model, data, model.theta())
     start = {n: float(theta[model.index(n)]) for n in problem.free}
     reduced = reduced_fit(problem, start, max_evaluations=MAX_EVALUATIONS)
-    direct = solve_simultaneous(problem, start, "ipopt", {"ipopt": {"max_iter": 500}})
-    from_reduced = solve_simultaneous(problem, reduced.params, "ipopt", {"ipopt": {"max_iter": POLISH_ITER}},
+    direct = solve_simultaneous(problem, start, NlpSolver("ipopt", {"ipopt": {"max_iter": 500}}))
+    from_reduced = solve_simultaneous(problem, reduced.params, polish_solver(),
                                       q0=reduced.q_pred)  # as polished() does, reported whatever it reaches
     rng = np.random.default_rng(seed)
     evals = int(np.ceil(max_solves / problem.n_trials))

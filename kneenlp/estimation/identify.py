@@ -23,6 +23,7 @@ How a fit starts and restarts, and the solves themselves: :mod:`kneenlp.estimati
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from kneenlp.base.errors import InputError
@@ -31,7 +32,8 @@ from kneenlp.estimation.calibrate import calibrate
 from kneenlp.estimation.calibrated import Calibration
 from kneenlp.estimation.choice import real_experiment
 from kneenlp.estimation.fit import Fit
-from kneenlp.estimation.solve import scatter_fit, scatter_search
+from kneenlp.estimation.search import SearchSettings
+from kneenlp.estimation.solve import ScatterSettings, scatter_fit, scatter_search
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
@@ -48,6 +50,50 @@ CALIBRATION_OPTIONS = {"pivot_tolerance": "--pivot-tolerance", "also_free": "--a
 SEARCH_OPTIONS = ("starts", "store", "workers")
 
 
+@dataclass(frozen=True)
+class IdentifyOptions:
+    """:func:`identification`'s (and :func:`identify`'s) keyword arguments (its docstring), checked in
+    one place (:meth:`from_kwargs`); ``calibration`` holds the calibration's own options that were
+    given (:data:`CALIBRATION_OPTIONS`)."""
+
+    free: list[str] | None = None
+    start: dict[str, float] | None = None
+    seed: int = 0
+    noise: str | NoiseModel | None = None
+    weighted: bool = False
+    multistart: int = 1
+    solver: str = "ipopt"
+    solver_options: dict | None = None
+    protocol: Protocol | str | None = None
+    restarts: int = 4
+    nested_options: dict | None = None
+    with_effects: list[str] | None = None
+    fixed: dict[str, float] | None = None
+    threads: int = 2
+    priors: str | dict | None = None
+    prior_weight: float | str | None = None
+    strategy: Strategy = "auto"
+    calibration: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_kwargs(cls, **options) -> IdentifyOptions:
+        """The options named in ``options``, the calibration's own apart; an unknown strategy or a
+        name :func:`identify` does not take is refused (TypeError for the name)."""
+        checked("strategy", options.get("strategy", "auto"), Strategy)
+        own = {f.name for f in fields(cls)} - {"calibration"}
+        unknown = sorted(set(options) - own - set(CALIBRATION_OPTIONS))
+        if unknown:
+            raise TypeError(f"identify() got unexpected keyword argument(s): {', '.join(unknown)}")
+        return cls(**{k: v for k, v in options.items() if k in own},
+                   calibration={k: v for k, v in options.items() if k not in own})
+
+    def scatter(self, method: Method) -> ScatterSettings:
+        """The scatter strategy's settings of these options fitted by ``method``."""
+        return ScatterSettings(seed=self.seed, method=method, multistart=self.multistart, restarts=self.restarts,
+                               solver=self.solver, solver_options=self.solver_options, threads=self.threads,
+                               nested_options=self.nested_options)
+
+
 def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, params: Parameters | None = None,
              method: Method = "simultaneous", **options) -> Fit:
     """Identify parameters of ``knee`` from measured ``data``: the fit of :func:`identification`
@@ -56,15 +102,7 @@ def identify(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, par
 
 
 def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, params: Parameters | None = None,
-                   method: Method = "simultaneous", *, free: list[str] | None = None,
-                   start: dict[str, float] | None = None, seed: int = 0,
-                   noise: str | NoiseModel | None = None, weighted: bool = False, multistart: int = 1,
-                   solver: str = "ipopt", solver_options: dict | None = None,
-                   protocol: Protocol | str | None = None, restarts: int = 4,
-                   nested_options: dict | None = None, with_effects: list[str] | None = None,
-                   fixed: dict[str, float] | None = None, threads: int = 2,
-                   priors: str | dict | None = None, prior_weight: float | str | None = None,
-                   strategy: Strategy = "auto", **calibration_options) -> Calibration:
+                   method: Method = "simultaneous", **options) -> Calibration:
     """Identify the ``free`` parameters of ``knee`` from measured ``data`` by ``strategy`` (module
     docstring).
 
@@ -108,32 +146,30 @@ def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     Returns the :class:`~kneenlp.estimation.calibrated.Calibration`: the :class:`Fit` and, for a real
     experiment's calibration, what it found besides (its ``record``; an identification has none).
     """
-    _check_names(params, method, strategy, calibration_options)
+    _check_names(params, method)
+    opts = IdentifyOptions.from_kwargs(**options)
     model = KneeModel.of(knee or Knee.default())
-    data = checked_data(data, protocol)
-    if resolve_strategy(strategy, data, method) == "calibration":
-        return calibration(model, data, free, fixed=fixed, priors=priors, prior_weight=prior_weight, seed=seed,
-                           noise=noise, weighted=weighted, with_effects=with_effects, start=start, solver=solver,
-                           solver_options=solver_options, multistart=multistart, threads=threads,
-                           **calibration_options, **({} if params is None else {"params": params}))
-    chosen = {"free": free, "fixed": fixed, "priors": priors, "with_effects": with_effects or ()}
+    data = checked_data(data, opts.protocol)
+    if resolve_strategy(opts.strategy, data, method) == "calibration":
+        return calibration(model, data, params, opts)
+    chosen = {"free": opts.free, "fixed": opts.fixed, "priors": opts.priors, "with_effects": opts.with_effects or ()}
     if params is not None:
         chosen = scatter_params(model, params, chosen)
+    calibration_options = dict(opts.calibration)
     search_options = {}
     if calibration_options.get("starts", 1) > 1:  # the global search's options: a scatter fit's too
         search_options = {k: calibration_options.pop(k) for k in SEARCH_OPTIONS if k in calibration_options}
-    _check_scatter(calibration_options, prior_weight)
-    problem = IdentificationProblem.from_data(model, data, noise=noise, weighted=weighted, prior_weight=prior_weight,
-                                              **chosen)
+    _check_scatter(calibration_options, opts.prior_weight)
+    problem = IdentificationProblem.from_data(model, data, noise=opts.noise, weighted=opts.weighted,
+                                              prior_weight=opts.prior_weight, **chosen)
+    start = problem.check_start(opts.start)
     if search_options:
         if method != "simultaneous":
             raise InputError("the global search solves the simultaneous NLP; --method nested has its own "
                              "population", field="--starts")
-        return Calibration(scatter_search(problem, problem.check_start(start), seed=seed, threads=threads,
-                                          **search_options))
-    return Calibration(scatter_fit(problem, problem.check_start(start), seed=seed, method=method,
-                                   multistart=multistart, restarts=restarts, solver=solver,
-                                   solver_options=solver_options, threads=threads, nested_options=nested_options))
+        return Calibration(scatter_search(problem, start, SearchSettings(seed=opts.seed, threads=opts.threads,
+                                                                         **search_options)))
+    return Calibration(scatter_fit(problem, start, opts.scatter(method)))
 
 
 def scatter_params(model: KneeModel, params: Parameters, given: dict) -> dict:
@@ -146,17 +182,12 @@ def scatter_params(model: KneeModel, params: Parameters, given: dict) -> dict:
             "ties": params.ties()}
 
 
-def _check_names(params: object, method: Method, strategy: Strategy, calibration_options: dict) -> None:
-    """Refuse a method given in place of ``params``, an unknown method, strategy or keyword argument
-    of :func:`identify`."""
+def _check_names(params: object, method: Method) -> None:
+    """Refuse a method given in place of ``params``, and an unknown method (:func:`identify`)."""
     if isinstance(params, str):
         raise TypeError("identify()'s third argument is a Parameters (model.make_params()); give the method by "
                         f"name: method={params!r}")
     checked("method", method, Method)
-    checked("strategy", strategy, Strategy)
-    unknown = sorted(set(calibration_options) - set(CALIBRATION_OPTIONS))
-    if unknown:
-        raise TypeError(f"identify() got unexpected keyword argument(s): {', '.join(unknown)}")
 
 
 def _check_scatter(calibration_options: dict, prior_weight: float | str | None) -> None:
@@ -183,15 +214,20 @@ def checked_data(data: MeasuredData | str | Path, protocol: Protocol | str | Non
     return data
 
 
-def calibration(model: KneeModel, data: MeasuredData, free: list[str] | None, *, fixed: dict[str, float] | None,
-                priors: str | dict | None, prior_weight: float | str | None, **options) -> Calibration:
+def calibration(model: KneeModel, data: MeasuredData, params: Parameters | None,
+                options: IdentifyOptions) -> Calibration:
     """:func:`identification`'s calibration strategy: :func:`~kneenlp.estimation.calibrate.calibrate`
-    (``options`` its keyword arguments)."""
-    if fixed:
+    with the ``options`` it takes (``priors`` and ``prior_weight`` where given) and ``params``."""
+    if options.fixed:
         raise InputError("a calibration starts from the knee's parameter file: put the values there "
                          "(--parameters) instead of fixing them here", field="fixed")
-    return calibrate(model, data, free, **options, **({} if priors is None else {"priors": priors}),
-                     **({} if prior_weight is None else {"prior_weight": prior_weight}))
+    given = {"seed": options.seed, "noise": options.noise, "weighted": options.weighted,
+             "with_effects": options.with_effects, "start": options.start, "solver": options.solver,
+             "solver_options": options.solver_options, "multistart": options.multistart, "threads": options.threads,
+             **options.calibration, **({} if params is None else {"params": params}),
+             **({} if options.priors is None else {"priors": options.priors}),
+             **({} if options.prior_weight is None else {"prior_weight": options.prior_weight})}
+    return calibrate(model, data, options.free, **given)
 
 
 def resolve_strategy(strategy: Strategy, data: MeasuredData, method: Method = "simultaneous") -> Strategy:

@@ -93,16 +93,6 @@ PATIENCE = 4
 MAX_ROUNDS = 12
 
 
-
-
-
-
-
-
-
-
-
-
 def check_sampleable(problem: IdentificationProblem, priors: dict) -> None:
     """Refuse a free parameter that has neither a prior (in ``priors``) nor finite bounds: the starts
     cannot cover it."""
@@ -196,14 +186,6 @@ class Store:
             "unstable": list(fit.unstable)}))
 
 
-
-
-
-
-
-
-
-
 Solve = Callable[[IdentificationProblem, dict[str, float], "np.ndarray | None", int], Fit]
 
 
@@ -220,34 +202,59 @@ class OutlierTest:
     share: float
 
 
-def search(problem: IdentificationProblem, centre: dict[str, float], *, refine: Solve, hop: Solve,
-           screen: Solve, starts: int, seed: int, workers: int | DaskWorkers = 1, threads: int = 2,
-           outliers: OutlierTest | None = None, store: str | Path | None = None, refined: int = REFINED,
-           deepen: bool = True, priors: dict | None = None) -> Search:
-    """The global search of ``problem`` (module docstring) from ``centre`` and ``starts - 1`` Sobol
-    points over ``priors`` (default the problem's).  ``screen``, ``refine`` and ``hop`` solve the
-    problem from a start (SI values, poses or None, threads): the cheap screen, the refinement to
-    convergence (also of the minima without a candidate outlier), a hop's solve.  ``outliers``: the
-    outlier test the search runs (None: every trial is kept).
-    ``refined`` screened starts are refined; ``deepen=False`` leaves out the basin hopping (a
-    scatter fit's search, where the NLP is robust and the hops would only cost).  ``workers``:
-    forked processes, or a :class:`~kneenlp.base.dask_cluster.DaskWorkers` (each solve on a Dask
-    worker with one thread; the same solves, so the same answer)."""
+@dataclass(frozen=True)
+class Solves:
+    """How the search solves the problem from a start (SI values, poses or None, threads): ``screen``
+    the cheap screen, ``refine`` the refinement to convergence (also of the minima without a
+    candidate outlier), ``hop`` a hop's solve."""
+
+    screen: Solve
+    refine: Solve
+    hop: Solve
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    """What a search does besides its solves (:func:`search`): ``starts`` (the centre and ``starts - 1``
+    Sobol points over ``priors``, default the problem's) from ``seed``; ``workers``: forked
+    processes, or a :class:`~kneenlp.base.dask_cluster.DaskWorkers` (each solve on a Dask worker with
+    one thread; the same solves, so the same answer), sharing ``threads``; ``store``: the directory
+    of its finished solves (None: none kept); ``refined`` screened starts are refined;
+    ``deepen=False`` leaves out the basin hopping (a scatter fit's search, where the NLP is robust
+    and the hops would only cost); ``outliers``: the outlier test the search runs (None: every trial
+    is kept)."""
+
+    starts: int
+    seed: int
+    workers: int | DaskWorkers = 1
+    threads: int = 2
+    store: str | Path | None = None
+    refined: int = REFINED
+    deepen: bool = True
+    priors: dict | None = None
+    outliers: OutlierTest | None = None
+
+
+def search(problem: IdentificationProblem, centre: dict[str, float], solves: Solves,
+           settings: SearchSettings) -> Search:
+    """The global search of ``problem`` (module docstring) from ``centre`` and ``settings.starts - 1``
+    Sobol points, by ``solves`` (:class:`Solves`) and ``settings`` (:class:`SearchSettings`)."""
+    starts, seed, workers, threads = settings.starts, settings.seed, settings.workers, settings.threads
     if not 1 <= starts <= MAX_STARTS:
         raise InputError(f"expected a whole number of starts from 1 to {MAX_STARTS}, got {starts}", field="--starts")
-    points = prior_starts(problem, centre, starts, seed, priors)
+    points = prior_starts(problem, centre, starts, seed, settings.priors)
     client, cluster = workers.connect() if isinstance(workers, DaskWorkers) else (None, None)
     try:
         if client is None:
             processes = max(1, min(workers, len(points)))
             inner = max(1, threads // processes) if processes > 1 else threads
-            run = _Runner(Store(store), seed, starts, processes, inner)
+            run = _Runner(Store(settings.store), seed, starts, processes, inner)
         else:
             from kneenlp.estimation.dask_solves import register_model
 
             register_model(client, problem.model)
-            run = _Runner(Store(store), seed, starts, client, 1)
-        return _search(problem, points, run, screen, refine, hop, outliers, refined, deepen)
+            run = _Runner(Store(settings.store), seed, starts, client, 1)
+        return _search(problem, points, run, solves, settings)
     finally:
         for part in (client, cluster):
             if part is not None:
@@ -289,11 +296,12 @@ class _Runner:
         return done
 
 
-def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, screen: Solve, refine: Solve,
-            hop: Solve, outliers: OutlierTest | None, refined: int, deepen: bool) -> Search:
+def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, solves: Solves,
+            settings: SearchSettings) -> Search:
     """:func:`search`'s stages from the starts ``points``."""
-    seed, starts = run.seed, run.starts
-    screened = run(problem, "screen", [(p, None) for p in points], screen)
+    seed, starts, refine, hop = run.seed, run.starts, solves.refine, solves.hop
+    outliers, refined, deepen = settings.outliers, settings.refined, settings.deepen
+    screened = run(problem, "screen", [(p, None) for p in points], solves.screen)
     order = ranked(screened, screened=True)[:refined]
     ends = [(f"start {i + 1}", f) for i, f in zip(order, run(
         problem, "refine", [(screened[i].params, screened[i].q_pred) for i in order], refine), strict=True)]
@@ -306,7 +314,7 @@ def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, sc
         if worst is None or worst in retained:
             if deepened:
                 break
-            ends, deepened = ends + _deepen(problem, ends, seed, starts, run, hop), True
+            ends, deepened = ends + _deepen(problem, ends, run, hop), True
             continue  # the deepened lowest minimum may name another candidate
         rows = np.array([t.id != worst for t in problem.trials])
         kept_problem = problem.without_trials([worst])
@@ -314,7 +322,7 @@ def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, sc
                     [(m.fit.params, np.asarray(m.fit.q_pred)[rows]) for m in distinct_minima(ends)[:refined]], refine)
         kept_ends = [(f"minimum {i + 1} without {worst}", f) for i, f in enumerate(again)]
         if deepen:
-            kept_ends += _deepen(kept_problem, kept_ends, seed, starts, run, hop)
+            kept_ends += _deepen(kept_problem, kept_ends, run, hop)
         without = kept_ends[ranked([f for _, f in kept_ends])[0]][1]
         outlier, why = outliers.verdict(without, lowest.data.subset(~rows), problem.n_trials + len(found))
         if why:
@@ -329,14 +337,14 @@ def _search(problem: IdentificationProblem, points: list[dict], run: _Runner, sc
     return Search(starts, seed, screen_objectives, ends, distinct_minima(ends), tuple(found), tuple(notes))
 
 
-def _deepen(problem: IdentificationProblem, ends: list[tuple[str, Fit]], seed: int, starts: int, run,
+def _deepen(problem: IdentificationProblem, ends: list[tuple[str, Fit]], run: _Runner,
             hop: Solve) -> list[tuple[str, Fit]]:
-    """The deepening's hops (module docstring), labelled ``hop R.K``."""
+    """The deepening's hops (module docstring), labelled ``hop R.K``, seeded by ``run``'s seed and starts."""
     fits = [f for _, f in ends]
     best = fits[ranked(fits)[0]]
     if not best.success:
         return []
-    rng = np.random.default_rng([seed, starts, 7])
+    rng = np.random.default_rng([run.seed, run.starts, 7])
     out: list[tuple[str, Fit]] = []
     misses = 0
     for round_ in range(MAX_ROUNDS):

@@ -17,11 +17,12 @@ prototype), and, when the noise model is given, a solve whose misfit the noise c
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import stats
 
-from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.starts import best_fit, run_starts
 from kneenlp.experiment.problem import IdentificationProblem
@@ -29,6 +30,9 @@ from kneenlp.model.mesh_contact import RIM_SHARE
 from kneenlp.solvers.forward import rim_note
 from kneenlp.solvers.nlp import NlpSolver, solve_nlp
 from kneenlp.solvers.reduced import reduced_least_squares, tolerance
+
+if TYPE_CHECKING:
+    from kneenlp.estimation.search import SearchSettings
 
 #: Relative cost change at which a reduced-space fit hands over to IPOPT (:func:`reduced_then_nlp`,
 #: the rescue of a failed start).  Measured on
@@ -41,15 +45,37 @@ from kneenlp.solvers.reduced import reduced_least_squares, tolerance
 RESCUE_TOL = 1e-2
 
 
-def scatter_fit(problem: IdentificationProblem, start: dict[str, float], *, seed: int = 0,
-                method: str = "simultaneous", multistart: int = 1, restarts: int = 4, solver: str = "ipopt",
-                solver_options: dict | None = None, threads: int = 2, nested_options: dict | None = None) -> Fit:
+@dataclass(frozen=True)
+class ScatterSettings:
+    """The scatter strategy's settings (module docstring; as :func:`~kneenlp.estimation.identify.identify`'s
+    keyword arguments): the scatter's ``seed``, ``method`` (``"simultaneous"`` or ``"nested"``),
+    ``multistart`` starts and ``restarts`` extra draws, the NLP's ``solver``, ``solver_options`` and
+    ``threads``, the nested method's ``nested_options``."""
+
+    seed: int = 0
+    method: str = "simultaneous"
+    multistart: int = 1
+    restarts: int = 4
+    solver: str = "ipopt"
+    solver_options: dict | None = None
+    threads: int = 2
+    nested_options: dict | None = None
+
+    @property
+    def nlp(self) -> NlpSolver:
+        """The simultaneous NLP's solver of these settings."""
+        return NlpSolver(self.solver, self.solver_options, self.threads)
+
+
+def scatter_fit(problem: IdentificationProblem, start: dict[str, float],
+                settings: ScatterSettings = ScatterSettings()) -> Fit:
     """The fit of ``problem`` by the scatter strategy (module docstring): ``start`` (SI, checked)
-    fills the first start, the rest is scattered from ``seed``; ``method`` ``"simultaneous"`` or
-    ``"nested"``; the other options as :func:`~kneenlp.estimation.identify.identify`'s."""
+    fills the first start, the rest is scattered from ``settings.seed``; the other settings as
+    :func:`~kneenlp.estimation.identify.identify`'s keyword arguments."""
+    seed, multistart = settings.seed, settings.multistart
     rng = np.random.default_rng(seed)
-    if method == "nested":
-        return nested_fit_of(problem, start, rng, seed, dict(nested_options or {}))
+    if settings.method == "nested":
+        return nested_fit_of(problem, start, rng, seed, dict(settings.nested_options or {}))
 
     def good(f: Fit) -> bool:
         return f.success and not at_bounds(f) and not implausible_misfit(f)
@@ -61,12 +87,12 @@ def scatter_fit(problem: IdentificationProblem, start: dict[str, float], *, seed
         s = problem.scatter(rng)
         if k == 0 and start:
             s.update(start)
-        fit = solve_simultaneous(problem, s, solver, solver_options, threads)
-        if not fit.success and solver == "ipopt":
-            fit = _rescued(problem, s, fit, solver_options, threads)
+        fit = solve_simultaneous(problem, s, settings.nlp)
+        if not fit.success and settings.solver == "ipopt":
+            fit = _rescued(problem, s, fit, settings.nlp)
         return fit
 
-    fits = run_starts(solve, at_least=multistart, at_most=max(1, multistart) + restarts,
+    fits = run_starts(solve, at_least=multistart, at_most=max(1, multistart) + settings.restarts,
                       done=lambda fits: good(best_fit(fits, rank)))
     best, k = best_fit(fits, rank), len(fits)
     if best.success and at_bounds(best):
@@ -85,31 +111,31 @@ SCATTER_REFINED = 1
 SCATTER_SCREEN = 3
 
 
-def scatter_search(problem: IdentificationProblem, start: dict[str, float], *, starts: int, seed: int = 0,
-                   workers: int | DaskWorkers = 1, threads: int = 2, store: str | None = None) -> Fit:
+def scatter_search(problem: IdentificationProblem, start: dict[str, float], settings: SearchSettings) -> Fit:
     """The scatter strategy's fit by the global search (:mod:`~kneenlp.estimation.search`): the first
-    scatter start (``start`` over it) and ``starts - 1`` Sobol points over the free parameters'
+    scatter start (``start`` over it) and ``settings.starts - 1`` Sobol points over the free parameters'
     priors (their defaults, centred on the knee's values, where the fit is least squares), each
     screened by :data:`SCATTER_SCREEN` reduced-space evaluations (Newton from the measured poses: the
     paper's trials have one equilibrium, so no loading path per start); the :data:`SCATTER_REFINED` best
-    solved by the NLP (with the rescue); no basin hopping.  The
-    kept fit's message gives the search's minima."""
-    from kneenlp.estimation.search import search
+    solved by the NLP (with the rescue); no basin hopping (``settings``: the search's ``starts``,
+    ``seed``, ``workers``, ``threads`` and ``store``).  The kept fit's message gives the search's minima."""
+    from kneenlp.estimation.search import Solves, search
     from kneenlp.experiment.problem import resolve_priors
 
     draws = problem.priors or resolve_priors(problem.model, problem.free, "default")
-    centre = problem.scatter(np.random.default_rng(seed)) | dict(start)
+    centre = problem.scatter(np.random.default_rng(settings.seed)) | dict(start)
 
     def screen(p: IdentificationProblem, s: dict, q0, t: int) -> Fit:
         return reduced_fit(p, s, q0=np.asarray(p.data.q, float) if q0 is None else q0,
                            max_evaluations=SCATTER_SCREEN, threads=t)
 
     def nlp(p: IdentificationProblem, s: dict, q0, t: int) -> Fit:
-        fit = solve_simultaneous(p, s, "ipopt", None, t, q0=q0)
-        return fit if fit.success else _rescued(p, s, fit, None, t)
+        fit = solve_simultaneous(p, s, NlpSolver(threads=t), q0=q0)
+        return fit if fit.success else _rescued(p, s, fit, NlpSolver(threads=t))
 
-    found = search(problem, centre, screen=screen, refine=nlp, hop=nlp, starts=starts, seed=seed, workers=workers,
-                   threads=threads, store=store, refined=SCATTER_REFINED, deepen=False, priors=draws)
+    settings = dataclasses.replace(settings, refined=SCATTER_REFINED, deepen=False, priors=draws)
+    found = search(problem, centre, Solves(screen=screen, refine=nlp, hop=nlp), settings)
+    starts = settings.starts
     minima = ", ".join(f"{m.objective:.6g} ({m.hits})" for m in found.minima)
     return dataclasses.replace(found.best.fit.with_note(f"global search of {starts} starts: minima (solves) {minima}"),
                                starts=starts)
@@ -136,7 +162,8 @@ def reduced_then_nlp(problem: IdentificationProblem, start: dict[str, float], q0
     the finished reduced fit (``None`` when the first NLP succeeded) and the reduced evaluations."""
     coarse = reduced_least_squares(problem, start, q0=q0, threads=threads,
                                    tol=max(RESCUE_TOL, tolerance(problem.model)))
-    fit = solve_simultaneous(problem, coarse.values, "ipopt", solver_options, threads)
+    nlp = NlpSolver("ipopt", solver_options, threads)
+    fit = solve_simultaneous(problem, coarse.values, nlp)
     fit = dataclasses.replace(fit, seconds=fit.seconds + coarse.seconds)
     if fit.success or not coarse.success:
         return fit, None, coarse.evaluations
@@ -144,15 +171,14 @@ def reduced_then_nlp(problem: IdentificationProblem, start: dict[str, float], q0
     evaluations = coarse.evaluations + finished.evaluations
     finished = dataclasses.replace(finished, seconds=finished.seconds + coarse.seconds, evaluations=evaluations,
                                    iterations=evaluations)
-    again = solve_simultaneous(problem, problem.values(finished.theta), "ipopt", solver_options, threads)
+    again = solve_simultaneous(problem, problem.values(finished.theta), nlp)
     return dataclasses.replace(again, seconds=again.seconds + finished.seconds), finished, evaluations
 
 
-def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fit, solver_options: dict | None,
-             threads: int) -> Fit:
-    """A second try after IPOPT failed from ``start``: :func:`reduced_then_nlp` from the same start;
-    the better of the tries is returned, its message saying so."""
-    fit, _, evaluations = reduced_then_nlp(problem, start, solver_options=solver_options, threads=threads)
+def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fit, nlp: NlpSolver) -> Fit:
+    """A second try after IPOPT failed from ``start``: :func:`reduced_then_nlp` from the same start
+    (``nlp``'s options and threads); the better of the tries is returned, its message saying so."""
+    fit, _, evaluations = reduced_then_nlp(problem, start, solver_options=nlp.options, threads=nlp.threads)
     if not fit.success or (failed.success and failed.map_objective <= fit.map_objective):
         return failed
     note = (f"rescued: IPOPT failed from the start ({failed.status}); a reduced-space Gauss-Newton start "
@@ -193,14 +219,15 @@ def nested_fit_of(problem: IdentificationProblem, start: dict, rng: np.random.Ge
                      message=f"{r.evaluations} objective evaluations", solver=r.solver, result=r)
 
 
-def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], solver: str = "ipopt",
-                       solver_options: dict | None = None, threads: int = 2, q0: np.ndarray | None = None) -> Fit:
-    """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter)
-    (:func:`~kneenlp.solvers.nlp.solve_nlp`), judged: a success needs the solver's, every trial
-    at equilibrium (:attr:`~kneenlp.experiment.problem.IdentificationProblem.equilibrium_tol`) and no
-    contact point left out of the working sets; more than :data:`~kneenlp.model.mesh_contact.RIM_SHARE`
+def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], nlp: NlpSolver | None = None,
+                       q0: np.ndarray | None = None) -> Fit:
+    """One solve of the simultaneous NLP from ``start`` (SI values of every free parameter) by
+    ``nlp`` (default IPOPT, 2 threads; :func:`~kneenlp.solvers.nlp.solve_nlp`; poses from ``q0``, SI, if
+    given), judged: a success needs the solver's, every trial at equilibrium
+    (:attr:`~kneenlp.experiment.problem.IdentificationProblem.equilibrium_tol`) and no contact point
+    left out of the working sets; more than :data:`~kneenlp.model.mesh_contact.RIM_SHARE`
     of a compartment's force from beyond the femoral surface's open edge is noted."""
-    r = solve_nlp(problem, start, NlpSolver(solver, solver_options, threads), q0)
+    r = solve_nlp(problem, start, nlp or NlpSolver(), q0)
     tol = problem.equilibrium_tol
     success = r.success and r.max_residual <= tol and r.left_out <= 0
     notes = []
