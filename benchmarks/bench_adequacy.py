@@ -34,7 +34,7 @@ import kneenlp
 import kneenlp.base.errors
 from kneenlp.adequacy.basefit import base_fit
 from kneenlp.adequacy.candidates import base_projection, effect_sensitivity
-from kneenlp.adequacy.detection import detection_limits, noncentrality_needed, simulated_limits
+from kneenlp.adequacy.detection import DetectionTest, detection_limits, noncentrality_needed, simulated_limits
 from kneenlp.adequacy.diagnosis import along_the_ligament, diagnose
 from kneenlp.adequacy.verdict import ALPHA
 from kneenlp.experiment.kneemodel import KneeModel
@@ -86,8 +86,9 @@ def limits_for(knee, protocol, out: Path) -> dict[str, float]:
     for effect, par, sign in hidden_effects(knee):
         names = list(fit.model.effect(effect).parameters)
         to_si = 1 / fit.model.parameter(par).to_user
-        out_limits[f"{par}:linear"] = detection_limits(fit, sigma, names, len(names), level)[par] * to_si
-        out_limits[par] = simulated_limits(fit, sigma, [par], len(names), level, sign=sign)[par] * to_si
+        test = DetectionTest(sigma, len(names), level)
+        out_limits[f"{par}:linear"] = detection_limits(fit, test, names)[par] * to_si
+        out_limits[par] = simulated_limits(fit, test, [par], sign=sign)[par] * to_si
     path.write_text(json.dumps(out_limits, indent=1))
     return out_limits
 

@@ -212,7 +212,7 @@ def test_verdict_picks_by_bic_and_refuses_to_guess_between_equals():
     2 BIC units (then both are named and neither is recommended)."""
     from types import SimpleNamespace
 
-    from kneenlp.adequacy.verdict import decide
+    from kneenlp.adequacy.verdict import BaseMisfit, decide
     from kneenlp.experiment.noise import NoiseModel
 
     def cand(name, p, bic, aic):
@@ -221,16 +221,16 @@ def test_verdict_picks_by_bic_and_refuses_to_guess_between_equals():
 
     trials = kneenlp.experiment.protocol.Protocol.load("set3").trials
     r = np.zeros((len(trials), 5))
-    args = {"trials": trials, "residuals": r, "declared": NoiseModel.parse("uniform:0.5"), "dof": 100}
+    base = BaseMisfit(trials, r, NoiseModel.parse("uniform:0.5"), 100)
     # the 3-parameter shift drops the misfit more and wins on AIC, the 1-parameter effect on BIC
     clear = [cand("MCL_tibial_attachment", 1e-4, -9.7, -18.3), cand("posterior_capsule", 1e-4, -14.2, -15.1)]
-    v = decide(0.2, clear, **args)
+    v = decide(0.2, clear, base)
     assert v.outcome == "missing_effect" and v.recommended == "posterior_capsule" and not v.rivals
     close = [cand("posterior_capsule", 1e-4, -12.2, -15.1), cand("meniscus", 1e-4, -10.7, -13.6)]
-    v = decide(0.2, close, **args)
+    v = decide(0.2, close, base)
     assert v.outcome == "missing_effect" and v.best == "posterior_capsule"
     assert v.recommended is None and v.rivals == ["meniscus"]
-    assert decide(0.2, [cand("meniscus", 0.2, -1.0, -1.0)], **args).outcome == "adequate"
+    assert decide(0.2, [cand("meniscus", 0.2, -1.0, -1.0)], base).outcome == "adequate"
 
 
 def test_detection_noncentrality():
@@ -298,7 +298,7 @@ def test_verdict_refuses_a_best_refit_the_non_nested_test_cannot_separate():
     Vuong's test cannot separate them, so neither is recommended; clearly different residuals can."""
     from types import SimpleNamespace
 
-    from kneenlp.adequacy.verdict import decide
+    from kneenlp.adequacy.verdict import BaseMisfit, decide
     from kneenlp.experiment.noise import NoiseModel
 
     trials = kneenlp.experiment.protocol.Protocol.load("set3").trials
@@ -309,14 +309,14 @@ def test_verdict_refuses_a_best_refit_the_non_nested_test_cannot_separate():
         refit = {"success": True, "delta_bic": bic, "delta_aic": bic, "p_value_after": 0.5}
         return SimpleNamespace(effect=name, p_value=1e-4, refit=refit, df=3, parameters=[f"{name}.{a}" for a in "xyz"])
 
-    args = {"trials": trials, "residuals": rb.reshape(-1, 5), "declared": NoiseModel.parse(NOISE), "dof": 140}
+    base = BaseMisfit(trials, rb.reshape(-1, 5), NoiseModel.parse(NOISE), 140)
     near = rb + rng.normal(0, 0.02, rb.size)
     cands = [cand("LCL_femoral_attachment", -10.0), cand("MCL_tibial_attachment", -7.0)]
-    v = decide(0.2, cands, **args, refit_residuals={"LCL_femoral_attachment": rb, "MCL_tibial_attachment": near})
+    v = decide(0.2, cands, base, refit_residuals={"LCL_femoral_attachment": rb, "MCL_tibial_attachment": near})
     assert v.best == "LCL_femoral_attachment" and v.recommended is None and v.rivals == ["MCL_tibial_attachment"]
     far = rb.copy()
     far[:60] += 0.6  # the rival misses a whole group of trials
-    v = decide(0.2, [cand("LCL_femoral_attachment", -10.0), cand("MCL_tibial_attachment", -7.0 + 60.0)], **args,
+    v = decide(0.2, [cand("LCL_femoral_attachment", -10.0), cand("MCL_tibial_attachment", -7.0 + 60.0)], base,
                refit_residuals={"LCL_femoral_attachment": rb, "MCL_tibial_attachment": far})
     assert v.recommended == "LCL_femoral_attachment" and not v.rivals
 
@@ -360,20 +360,20 @@ def test_simulated_detection_limit_agrees_with_the_linear_one_for_a_linear_effec
     """A registration bias enters the observation linearly, so the exact noncentrality of
     simulated noise-free data equals the linearised one; a linear strain limit does not (the toe
     region moves): the base model absorbs most of it, and the simulated limit exceeds the linear."""
-    from kneenlp.adequacy.detection import detection_limits, exact_noncentrality, simulated_limits
+    from kneenlp.adequacy.detection import DetectionTest, detection_limits, exact_noncentrality, simulated_limits
 
     knee = kneenlp.Knee.named("synthetic")
     path = tmp_path / "truth.csv"
     kneenlp.simulate(knee, "set3").measured("none").to_csv(path, index=False)
     fit = base_fit(knee, path, NOISE)
     reg = "registration.anterior_translation"
-    lin = detection_limits(fit, SIGMA, [reg], 1, 0.01)[reg]  # mm
+    lin = detection_limits(fit, DetectionTest(SIGMA, 1, 0.01), [reg])[reg]  # mm
     lam = exact_noncentrality(fit, reg, lin * 1e-3, SIGMA)
     assert lam == pytest.approx(noncentrality_needed(1, 0.01), rel=0.03)
     acl = "ACL.lin_strain"
     names = [f"{lig}.lin_strain" for lig in fit.model.ligament_names]
-    linear = detection_limits(fit, SIGMA, names, 4, 0.01)[acl]
-    assert simulated_limits(fit, SIGMA, [acl], 4, 0.01)[acl] > 1.5 * linear
+    linear = detection_limits(fit, DetectionTest(SIGMA, 4, 0.01), names)[acl]
+    assert simulated_limits(fit, DetectionTest(SIGMA, 4, 0.01), [acl])[acl] > 1.5 * linear
 
 
 def test_reduced_space_fit_agrees_with_the_simultaneous_nlp(tmp_path):

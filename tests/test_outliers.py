@@ -8,6 +8,7 @@ from scipy import stats
 from kneenlp.estimation.outliers import (
     OUTLIER_ALPHA,
     SCREEN_ALPHA,
+    HeldOutTrial,
     deletion_test,
     prediction_variance,
     residual_factors,
@@ -46,8 +47,8 @@ def _set_aside(J, y):
     kept = (y.ravel()[rows] - J[rows] @ beta).reshape(-1, 5)
     var = _variance(kept, n_free)
     error = y[worst] - J[~rows] @ beta
-    return deletion_test(f"t{worst}", error, var[0], prediction_variance(J[~rows], J[rows], np.ones(kept.shape), var),
-                         len(kept) - n_free / 5, len(y))
+    held = HeldOutTrial(f"t{worst}", error, var[0], prediction_variance(J[~rows], J[rows], np.ones(kept.shape), var))
+    return deletion_test(held, len(kept) - n_free / 5, len(y))
 
 
 def test_statistic_by_hand():

@@ -12,8 +12,10 @@ costs one solve, an inadequate model two.
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
+from kneenlp.base.keywords import keyword_options
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.identify import identify
 from kneenlp.estimation.solve import implausible_misfit
@@ -31,11 +33,25 @@ AGREE = 1e-3
 MAX_ITER = 60
 
 
-def base_fit(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, noise: str | NoiseModel, *,
-             seed: int = 0, max_starts: int = 5, agree: float = AGREE, free: list[str] | None = None) -> Fit:
+@dataclass(frozen=True)
+class BaseFitOptions:
+    """:func:`base_fit`'s keyword options (its docstring), checked in one place."""
+
+    seed: int = 0
+    max_starts: int = 5
+    agree: float = AGREE
+    free: list[str] | None = None
+
+
+def base_fit(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, noise: str | NoiseModel,
+             **options) -> Fit:
     """Fit the base model (k and reference strain of every ligament, or ``free``) to ``data`` with
-    the noise model ``noise`` (mm, deg), restarting as the module docstring says; the best
-    converged fit is returned, its ``starts`` say how many starts it took."""
+    the noise model ``noise`` (mm, deg), restarting as the module docstring says (from ``seed``, at
+    most ``max_starts`` starts, ``agree`` the relative objective difference of the same minimum); the
+    best converged fit is returned, its ``starts`` say how many starts it took."""
+    opts = keyword_options(BaseFitOptions, "base_fit", options)
+    seed, agree, free = opts.seed, opts.agree, opts.free
+
     def solve(i: int) -> Fit:
         return identify(knee, data, seed=seed + 7919 * i, noise=noise, restarts=0, free=free,
                         solver_options={"ipopt": {"max_iter": MAX_ITER}})
@@ -46,7 +62,7 @@ def base_fit(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, noi
         ok = sorted((f for f in fits if f.success), key=lambda f: f.objective)
         return len(ok) >= 2 and ok[1].objective - ok[0].objective <= agree * ok[0].objective
 
-    fits = run_starts(solve, at_least=1, at_most=max_starts, done=done)
+    fits = run_starts(solve, at_least=1, at_most=opts.max_starts, done=done)
     converged = any(f.success for f in fits)
     best = best_fit([f for f in fits if f.success or not converged], lambda f: -f.objective)
     return dataclasses.replace(best, starts=len(fits))

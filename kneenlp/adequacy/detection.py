@@ -19,6 +19,8 @@ a simulation and a refit per step (about 1-2 s each on Set 4 of the synthetic kn
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import optimize, stats
 
@@ -28,6 +30,9 @@ from kneenlp.experiment.measured import MeasuredData
 
 #: Probability of flagging at the detection limit.
 POWER = 0.5
+#: Most noncentrality evaluations of a simulated limit, and the relative noncentrality it stops within.
+STEPS = 5
+RTOL = 0.1
 
 
 def noncentrality_needed(df: int, level: float, power: float = POWER) -> float:
@@ -41,14 +46,28 @@ def noncentrality_needed(df: int, level: float, power: float = POWER) -> float:
     return float(optimize.brentq(gap, 1e-9, 1e4))
 
 
-def detection_limits(fit: Fit, sigma: float, names: list[str], df: int, level: float,
-                     power: float = POWER) -> dict[str, float]:
-    """Smallest shift (display units) of each parameter in ``names`` alone that a test on ``df``
-    degrees of freedom at ``level`` flags with probability ``power`` (noise sd ``sigma``, mm or
-    deg), at the base fit ``fit``; ``inf`` where the protocol cannot see the parameter (a limit
+@dataclass(frozen=True)
+class DetectionTest:
+    """The test a detection limit is for: noise sd ``sigma`` (mm or deg), ``df`` degrees of freedom
+    (the effect's dimension), ``level`` and the ``power`` to flag with."""
+
+    sigma: float
+    df: int
+    level: float
+    power: float = POWER
+
+    def noncentrality(self) -> float:
+        """The noncentrality at which the test flags with its power (:func:`noncentrality_needed`)."""
+        return noncentrality_needed(self.df, self.level, self.power)
+
+
+def detection_limits(fit: Fit, test: DetectionTest, names: list[str]) -> dict[str, float]:
+    """Smallest shift (display units) of each parameter in ``names`` alone that ``test`` flags with
+    its power, at the base fit ``fit``; ``inf`` where the protocol cannot see the parameter (a limit
     beyond the parameter's whole range)."""
+    sigma = test.sigma
     proj, _, _ = base_projection(fit)
-    lam = noncentrality_needed(df, level, power)
+    lam = test.noncentrality()
     s_e = proj @ effect_sensitivity(fit, names)
     out = {}
     for j, n in enumerate(names):
@@ -87,15 +106,15 @@ def exact_noncentrality(fit: Fit, name: str, shift: float, sigma: float) -> floa
     return float(np.sum(refit.weights * refit.residuals**2)) / sigma**2
 
 
-def simulated_limits(fit: Fit, sigma: float, names: list[str], df: int, level: float, power: float = POWER,
-                     sign: float = 1.0, steps: int = 5, rtol: float = 0.1) -> dict[str, float]:
+def simulated_limits(fit: Fit, test: DetectionTest, names: list[str], sign: float = 1.0) -> dict[str, float]:
     """Detection limits (display units) of ``names`` like :func:`detection_limits`, but from the
     exact noncentrality of simulated noise-free data (:func:`exact_noncentrality`) for a change of
     sign ``sign`` (a one-sided parameter, e.g. a stiffness at 0, only increases); starts at the
-    linearised limit and rescales until within ``rtol`` of the needed noncentrality.  ``inf``
-    beyond the parameter's range, ``nan`` where a simulation failed."""
-    lam = noncentrality_needed(df, level, power)
-    linear = detection_limits(fit, sigma, names, df, level, power)
+    linearised limit and rescales until within :data:`RTOL` of the needed noncentrality (at most
+    :data:`STEPS` simulations).  ``inf`` beyond the parameter's range, ``nan`` where a simulation failed."""
+    sigma = test.sigma
+    lam = test.noncentrality()
+    linear = detection_limits(fit, test, names)
     out = {}
     for n in names:
         par = fit.model.parameter(n)
@@ -104,7 +123,7 @@ def simulated_limits(fit: Fit, sigma: float, names: list[str], df: int, level: f
         lo, hi = par.bounds
         origin = par.neutral if par.neutral is not None else fit.theta[fit.model.index(n)]
         room = (hi - origin) if s > 0 else (origin - lo)
-        for _ in range(steps):
+        for _ in range(STEPS):
             if not np.isfinite(d) or d > room:
                 d = np.inf
                 break
@@ -112,19 +131,18 @@ def simulated_limits(fit: Fit, sigma: float, names: list[str], df: int, level: f
             if not np.isfinite(got):
                 d = np.nan
                 break
-            if abs(got / lam - 1) < rtol:
+            if abs(got / lam - 1) < RTOL:
                 break
             d *= np.sqrt(lam / max(got, 1e-3 * lam)) if got > 0 else 10.0
         out[n] = float(d * par.to_user)
     return out
 
 
-def simulated_limits_either_way(fit: Fit, sigma: float, names: list[str], df: int, level: float,
-                                power: float = POWER) -> dict[str, float]:
+def simulated_limits_either_way(fit: Fit, test: DetectionTest, names: list[str]) -> dict[str, float]:
     """:func:`simulated_limits` for an increase of each parameter, and for a decrease where an
     increase is not seen (``inf``): the smallest change either way the protocol flags."""
-    up = simulated_limits(fit, sigma, names, df, level, power, sign=1.0)
+    up = simulated_limits(fit, test, names, sign=1.0)
     unseen = [n for n in names if np.isinf(up[n]) and not fit.model.parameter(n).one_sided]
     if unseen:
-        up |= simulated_limits(fit, sigma, unseen, df, level, power, sign=-1.0)
+        up |= simulated_limits(fit, test, unseen, sign=-1.0)
     return up

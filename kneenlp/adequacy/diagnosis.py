@@ -33,12 +33,13 @@ import numpy as np
 import pandas as pd
 
 from kneenlp.adequacy.candidates import EffectScore, refit_with, score_effects
-from kneenlp.adequacy.detection import detection_limits, simulated_limits_either_way
+from kneenlp.adequacy.detection import DetectionTest, detection_limits, simulated_limits_either_way
 from kneenlp.adequacy.patterns import Pattern, failure_patterns
-from kneenlp.adequacy.verdict import ALPHA, AMBIGUOUS_BIC, Verdict, decide
+from kneenlp.adequacy.verdict import ALPHA, AMBIGUOUS_BIC, BaseMisfit, Verdict, decide
 from kneenlp.base.atomic import write_csv_atomic, write_text_atomic
 from kneenlp.base.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.base.errors import InputError
+from kneenlp.base.keywords import keyword_options
 from kneenlp.estimation.fit import Fit
 from kneenlp.estimation.statistics import chi_square_test
 from kneenlp.experiment.noise import NoiseModel
@@ -213,16 +214,28 @@ def _words(trial, coord: str, unit: str, r: float) -> str:
     return f"{coord.replace('_', ' ')} in {trial.id} ({what}): model {abs(r):.2f} {unit} {where} the measurement"
 
 
-def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list[str] | None = None,
-             refit: int = 4, alpha: float = ALPHA, limits: bool | str = True) -> Diagnosis:
-    """Judge ``fit`` against ``noise`` (see module docstring): score every candidate effect, refit
-    the best ``refit`` of them (only those with score p < :data:`REFIT_P` when the global test
-    passes), give each its detection limit and decide at family level ``alpha``.
+@dataclass(frozen=True)
+class DiagnoseOptions:
+    """:func:`diagnose`'s keyword options (its docstring), checked in one place."""
 
-    ``limits``: ``True`` or ``"linear"`` for the linearised detection limits (instant),
+    effects: list[str] | None = None
+    refit: int = 4
+    alpha: float = ALPHA
+    limits: bool | str = True
+
+
+def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", **options) -> Diagnosis:
+    """Judge ``fit`` against ``noise`` (see module docstring): score every candidate effect (``effects``,
+    default all), refit the best ``refit`` (default 4) of them (only those with score p < :data:`REFIT_P`
+    when the global test passes), give each its detection limit and decide at family level ``alpha``
+    (default :data:`~kneenlp.adequacy.verdict.ALPHA`).
+
+    ``limits``: ``True`` (default) or ``"linear"`` for the linearised detection limits (instant),
     ``"simulated"`` for limits from simulated noise-free data (:func:`~kneenlp.adequacy.detection.simulated_limits`,
     a few seconds per parameter; exact where the linearisation is optimistic, e.g. the linear strain
     limits), ``False`` for none."""
+    opts = keyword_options(DiagnoseOptions, "diagnose", options)
+    effects, refit, alpha, limits = opts.effects, opts.refit, opts.alpha, opts.limits
     if limits not in (True, False, "linear", "simulated"):
         from kneenlp.base.errors import unknown_name
 
@@ -274,12 +287,12 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", *, effects: list
         level = alpha / (len(diag.ranking) + 1)  # the first (strictest) level of Holm's procedure
         for s in diag.ranking:
             if limits == "simulated":
-                s.detection_limit = simulated_limits_either_way(fit, sigma, s.parameters, s.df, level)
+                s.detection_limit = simulated_limits_either_way(fit, DetectionTest(sigma, s.df, level), s.parameters)
             else:
-                s.detection_limit = detection_limits(fit, sigma, s.parameters, s.df, level)
+                s.detection_limit = detection_limits(fit, DetectionTest(sigma, s.df, level), s.parameters)
     weighted = {name: (f.residuals * np.sqrt(f.weights)).ravel() for name, f in diag.refits.items()}
-    diag.decision = decide(p_value, diag.ranking, trials=fit.data.trials, residuals=r, declared=noise, dof=dof,
-                           alpha=alpha, refit_residuals=weighted)
+    diag.decision = decide(p_value, diag.ranking, BaseMisfit(fit.data.trials, r, noise, dof), alpha=alpha,
+                           refit_residuals=weighted)
     diag.verdict = verdict_words(diag)
     diag.seconds = time.perf_counter() - t0
     return diag

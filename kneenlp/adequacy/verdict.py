@@ -145,14 +145,23 @@ class Verdict:
                 "homogeneity_p": self.homogeneity_p, "bias_p": self.bias_p}
 
 
-def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residuals: np.ndarray,
-           declared: NoiseModel, dof: int, alpha: float = ALPHA,
+@dataclass(frozen=True)
+class BaseMisfit:
+    """The base fit's misfit a verdict reads when no candidate explains it: its ``trials``, its
+    ``residuals`` (T x 5, mm and deg), the ``declared`` noise and the fit's ``dof``."""
+
+    trials: Sequence[Trial]
+    residuals: np.ndarray
+    declared: NoiseModel
+    dof: int
+
+
+def decide(global_p: float, candidates: list, base: BaseMisfit, alpha: float = ALPHA,
            refit_residuals: dict[str, np.ndarray] | None = None) -> Verdict:
     """The outcome of the global test (``global_p``) and the candidates' tests (``candidates``:
     :class:`~kneenlp.adequacy.candidates.EffectScore`, ranked best first) at family level
-    ``alpha``; ``residuals`` (T x 5, mm and deg) and ``dof`` are the base fit's;
-    ``refit_residuals`` the weighted residuals of each refitted candidate (for the non-nested
-    comparison of the best with its rivals, :func:`closeness_z`)."""
+    ``alpha``; ``base`` the base fit's misfit; ``refit_residuals`` the weighted residuals of each
+    refitted candidate (for the non-nested comparison of the best with its rivals, :func:`closeness_z`)."""
     names = ["global", *[c.effect for c in candidates]]
     adj = holm([global_p, *[c.p_value for c in candidates]])
     adjusted = dict(zip(names, (float(a) for a in adj), strict=True))
@@ -178,12 +187,12 @@ def decide(global_p: float, candidates: list, *, trials: Sequence[Trial], residu
         elif best.refit and best.refit["success"]:
             v.outcome = "unexplained"
         return v
-    rss = float(np.sum(np.asarray(residuals, float) ** 2))
-    homog = spread_homogeneity(trials, residuals)
-    bias = bias_structure(trials, residuals)
+    rss = float(np.sum(np.asarray(base.residuals, float) ** 2))
+    homog = spread_homogeneity(base.trials, base.residuals)
+    bias = bias_structure(base.trials, base.residuals)
     outcome = "noise_larger" if homog >= alpha and bias >= alpha else "unexplained"
-    return Verdict(outcome, alpha, adjusted, [], implied_noise=implied_noise(declared, rss, dof), homogeneity_p=homog,
-                   bias_p=bias)
+    return Verdict(outcome, alpha, adjusted, [], implied_noise=implied_noise(base.declared, rss, base.dof),
+                   homogeneity_p=homog, bias_p=bias)
 
 
 def nested_p(bigger, smaller) -> float:

@@ -71,6 +71,7 @@ from kneenlp.estimation.minima import Search
 from kneenlp.estimation.outliers import (
     MAX_OUTLIER_SHARE,
     SCREEN_ALPHA,
+    HeldOutTrial,
     Outlier,
     deletion_test,
     residual_factors,
@@ -411,7 +412,7 @@ def outlier_verdict(without: Fit, held: MeasuredData, n_trials: int) -> tuple[Ou
            else "predict finds no equilibrium for it without it" if not alone.converged[0] else "")
     if why:
         return None, why
-    outlier = deletion_test(held.trials[0].id, alone.errors_user[0], noise_per_observation(without)[0],
-                            prediction_variances(without, held, np.array([alone.solutions[0].q]))[0],
-                            max(len(without.data) - len(without.free) / 5, 1.0), n_trials)
+    trial = HeldOutTrial(held.trials[0].id, alone.errors_user[0], noise_per_observation(without)[0],
+                         prediction_variances(without, held, np.array([alone.solutions[0].q]))[0])
+    outlier = deletion_test(trial, max(len(without.data) - len(without.free) / 5, 1.0), n_trials)
     return outlier, ""

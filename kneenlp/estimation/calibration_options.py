@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from kneenlp.base.dask_cluster import DaskWorkers
+from kneenlp.base.keywords import keyword_options
 from kneenlp.estimation.choice import from_params
 from kneenlp.estimation.search import DEFAULT_STARTS
 from kneenlp.experiment.kneemodel import KneeModel
@@ -53,10 +54,7 @@ class CalibrationOptions:
     def from_kwargs(cls, **options) -> CalibrationOptions:
         """The options named in ``options``; a name :func:`~kneenlp.estimation.calibrate.calibrate`
         does not take raises TypeError."""
-        unknown = sorted(set(options) - {f.name for f in dataclasses.fields(cls)})
-        if unknown:
-            raise TypeError(f"calibrate() got unexpected keyword argument(s): {', '.join(unknown)}")
-        return cls(**options)
+        return keyword_options(cls, "calibrate", options)
 
     @property
     def with_priors(self) -> bool:

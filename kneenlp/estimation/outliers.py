@@ -134,15 +134,27 @@ def prediction_variance(sensitivity_trial: np.ndarray, sensitivity: np.ndarray, 
     return (G**2) @ (sw**2 * np.asarray(variance, float).ravel())
 
 
-def deletion_test(trial: str, error: np.ndarray, noise_variance: np.ndarray, prediction_var: np.ndarray,
-                  dof: float | None, n_trials: int, alpha: float = OUTLIER_ALPHA) -> Outlier | None:
-    """The trial as an :class:`Outlier` if its prediction ``error`` (5, measured minus predicted
-    by the fit without it, mm and deg) is significant at ``alpha`` after Bonferroni over
-    ``n_trials``, else None; ``noise_variance`` and ``prediction_var`` (5) add up to the error's
-    variance; ``dof``: the noise estimate's degrees of freedom (None: a declared noise)."""
-    error = np.asarray(error, float)
-    chi2 = float(np.sum(error**2 / (np.asarray(noise_variance) + np.asarray(prediction_var))))
+@dataclass(frozen=True)
+class HeldOutTrial:
+    """A trial predicted by the fit without it: its ``trial`` id, the prediction ``error`` (5, measured
+    minus predicted, mm and deg), and the ``noise_variance`` and ``prediction_variance`` (5, mm^2 or
+    deg^2) that add up to the error's variance."""
+
+    trial: str
+    error: np.ndarray
+    noise_variance: np.ndarray
+    prediction_variance: np.ndarray
+
+
+def deletion_test(held: HeldOutTrial, dof: float | None, n_trials: int,
+                  alpha: float = OUTLIER_ALPHA) -> Outlier | None:
+    """The ``held`` trial as an :class:`Outlier` if its prediction error is significant at ``alpha``
+    after Bonferroni over ``n_trials``, else None; ``dof``: the noise estimate's degrees of freedom
+    (None: a declared noise)."""
+    error = np.asarray(held.error, float)
+    chi2 = float(np.sum(error**2 / (np.asarray(held.noise_variance) + np.asarray(held.prediction_variance))))
     p = float(_p_adjusted(chi2, len(error), dof, n_trials))
     if not p < alpha:
         return None
-    return Outlier(trial, chi2, len(error), p, dict(zip(coordinate_columns(), map(float, error), strict=True)))
+    return Outlier(held.trial, chi2, len(error), p,
+                   dict(zip(coordinate_columns(), map(float, error), strict=True)))

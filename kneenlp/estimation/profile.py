@@ -102,13 +102,28 @@ def profile(fit: Fit, names: list[str], level: float = LEVEL) -> list[ProfileInt
         centre = reduced_fit(problem, fit.params, q0=fit.q_pred)
         if not centre.success:
             centre = dataclasses.replace(fit, problem=problem)  # the fit's own point as the centre
-    threshold = float(stats.chi2.ppf(level, 1))
     base = (centre.objective + problem.prior_objective(centre.theta)) / s2  # P at the centre, priors weighed at s2
-    return [_interval(centre, problem, name, base, s2, threshold, level) for name in names]
+    profiled = _Profiled(centre, problem, base, s2, level)
+    return [_interval(profiled, name) for name in names]
 
 
-def _interval(centre: Fit, problem, name: str, base: float, s2: float, threshold: float,
-              level: float) -> ProfileInterval:
+@dataclass(frozen=True)
+class _Profiled:
+    """What every interval of :func:`profile` is taken about: the ``centre`` fit, its ``problem`` (priors
+    weighed at ``s2``, the misfit variance, mm^2 or deg^2), the objective P there over ``s2`` (``base``)
+    and the interval's ``level``."""
+
+    centre: Fit
+    problem: object
+    base: float
+    s2: float
+    level: float
+
+
+def _interval(profiled: _Profiled, name: str) -> ProfileInterval:
+    """The profile-likelihood interval of the free parameter ``name`` about ``profiled`` (module docstring)."""
+    centre, problem, base, s2, level = profiled.centre, profiled.problem, profiled.base, profiled.s2, profiled.level
+    threshold = float(stats.chi2.ppf(level, 1))
     info = centre.model.parameter(name)
     j = problem.free.index(name)
     estimate = centre.params[name]
