@@ -418,8 +418,8 @@ def cmd_cross_validate(args) -> int:
 
     model = KneeModel.of(knee_from_args(args))
     store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
-    results = crossval.cross_validate(model, args.measured, args.hold_out or None, args.twins, store,
-                                      workers=search_workers(args), explain=True, seed=args.seed,
+    results = crossval.cross_validate(model, args.measured, args.hold_out or None, reference_draws=args.twins,
+                                      store=store, workers=search_workers(args), explain=True, seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,
                                       keep_outliers=args.keep_outliers, multistart=args.multistart,
                                       starts=search_starts(args, calibration=True),

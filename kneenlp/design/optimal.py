@@ -28,6 +28,7 @@ import numpy as np
 
 from kneenlp.base.atomic import write_text_atomic
 from kneenlp.base.errors import InputError
+from kneenlp.base.keywords import keyword_options
 from kneenlp.base.modes import Criterion, checked
 from kneenlp.estimation.statistics import fisher_information
 from kneenlp.experiment.kneemodel import KneeModel
@@ -159,30 +160,58 @@ def predicted_rse(model: KneeModel, protocol: Protocol, free: list[str], noise: 
     return {n: float(v) for n, v in zip(free, se, strict=True)}
 
 
-def design(knee: Knee | None = None, max_cases: int = 22, criterion: Criterion = "A", *,
-           pool: Protocol | None = None, free: list[str] | None = None, noise: str = "uniform:0.5",
-           robust: int = 3, seed: int = 0, name: str | None = None,
-           reference: Protocol | str = "set4") -> DesignResult:
+@dataclass(frozen=True)
+class DesignOptions:
+    """:func:`design`'s keyword options (its docstring), checked in one place."""
+
+    pool: Protocol | None = None
+    free: list[str] | None = None
+    noise: str = "uniform:0.5"
+    robust: int = 3
+    seed: int = 0
+    name: str | None = None
+    reference: Protocol | str = "set4"
+
+
+@dataclass(frozen=True)
+class _DesignTask:
+    """What is designed: the ``problem`` of the ``pool``'s trials, at most ``max_cases`` of them, the
+    protocol's ``name`` and the ``noise`` its description names."""
+
+    problem: IdentificationProblem
+    pool: Protocol
+    max_cases: int
+    name: str
+    noise: str
+
+
+def design(knee: Knee | None = None, max_cases: int = 22, criterion: Criterion = "A", **options) -> DesignResult:
     """Choose at most ``max_cases`` trials of ``pool`` minimising ``criterion`` (see module doc).
+
+    Keyword options: ``pool`` (default :func:`candidate_pool` at the knee's default flexions),
+    ``free`` (default every ligament's k and reference strain), ``noise`` (``"uniform:0.5"``),
+    ``robust`` (3 parameter sets), ``seed`` (0), ``name`` (``designed_<criterion><max_cases>``) and
+    ``reference`` (``"set4"``, criterion ``R``'s protocol).
 
     Three steps: the criterion at the knee's parameters and the robustness draws, the greedy and
     exchange selection of the cases, and the check that ``simulate`` solves every chosen case (the
     design is made again without those it does not)."""
     from kneenlp.experiment.kneemodel import KneeModel
 
+    opts = keyword_options(DesignOptions, "design", options)
     checked("criterion", criterion, Criterion, field="--criterion")
     if max_cases < 1:
         raise InputError(f"must be >= 1, got {max_cases}", field="--max-cases")
     knee = knee or Knee.default()
     model = KneeModel.of(knee)
-    pool = pool or candidate_pool(default_flexions(model))
-    problem = IdentificationProblem(model, pool.trials, list(free or default_free(model)),
-                                    noise=NoiseModel.parse(noise))
-    crit, feasible = _RobustCriterion.at_draws(problem, criterion, robust, seed, reference)
-    name = name or f"designed_{criterion}{max_cases}"
+    pool = opts.pool or candidate_pool(default_flexions(model))
+    problem = IdentificationProblem(model, pool.trials, list(opts.free or default_free(model)),
+                                    noise=NoiseModel.parse(opts.noise))
+    crit, feasible = _RobustCriterion.at_draws(problem, criterion, opts.robust, opts.seed, opts.reference)
+    task = _DesignTask(problem, pool, max_cases, opts.name or f"designed_{criterion}{max_cases}", opts.noise)
     history: list = []
-    proto, chosen = _simulated_design(crit, problem, pool, feasible, max_cases, name, noise, history)
-    rse = predicted_rse(model, proto, problem.free, noise)
+    proto, chosen = _simulated_design(crit, task, feasible, history)
+    rse = predicted_rse(model, proto, problem.free, opts.noise)
     infeasible = [pool.trials[i].id for i in range(len(pool)) if not feasible[i]]
     return DesignResult(proto, criterion, crit.value(chosen), rse, problem.free, history, infeasible)
 
@@ -262,18 +291,19 @@ def _select(crit: _RobustCriterion, candidates: list[int], max_cases: int, pool:
                                          -pool.trials[i].magnitude))
 
 
-def _simulated_design(crit: _RobustCriterion, problem: IdentificationProblem, pool: Protocol, feasible: np.ndarray,
-                      max_cases: int, name: str, noise: str, history: list) -> tuple[Protocol, list[int]]:
-    """The designed protocol and its pool indices, made again without the cases that fail as
-    ``simulate`` solves it at the knee's parameters (marked infeasible in ``feasible``), at most
+def _simulated_design(crit: _RobustCriterion, task: _DesignTask, feasible: np.ndarray,
+                      history: list) -> tuple[Protocol, list[int]]:
+    """The designed protocol of ``task`` and its pool indices, made again without the cases that fail
+    as ``simulate`` solves it at the knee's parameters (marked infeasible in ``feasible``), at most
     :data:`MAX_REDESIGNS` times."""
+    problem, pool, name, noise = task.problem, task.pool, task.name, task.noise
     solver = forward_solver(problem.model)
     criterion = crit.kind
     for _ in range(MAX_REDESIGNS):
         candidates = [i for i in range(len(pool)) if feasible[i]]
         if not candidates:
             raise InputError("no candidate load case reaches equilibrium on this knee", field="pool")
-        chosen = _select(crit, candidates, max_cases, pool, history)
+        chosen = _select(crit, candidates, task.max_cases, pool, history)
         proto = Protocol(name, tuple(pool.trials[i] for i in chosen), f"{criterion}-optimal design, {len(chosen)} "
                          "cases", f"kneenlp design: {criterion}-optimal for {len(problem.free)} parameters, robust "
                          f"over {len(crit.thetas)} parameter sets, noise {noise}")

@@ -187,15 +187,15 @@ def predict(knee: Knee | KneeModel, data: MeasuredData, parameters: dict[str, fl
     observed = model.observe(q, theta, [s.trial.flexion for s in solutions])
     if posterior is None and parameters is None:
         posterior = model.knee.parameters.posterior
-    ok = np.array([s.converged for s in solutions])
-    sd = None if posterior is None else predictive_sd(model, data, q, theta, posterior, ok)
+    sd = None if posterior is None else predictive_sd(model, data, solutions, theta, posterior)
     return Prediction(data, solutions, model.knee.name, observed, sd)
 
 
-def predictive_sd(model: KneeModel, data: MeasuredData, q: np.ndarray, theta: np.ndarray, posterior: Posterior,
-                  converged: np.ndarray) -> np.ndarray:
-    """Predictive sd (T x 5, deg and mm) of the trials ``data`` at their poses ``q`` (T x 5, SI) and
-    the parameters ``theta``: ``sqrt(diag(S C S') + noise^2)`` with ``S`` the observations'
+def predictive_sd(model: KneeModel, data: MeasuredData, solutions: list, theta: np.ndarray,
+                  posterior: Posterior) -> np.ndarray:
+    """Predictive sd (T x 5, deg and mm) of the trials ``data`` at the poses of their forward
+    ``solutions`` (each's ``q``, T x 5, SI, and whether it ``converged``) and the parameters
+    ``theta``: ``sqrt(diag(S C S') + noise^2)`` with ``S`` the observations'
     sensitivities to the posterior's parameters through each trial's equilibrium and ``C`` its
     covariance; infinite where a direction nothing determined moves the observation, NaN where the
     trial has no equilibrium."""
@@ -203,6 +203,8 @@ def predictive_sd(model: KneeModel, data: MeasuredData, q: np.ndarray, theta: np
         if n not in model.parameter_names:
             raise InputError(f"{n!r} is not a parameter of knee {model.knee.name}", source=model.knee.parameters.source,
                              field="posterior.parameters")
+    q = np.array([s.q for s in solutions])
+    converged = np.array([s.converged for s in solutions])
     out = np.full(q.shape, np.nan)
     if not converged.any():
         return out

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from kneenlp.base.keywords import keyword_options
 from kneenlp.estimation.identify import identify
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
@@ -67,10 +68,23 @@ def draw_truth(model: KneeModel, priors: dict, rng: np.random.Generator) -> dict
     return out
 
 
-def coverage(knee: Knee | KneeModel | None, protocol: str, experiments: int = 200, *, seed: int = 0,
-             noise: str = "gaussian:0.5", level: float = 0.95, free: list[str] | None = None) -> CoverageResult:
+@dataclass(frozen=True)
+class CoverageOptions:
+    """:func:`coverage`'s keyword options (its docstring), checked in one place."""
+
+    seed: int = 0
+    noise: str = "gaussian:0.5"
+    level: float = 0.95
+    free: list[str] | None = None
+
+
+def coverage(knee: Knee | KneeModel | None, protocol: str, experiments: int = 200, **options) -> CoverageResult:
     """``experiments`` simulated experiments of ``protocol`` on ``knee`` (module docstring), seeded
-    by ``seed``; ``free`` the identified parameters (default: the knee's default free ones)."""
+    by ``seed`` (default 0), measured with ``noise`` (default ``"gaussian:0.5"``, mm and deg), the
+    intervals at ``level`` (default 0.95); ``free`` the identified parameters (default: the knee's
+    default free ones)."""
+    opts = keyword_options(CoverageOptions, "coverage", options)
+    seed, noise, level, free = opts.seed, opts.noise, opts.level, opts.free
     model = KneeModel.of(knee or Knee.default())
     names = free_names(model, free)
     priors = resolve_priors(model, names, "default")

@@ -242,18 +242,33 @@ class Study:
         return list(self.spec.sets).index(s) if s in self.spec.sets else 99
 
 
-def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, scheduler: str | None = None,
-              dask_local: bool = False, progress: bool | None = None, analyse: bool = True,
-              truths: StudyTruths | None = None) -> Study:
+@dataclass(frozen=True)
+class StudyRunOptions:
+    """:func:`run_study`'s keyword options (its docstring), checked in one place."""
+
+    workers: int | None = None
+    scheduler: str | None = None
+    dask_local: bool = False
+    progress: bool | None = None
+    analyse: bool = True
+    truths: StudyTruths | None = None
+
+
+def run_study(spec: StudySpec, out: str | Path, **options) -> Study:
     """Run (or resume) a study into ``out``; see module docstring.
 
     ``workers`` local processes (default: all cores; 1 = in this process), or Dask: ``scheduler``
     (address ``tcp://HOST:PORT``) or ``dask_local`` (a LocalCluster with ``workers`` processes).
-    ``truths``: the model and true simulations of ``spec``'s knee
+    ``progress``: a progress bar (default: on a terminal); ``analyse`` (default True): the study's
+    analysis when done.  ``truths``: the model and true simulations of ``spec``'s knee
     (:meth:`~kneenlp.studies.truth.StudyTruths.of`), e.g. the caller's, already built; made here when
     not given.
     """
+    from kneenlp.base.keywords import keyword_options
     from kneenlp.experiment.protocol import Protocol
+
+    opts = keyword_options(StudyRunOptions, "run_study", options)
+    workers, scheduler, truths = opts.workers, opts.scheduler, opts.truths
 
     for s in spec.sets:
         Protocol.load(s)  # validates names early
@@ -265,11 +280,11 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
 
         truths = StudyTruths.of(spec)
     # Dask first: a missing package or an unreachable scheduler writes nothing into ``out``
-    dask = DaskWorkers(scheduler, workers).connect() if scheduler or dask_local else None
+    dask = DaskWorkers(scheduler, workers).connect() if scheduler or opts.dask_local else None
     study = Study(spec, Path(out))
     study.prepare()
     todo = study.pending()
-    bar = _progress(len(spec.tasks()), len(spec.tasks()) - len(todo), progress)
+    bar = _progress(len(spec.tasks()), len(spec.tasks()) - len(todo), opts.progress)
     if todo:
         for row in _execute(spec, todo, workers, dask, truths):
             interrupts.check()  # a sample whose solve was interrupted is not recorded
@@ -280,7 +295,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None, s
             if part is not None:
                 part.close()
     bar.close()
-    if analyse:
+    if opts.analyse:
         from kneenlp.studies.report import analyse_study
 
         analyse_study(study, truths)

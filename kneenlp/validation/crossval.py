@@ -39,7 +39,7 @@ hold-outs, at half of it in 5-6."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +48,7 @@ from scipy import stats
 from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.estimation.calibrate import calibrate
 from kneenlp.estimation.calibrated import Calibration, noise_per_observation, prediction_variances
+from kneenlp.estimation.calibration_options import CalibrationOptions
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
@@ -278,17 +279,18 @@ class Judgement:
 
 
 def judge(model: KneeModel, data: MeasuredData, candidates: list[list[str]], which: list[str] | None = None,
-          workers: int | DaskWorkers = 1, **calibrate_options) -> list[Judgement]:
+          **calibrate_options) -> list[Judgement]:
     """The base calibration and one with each candidate (parameters or effects fitted beside it,
     ``also_free``) judged by what they predict: each calibrated on all trials (the fitted RMS) and
-    cross-validated over the hold-outs (:func:`cross_validate`).  The base first."""
+    cross-validated over the hold-outs ``which`` (:func:`cross_validate`; ``calibrate_options``, its
+    ``workers`` included, as :func:`~kneenlp.estimation.calibrate.calibrate`'s).  The base first."""
     out = []
     for extra in [[], *candidates]:
         options = dict(calibrate_options)
         if extra:
             options["also_free"] = [*(options.get("also_free") or []), *extra]
-        cal = calibrate(model, data, **options, workers=workers)
-        results = cross_validate(model, data, which, workers=workers, **options)
+        cal = calibrate(model, data, **options)
+        results = cross_validate(model, data, which, **options)
         out.append(Judgement(" + ".join(extra) or "base", tuple(extra), cal.rms_after, len(cal.fit.free),
                              {r.name: r.normalised() for r in results},
                              {r.name: (int(r.prediction.converged.sum()), int(r.held.sum())) for r in results},
@@ -365,10 +367,33 @@ def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str =
     return HeldOut(name, held, cal, pred, expected, at_minima=at_minima)
 
 
+@dataclass(frozen=True)
+class CrossValidation:
+    """:func:`cross_validate`'s keyword options (its docstring), checked in one place: its own and, in
+    ``calibrate``, the calibration's given (:func:`~kneenlp.estimation.calibrate.calibrate`)."""
+
+    reference_draws: int = 0
+    store: Path | None = None
+    workers: int | DaskWorkers = 1
+    explain: bool = False
+    calibrate: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_kwargs(cls, **options) -> CrossValidation:
+        """The options named in ``options``; a name neither :func:`cross_validate` nor
+        :func:`~kneenlp.estimation.calibrate.calibrate` takes raises TypeError."""
+        own = {f.name for f in fields(cls)} - {"calibrate"}
+        unknown = sorted(set(options) - own - {f.name for f in fields(CalibrationOptions)})
+        if unknown:
+            raise TypeError(f"cross_validate() got unexpected keyword argument(s): {', '.join(unknown)}")
+        return cls(**{k: v for k, v in options.items() if k in own},
+                   calibrate={k: v for k, v in options.items() if k not in own})
+
+
 def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None = None,
-                   reference_draws: int = 0, store: Path | None = None, workers: int | DaskWorkers = 1,
-                   explain: bool = False, **calibrate_options) -> list[HeldOut]:
-    """Every hold-out of :func:`folds` (or those named in ``which``), in order; with
+                   **options) -> list[HeldOut]:
+    """Every hold-out of :func:`folds` (or those named in ``which``), in order; ``options``: those
+    below and the calibration's (:func:`~kneenlp.estimation.calibrate.calibrate`).  With
     ``reference_draws`` N, each also on N twins of the experiment (:func:`twin_draw`), each draw
     written to ``store`` as it finishes and read back from there on a rerun (:class:`TwinStore`).
     ``workers`` > 1 calibrates the hold-outs in that many forked processes (:func:`hold_outs`), those
@@ -377,6 +402,9 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
     :class:`~kneenlp.base.dask_cluster.DaskWorkers` calibrates them in turn, each global search
     (``starts``) on Dask.
     ``explain``: each hold-out's :func:`lessons` too (one more calibration, of every trial)."""
+    opts = CrossValidation.from_kwargs(**options)
+    calibrate_options, workers, store, reference_draws = opts.calibrate, opts.workers, opts.store, opts.reference_draws
+    explain = opts.explain
     chosen = _chosen(data, which)
     names = [n for n, _ in chosen]
     # the store is checked before the first calibration: a store of another run stops at once
@@ -397,7 +425,7 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
         if errors is None:
             if fit is None:  # (only where a draw is still to run)
                 fit = calibrate(model, data, **whole).fit
-            errors = twin_draw(model, data, fit, draw, names, **calibrate_options)
+            errors = twin_draw(fit, data, draw, names, calibrate_options)
             if saved:
                 saved.save(draw, errors)
         for r in results:
@@ -415,14 +443,16 @@ def hold_outs(model: KneeModel, data: MeasuredData, chosen: list[tuple[str, np.n
                        model, fit_of=lambda r: r.calibration.fit)
 
 
-def twin_draw(model: KneeModel, data: MeasuredData, fit, draw: int, names: list[str],
-              **calibrate_options) -> dict[str, np.ndarray]:
-    """The hold-outs ``names`` on twin number ``draw`` of the experiment calibrated by ``fit`` (a
-    :class:`~kneenlp.estimation.fit.Fit` on every trial): :func:`twin` at the fit's values with its
-    estimated noise (:func:`~kneenlp.estimation.calibrated.noise_per_observation`), drawn from the
-    generator seeded by ``(seed, draw)`` (``seed`` of ``calibrate_options``, default 0: any draw
-    alone reproduces); held-out errors by hold-out name (T x 5, mm and deg, NaN without
-    equilibrium; a hold-out whose trials the twin lacks is left out)."""
+def twin_draw(fit: Fit, data: MeasuredData, draw: int, names: list[str],
+              calibrate_options: dict) -> dict[str, np.ndarray]:
+    """The hold-outs ``names`` on twin number ``draw`` of the experiment ``data`` calibrated by ``fit``
+    (a :class:`~kneenlp.estimation.fit.Fit` on every trial, of the model the twin is drawn from):
+    :func:`twin` at the fit's values with its estimated noise
+    (:func:`~kneenlp.estimation.calibrated.noise_per_observation`), drawn from the generator seeded by
+    ``(seed, draw)`` (``seed`` of ``calibrate_options``, default 0: any draw alone reproduces), each
+    hold-out calibrated with ``calibrate_options``; held-out errors by hold-out name (T x 5, mm and
+    deg, NaN without equilibrium; a hold-out whose trials the twin lacks is left out)."""
+    model = fit.model
     rng = np.random.default_rng([calibrate_options.get("seed", 0), draw])
     copy = twin(model, data, fit.params, np.sqrt(noise_per_observation(fit)[0]), rng)
     masks = dict(folds(copy))
