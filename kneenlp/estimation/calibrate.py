@@ -65,6 +65,7 @@ from kneenlp.estimation.choice import (
     check_calibration,
     engaged_priors,
     engaged_probe,
+    from_params,
 )
 from kneenlp.estimation.fit import Fit, forked_fits
 from kneenlp.estimation.minima import Search
@@ -77,7 +78,7 @@ from kneenlp.estimation.outliers import (
     residual_factors,
     screen,
 )
-from kneenlp.estimation.search import SCREEN_EVALUATIONS, OutlierTest, SearchSettings, Solves, search
+from kneenlp.estimation.search import DEFAULT_STARTS, SCREEN_EVALUATIONS, OutlierTest, SearchSettings, Solves, search
 from kneenlp.estimation.solve import ScatterSettings, reduced_fit, scatter_fit, solve_simultaneous
 from kneenlp.estimation.statistics import effective_parameters
 from kneenlp.experiment.kneemodel import KneeModel
@@ -127,7 +128,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     ``params`` (:class:`~kneenlp.model.params.Parameters`, instead of ``free`` and ``priors``):
     its varied parameters are fitted with its priors, bounds and ties; its values that differ from
     the knee's start the fit there (:func:`~kneenlp.estimation.choice.from_params`)."""
-    options, ties = CalibrationOptions.from_kwargs(free=free, **options).resolved(model)
+    options, ties = resolved_options(CalibrationOptions.from_kwargs(free=free, **options), model)
     check_calibration(data, options)
     extra = also_free_names(model, options.also_free or [])
     before = predict(model, data)
@@ -156,6 +157,21 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     record = CalibrationRecord(before, fixed, engaged, predict(model, fit.data, fit.params), outliers,
                                predict(model, data.subset(aside), fit.params) if outliers else None, found)
     return Calibration(fit, record)
+
+
+def resolved_options(options: CalibrationOptions, model: KneeModel) -> tuple[CalibrationOptions, dict[str, str] | None]:
+    """(``options`` with their ``params`` resolved into ``free``, ``priors`` and ``start``
+    (:func:`~kneenlp.estimation.choice.from_params`) and the number of ``starts`` decided, the
+    ``params``' ties or None)."""
+    ties = None
+    if options.params is not None:
+        given = {"free": options.free, "priors": None if options.priors == "default" else options.priors,
+                 "start": options.start, "also_free": options.also_free, "pivot_tolerance": options.pivot_tolerance}
+        free, priors, start, ties = from_params(model, options.params, **given)
+        options = dataclasses.replace(options, free=free, priors=priors, start=start)
+    if options.starts is None:
+        options = dataclasses.replace(options, starts=1 if options.multistart > 1 else DEFAULT_STARTS)
+    return options, ties
 
 
 def local_fit(inputs: CalibrationInputs, free: list[str], extra: list[str]) -> tuple[Fit, list[Outlier]]:

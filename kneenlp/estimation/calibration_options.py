@@ -3,7 +3,6 @@ checked in one place, and what its two ways of fitting start from."""
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,8 +10,6 @@ import numpy as np
 
 from kneenlp.base.dask_cluster import DaskWorkers
 from kneenlp.base.keywords import keyword_options
-from kneenlp.estimation.choice import from_params
-from kneenlp.estimation.search import DEFAULT_STARTS
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.model.params import Parameters
@@ -65,20 +62,6 @@ class CalibrationOptions:
     def estimate(self) -> bool:
         """Whether the prior weight is estimated from the fit (:func:`~kneenlp.estimation.calibrate.map_fit`)."""
         return self.prior_weight == "estimate"
-
-    def resolved(self, model: KneeModel) -> tuple[CalibrationOptions, dict[str, str] | None]:
-        """(these options with ``params`` resolved into ``free``, ``priors`` and ``start``
-        (:func:`~kneenlp.estimation.choice.from_params`) and the number of ``starts`` decided, the
-        ``params``' ties or None)."""
-        options, ties = self, None
-        if self.params is not None:
-            given = {"free": self.free, "priors": None if self.priors == "default" else self.priors,
-                     "start": self.start, "also_free": self.also_free, "pivot_tolerance": self.pivot_tolerance}
-            free, priors, start, ties = from_params(model, self.params, **given)
-            options = dataclasses.replace(self, free=free, priors=priors, start=start)
-        if options.starts is None:
-            options = dataclasses.replace(options, starts=1 if options.multistart > 1 else DEFAULT_STARTS)
-        return options, ties
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from kneenlp.model.priors import Prior
 from kneenlp.solvers.forward import forward_solver
 
 if TYPE_CHECKING:
-    from kneenlp.estimation.calibrate import CalibrationOptions
+    from kneenlp.estimation.calibration_options import CalibrationOptions
 
 #: Smallest pivot (relative to the largest) of a parameter the calibration frees.
 PIVOT_TOLERANCE = 0.02
