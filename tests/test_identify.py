@@ -191,3 +191,25 @@ def test_set4_start_that_wandered_converges_without_rescue(tmp_path):
     fit = identify(knee, measured(knee, "set4", "uniform:0.5", 186, tmp_path), seed=186, noise="uniform:0.5")
     assert fit.success and fit.starts == 1 and "rescued" not in fit.message, fit.message
     assert fit.iterations <= 40
+
+
+@pytest.mark.parametrize("entry", ["identify", "calibrate", "diagnose", "base_fit", "design", "cross_validate",
+                                   "run_study", "coverage"])
+def test_an_entry_point_refuses_a_keyword_it_does_not_take_by_name(entry):
+    """Each documented entry point checks its keyword options in one place, before any work."""
+    from kneenlp.adequacy.basefit import base_fit
+    from kneenlp.adequacy.diagnosis import diagnose
+    from kneenlp.design.optimal import design
+    from kneenlp.estimation.calibrate import calibrate
+    from kneenlp.studies.coverage import coverage
+    from kneenlp.studies.study import run_study
+    from kneenlp.validation.crossval import cross_validate
+
+    calls = {"identify": lambda: identify(None, "absent.csv", seeds=1),
+             "calibrate": lambda: calibrate(None, None, seeds=1), "diagnose": lambda: diagnose(None, seeds=1),
+             "base_fit": lambda: base_fit(None, None, "uniform:0.5", seeds=1),
+             "design": lambda: design(None, seeds=1), "cross_validate": lambda: cross_validate(None, None, seeds=1),
+             "run_study": lambda: run_study(None, "absent", seeds=1),
+             "coverage": lambda: coverage(None, "set1", seeds=1)}
+    with pytest.raises(TypeError, match=rf"^{entry}\(\) got unexpected keyword argument\(s\): seeds$"):
+        calls[entry]()
