@@ -105,8 +105,8 @@ def nlp(problem, start, q0, threads):
 def test_the_search_gives_the_same_ends_with_one_or_two_workers_and_resumes_from_its_store(small_problem, tmp_path):
     centre = {n: small_problem.model.theta()[small_problem.model.index(n)] for n in small_problem.free}
     one = search(small_problem, centre, Solves(screen, nlp, nlp), SearchSettings(starts=6, seed=1, workers=1))
-    two = search(small_problem, centre, Solves(screen, nlp, nlp), SearchSettings(starts=6, seed=1, workers=2,
-                 store=tmp_path / "search"))
+    two = search(small_problem, centre, Solves(screen, nlp, nlp),
+                 SearchSettings(starts=6, seed=1, workers=2, store=tmp_path / "search"))
     assert one.best.fit.success and one.best.hits >= 1
     assert [label for label, _ in one.ends] == [label for label, _ in two.ends]
     assert [f.map_objective for _, f in one.ends] == [f.map_objective for _, f in two.ends]  # bit for bit
@@ -117,8 +117,8 @@ def test_the_search_gives_the_same_ends_with_one_or_two_workers_and_resumes_from
     def refused(*args):
         raise AssertionError("solved again: the store should have answered")
 
-    again = search(small_problem, centre, Solves(refused, refused, refused), SearchSettings(starts=6, seed=1,
-                   workers=2, store=tmp_path / "search"))
+    again = search(small_problem, centre, Solves(refused, refused, refused),
+                   SearchSettings(starts=6, seed=1, workers=2, store=tmp_path / "search"))
     assert again.best.objective == pytest.approx(two.best.objective, rel=1e-12)
     assert [m.reached_by for m in again.minima] == [m.reached_by for m in two.minima]
     assert "reached by" in "\n".join(two.lines()) and two.summary()["minima"][0]["hits"] == two.best.hits
@@ -183,8 +183,8 @@ def test_an_interrupted_search_keeps_its_finished_solves_and_a_rerun_resumes_the
         return screen(problem, start, q0, threads)
 
     with pytest.raises(Interrupted):
-        search(small_problem, centre, Solves(interrupted_at_the_fifth, nlp, nlp), SearchSettings(starts=6, seed=2,
-               store=tmp_path))
+        search(small_problem, centre, Solves(interrupted_at_the_fifth, nlp, nlp),
+               SearchSettings(starts=6, seed=2, store=tmp_path))
     assert len(list(tmp_path.glob("*.json"))) == 4  # the four finished screens, each written as it finished
     again = []
 
@@ -192,7 +192,8 @@ def test_an_interrupted_search_keeps_its_finished_solves_and_a_rerun_resumes_the
         again.append(1)
         return screen(problem, start, q0, threads)
 
-    resumed = search(small_problem, centre, Solves(counted, nlp, nlp), SearchSettings(starts=6, seed=2, store=tmp_path))
+    resumed = search(small_problem, centre, Solves(counted, nlp, nlp),
+                     SearchSettings(starts=6, seed=2, store=tmp_path))
     assert len(again) == 2  # the two screens not finished before
     fresh = search(small_problem, centre, Solves(screen, nlp, nlp), SearchSettings(starts=6, seed=2))
     assert resumed.best.fit.params == fresh.best.fit.params
@@ -219,10 +220,10 @@ def test_the_search_on_a_dask_cluster_gives_the_local_answer_bit_for_bit(small_p
     from kneenlp.base.dask_cluster import DaskWorkers
 
     centre = {n: small_problem.model.theta()[small_problem.model.index(n)] for n in small_problem.free}
-    local = search(small_problem, centre, Solves(screen, nlp, nlp), SearchSettings(starts=4, seed=2, workers=1,
-                   threads=1))
-    remote = search(small_problem, centre, Solves(screen, nlp, nlp), SearchSettings(starts=4, seed=2,
-                    workers=DaskWorkers(processes=2), store=tmp_path / "search"))
+    local = search(small_problem, centre, Solves(screen, nlp, nlp),
+                   SearchSettings(starts=4, seed=2, workers=1, threads=1))
+    remote = search(small_problem, centre, Solves(screen, nlp, nlp),
+                    SearchSettings(starts=4, seed=2, workers=DaskWorkers(processes=2), store=tmp_path / "search"))
     assert [label for label, _ in local.ends] == [label for label, _ in remote.ends]
     assert [f.map_objective for _, f in local.ends] == [f.map_objective for _, f in remote.ends]
     assert local.best.fit.params == remote.best.fit.params
@@ -244,13 +245,14 @@ def test_the_outlier_test_inside_the_search_judges_a_trial_by_the_searchs_own_mi
                                                     ["ACL.k", "PCL.k", "MCL.k", "LCL.k", "ACL.ref_strain"],
                                                     priors="default", prior_weight=0.25)
     centre = {n: small_problem.model.theta()[small_problem.model.index(n)] for n in small_problem.free}
-    clean = search(small_problem, centre, Solves(screen, nlp, nlp), SearchSettings(starts=4, seed=2, outliers=test))
+    clean = search(small_problem, centre, Solves(screen, nlp, nlp),
+                   SearchSettings(starts=4, seed=2, outliers=test))
     assert clean.set_aside == () and clean.best.fit.problem.n_trials == small_problem.n_trials
     measured = small_problem.measured.copy()
     measured[5] += 6.0
     planted = dataclasses.replace(small_problem, measured=measured)
-    found = [search(planted, centre, Solves(screen, nlp, nlp), SearchSettings(starts=4, seed=2, outliers=test,
-                    workers=workers)) for workers in (1, 2)]
+    found = [search(planted, centre, Solves(screen, nlp, nlp),
+                    SearchSettings(starts=4, seed=2, outliers=test, workers=workers)) for workers in (1, 2)]
     trial = small_problem.trials[5].id
     assert [f.set_aside for f in found] == [(trial,), (trial,)]
     assert found[0].outliers[0].p_adjusted < 0.05 and found[0].best.fit.problem.n_trials == small_problem.n_trials - 1
