@@ -319,7 +319,7 @@ def test_calibration_frees_what_the_trials_determine(s192803):
     for name in ("MCLa.k_scale", "MCLm.k_scale", "MCLp.k_scale", "PCLal.k_scale", "PCLpm.k_scale", "LCL.k_scale"):
         assert name in fixed and name not in free
     assert {"ACLam.k_scale", "dMCL.k_scale", "PFL.k_scale"} <= set(free)
-    base = kneenlp.experiment.problem.default_free(KneeModel.of(s192803))
+    base = kneenlp.model.params.default_free(KneeModel.of(s192803))
     assert set(free) | set(fixed) == set(REGISTRATION) | set(base)
 
 

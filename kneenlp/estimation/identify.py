@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from kneenlp.base.errors import InputError
+from kneenlp.base.keywords import refuse_unknown
 from kneenlp.base.modes import Method, Strategy, checked
 from kneenlp.estimation.calibrate import calibrate
 from kneenlp.estimation.calibrated import Calibration
@@ -81,9 +82,7 @@ class IdentifyOptions:
         name :func:`identify` does not take is refused (TypeError for the name)."""
         checked("strategy", options.get("strategy", "auto"), Strategy)
         own = {f.name for f in fields(cls)} - {"calibration"}
-        unknown = sorted(set(options) - own - set(CALIBRATION_OPTIONS))
-        if unknown:
-            raise TypeError(f"identify() got unexpected keyword argument(s): {', '.join(unknown)}")
+        refuse_unknown("identify", options, own | set(CALIBRATION_OPTIONS))
         return cls(**{k: v for k, v in options.items() if k in own},
                    calibration={k: v for k, v in options.items() if k not in own})
 

@@ -6,10 +6,11 @@ arguments of :meth:`~kneenlp.experiment.problem.IdentificationProblem.from_data`
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from kneenlp.base.errors import InputError
+from kneenlp.base.keywords import keyword_options
 from kneenlp.model.params import declared_free, default_free
 from kneenlp.model.priors import Prior
 
@@ -38,10 +39,7 @@ class ProblemChoices:
     @classmethod
     def from_kwargs(cls, **choices) -> ProblemChoices:
         """The choices of ``from_data``'s keyword arguments; ``TypeError`` names every unknown one."""
-        unknown = sorted(set(choices) - {f.name for f in fields(cls)})
-        if unknown:
-            raise TypeError(f"from_data() got unexpected keyword argument(s): {', '.join(unknown)}")
-        return cls(**choices)
+        return keyword_options(cls, "from_data", choices)
 
 
 def free_names(model: KneeModel, free: Sequence[str] | None = None, with_effects: Sequence[str] = ()) -> list[str]:

@@ -36,7 +36,7 @@ Objective: the sum of squared model-minus-measured coordinates (mm^2 + deg^2).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
@@ -51,6 +51,7 @@ from kneenlp.base.conventions import (
     coords_from_user,
 )
 from kneenlp.base.errors import InputError
+from kneenlp.base.keywords import keyword_options
 from kneenlp.base.modes import ContactForm, ExportFormat, Layout, NlCommon, checked, names
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
@@ -122,10 +123,7 @@ class ExportOptions:
     @classmethod
     def of(cls, options: dict) -> ExportOptions:
         """The options given as keyword arguments; an unknown name is a TypeError, as Python's own."""
-        unknown = sorted(set(options) - {f.name for f in fields(cls)})
-        if unknown:
-            raise TypeError(f"export_problem() got unexpected keyword argument(s): {', '.join(unknown)}")
-        return cls(**options)
+        return keyword_options(cls, "export_problem", options)
 
 
 def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, **options) -> ExportProblem:

@@ -21,7 +21,7 @@ the subchondral bone) with ``femur_offset`` (its distance inside the articular s
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +29,7 @@ import tomli_w
 
 from kneenlp.base.atomic import write_text_atomic
 from kneenlp.base.errors import InputError
+from kneenlp.base.keywords import keyword_options
 from kneenlp.base.modes import Groups, checked
 from kneenlp.io.osim import LineElement, OsimError, OsimModel, knee_line_elements, ligament_groups, read_osim
 from kneenlp.model.knee_file import PLAUSIBLE_MM
@@ -80,10 +81,7 @@ class OsimImport:
     @classmethod
     def of(cls, options: dict) -> OsimImport:
         """The options given as keyword arguments; an unknown name is a TypeError, as Python's own."""
-        unknown = sorted(set(options) - {f.name for f in fields(cls)})
-        if unknown:
-            raise TypeError(f"import_osim() got unexpected keyword argument(s): {', '.join(unknown)}")
-        return cls(**options)
+        return keyword_options(cls, "import_osim", options)
 
 
 @dataclass(frozen=True)

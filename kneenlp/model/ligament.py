@@ -33,11 +33,12 @@ adequacy frees them as geometry candidates (:func:`kneenlp.model.effects.attachm
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
 
+from kneenlp.base.keywords import keyword_options
 from kneenlp.model.elements import ForceElement, Output, Pose
 from kneenlp.model.laws import NUMPY, LigamentLaw, ToeLinearLaw
 from kneenlp.model.parameters import LIGAMENT_KINDS, Parameter, ligament_parameters
@@ -148,10 +149,7 @@ class LigamentOptions:
     @classmethod
     def of(cls, options: dict) -> LigamentOptions:
         """The options given as keyword arguments; an unknown name is a TypeError, as Python's own."""
-        unknown = sorted(set(options) - {f.name for f in fields(cls)})
-        if unknown:
-            raise TypeError(f"Ligament() got unexpected keyword argument(s): {', '.join(unknown)}")
-        return cls(**options)
+        return keyword_options(cls, "Ligament", options)
 
 
 class Ligament(ForceElement):

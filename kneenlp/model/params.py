@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 from typing import Any, Literal, Protocol
 
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.keywords import refuse_unknown
 from kneenlp.base.modes import checked
 from kneenlp.model import ties as tie_rules
 from kneenlp.model.parameters import PRIOR_KEYS, UNIT_TO_SI, Parameter
@@ -86,9 +87,7 @@ class Param:
         given, else SI; ``vary``; ``prior``, a :class:`~kneenlp.model.priors.Prior`; ``expr``, a
         tie); returns the parameter.  ``prior=None`` removes the prior, ``expr=None`` the tie; a tie
         stops the parameter varying.  An unknown name is a TypeError, as Python's own."""
-        unknown = sorted(set(changes) - set(SETTABLE))
-        if unknown:
-            raise TypeError(f"set() got unexpected keyword argument(s): {', '.join(unknown)}")
+        refuse_unknown("set", changes, SETTABLE)
         unit = changes.get("unit")
         factor = 1.0 if unit is None else _factor(unit, self.name)
         if value is not None:

@@ -7,11 +7,13 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from kneenlp.base.keywords import keyword_options
 
 FloatArray = NDArray[np.float64]
 
@@ -130,10 +132,7 @@ class ComplexOptions:
     @classmethod
     def from_kwargs(cls, options: dict[str, Any]) -> ComplexOptions:
         """The options of a call's keywords; ``TypeError`` names every unknown one."""
-        unknown = sorted(set(options) - {f.name for f in fields(cls)})
-        if unknown:
-            raise TypeError(f"minimize_complex() got unexpected keyword argument(s): {', '.join(unknown)}")
-        return cls(**options)
+        return keyword_options(cls, "minimize_complex", options)
 
 
 @dataclass(frozen=True)

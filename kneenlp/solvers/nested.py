@@ -23,11 +23,12 @@ estimate, against 1.816239 and 0.001 % from a fixed start).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from kneenlp.base.keywords import keyword_options
 from kneenlp.solvers.boxcomplex import minimize_complex
 from kneenlp.solvers.forward import BatchStart, forward_solver
 from kneenlp.solvers.result import SolverResult
@@ -138,10 +139,7 @@ class NestedSettings:
     @classmethod
     def from_kwargs(cls, **options) -> NestedSettings:
         """The settings of :func:`nested_fit`'s keyword arguments; ``TypeError`` names every unknown one."""
-        unknown = sorted(set(options) - {f.name for f in fields(cls)})
-        if unknown:
-            raise TypeError(f"nested_fit() got unexpected keyword argument(s): {', '.join(unknown)}")
-        return cls(**options)
+        return keyword_options(cls, "nested_fit", options)
 
 
 def nested_fit(problem: IdentificationProblem, initial: np.ndarray, **options) -> SolverResult:

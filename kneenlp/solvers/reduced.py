@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import optimize
 
+from kneenlp.base.keywords import keyword_options
 from kneenlp.solvers.forward import BatchStart, forward_solver
 from kneenlp.solvers.result import SolverResult
 
@@ -211,10 +212,7 @@ class ReducedSettings:
     def from_kwargs(cls, **options) -> ReducedSettings:
         """The settings of :func:`reduced_least_squares`'s keyword arguments; ``TypeError`` names every
         unknown one."""
-        unknown = sorted(set(options) - {f.name for f in dataclasses.fields(cls)})
-        if unknown:
-            raise TypeError(f"reduced_least_squares() got unexpected keyword argument(s): {', '.join(unknown)}")
-        return cls(**options)
+        return keyword_options(cls, "reduced_least_squares", options)
 
 
 def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float], *, q0: np.ndarray | None = None,

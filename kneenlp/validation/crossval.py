@@ -46,6 +46,7 @@ import numpy as np
 from scipy import stats
 
 from kneenlp.base.dask_cluster import DaskWorkers
+from kneenlp.base.keywords import refuse_unknown
 from kneenlp.estimation.calibrate import calibrate
 from kneenlp.estimation.calibrated import Calibration, noise_per_observation, prediction_variances
 from kneenlp.estimation.calibration_options import CalibrationOptions
@@ -383,9 +384,7 @@ class CrossValidation:
         """The options named in ``options``; a name neither :func:`cross_validate` nor
         :func:`~kneenlp.estimation.calibrate.calibrate` takes raises TypeError."""
         own = {f.name for f in fields(cls)} - {"calibrate"}
-        unknown = sorted(set(options) - own - {f.name for f in fields(CalibrationOptions)})
-        if unknown:
-            raise TypeError(f"cross_validate() got unexpected keyword argument(s): {', '.join(unknown)}")
+        refuse_unknown("cross_validate", options, own | {f.name for f in fields(CalibrationOptions)})
         return cls(**{k: v for k, v in options.items() if k in own},
                    calibrate={k: v for k, v in options.items() if k not in own})
 
