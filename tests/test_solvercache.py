@@ -26,7 +26,8 @@ def test_cache_builds_once():
 
 def test_model_keeps_each_solver_once(model):
     model.solvers.clear()
-    assert forward_solver(model) is forward_solver(model)
+    assert forward_solver(model) is not forward_solver(model)  # a solver with memory is its caller's
+    assert not len(model.solvers)
     problem = IdentificationProblem(model, Protocol.load("set1").trials, ["ACL.k"])
     one = get_nlp(problem, "ipopt", {"ipopt": {"max_iter": 60, "tol": 1e-8}}, 1)
     n = len(model.solvers)
