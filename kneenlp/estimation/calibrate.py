@@ -345,8 +345,7 @@ def polished(fit: Fit, threads: int = 2) -> Fit:
     nlp = solve_simultaneous(fit.problem, fit.params, polish_solver(threads), q0=fit.q_pred)
     start = f"reduced-space Gauss-Newton ({fit.iterations} evaluations, MAP objective {fit.map_objective:.6g})"
     if nlp.success and nlp.map_objective <= fit.map_objective * (1 + POLISH_RTOL):
-        return nlp.with_note(f"started at the {start}", seconds=nlp.seconds + fit.seconds,
-                             evaluations=nlp.evaluations + fit.evaluations)
+        return nlp.after(fit).with_note(f"started at the {start}")
     why = nlp.status if not nlp.success else f"it ended above ({nlp.map_objective:.6g})"
     return fit.with_note(f"the simultaneous NLP from the {start} did not improve it ({why}): the reduced fit is kept")
 
