@@ -4,7 +4,7 @@ A real experiment (data with a declared side or a robot's joint loads, as ``impo
 writes them) differs from data the model produced in two ways the fit must take up:
 
 * the experiment's frames are not the model's: the registration (a constant offset of the five
-  measured coordinates, :class:`~kneenlp.experiment.measurement.Registration`) is fitted with the ligaments;
+  measured coordinates, :class:`~kneenlp.experiment.parts.Registration`) is fitted with the ligaments;
 * nobody declares the noise: its level is estimated from the fit (the residual variance);
 * a trial can be one no passive knee produces: the outlier test (:mod:`~kneenlp.estimation.outliers`)
   sets it aside, the fit is repeated without it, and the report names it (S192803:
@@ -28,7 +28,7 @@ group stays engaged), and the report names the groups engaged this way.
 A robot's joint loads act at the robot's load-reference point, registered to the tibia like the
 poses.  A few millimetres of mediolateral error there turn 200 N of drawer into an
 internal-external moment of a newton-metre or more, where the knee is lax.  So for joint loads the
-calibration frees the lateral shift of that point too (:class:`~kneenlp.experiment.measurement.LoadPoint`;
+calibration frees the lateral shift of that point too (:class:`~kneenlp.experiment.parts.LoadPoint`;
 S192803: 9 mm medial, sum of squares 531 -> 390, internal rotation RMS 2.8 -> 1.9 deg;
 docs/real-experiment.md).
 
