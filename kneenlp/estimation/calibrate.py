@@ -1,7 +1,7 @@
 """Calibrate a knee to a real experiment: what ``kneenlp identify`` does with measured data.
 
-A real experiment (data with a declared side or a robot's joint loads, as ``import-laxity``
-writes them) differs from data the model produced in two ways the fit must take up:
+A real experiment (data of a ``laboratory`` experiment, :mod:`kneenlp.experiment.kind`, as
+``import-laxity`` writes them) differs from data the model produced in two ways the fit must take up:
 
 * the experiment's frames are not the model's: the registration (a constant offset of the five
   measured coordinates, :class:`~kneenlp.experiment.parts.Registration`) is fitted with the ligaments;
