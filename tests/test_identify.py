@@ -164,6 +164,10 @@ def test_early_hand_over_from_reduced_space_reaches_the_reduced_optimum(tmp_path
     early, finished, evaluations = reduced_then_nlp(problem, start)
     full = reduced_least_squares(problem, start)
     assert early.success
+    # the fit holds every solve it took, the judged one last, and its counts are theirs
+    assert early.solves[0].solver == "reduced" and early.solves[-1] is early.result and len(early.solves) >= 2
+    assert early.iterations == sum(r.iterations for r in early.solves)
+    assert early.seconds == pytest.approx(sum(r.seconds for r in early.solves))
     # no worse than the reduced fit run to its own tolerance (here far worse: it stalled at 138.0
     # against 48.8), and a minimum in reduced space too: the reduced fit started there stays
     assert early.objective <= full.objective * (1 + 1e-7)

@@ -1,4 +1,4 @@
-"""The experiment's description is its own layer (kneenlp.experiment.measurement): force elements
+"""The experiment's description is its own layer (kneenlp.experiment.parts): force elements
 only add forces, experiment parts only change how the knee is flexed, loaded and read."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from kneenlp.base.conventions import LOAD_SIZE
 from kneenlp.base.errors import InputError
 from kneenlp.experiment.kneemodel import KneeModel
-from kneenlp.experiment.measurement import ExperimentPart, Measurement
+from kneenlp.experiment.parts import ExperimentPart, Measurement
 from kneenlp.model.elements import ForceElement
 from kneenlp.model.knee import Knee
 from kneenlp.model.parameters import Parameter

@@ -83,7 +83,7 @@ def test_nested_converges_to_simultaneous_estimate(knee, tmp_path, protocol, see
 def test_nested_fit_object_and_cli(knee, tmp_path, capsys):
     data = noisy(knee, "set1", 3, tmp_path)
     fit = identify(knee, data, method="nested", seed=3, nested_options={"max_evals": 60})
-    assert fit.method == "nested" and fit.evaluations >= 60 * len(data)
+    assert fit.method == "nested" and fit.equilibrium_solves >= 60 * len(data)
     assert set(fit.params) == set(fit.free) and fit.max_residual <= 1e-6
     assert "nested" in fit.report()
     code = main(["compare-methods", "--knee", "synthetic", data.source, "--json", "--max-evals", "60"])

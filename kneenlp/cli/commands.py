@@ -34,7 +34,7 @@ def cmd_diagnose(args) -> int:
                         starts=search_starts(args, calibration=True), workers=search_workers(args)).fit
     else:
         if args.held_out:
-            raise InputError("judges a real experiment's calibrations (data with a declared side or joint loads)",
+            raise InputError("judges a real experiment's calibrations (data of a laboratory experiment)",
                              field="--held-out")
         fit = base_fit(knee, data, args.noise, seed=args.seed)
     d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear")
@@ -147,7 +147,7 @@ def cmd_identify(args) -> int:
                                  **{k: v for k, v in given.items() if v is not None})
     fit = calibration.fit
     if args.held_out and calibration.record is NO_RECORD:
-        raise InputError("judges a real experiment's calibration (data with a declared side or joint loads)",
+        raise InputError("judges a real experiment's calibration (data of a laboratory experiment)",
                          field="--held-out")
     judged = held_out_judgements(knee, args) if args.held_out else []
     intervals = profile(fit, args.profile) if args.profile else []

@@ -146,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--strategy", default=None, choices=names(Strategy),
                    help="calibration (a real experiment's: MAP, registration and load point, outlier test), scatter "
                         "(the paper's: least squares from a seeded scatter) or auto (default: calibration for data "
-                        "with a declared side or joint loads)")
+                        "of a laboratory experiment)")
     _prior_args(p)
     p.add_argument("--held-out", action="store_true",
                    help="real experiments: judge the calibration by what it predicts: cross-validated (each load "

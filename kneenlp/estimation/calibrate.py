@@ -1,10 +1,10 @@
 """Calibrate a knee to a real experiment: what ``kneenlp identify`` does with measured data.
 
-A real experiment (data with a declared side or a robot's joint loads, as ``import-laxity``
-writes them) differs from data the model produced in two ways the fit must take up:
+A real experiment (data of a ``laboratory`` experiment, :mod:`kneenlp.experiment.kind`, as
+``import-laxity`` writes them) differs from data the model produced in two ways the fit must take up:
 
 * the experiment's frames are not the model's: the registration (a constant offset of the five
-  measured coordinates, :class:`~kneenlp.experiment.measurement.Registration`) is fitted with the ligaments;
+  measured coordinates, :class:`~kneenlp.experiment.parts.Registration`) is fitted with the ligaments;
 * nobody declares the noise: its level is estimated from the fit (the residual variance);
 * a trial can be one no passive knee produces: the outlier test (:mod:`~kneenlp.estimation.outliers`)
   sets it aside, the fit is repeated without it, and the report names it (S192803:
@@ -28,7 +28,7 @@ group stays engaged), and the report names the groups engaged this way.
 A robot's joint loads act at the robot's load-reference point, registered to the tibia like the
 poses.  A few millimetres of mediolateral error there turn 200 N of drawer into an
 internal-external moment of a newton-metre or more, where the knee is lax.  So for joint loads the
-calibration frees the lateral shift of that point too (:class:`~kneenlp.experiment.measurement.LoadPoint`;
+calibration frees the lateral shift of that point too (:class:`~kneenlp.experiment.parts.LoadPoint`;
 S192803: 9 mm medial, sum of squares 531 -> 390, internal rotation RMS 2.8 -> 1.9 deg;
 docs/real-experiment.md).
 
@@ -345,8 +345,7 @@ def polished(fit: Fit, threads: int = 2) -> Fit:
     nlp = solve_simultaneous(fit.problem, fit.params, polish_solver(threads), q0=fit.q_pred)
     start = f"reduced-space Gauss-Newton ({fit.iterations} evaluations, MAP objective {fit.map_objective:.6g})"
     if nlp.success and nlp.map_objective <= fit.map_objective * (1 + POLISH_RTOL):
-        return nlp.with_note(f"started at the {start}", seconds=nlp.seconds + fit.seconds,
-                             evaluations=nlp.evaluations + fit.evaluations)
+        return nlp.after(fit).with_note(f"started at the {start}")
     why = nlp.status if not nlp.success else f"it ended above ({nlp.map_objective:.6g})"
     return fit.with_note(f"the simultaneous NLP from the {start} did not improve it ({why}): the reduced fit is kept")
 

@@ -9,7 +9,6 @@ its best objective reported after 1k, 5k, 20k and 75k rootfinder solves (trial e
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 from kneenlp.base.errors import InputError
@@ -30,7 +29,8 @@ def compare_methods(knee: Knee | KneeModel | None, data: MeasuredData | str | Pa
             identify(knee, data, method="nested", seed=seed,
                      nested_options={"max_evals": max_evals, "max_seconds": max_seconds})]
     rows = [{"method": f.method, "objective": f.objective, "params": f.params_user(),
-             "evaluations": f.evaluations, "evaluation_kind": "IPOPT iterations" if f.method == "simultaneous"
+             "evaluations": f.iterations if f.method == "simultaneous" else f.equilibrium_solves,
+             "evaluation_kind": "IPOPT iterations" if f.method == "simultaneous"
              else "rootfinder solves (trial equilibria)", "iterations": f.iterations,
              "seconds": f.seconds, "max_residual": f.max_residual, "status": f.status, "success": f.success}
             for f in fits]
@@ -77,16 +77,16 @@ def compare_calibration(model: KneeModel, data: MeasuredData, *, seed: int = 0, 
         if solves <= max_solves and len(done):
             checkpoints[solves] = float(done[-1, 1])
 
-    def row(name, fit, kind):
+    def row(name, fit, count, kind):
         return {"method": name, "map_objective": fit.map_objective, "objective": fit.objective,
-                "evaluations": int(fit.evaluations), "evaluation_kind": kind, "seconds": fit.seconds,
+                "evaluations": int(count), "evaluation_kind": kind, "seconds": fit.seconds,
                 "max_residual": fit.max_residual, "status": fit.status, "success": fit.success}
 
-    from_reduced = dataclasses.replace(from_reduced, seconds=from_reduced.seconds + reduced.seconds)
-    rows = [row("reduced", reduced, "residual evaluations (each solves every trial)"),
-            row("simultaneous (from the start)", direct, "IPOPT iterations"),
-            row("simultaneous (from the reduced fit)", from_reduced, "IPOPT iterations after the reduced fit"),
-            row("nested", nested, "rootfinder solves (trial equilibria)")]
+    rows = [row("reduced", reduced, reduced.evaluations, "residual evaluations (each solves every trial)"),
+            row("simultaneous (from the start)", direct, direct.iterations, "IPOPT iterations"),
+            row("simultaneous (from the reduced fit)", from_reduced.after(reduced), from_reduced.iterations,
+                "IPOPT iterations after the reduced fit"),
+            row("nested", nested, nested.equilibrium_solves, "rootfinder solves (trial equilibria)")]
     return {"problem": {"trials": problem.n_trials, "free": problem.n_free, "priors": bool(problem.priors),
                         "prior_weight": problem.prior_weight},
             "methods": rows, "nested_checkpoints": checkpoints}

@@ -36,7 +36,8 @@ class Fit:
     report, tables and JSON use the display units (N, %, GN/m^3).  ``q_pred`` are the model's
     poses at the estimate (SI), ``residuals`` the model minus measured coordinates (mm, deg).
     ``objective`` is the problem's weighted sum of squared residuals at the estimate, whatever the
-    method (mm^2 + deg^2 times the weights).
+    method (mm^2 + deg^2 times the weights).  The fit holds the solves it took (:attr:`result`, the
+    one it judged, after its :attr:`stages`) and derives its counts and times from them.
     """
 
     problem: IdentificationProblem
@@ -44,23 +45,22 @@ class Fit:
     params: dict[str, float]
     theta: np.ndarray  # full parameter vector (SI) at the estimate
     objective: float
-    status: str
-    success: bool
-    iterations: int
-    seconds: float
+    status: str  # the judged status (the solver's, or why the fit is not a success)
+    success: bool  # the judgement: the solver's success, every trial at equilibrium, ...
     max_residual: float  # largest equilibrium residual at the solution (N or N m)
     q_pred: np.ndarray  # (T, 5) SI
     sensitivity: np.ndarray  # (5T, n_free): d y / d p (mm or deg per SI parameter unit)
     noise_variance: np.ndarray  # (T, 5), mm^2 / deg^2
     noise_source: str  # "given" or "estimated"
     start: dict[str, float] = field(default_factory=dict)
-    build_seconds: float = 0.0
-    evaluations: int = 0
     message: str = ""
     solver: str = "ipopt"
     #: the solve this fit judged, as the solver left it (its objective, timings, the nested method's
     #: history); None for a fit built from parameters and poses alone
     result: SolverResult | None = field(default=None, repr=False, compare=False)
+    #: the solves that led to it, in order (a calibration's reduced fit before its NLP, a rescue's
+    #: failed try): counted in :attr:`iterations`, :attr:`evaluations`, :attr:`seconds`
+    stages: tuple[SolverResult, ...] = field(default=(), repr=False, compare=False)
     #: starts the fit took (the scatter strategy's starts and restarts, the base fit's starts)
     starts: int = 1
     #: the priors' share of what the fit minimised (``prior_weight * sum z^2``; 0 without priors)
@@ -89,6 +89,43 @@ class Fit:
         ``changes`` replaced."""
         message = "; ".join(filter(None, [self.message, note]))
         return dataclasses.replace(self, message=message, **changes)
+
+    def after(self, *earlier: Fit) -> Fit:
+        """This fit with the solves of ``earlier`` fits (in order) before its own."""
+        solves = tuple(r for f in earlier for r in f.solves)
+        return dataclasses.replace(self, stages=(*solves, *self.stages))
+
+    # ------------------------------------------------------------------ its solves
+    @property
+    def solves(self) -> tuple[SolverResult, ...]:
+        """Every solve the fit took, in order, the judged one last (none: built from parameters)."""
+        return (*self.stages, *(() if self.result is None else (self.result,)))
+
+    @property
+    def iterations(self) -> int:
+        """The solvers' own iterations, summed over its solves (IPOPT's, the Complex method's; the
+        reduced-space fit counts its residual evaluations)."""
+        return sum(r.iterations for r in self.solves)
+
+    @property
+    def evaluations(self) -> int:
+        """Objective (or residual) evaluations, summed over its solves."""
+        return sum(r.evaluations for r in self.solves)
+
+    @property
+    def equilibrium_solves(self) -> int:
+        """Trial equilibria the nested method solved, summed over its solves (0 for the others)."""
+        return sum(r.equilibrium_solves for r in self.solves)
+
+    @property
+    def seconds(self) -> float:
+        """Time in the solvers, summed over its solves (s; their builds apart)."""
+        return float(sum(r.seconds for r in self.solves))
+
+    @property
+    def build_seconds(self) -> float:
+        """Time building the solvers, summed over its solves (s; 0 when they were built before)."""
+        return float(sum(r.build_seconds for r in self.solves))
 
     @property
     def map_objective(self) -> float:
@@ -260,6 +297,8 @@ class Fit:
             "rms": self.rms,
             "iterations": self.iterations,
             "evaluations": self.evaluations,
+            "equilibrium_solves": self.equilibrium_solves,
+            "solves": len(self.solves),
             "seconds": self.seconds,
             "build_seconds": self.build_seconds,
             "max_residual": self.max_residual,
@@ -370,7 +409,9 @@ def fit_report(fit: Fit) -> str:
         f"    chi-square      = {fit.chi_square():.4g}  reduced = {fit.reduced_chi_square:.4g}  "
         f"(dof {fit.dof})",
         f"    AIC, BIC        = {fit.aic:.4g}, {fit.bic:.4g}",
-        f"    iterations      = {fit.iterations}   evaluations = {fit.evaluations}",
+        f"    iterations      = {fit.iterations}   evaluations = {fit.evaluations}"
+        + (f"   trial equilibria solved = {fit.equilibrium_solves}" if fit.equilibrium_solves else "")
+        + (f"   (over {len(fit.solves)} solves)" if len(fit.solves) > 1 else ""),
         f"    time            = {fit.seconds:.3f} s (build {fit.build_seconds:.3f} s)",
         f"    max equilibrium residual = {fit.max_residual:.2e} (N, N m)",
         f"    rank            = {fit.rank} of {len(fit.free)}" + _rank_note(fit),

@@ -10,9 +10,9 @@ the one entry point of the Python API and of ``kneenlp identify``.
   the engaged groups, the outliers, ``predict``'s check).
 * ``"scatter"``: the paper's identification: least squares by default, started at a seeded
   scatter around the knee's values, with restarts (below).
-* ``"auto"`` (default): ``"calibration"`` for data from an experiment (a declared side or a
-  robot's joint loads, :func:`~kneenlp.estimation.choice.real_experiment`) fitted by the
-  simultaneous method, ``"scatter"`` otherwise (data the model produced, and the nested method).
+* ``"auto"`` (default): ``"calibration"`` for data of a real knee's experiment (as the data
+  declare it: :class:`~kneenlp.experiment.kind.Experiment`) fitted by the simultaneous method,
+  ``"scatter"`` otherwise (data the model produced, and the nested method).
 
 ``method="simultaneous"`` solves the single NLP of :mod:`kneenlp.solvers.nlp` with IPOPT (or another
 CasADi ``nlpsol`` plugin given by ``solver``); ``method="nested"`` runs the paper's Complex
@@ -194,7 +194,7 @@ def _check_scatter(calibration_options: dict, prior_weight: float | str | None) 
     for name, flag in CALIBRATION_OPTIONS.items():
         if name in calibration_options:
             raise InputError(f"{flag} changes what a real experiment's calibration fits; this fit is not one "
-                             "(data without a declared side or joint loads, --method nested, or --strategy scatter)",
+                             "(data of no laboratory experiment, --method nested, or --strategy scatter)",
                              field=flag)
     if prior_weight == "estimate":
         raise InputError("'estimate' is for a real experiment's calibration; give a variance (mm^2, deg^2)",

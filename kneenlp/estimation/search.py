@@ -73,6 +73,7 @@ from kneenlp.estimation.minima import (
 )
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.problem_file import MAX_STARTS
+from kneenlp.solvers.result import SolverResult
 
 #: Share of each prior the starts cover (its central quantiles).
 CENTRAL = 0.95
@@ -167,10 +168,14 @@ class Store:
             return None
         try:
             d = json.loads(path.read_text())
-            return Fit.build(problem, d["method"], problem.theta(d["params"]), np.array(d["q"], float),
-                             status=d["status"], success=d["success"], iterations=d["iterations"], seconds=0.0,
-                             max_residual=d["max_residual"], message=d["message"], start=d["start"],
-                             off_path=tuple(d["off_path"]), unstable=tuple(d.get("unstable", ())))
+            q = np.array(d["q"], float)
+            kept = SolverResult(d.get("solver", "ipopt"), {n: d["params"][n] for n in problem.free}, q,
+                                d.get("map_objective", np.nan), d["success"], d["status"], d["iterations"],
+                                d.get("evaluations", 0), 0.0, d["max_residual"])  # its time was spent before
+            return Fit.build(problem, d["method"], problem.theta(d["params"]), q, status=d["status"],
+                             success=d["success"], max_residual=d["max_residual"], message=d["message"],
+                             start=d["start"], solver=kept.solver, result=kept, off_path=tuple(d["off_path"]),
+                             unstable=tuple(d.get("unstable", ())))
         except (OSError, ValueError, KeyError, TypeError):
             return None  # a damaged record is solved again
 
@@ -181,7 +186,8 @@ class Store:
         path.parent.mkdir(parents=True, exist_ok=True)
         write_text_atomic(path, json.dumps({
             "method": fit.method, "params": fit.params, "q": np.asarray(fit.q_pred).tolist(), "status": fit.status,
-            "success": bool(fit.success), "iterations": int(fit.iterations), "max_residual": float(fit.max_residual),
+            "success": bool(fit.success), "iterations": int(fit.iterations), "evaluations": int(fit.evaluations),
+            "solver": fit.solver, "map_objective": float(fit.map_objective), "max_residual": float(fit.max_residual),
             "message": fit.message, "start": fit.start, "off_path": list(fit.off_path),
             "unstable": list(fit.unstable)}))
 

@@ -148,9 +148,8 @@ def reduced_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.
     ``max_evaluations``, ``tol``, ``threads``) as a :class:`Fit`."""
     r = reduced_least_squares(problem, start, q0=q0, **options)
     return Fit.build(problem, "reduced", problem.theta(r.values), r.q, status=r.status,
-                     success=r.success and r.max_residual <= problem.equilibrium_tol,
-                     iterations=r.evaluations, seconds=r.seconds, max_residual=r.max_residual, start=dict(start),
-                     evaluations=r.evaluations, message="reduced-space Gauss-Newton", solver=r.solver, result=r)
+                     success=r.success and r.max_residual <= problem.equilibrium_tol, max_residual=r.max_residual,
+                     start=dict(start), message="reduced-space Gauss-Newton", solver=r.solver, result=r)
 
 
 def reduced_then_nlp(problem: IdentificationProblem, start: dict[str, float], q0: np.ndarray | None = None,
@@ -160,19 +159,14 @@ def reduced_then_nlp(problem: IdentificationProblem, start: dict[str, float], q0
     stopped; if the NLP fails from there, the reduced-space fit is finished (:func:`reduced_fit`)
     and the NLP tried once more from its end.  Returns the NLP's last fit (judge its ``success``),
     the finished reduced fit (``None`` when the first NLP succeeded) and the reduced evaluations."""
-    coarse = reduced_least_squares(problem, start, q0=q0, threads=threads,
-                                   tol=max(RESCUE_TOL, tolerance(problem.model)))
+    coarse = reduced_fit(problem, start, q0=q0, threads=threads, tol=max(RESCUE_TOL, tolerance(problem.model)))
     nlp = NlpSolver("ipopt", solver_options, threads)
-    fit = solve_simultaneous(problem, coarse.values, nlp)
-    fit = dataclasses.replace(fit, seconds=fit.seconds + coarse.seconds)
-    if fit.success or not coarse.success:
+    fit = solve_simultaneous(problem, coarse.result.values, nlp).after(coarse)
+    if fit.success or not coarse.result.success:
         return fit, None, coarse.evaluations
-    finished = reduced_fit(problem, coarse.values, q0=coarse.q, threads=threads)
-    evaluations = coarse.evaluations + finished.evaluations
-    finished = dataclasses.replace(finished, seconds=finished.seconds + coarse.seconds, evaluations=evaluations,
-                                   iterations=evaluations)
+    finished = reduced_fit(problem, coarse.result.values, q0=coarse.result.q, threads=threads).after(coarse)
     again = solve_simultaneous(problem, problem.values(finished.theta), nlp)
-    return dataclasses.replace(again, seconds=again.seconds + finished.seconds), finished, evaluations
+    return again.after(finished), finished, finished.evaluations
 
 
 def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fit, nlp: NlpSolver) -> Fit:
@@ -183,7 +177,7 @@ def _rescued(problem: IdentificationProblem, start: dict[str, float], failed: Fi
         return failed
     note = (f"rescued: IPOPT failed from the start ({failed.status}); a reduced-space Gauss-Newton start "
             f"({evaluations} evaluations) led it to the solution")
-    return fit.with_note(note, seconds=fit.seconds + failed.seconds, iterations=fit.iterations + failed.iterations)
+    return fit.after(failed).with_note(note)
 
 
 def implausible_misfit(fit: Fit) -> bool:
@@ -213,10 +207,8 @@ def nested_fit_of(problem: IdentificationProblem, start: dict, rng: np.random.Ge
     cloud = np.array([[c[n] for n in problem.free] for c in initial])
     r = nested_fit(problem, cloud, seed=seed, **options)
     return Fit.build(problem, "nested", problem.theta(r.values), r.q, status=r.status,
-                     success=r.success and r.max_residual <= problem.equilibrium_tol,
-                     iterations=r.iterations, seconds=r.seconds, max_residual=r.max_residual,
-                     start=dict(zip(problem.free, cloud[0], strict=True)), evaluations=r.equilibrium_solves,
-                     message=f"{r.evaluations} objective evaluations", solver=r.solver, result=r)
+                     success=r.success and r.max_residual <= problem.equilibrium_tol, max_residual=r.max_residual,
+                     start=dict(zip(problem.free, cloud[0], strict=True)), solver=r.solver, result=r)
 
 
 def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], nlp: NlpSolver | None = None,
@@ -242,6 +234,5 @@ def solve_simultaneous(problem: IdentificationProblem, start: dict[str, float], 
     if r.rim > RIM_SHARE:
         notes.append(rim_note(r.rim))
     return Fit.build(problem, "simultaneous", problem.theta(r.values), r.q, status=r.status, success=success,
-                     iterations=r.iterations, seconds=r.seconds, max_residual=r.max_residual,
-                     start=dict(start), build_seconds=r.build_seconds, evaluations=r.iterations,
-                     message="; ".join(notes), solver=r.solver, result=r)
+                     max_residual=r.max_residual, start=dict(start), message="; ".join(notes), solver=r.solver,
+                     result=r)

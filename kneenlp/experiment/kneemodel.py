@@ -17,10 +17,10 @@
 
 ``KneeModel.observation`` is THE map from a pose to what is measured, ``(q, theta, flexion) -> y``
 with ``y`` the five coordinates in mm and deg plus the experiment's measurement bias (which may
-depend on the prescribed flexion: :class:`~kneenlp.experiment.measurement.FemoralOrigin`).
+depend on the prescribed flexion: :class:`~kneenlp.experiment.parts.FemoralOrigin`).
 
 A ``KneeModel`` is the knee (:class:`~kneenlp.model.knee.Knee`: its force elements) in an
-experiment (:class:`~kneenlp.experiment.measurement.Measurement`: the flexion the experiment
+experiment (:class:`~kneenlp.experiment.parts.Measurement`: the flexion the experiment
 prescribes, its frames, its registration, where it applies its load): the residual adds the knee's
 forces and the load where the experiment applies it; the observation reads the pose as the
 experiment reads it.
@@ -47,7 +47,7 @@ from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.modes import Layout, PriorChoice
 from kneenlp.experiment.contact_sets import ContactSets
-from kneenlp.experiment.measurement import ExperimentPart, Measurement, registration_effects
+from kneenlp.experiment.parts import ExperimentPart, Measurement, registration_effects
 from kneenlp.experiment.protocol import Loading
 from kneenlp.model import ties as tie_rules
 from kneenlp.model.effects import (
@@ -110,7 +110,7 @@ class KneeModel(ContactSets):
 
     ``extra_elements`` adds user parts (e.g. a candidate effect, see ``docs/architecture.md``): force
     elements join the knee's own and the built-in candidate elements, experiment parts
-    (:class:`~kneenlp.experiment.measurement.ExperimentPart`) join ``measurement`` (default: the
+    (:class:`~kneenlp.experiment.parts.ExperimentPart`) join ``measurement`` (default: the
     standard parts, :meth:`Measurement.standard`, every one neutral until fitted).
     """
 
@@ -314,7 +314,7 @@ class KneeModel(ContactSets):
     def reference_coordinates(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         """The knee's imaged pose (``[reference_pose]``) as the model's coordinates at ``theta``:
         flexion (rad) and the five free coordinates (rad, m) of the experiment's tibial axes, the
-        knee's own unless the experiment turns them (:class:`~kneenlp.experiment.measurement.TibialAxes`)."""
+        knee's own unless the experiment turns them (:class:`~kneenlp.experiment.parts.TibialAxes`)."""
         flexion, q = self.knee.reference_pose
         turn = np.asarray(self.turn(theta), float)
         if np.array_equal(turn, np.eye(3)):

@@ -8,7 +8,7 @@ An *effect* is something the model adequacy check can add (:mod:`kneenlp.adequac
   file's ``[candidates.<name>]`` (e.g. ``posterior_capsule``, ``ALL``: :class:`Ligament` elements
   with stiffness 0) and the structures a knee file does not declare (:mod:`kneenlp.model.structures`:
   the menisci); the experiment's candidates (flexion offset,
-  registration, load point) are :mod:`kneenlp.experiment.measurement`'s;
+  registration, load point) are :mod:`kneenlp.experiment.parts`'s;
 * a parameter group of the base model (:func:`parameter_group`): ``lin_strain`` (the linear
   strain limits) and ``contact_modulus``;
 * a geometry candidate (:func:`attachment_effects`): the position of one ligament's (or bundle

@@ -13,7 +13,7 @@ Conventions of every method (SI units, CasADi SX expressions):
 
 A force element only adds a force.  What changes the kinematics or the observation instead (the
 experiment's frames, its registration, where it applies its load, its flexion) is the experiment's,
-not the knee's: :mod:`kneenlp.experiment.measurement`.  Both are :class:`Part` s: a name, a
+not the knee's: :mod:`kneenlp.experiment.parts`.  Both are :class:`Part` s: a name, a
 description, parameters with metadata and whether model adequacy may add it (``candidate``).
 
 Elements whose force needs an expensive computation over many surface points (contact) split it
@@ -43,7 +43,7 @@ class Pose:
     tibial origin ``p`` in the femoral frame (m), the five free coordinates ``q`` (rad, m) and the
     flexion (rad).  ``q`` and the flexion are the Grood-Suntay coordinates of the experiment's
     tibial axes, which are the model's unless the experiment turns them
-    (:class:`kneenlp.experiment.measurement.TibialAxes`)."""
+    (:class:`kneenlp.experiment.parts.TibialAxes`)."""
 
     R: ca.SX
     p: ca.SX
@@ -72,7 +72,7 @@ class Output:
 class Part:
     """A named part of the model with parameters: a force element of the knee
     (:class:`ForceElement`) or a part of the experiment's description
-    (:class:`kneenlp.experiment.measurement.ExperimentPart`).
+    (:class:`kneenlp.experiment.parts.ExperimentPart`).
 
     ``candidate`` marks a part that is neutral in the knee's own parameter set (it contributes
     nothing until its ``frees`` parameters move from their neutral values): model adequacy tests

@@ -1,7 +1,7 @@
 """User force elements named by import path, so that the CLI, studies and worker processes can
 build the same model: ``"package.module:factory"`` names a callable returning a
 :class:`~kneenlp.model.elements.ForceElement` or an experiment part
-(:class:`kneenlp.experiment.measurement.ExperimentPart`), or a list of them (called without arguments).
+(:class:`kneenlp.experiment.parts.ExperimentPart`), or a list of them (called without arguments).
 """
 
 from __future__ import annotations
