@@ -38,8 +38,8 @@ def bench(name: str) -> None:
     theta = model.theta()
     cold = []
     for _ in range(3):
-        model.solvers.clear()  # nothing kept from the previous solve (its built functions, its Newton memory)
-        solver = ForwardSolver(model)
+        model.solvers.clear()  # nothing kept from the previous solve: its built functions
+        solver = ForwardSolver(model)  # and a new workspace: no Newton memory
         s = time.perf_counter()
         sols = solver.solve(protocol.trials, theta)
         cold.append(time.perf_counter() - s)

@@ -26,7 +26,7 @@ def main(seed: int = 1, max_evals: int = 6000) -> None:
         print(f"{name} ({len(data)} trials), seed {seed}:")
         print(f"  simultaneous: {sim.seconds:.2f} s, {sim.iterations} IPOPT iterations, objective {sim.objective:.6f}")
         print(f"  nested:       {nest.seconds:.2f} s, {nest.result.evaluations} objective evaluations "
-              f"({nest.evaluations} trial equilibrium solves), objective {nest.objective:.6f}, {nest.status}")
+              f"({nest.equilibrium_solves} trial equilibrium solves), objective {nest.objective:.6f}, {nest.status}")
         print(f"  time ratio nested/simultaneous: {nest.seconds / sim.seconds:.0f}x; "
               f"largest relative parameter difference {100 * worst:.4f} %")
 

@@ -101,3 +101,39 @@ def test_older_files_keep_their_meaning(tmp_path):
     text = (folder / "s192803_laxity.csv").read_text().replace(",experiment", "", 1).replace(",laboratory", "")
     (tmp_path / "old.csv").write_text(text)
     assert read_measured(tmp_path / "old.csv").experiment.laboratory
+
+
+def test_a_ramp_scales_the_load_not_where_it_acts(strap_data):
+    from kneenlp.base.conventions import scaled_load
+
+    data, _ = strap_data
+    load = next(t for t in data.trials if "push" in t.id).load
+    half = scaled_load(load, 0.5)
+    np.testing.assert_array_equal(half[:11], 0.5 * load[:11])
+    np.testing.assert_array_equal(half[11:], load[11:])
+
+
+def test_the_reduced_space_fit_of_two_coordinates_recovers_the_knee(knee, strap_data):
+    """Gauss-Newton in reduced space (the calibration's and the rescue's solver) weighs the unread
+    coordinates zero and starts them at the knee's reference pose."""
+    from kneenlp.estimation.solve import reduced_fit
+    from kneenlp.experiment.problem import IdentificationProblem
+
+    data, sim = strap_data
+    problem = IdentificationProblem.from_data(KneeModel.of(knee), data, FREE)
+    assert np.isfinite(problem.measured_q).all()
+    fit = reduced_fit(problem, {n: 0.7 * sim.parameters[n] for n in FREE})
+    for n in FREE:
+        assert fit.params[n] == pytest.approx(sim.parameters[n], rel=1e-4)
+
+
+def test_what_needs_every_coordinate_refuses_in_one_line(knee, strap_data):
+    data, _ = strap_data
+    with pytest.raises(InputError, match=r"experiment: a calibration .* needs all five coordinates; experiment "
+                                         r"'strap' observes varus_rotation, internal_rotation"):
+        kneenlp.identify(knee, data, strategy="calibration")
+    fit = kneenlp.identify(knee, data, free=FREE, start={n: 5000.0 for n in FREE})
+    from kneenlp.adequacy.diagnosis import diagnose
+
+    with pytest.raises(InputError, match="diagnose needs all five coordinates"):
+        diagnose(fit)

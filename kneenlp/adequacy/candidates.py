@@ -174,7 +174,7 @@ def refit_with(fit: Fit, score: EffectScore, sigma: float) -> tuple[dict, Fit]:
             new = warm
     if not new.success or new.objective > fit.objective:
         again = identify(model, fit.data, free=free, start=start, fixed=fixed, noise=noise, restarts=0,
-                         solver_options={"ipopt": {"max_iter": WARM_ITERATIONS}})
+                         solver_options={"ipopt": {"max_iter": WARM_ITERATIONS}}, strategy="scatter")
         if again.success and (not new.success or again.objective < new.objective):
             new = again
     n_obs = fit.residuals.size

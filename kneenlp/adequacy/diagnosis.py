@@ -235,6 +235,7 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", **options) -> Di
     a few seconds per parameter; exact where the linearisation is optimistic, e.g. the linear strain
     limits), ``False`` for none."""
     opts = keyword_options(DiagnoseOptions, "diagnose", options)
+    fit.data.check_observed("diagnose")
     effects, refit, alpha, limits = opts.effects, opts.refit, opts.alpha, opts.limits
     if limits not in (True, False, "linear", "simulated"):
         from kneenlp.base.errors import unknown_name

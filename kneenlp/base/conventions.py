@@ -166,6 +166,14 @@ def load_columns(extra: bool = False) -> list[str]:
 LOAD_AXES: tuple[str, ...] = names(LoadAxes)
 
 
+def scaled_load(load: np.ndarray, factor: float) -> np.ndarray:
+    """``factor`` times the force, moment and generalised forces of a load vector (:func:`load_vector`;
+    a ramp's fraction of the trial's load), acting at the same point."""
+    out = np.array(load, float)
+    out[:11] *= factor
+    return out
+
+
 def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes = "femoral",
                 point: np.ndarray | None = None) -> np.ndarray:
     """Internal load vector (:data:`LOAD_SIZE`) of signed load components (N, N m; absent = 0).

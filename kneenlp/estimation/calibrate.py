@@ -129,6 +129,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     its varied parameters are fitted with its priors, bounds and ties; its values that differ from
     the knee's start the fit there (:func:`~kneenlp.estimation.choice.from_params`)."""
     options, ties = resolved_options(CalibrationOptions.from_kwargs(free=free, **options), model)
+    data.check_observed("a calibration (its outlier test and prediction checks)")
     check_calibration(data, options)
     extra = also_free_names(model, options.also_free or [])
     before = predict(model, data)
@@ -377,7 +378,7 @@ def map_fit(problem: IdentificationProblem, start: dict[str, float], q0: np.ndar
         refit = reduced_fit(problem, fit.params, q0=fit.q_pred, max_evaluations=MAX_EVALUATIONS, threads=threads)
         if not refit.success and fit.success:
             break
-        fit = refit
+        fit = refit.after(fit)
     return fit
 
 

@@ -137,10 +137,9 @@ def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
         default: 1 for a weighted fit, the declared noise's variance, else 1); for a calibration
         also ``"estimate"`` (:func:`~kneenlp.estimation.calibrate.map_fit`).
     strategy : ``"auto"``, ``"calibration"`` or ``"scatter"`` (module docstring).
-    calibration_options : a calibration's own (``pivot_tolerance``, ``also_free``,
-        ``keep_outliers``, ``load_point``, ``workers``: the processes its further starts share;
-        ``starts`` > 1: the global search, ``store`` the directory of its finished solves;
-        :func:`~kneenlp.estimation.calibrate.calibrate`).
+    pivot_tolerance, also_free, keep_outliers, load_point, workers, starts, store : a calibration's
+        own options (``workers``: the processes its further starts share; ``starts`` > 1: the global
+        search, ``store`` the directory of its finished solves; :func:`~kneenlp.estimation.calibrate.calibrate`).
 
     Returns the :class:`~kneenlp.estimation.calibrated.Calibration`: the :class:`Fit` and, for a real
     experiment's calibration, what it found besides (its ``record``; an identification has none).

@@ -95,7 +95,7 @@ def check_profile_names(fit: Fit, names: list[str]) -> None:
 def profile(fit: Fit, names: list[str], level: float = LEVEL) -> list[ProfileInterval]:
     """The profile-likelihood intervals (module docstring) of the free parameters ``names`` of ``fit``."""
     check_profile_names(fit, names)
-    s2 = float(np.mean(fit.noise_variance * fit.weights))
+    s2 = float(np.mean((fit.noise_variance * fit.weights)[fit.problem.observed]))
     problem = dataclasses.replace(fit.problem, prior_weight=s2) if fit.problem.priors else fit.problem
     centre = fit
     if fit.problem.priors and not np.isclose(s2, fit.problem.prior_weight, rtol=1e-9):

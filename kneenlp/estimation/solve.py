@@ -126,7 +126,7 @@ def scatter_search(problem: IdentificationProblem, start: dict[str, float], sett
     centre = problem.scatter(np.random.default_rng(settings.seed)) | dict(start)
 
     def screen(p: IdentificationProblem, s: dict, q0, t: int) -> Fit:
-        return reduced_fit(p, s, q0=np.asarray(p.data.q, float) if q0 is None else q0,
+        return reduced_fit(p, s, q0=p.measured_q if q0 is None else q0,
                            max_evaluations=SCATTER_SCREEN, threads=t)
 
     def nlp(p: IdentificationProblem, s: dict, q0, t: int) -> Fit:

@@ -35,16 +35,27 @@ from typing import Annotated
 
 import numpy as np
 import pandas as pd
-from pydantic import Field
+from pydantic import BeforeValidator, Field
 
 from kneenlp.base.conventions import COORDINATES
 from kneenlp.base.errors import InputError, unknown_name
-from kneenlp.base.schema import Name, Table, one_of, validated
+from kneenlp.base.schema import Name, Table, fail, one_of, validated
 from kneenlp.base.tomlfile import read_toml
 from kneenlp.experiment.protocol import Trial
 
 #: Named tibial points every experiment knows (the tuberosity is the knee's own).
 KNOWN_POINTS = ("tibial_tuberosity", "tibial_origin")
+
+
+def _point(value: object) -> list[float]:
+    """A tibial point: three finite numbers (mm)."""
+    if not isinstance(value, list) or len(value) != 3 or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v) for v in value):
+        raise fail(f"expected three finite numbers (mm, tibial frame), got {value!r}")
+    return [float(v) for v in value]
+
+
+Point = Annotated[list[float], BeforeValidator(_point)]
 
 
 class ExperimentFile(Table):
@@ -56,7 +67,7 @@ class ExperimentFile(Table):
     observed: list[Annotated[str, one_of("coordinate", COORDINATES)]] = Field(
         default_factory=lambda: list(COORDINATES), min_length=1)
     load_point: Name = "tibial_tuberosity"
-    points: dict[Name, Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(default_factory=dict)
+    points: dict[Name, Point] = Field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -71,6 +82,10 @@ class Experiment:
     description: str = ""
 
     def __post_init__(self) -> None:
+        shadowing = sorted(set(self.points) & set(KNOWN_POINTS))
+        if shadowing:
+            raise InputError(f"{shadowing[0]!r} is a point every experiment knows; name yours otherwise",
+                             field=f"points.{shadowing[0]}")
         known = (*KNOWN_POINTS, *self.points)
         if self.load_point not in known:
             raise unknown_name("load point", self.load_point, known)
@@ -136,6 +151,9 @@ def experiment_of(df: pd.DataFrame, path: Path) -> Experiment:
     names = {str(v).strip() for v in df["experiment"].dropna()}
     if not len(df):
         return SIMULATED  # no rows: the reader's own check says so
+    if df["experiment"].isna().any():
+        raise InputError(f"row {int(np.argmax(df['experiment'].isna())) + 2}: no experiment named (one for every "
+                         "row)", source=str(path), field="experiment")
     if len(names) != 1:
         raise InputError(f"expected one experiment for every row, got {', '.join(sorted(names)) or 'none'}",
                          source=str(path), field="experiment")

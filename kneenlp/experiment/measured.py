@@ -144,6 +144,14 @@ class MeasuredData:
         return MeasuredData([t for t, k in zip(self.trials, keep, strict=True) if k], self.q[keep],
                             self.protocol, self.source, self.side, self.experiment)
 
+    def check_observed(self, what: str) -> None:
+        """Refuse ``what`` (an analysis that needs every coordinate of every trial: a calibration's
+        outlier test, cross-validation, diagnose) for data whose experiment observes fewer."""
+        if len(self.experiment.observed) < len(COORDINATES):
+            raise InputError(f"{what} needs all five coordinates; experiment {self.experiment.name!r} observes "
+                             f"{', '.join(self.experiment.observed)} (fit it with --strategy scatter)",
+                             source=self.source, field="experiment")
+
     def check_knee(self, knee) -> None:
         """The data fit ``knee`` (a :class:`~kneenlp.model.knee.Knee`): the same side, if the data
         say theirs, and every measured pose within the knee's reach (the physiological envelope

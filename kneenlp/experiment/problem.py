@@ -37,6 +37,7 @@ import numpy as np
 from kneenlp.base.conventions import (
     EQUILIBRIUM_TOL,
     LOAD_SIZE,
+    coords_from_user,
     coords_to_user,
     pose_envelope_user,
 )
@@ -126,8 +127,8 @@ class DataLayout:
         return ("theta (all model parameters, SI, in 'parameters' order), the priors of the free parameters "
                 "(centres: the mean in SI or, for a log-normal, the log of the median; then the inverse widths "
                 "times the square root of the prior weight, 0 for none), measured coordinates (T x 5, "
-                "mm/deg), weights (T x 5), loads (T x 11: force at the tuberosity and moment, femoral frame; "
-                "generalised forces; N and N m), flexion (T, rad), "
+                "mm/deg), weights (T x 5), loads (T x 15: force and moment, femoral frame; generalised forces; "
+                "N and N m; the force's tibial point, m, and the tuberosity's weight), flexion (T, rad), "
                 "then, only for contact='expansion', the contact working sets at the start poses (T x "
                 "ws_size): per point x, y, z (m) and area (m^2) for sphere contact; for mesh contact the "
                 "pose and the contact wrench's second-order expansion there "
@@ -192,6 +193,17 @@ class IdentificationProblem:
                 raise InputError(f"measured coordinates have shape {self.measured.shape}, "
                                  f"expected ({len(self.trials)}, 5)", source=self.source)
             self.weights = np.where(self.observed, self.weights, 0.0)
+
+    @property
+    def measured_start(self) -> np.ndarray:
+        """The measured poses as starts (T x 5, mm and deg): a coordinate the experiment does not
+        observe at the knee's reference pose."""
+        return np.where(self.observed, self.measured, coords_to_user(self.model.knee.reference_pose[1]))
+
+    @property
+    def measured_q(self) -> np.ndarray:
+        """:attr:`measured_start` in SI (rad, m)."""
+        return coords_from_user(self.measured_start)
 
     @property
     def observed(self) -> np.ndarray:
@@ -412,6 +424,10 @@ class IdentificationProblem:
         if self.measured is None:
             raise InputError("this problem has no measurements (a design problem)")
         return self.observe(q, theta) - self.measured
+
+    def observed_residuals(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """:meth:`residuals` with 0 where the experiment observes nothing (they weigh zero)."""
+        return np.where(self.observed, self.residuals(q, theta), 0.0)
 
     def objective(self, q: np.ndarray, theta: np.ndarray) -> float:
         """Weighted sum of squared residuals (mm^2 + deg^2 times the weights): the paper's Psi'Psi."""

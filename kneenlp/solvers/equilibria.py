@@ -35,7 +35,8 @@ def equilibrium_start(problem: IdentificationProblem, theta: np.ndarray, threads
     slack scattered start reached 36 deg varus), starts at its data."""
     data = problem.data
     solver = forward_solver(problem.model, problem.equilibrium_tol)
-    q0, res0 = solver.solve_batch(data.trials, theta, BatchStart(data.q), threads)
+    measured = problem.measured_q
+    q0, res0 = solver.solve_batch(data.trials, theta, BatchStart(measured), threads)
     ok = res0 <= problem.equilibrium_tol
     if not ok.all():
         failed = np.flatnonzero(~ok)
@@ -43,5 +44,5 @@ def equilibrium_start(problem: IdentificationProblem, theta: np.ndarray, threads
             if sol.converged:
                 q0[i], ok[i] = sol.q, True
     ok &= problem.inside_pose_bounds(q0)
-    return EquilibriumStart(np.where(ok[:, None], q0, data.q),
-                            np.where(ok[:, None], coords_to_user(q0), problem.measured), ok)
+    return EquilibriumStart(np.where(ok[:, None], q0, measured),
+                            np.where(ok[:, None], coords_to_user(q0), problem.measured_start), ok)

@@ -30,7 +30,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kneenlp.base.conventions import EQUILIBRIUM_TOL, POSE_ENVELOPE_USER, coords_from_user, coords_to_user
+from kneenlp.base.conventions import (
+    EQUILIBRIUM_TOL,
+    POSE_ENVELOPE_USER,
+    coords_from_user,
+    coords_to_user,
+    scaled_load,
+)
 from kneenlp.base.modes import SolveStrategy
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.protocol import Loading, Trial
@@ -90,7 +96,7 @@ class TrialSolution:
     @property
     def snapped(self) -> bool:
         """Its loading path passed a fold (several equilibria there): the knee settled into this one."""
-        return self.converged and self.strategy == "settle" and bool(np.any(self.trial.load))
+        return self.converged and self.strategy == "settle" and not _is_unloaded(self.trial)
 
 
 class ForwardSolver:
@@ -263,7 +269,7 @@ class ForwardSolver:
         theta = np.ascontiguousarray(theta, dtype=float)
         q0 = np.ascontiguousarray(q0, dtype=float).reshape(-1, 5)
         scales = np.broadcast_to(np.asarray(scale, float), (len(trials),))
-        loads = np.array([c * t.load for c, t in zip(scales, trials, strict=True)], float).reshape(len(trials), -1)
+        loads = np.array([scaled_load(t.load, c) for c, t in zip(scales, trials, strict=True)], float)
         flexions = np.array([t.flexion for t in trials], float)
         keys = [b"".join((q.tobytes(), theta.tobytes(), load.tobytes(), f.tobytes()))
                 for q, load, f in zip(q0, loads, flexions, strict=True)]
@@ -339,7 +345,7 @@ class ForwardSolver:
         """Where the knee comes to rest from ``q0`` under ``scale`` times the trial's load
         (:meth:`EquilibriumNewton.settle`): the pose and its residual (inf where a contact point the
         working sets leave out penetrates)."""
-        loading = Loading(scale * np.asarray(trial.load, float)[None], np.array([trial.flexion]))
+        loading = Loading(scaled_load(trial.load, scale)[None], np.array([trial.flexion]))
         out = self.newton.settle(np.asarray(q0, float)[None], theta, loading, threads=1)
         res = float(out.residual[0])
         if res <= self.tol and self.model.ws_size and self.model.left_out_batch(out.q, theta, [trial.flexion])[0] > 0:

@@ -113,7 +113,7 @@ class ReducedSpace:
             for i, sol in zip(bad, self.solver.solve([trials[i] for i in bad], theta, snap=False), strict=True):
                 if sol.converged:
                     q[i], res[i] = sol.q, sol.max_residual
-        rows = np.concatenate([problem.residuals(q, theta).ravel() * self.sqrt_weights, self.prior_rows(x)])
+        rows = np.concatenate([problem.observed_residuals(q, theta).ravel() * self.sqrt_weights, self.prior_rows(x)])
         return Point(np.array(x, float), theta, q, bool(np.all(res <= tol_eq)), rows)
 
     def predicted_poses(self, theta: np.ndarray) -> np.ndarray | None:
@@ -183,19 +183,19 @@ def start_poses(problem: IdentificationProblem, theta: np.ndarray, threads: int 
     state alone, the MAP calibration followed branches far from the data (MAP objective 731, not 452)."""
     tol = problem.equilibrium_tol
     solver = forward_solver(problem.model)
-    measured, res = solver.solve_batch(problem.trials, theta, BatchStart(np.array(problem.data.q, float)), threads,
+    measured, res = solver.solve_batch(problem.trials, theta, BatchStart(problem.measured_q), threads,
                                        max_retries=0)
-    forward = np.array(problem.data.q, float)
+    forward = problem.measured_q
     reached = np.zeros(len(forward), bool)
     for i, sol in enumerate(solver.solve(problem.trials, theta)):
         if sol.converged:
             forward[i], reached[i] = sol.q, True
 
     def misfit(q: np.ndarray) -> np.ndarray:
-        return np.sum(problem.weights * problem.residuals(q, theta) ** 2, axis=1)
+        return np.sum(problem.weights * problem.observed_residuals(q, theta) ** 2, axis=1)
 
     use_forward = reached & ((res > tol) | (misfit(forward) < misfit(measured)))
-    return np.where(use_forward[:, None], forward, np.where((res <= tol)[:, None], measured, problem.data.q))
+    return np.where(use_forward[:, None], forward, np.where((res <= tol)[:, None], measured, problem.measured_q))
 
 
 @dataclass(frozen=True)

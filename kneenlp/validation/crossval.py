@@ -402,6 +402,7 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
     (``starts``) on Dask.
     ``explain``: each hold-out's :func:`lessons` too (one more calibration, of every trial)."""
     opts = CrossValidation.from_kwargs(**options)
+    data.check_observed("cross-validation")
     calibrate_options, workers, store, reference_draws = opts.calibrate, opts.workers, opts.store, opts.reference_draws
     explain = opts.explain
     chosen = _chosen(data, which)
