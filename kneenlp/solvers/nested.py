@@ -81,7 +81,7 @@ class NestedObjective:
 
     def _reference(self, x: np.ndarray, q: np.ndarray | None) -> Reference:
         """The reference at ``x`` (scaled), its equilibria ``q`` (T x 5, SI) solved when not given."""
-        theta, trials = self.theta(x), list(self.problem.trials)
+        theta, trials = self.theta_of_scaled(x), list(self.problem.trials)
         if q is None:
             sols = self.solver.solve(trials, theta)
             q = np.array([s.q for s in sols])
@@ -90,7 +90,8 @@ class NestedObjective:
         dq_dp = self.problem.sensitivities(q, theta, with_poses=True)[1] if at_equilibrium else None
         return Reference(x.copy(), theta, q, dq_dp)
 
-    def theta(self, x_scaled: np.ndarray) -> np.ndarray:
+    def theta_of_scaled(self, x_scaled: np.ndarray) -> np.ndarray:
+        """The full parameter vector (SI) of the scaled free parameters ``x_scaled``."""
         return self.problem.theta(self.problem.from_scaled(x_scaled))
 
     def start(self, x_scaled: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
@@ -106,7 +107,7 @@ class NestedObjective:
     def evaluate(self, x_scaled: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """(objective with penalties, poses T x 5 SI, residual per trial, N or N m), every trial
         solved from :meth:`start`."""
-        theta = self.theta(x_scaled)
+        theta = self.theta_of_scaled(x_scaled)
         trials = list(self.problem.trials)
         q_ref, guess = self.start(x_scaled, theta)
         q, res = self.solver.solve_batch(trials, theta, BatchStart(q_ref, guess=guess))
