@@ -50,6 +50,7 @@ import dataclasses
 
 import numpy as np
 
+from kneenlp.base.keywords import keyword_options
 from kneenlp.estimation.calibrated import (
     Calibration,
     CalibrationRecord,
@@ -128,7 +129,7 @@ def calibrate(model: KneeModel, data: MeasuredData, free: list[str] | None = Non
     ``params`` (:class:`~kneenlp.model.params.Parameters`, instead of ``free`` and ``priors``):
     its varied parameters are fitted with its priors, bounds and ties; its values that differ from
     the knee's start the fit there (:func:`~kneenlp.estimation.choice.from_params`)."""
-    options, ties = resolved_options(CalibrationOptions.from_kwargs(free=free, **options), model)
+    options, ties = resolved_options(keyword_options(CalibrationOptions, "calibrate", {"free": free, **options}), model)
     data.check_observed("a calibration (its outlier test and prediction checks)")
     check_calibration(data, options)
     extra = also_free_names(model, options.also_free or [])

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from kneenlp.base.dask_cluster import DaskWorkers
-from kneenlp.base.keywords import keyword_options
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
 from kneenlp.model.params import Parameters
@@ -24,7 +23,7 @@ PRIOR_WEIGHT = 1.0
 @dataclass(frozen=True)
 class CalibrationOptions:
     """:func:`~kneenlp.estimation.calibrate.calibrate`'s keyword arguments (its docstring), with
-    ``free``; checked in one place (:meth:`from_kwargs`)."""
+    ``free``; checked in one place (:func:`~kneenlp.base.keywords.keyword_options`)."""
 
     free: list[str] | None = None
     seed: int = 0
@@ -47,11 +46,6 @@ class CalibrationOptions:
     store: str | Path | None = None
     params: Parameters | None = None
 
-    @classmethod
-    def from_kwargs(cls, **options) -> CalibrationOptions:
-        """The options named in ``options``; a name :func:`~kneenlp.estimation.calibrate.calibrate`
-        does not take raises TypeError."""
-        return keyword_options(cls, "calibrate", options)
 
     @property
     def with_priors(self) -> bool:

@@ -42,6 +42,7 @@ from kneenlp.base.conventions import (
     pose_envelope_user,
 )
 from kneenlp.base.errors import InputError, unknown_name
+from kneenlp.base.keywords import keyword_options
 from kneenlp.experiment.kind import SIMULATED, Experiment
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData
@@ -223,7 +224,7 @@ class IdentificationProblem:
         :func:`resolve_priors`; ``prior_weight`` the noise variance per unit weight the priors are
         weighed against (default: 1 for a weighted fit, the declared noise variance, else 1);
         ``bounds`` and ``ties`` as the fields'."""
-        c = ProblemChoices.from_kwargs(**choices)
+        c = keyword_options(ProblemChoices, "from_data", choices)
         model.knee.check_flexions(data.trials, data.source)
         free = free_names(model, free, c.with_effects)
         noise_model = NoiseModel.parse(c.noise) if c.noise is not None else None

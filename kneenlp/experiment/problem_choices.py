@@ -10,7 +10,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from kneenlp.base.errors import InputError
-from kneenlp.base.keywords import keyword_options
 from kneenlp.model.params import declared_free, default_free
 from kneenlp.model.priors import Prior
 
@@ -36,10 +35,6 @@ class ProblemChoices:
     bounds: Mapping[str, tuple[float, float]] | None = None
     ties: Mapping[str, str] | None = None
 
-    @classmethod
-    def from_kwargs(cls, **choices) -> ProblemChoices:
-        """The choices of ``from_data``'s keyword arguments; ``TypeError`` names every unknown one."""
-        return keyword_options(cls, "from_data", choices)
 
 
 def free_names(model: KneeModel, free: Sequence[str] | None = None, with_effects: Sequence[str] = ()) -> list[str]:

@@ -120,10 +120,6 @@ class ExportOptions:
         if self.layout not in LAYOUTS:
             raise ValueError(f"layout must be one of {LAYOUTS}, not {self.layout!r}")
 
-    @classmethod
-    def of(cls, options: dict) -> ExportOptions:
-        """The options given as keyword arguments; an unknown name is a TypeError, as Python's own."""
-        return keyword_options(cls, "export_problem", options)
 
 
 def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Path, **options) -> ExportProblem:
@@ -133,7 +129,7 @@ def export_problem(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     and ``fixed`` as :func:`~kneenlp.estimation.identify.identify`'s; ``contact``: ``"exact"``
     (CasADi, C) or ``"expansion"`` (what ``.nl`` can hold; module docstring); ``layout``: the exact
     contact's graph shape (``"vector"`` for CasADi files, ``"loop"`` for C)."""
-    opts = ExportOptions.of(options)
+    opts = keyword_options(ExportOptions, "export_problem", options)
     free, start, seed, layout = opts.free, opts.start, opts.seed, opts.layout
     model = KneeModel.of(knee or Knee.default())
     if not isinstance(data, MeasuredData):

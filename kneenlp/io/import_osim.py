@@ -78,10 +78,6 @@ class OsimImport:
     femur_offset: float = 0.0
     tuberosity: tuple[float, float, float] | None = None
 
-    @classmethod
-    def of(cls, options: dict) -> OsimImport:
-        """The options given as keyword arguments; an unknown name is a TypeError, as Python's own."""
-        return keyword_options(cls, "import_osim", options)
 
 
 @dataclass(frozen=True)
@@ -103,7 +99,7 @@ def import_osim(osim: str | Path, out: str | Path, **options) -> ImportReport:
     ``femur_mesh`` (the femoral contact mesh's file in place of the model's), ``femur_offset`` (m,
     the cartilage on it, 0), ``tuberosity``: the tibial tuberosity in the tibia body's frame (m),
     for a model without patellar-tendon bundles (:func:`_tuberosity`)."""
-    opts = OsimImport.of(options)
+    opts = keyword_options(OsimImport, "import_osim", options)
     groups, femur_body, tibia_body = opts.groups, opts.femur_body, opts.tibia_body
     femur_offset = opts.femur_offset
     osim = Path(osim)

@@ -146,10 +146,6 @@ class LigamentOptions:
     reference: tuple[np.ndarray, np.ndarray] | None = None
     shift: SlackShift | None = None
 
-    @classmethod
-    def of(cls, options: dict) -> LigamentOptions:
-        """The options given as keyword arguments; an unknown name is a TypeError, as Python's own."""
-        return keyword_options(cls, "Ligament", options)
 
 
 class Ligament(ForceElement):
@@ -168,7 +164,7 @@ class Ligament(ForceElement):
     def __init__(self, name: str, bundles: list[Bundle], **options):
         if not bundles:
             raise ValueError(f"ligament {name} has no bundles")
-        opts = LigamentOptions.of(options)
+        opts = keyword_options(LigamentOptions, "Ligament", options)
         law, candidate, defaults, description, reference, shift = (
             opts.law, opts.candidate, opts.defaults, opts.description, opts.reference, opts.shift)
         self.name, self.bundles, self.law = name, list(bundles), law or ToeLinearLaw()

@@ -133,6 +133,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import OptimizeResult
 
+from kneenlp.base.keywords import keyword_options
 from kneenlp.solvers.boxcomplex_inputs import ComplexOptions, Options, Start, as_float, as_int, parse_bounds
 
 __all__ = [
@@ -329,7 +330,7 @@ def minimize_complex(fun: Callable[..., Any], bounds: Sequence[tuple[float | Non
         For inconsistent shapes, ``lo > hi``, points outside the bounds, ``n_points < n + 1``,
         ``max_evals < n_points``, invalid coefficients or a non-scalar objective value.
     """
-    given = ComplexOptions.from_kwargs(options)
+    given = keyword_options(ComplexOptions, "minimize_complex", options)
     if not callable(fun):
         raise ValueError("fun must be callable")
     lo, hi = parse_bounds(bounds)

@@ -13,8 +13,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kneenlp.base.keywords import keyword_options
-
 FloatArray = NDArray[np.float64]
 
 
@@ -129,10 +127,6 @@ class ComplexOptions:
     callback: Callable[[FloatArray, float, int], Any] | None = None
     refinements: bool = True
 
-    @classmethod
-    def from_kwargs(cls, options: dict[str, Any]) -> ComplexOptions:
-        """The options of a call's keywords; ``TypeError`` names every unknown one."""
-        return keyword_options(cls, "minimize_complex", options)
 
 
 @dataclass(frozen=True)

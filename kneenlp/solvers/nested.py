@@ -137,10 +137,6 @@ class NestedSettings:
     xtol: float = 1e-5
     ftol: float = 1e-10
 
-    @classmethod
-    def from_kwargs(cls, **options) -> NestedSettings:
-        """The settings of :func:`nested_fit`'s keyword arguments; ``TypeError`` names every unknown one."""
-        return keyword_options(cls, "nested_fit", options)
 
 
 def nested_fit(problem: IdentificationProblem, initial: np.ndarray, **options) -> SolverResult:
@@ -152,7 +148,7 @@ def nested_fit(problem: IdentificationProblem, initial: np.ndarray, **options) -
     The result's objective is without penalties when every trial is in equilibrium; its
     evaluations are the Complex's objective evaluations, ``equilibrium_solves`` the trial
     equilibria solved, ``residuals`` the largest residual per trial (N or N m) at the best point."""
-    settings = NestedSettings.from_kwargs(**options)
+    settings = keyword_options(NestedSettings, "nested_fit", options)
     bounds = list(zip(*problem.scaled_bounds, strict=True))
     t0 = time.perf_counter()
     cloud = problem.to_scaled(initial)

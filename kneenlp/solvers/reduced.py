@@ -208,11 +208,6 @@ class ReducedSettings:
     tol: float | None = None
     threads: int = 2
 
-    @classmethod
-    def from_kwargs(cls, **options) -> ReducedSettings:
-        """The settings of :func:`reduced_least_squares`'s keyword arguments; ``TypeError`` names every
-        unknown one."""
-        return keyword_options(cls, "reduced_least_squares", options)
 
 
 def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float], *, q0: np.ndarray | None = None,
@@ -223,7 +218,7 @@ def reduced_least_squares(problem: IdentificationProblem, start: dict[str, float
     their scales; stops at relative cost change ``tol`` (default :func:`tolerance`) or after
     ``max_evaluations`` (60) residual evaluations; ``threads`` (2) of the trials' Newton
     (``options``: :class:`ReducedSettings`)."""
-    settings = ReducedSettings.from_kwargs(**options)
+    settings = keyword_options(ReducedSettings, "reduced_least_squares", options)
     threads, max_evaluations = settings.threads, settings.max_evaluations
     tol = tolerance(problem.model) if settings.tol is None else settings.tol
     t0 = time.perf_counter()
