@@ -11,12 +11,13 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 import pytest
-from scipy.optimize import minimize
+from scipy.optimize import minimize, minimize_scalar
+from scipy.spatial.transform import Rotation
 
 import kneenlp
 from kneenlp.base.errors import InputError
 from kneenlp.model.elements import Pose
-from kneenlp.model.paths import CylinderWrap, StraightPath, ViaPoints
+from kneenlp.model.paths import CylinderWrap, EllipsoidWrap, StraightPath, ViaPoints
 
 
 def shortest_about(S: np.ndarray, E: np.ndarray, w: CylinderWrap) -> float:
@@ -81,6 +82,69 @@ def test_the_wrapped_length_is_the_shortest_path_about_the_cylinder(case):
         assert length == pytest.approx(shortest_about(S, E, w), rel=1e-6)
 
 
+def planar_about(S: np.ndarray, E: np.ndarray, w: EllipsoidWrap, n: int = 200_000) -> float:
+    """The shortest path from S to E over the ellipsoid among those in one plane through S and E,
+    by brute force: each plane (turned about the line SE by a searched angle) cuts the ellipsoid in
+    a section sampled at ``n`` points; the path runs S -> the section's extreme point seen from S
+    -> along the sampled section -> the extreme point seen from E -> E, on the side away from the
+    centre (no tangent formula, affine map or quadrature assumed)."""
+    s, e = w.axes.T @ (S - w.centre), w.axes.T @ (E - w.centre)
+    D = np.diag(1 / w.radii**2)
+    u = (e - s) / np.linalg.norm(e - s)
+    away = s - (s @ u) * u  # from the centre to its foot on the line: outwards
+    away /= np.linalg.norm(away)
+    span = np.linalg.norm(e - s)
+
+    def length(psi: float, m: int) -> float:
+        v = np.cos(psi) * away + np.sin(psi) * np.cross(u, away)
+        Q = np.array([[u @ D @ u, u @ D @ v], [u @ D @ v, v @ D @ v]])
+        b, k = np.array([s @ D @ u, s @ D @ v]), s @ D @ s - 1
+        c = -np.linalg.solve(Q, b)
+        size = c @ Q @ c - k
+        if size <= 0:
+            return span
+        val, vec = np.linalg.eigh(Q)
+        th = np.linspace(0, 2 * np.pi, m, endpoint=False)
+        pts = (c[:, None] + vec @ (np.sqrt(size / val)[:, None] * np.array([np.cos(th), np.sin(th)]))).T
+        pts = np.roll(pts, -int(np.argmin(pts[:, 1])), axis=0)  # in order round the section from its lowest point
+        pts = pts[pts[:, 1] > 0]  # the side away from the centre: the path's
+        seen_s = np.arctan2(pts[:, 1], pts[:, 0])
+        seen_e = np.arctan2(pts[:, 1], span - pts[:, 0])
+        i, j = int(np.argmax(seen_s)), int(np.argmax(seen_e))
+        if seen_s[i] <= 0:
+            return span
+        lo, hi = sorted((i, j))
+        arc = np.linalg.norm(np.diff(pts[lo:hi + 1], axis=0), axis=1).sum()
+        return np.linalg.norm(pts[i]) + arc + np.linalg.norm(pts[j] - [span, 0])
+
+    best = minimize_scalar(lambda psi: length(psi, 20_000), bounds=(-1.2, 1.2), method="bounded",
+                           options={"xatol": 1e-7})
+    return length(best.x, n)
+
+
+ELLIPSOIDS = [EllipsoidWrap(np.array([0.001, -0.006, 0.002]), Rotation.from_rotvec(rv).as_matrix(), radii, "femur")
+              for rv, radii in (((0.1, -0.3, 0.2), np.array([0.03, 0.018, 0.012])),
+                                ((0.5, 0.2, -0.4), np.array([0.012, 0.016, 0.01])),
+                                ((0.0, 0.0, 0.0), np.array([0.014, 0.014, 0.014])))]
+
+
+@pytest.mark.parametrize("case", range(3))
+def test_the_ellipsoid_path_is_the_shortest_planar_path_and_on_a_sphere_the_great_circle(case):
+    """Three ellipsoids, the last a sphere: the closed form (affine tangents, quadrature, Newton on
+    the plane) equals a brute-force search over planes and sampled sections to 1e-6; on the sphere
+    it is the great circle's closed form to 1e-12."""
+    w = ELLIPSOIDS[case]
+    S, E = np.array([0.03, 0.002, -0.02]), np.array([-0.03, -0.003, 0.03])
+    length = w.length(E, S, *identity())
+    assert w.wraps(E, S, *identity()) and length > np.linalg.norm(E - S) + 1e-4
+    assert length == pytest.approx(planar_about(S, E, w), rel=1e-6)
+    if case == 2:  # a sphere: tangent lengths and the great circle's arc between the tangent points
+        r, a, b = w.radii[0], S - w.centre, E - w.centre
+        da, db = np.linalg.norm(a), np.linalg.norm(b)
+        arc = np.arccos(a @ b / (da * db)) - np.arccos(r / da) - np.arccos(r / db)
+        assert length == pytest.approx(np.sqrt(da**2 - r**2) + r * arc + np.sqrt(db**2 - r**2), rel=1e-12)
+
+
 def test_via_points_sum_their_segments():
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     p, tibia, femur = np.array([0.001, -0.002, 0.0]), np.array([0.01, -0.03, 0.0]), np.array([0.0, 0.01, 0.02])
@@ -97,20 +161,27 @@ def test_a_path_clear_of_the_cylinder_is_the_straight_line():
     assert w.length(E, S, *identity()) == pytest.approx(np.linalg.norm(E - S), rel=1e-15)
 
 
+#: The tibia's rotation in the virtual-work test (0.3 rad about the femoral z axis).
+ROTATED = Rotation.from_rotvec([0.0, 0.0, 0.3]).as_matrix()
+
+
 def _symbolic(path, femur, tibia):
     """Length and force line of ``path`` as functions of the tibia's translation ``p`` and a small
     rotation ``w`` (R = exp([w]x) R0)."""
     p, w = ca.SX.sym("p", 3), ca.SX.sym("w", 3)
     W = ca.skew(w)
-    R0 = np.array([[np.cos(0.3), -np.sin(0.3), 0], [np.sin(0.3), np.cos(0.3), 0], [0, 0, 1]])
-    R = (ca.DM.eye(3) + W + W @ W / 2) @ ca.DM(R0)  # exp to second order: exact derivatives at w = 0
+    R = (ca.DM.eye(3) + W + W @ W / 2) @ ca.DM(ROTATED)  # exp to second order: exact derivatives at w = 0
     route = path.route(ca.DM(femur), ca.DM(tibia), Pose(R, p, ca.SX.zeros(5), ca.SX(0)))
+    force, moment = route.wrench(ca.DM(1))
     return ca.Function("f", [p, w], [route.length, ca.jacobian(route.length, p), ca.jacobian(route.length, w),
-                                     route.direction, ca.cross(route.arm, route.direction)])
+                                     force, moment])
 
 
 PATHS = {"cylinder on the femur": CylinderWrap(np.array([0.001, 0.0, 0.002]), [0.1, 0.2, 1.0], 0.01, "femur", 1),
          "cylinder on the tibia": CylinderWrap(np.array([0.001, 0.0, 0.002]), [0.1, 0.2, 1.0], 0.01, "tibia", 1),
+         "ellipsoid on the femur": ELLIPSOIDS[0],
+         "ellipsoid on the tibia": EllipsoidWrap(ROTATED.T @ ELLIPSOIDS[1].centre, ROTATED.T @ ELLIPSOIDS[1].axes,
+                                                 ELLIPSOIDS[1].radii, "tibia"),  # placed as on the femur at R0
          "via points": ViaPoints(tibia=((0.02, -0.01, -0.01),), femur=((0.0, 0.015, 0.0), (-0.02, 0.01, 0.02)))}
 
 
@@ -123,7 +194,7 @@ def test_the_force_on_the_tibia_is_the_length_derivative(name):
     f = _symbolic(path, femur, tibia)
     for p in (np.zeros(3), np.array([0.002, -0.001, 0.001])):
         length, dl_dp, dl_dw, direction, moment = (np.asarray(v).ravel() for v in f(p, np.zeros(3)))
-        assert length > np.linalg.norm(femur - (p + tibia)) + 1e-4  # longer than the straight line
+        assert length > np.linalg.norm(femur - (p + ROTATED @ tibia)) + 1e-4  # longer than the straight line
         np.testing.assert_allclose(direction, -dl_dp, atol=1e-12)
         np.testing.assert_allclose(moment, -dl_dw, atol=1e-12)
 

@@ -4,18 +4,17 @@ checked against the bones (:class:`LigamentReading`, one part of the knee file's
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import trimesh
 
 from kneenlp.base.errors import InputError
 from kneenlp.geometry.distance import MeshDistance, winding_number
+from kneenlp.model.kinematics import reference_transform
 from kneenlp.model.knee_schema import BundleTable, SlackShiftTable
 from kneenlp.model.laws import DEFAULT_LAW, law_named
 from kneenlp.model.ligament import Bundle, Ligament, SlackShift
 from kneenlp.model.parameters import KINDS
-from kneenlp.model.paths import CylinderWrap, LigamentPath, StraightPath, ViaPoints
+from kneenlp.model.paths import CylinderWrap, EllipsoidWrap, LigamentPath, StraightPath, ViaPoints, WrapPath
 
 #: Longest plausible ligament (m, attachment distance in the reference pose; the superficial MCL
 #: is about 0.1 m): attachments further apart are a typo or mixed units.
@@ -27,6 +26,9 @@ ATTACHMENT_DEPTH = 2.5e-3
 #: A point (attachment or landmark) this close to the femoral frame's origin (m) in a millimetre
 #: file is a point written in metres (the origin lies between the condyles, no attachment there).
 NEAR_ORIGIN = 0.5e-3
+#: Flexions (deg) over which a wrapping obstacle is looked for on its bundle's straight path, at the
+#: reference laxity pose: an obstacle never met there is noted (the path stays straight).
+WRAP_FLEXIONS = np.arange(0.0, 121.0, 5.0)
 
 
 class LigamentReading:
@@ -125,40 +127,84 @@ class LigamentReading:
         return found
 
     def ligaments(self) -> dict[str, Ligament]:
-        """``[ligaments.<NAME>]``: each ligament's bundles (attachments in m, femoral frame) and law."""
+        """``[ligaments.<NAME>]``: each ligament's bundles (attachments in m, femoral frame), their
+        paths and the law."""
         ligaments = {}
         for name, lig in self.spec.ligaments.items():
             fld = f"ligaments.{name}"
             law = law_named(lig.law if lig.law is not None else DEFAULT_LAW, source=self.src, field=f"{fld}.law")
             path = self.ligament_path(lig, fld)
             if lig.bundles is not None:
-                bundles = [dataclasses.replace(b, path=path) for b in self.bundles(lig.bundles, f"{fld}.bundles")]
+                bundles = self.bundles(lig.bundles, f"{fld}.bundles", path)
+                if lig.via is not None and any(t.wrap is not None for t in lig.bundles):
+                    raise InputError("give via points or wrapping obstacles, not both", source=self.src,
+                                     field=f"{fld}.via")
                 ligaments[name] = Ligament(name, bundles, reference=self.reference, law=law,
                                            shift=self.slack_shift(lig.slack_shift, f"{fld}.slack_shift"))
+                for i, b in enumerate(bundles):
+                    self.check_path(b, f"{fld}.bundles[{i}]" if lig.bundles[i].wrap is not None else f"{fld}.wrap")
                 continue
             femur, tibia = self.point(lig.femur), self.point(lig.tibia)
             self.check_length(femur, tibia, fld)
             self.attach(femur, tibia, f"{fld}.femur", f"{fld}.tibia")
             ligaments[name] = Ligament(name, [Bundle(femur, tibia, path=path)], reference=self.reference, law=law)
+            self.check_path(ligaments[name].bundles[0], f"{fld}.wrap")
         return ligaments
 
     def ligament_path(self, lig, fld: str) -> LigamentPath:
-        """A ligament's path: its ``via`` points or the cylinder it ``wrap``s, in the model's frames
-        (m; a left knee mirrored, which turns a wrap's side), else the straight path."""
+        """A ligament's path: its ``via`` points or the obstacle it ``wrap``s, in the model's frames
+        (m; a left knee mirrored), else the straight path."""
         if lig.via is not None and lig.wrap is not None:
-            raise InputError("give via points or a wrapping cylinder, not both", source=self.src, field=f"{fld}.via")
+            raise InputError("give via points or a wrapping obstacle, not both", source=self.src, field=f"{fld}.via")
         if lig.via is not None:
+            for side, points in (("tibia", lig.via.tibia), ("femur", lig.via.femur)):
+                for i, v in enumerate(points):  # checked against the bones as the attachments are
+                    point = self.point(v)
+                    self.attachments.append((f"{fld}.via.{side}[{i}]", self.at_reference(point) if side == "tibia"
+                                             else point, "tibial" if side == "tibia" else "femoral"))
             return ViaPoints(tuple(tuple(self.point(v)) for v in lig.via.tibia),
                              tuple(tuple(self.point(v)) for v in lig.via.femur))
-        if lig.wrap is None:
-            return StraightPath()
-        table, fld = lig.wrap, f"{fld}.wrap"
-        axis = self.point(table.axis) - self.point((0.0, 0.0, 0.0))
+        return StraightPath() if lig.wrap is None else self.wrap_path(lig.wrap, f"{fld}.wrap")
+
+    def direction(self, value, fld: str) -> np.ndarray:
+        """A direction of the file in the femoral frame's axes (unit)."""
+        axis = self.point(value) - self.point((0.0, 0.0, 0.0))
         if not np.linalg.norm(axis) > 0:
-            raise InputError("must not be zero", source=self.src, field=f"{fld}.axis")
-        side = (1 if table.side == "positive" else -1) * int(self.mirror[2])
-        return CylinderWrap(self.point(table.centre), axis, self.length(table.radius, "wrap_radius", 10.0,
-                                                                         f"{fld}.radius"), table.body, side)
+            raise InputError("must not be zero", source=self.src, field=fld)
+        return axis / np.linalg.norm(axis)
+
+    def wrap_path(self, table, fld: str) -> LigamentPath:
+        """The path over a ``[...wrap]`` table's obstacle (a left knee mirrored, which turns a
+        cylinder's side)."""
+        centre = self.point(table.centre)
+        if table.shape == "cylinder":
+            side = (1 if table.side == "positive" else -1) * int(self.mirror[2])
+            return CylinderWrap(centre, self.direction(table.axis, f"{fld}.axis"),
+                                self.length(table.radius, "wrap_radius", 10.0, f"{fld}.radius"), table.body, side)
+        axes = np.column_stack([self.direction(v, f"{fld}.axes[{i}]") for i, v in enumerate(table.axes)])
+        if not np.allclose(axes.T @ axes, np.eye(3), atol=1e-6):
+            raise InputError("the three directions must be orthogonal", source=self.src, field=f"{fld}.axes")
+        axes[:, 2] *= np.sign(np.linalg.det(axes))  # a mirrored knee's axes, right-handed again
+        radii = [self.length(r, "wrap_radius", 10.0, f"{fld}.radii") for r in table.radii]
+        return EllipsoidWrap(centre, axes, np.array(radii), table.body)
+
+    def check_path(self, bundle: Bundle, fld: str) -> None:
+        """A wrapping obstacle holds neither attachment in the reference pose (one line naming the
+        bundle), and one the straight path never meets between 0 and 120 deg flexion at the
+        reference laxity pose is noted: the path then stays straight."""
+        path = bundle.path
+        if not isinstance(path, WrapPath):
+            return
+        R, p = self.reference
+        for where in path.inside(bundle.femur, bundle.tibia, R, p):
+            raise InputError(f"bundle {bundle.name!r}: its {where} attachment lies inside the wrapping obstacle in "
+                             "the reference pose, where the path is not defined (OpenSim silently runs it straight)",
+                             source=self.src, field=fld)
+        laxity = np.asarray(self.reference_pose[1], float)
+        if not any(path.wraps(bundle.femur, bundle.tibia, *reference_transform(np.radians(f), laxity))
+                   for f in WRAP_FLEXIONS):
+            self.notes.append(f"{fld}: bundle {bundle.name!r} never meets its obstacle between 0 and 120 deg flexion "
+                              "(its path stays straight)")
 
     def slack_shift(self, table: SlackShiftTable | None, fld: str) -> SlackShift | None:
         """``[ligaments.<NAME>.slack_shift]``: the group's length (file unit -> m) and reference strain
@@ -172,11 +218,12 @@ class LigamentReading:
             raise InputError("must be > -100 %", source=self.src, field=f"{fld}.ref_strain")
         return shift
 
-    def bundles(self, tables: list[BundleTable], fld: str) -> list[Bundle]:
+    def bundles(self, tables: list[BundleTable], fld: str, path: LigamentPath) -> list[Bundle]:
         """The bundles of a multi-bundle ligament: ``[[ligaments.<NAME>.bundles]]`` tables with
         ``name``, ``femur``, ``tibia``, ``stiffness`` (N per unit strain), ``slack_length`` (file
         length unit) or ``ref_strain`` (%), and ``transition_strain`` (OpenSim's, default 0.06) or
-        ``lin_strain`` (%, the paper's limit = transition / 2)."""
+        ``lin_strain`` (%, the paper's limit = transition / 2); each bundle's path is its own ``wrap``
+        or the ligament's ``path``, and a slack length is of that path's length in the reference pose."""
         src = self.src
         out = []
         for i, b in enumerate(tables):
@@ -184,6 +231,9 @@ class LigamentReading:
             femur, tibia = self.point(b.femur), self.point(b.tibia)
             length = self.check_length(femur, tibia, f)
             self.attach(femur, tibia, f"{f}.femur", f"{f}.tibia")
+            own = path if b.wrap is None else self.wrap_path(b.wrap, f"{f}.wrap")
+            if not isinstance(own, StraightPath):
+                length = own.length(femur, tibia, *self.reference)
             if b.stiffness < 0:
                 raise InputError("must be >= 0 (N per unit strain)", source=src, field=f"{f}.stiffness")
             if (b.slack_length is None) == (b.ref_strain is None):
@@ -201,7 +251,8 @@ class LigamentReading:
                 lin = (b.transition_strain if b.transition_strain is not None else 0.06) / 2
             if lin <= 0:
                 raise InputError("must be > 0", source=src, field=f"{f}.transition_strain")
-            out.append(Bundle(femur, tibia, b.name if b.name is not None else f"{fld}{i}", b.stiffness, ref, lin))
+            out.append(Bundle(femur, tibia, b.name if b.name is not None else f"{fld}{i}", b.stiffness, ref, lin,
+                              path=own))
         return out
 
     def candidates(self) -> list[Ligament]:

@@ -110,10 +110,43 @@ class ContactTable(Table):
         return {n: getattr(self, n) for n in order if getattr(self, n) is not None}
 
 
+class WrapTable(Table):
+    """``[ligaments.<NAME>.wrap]`` (every bundle of the ligament) or a bundle's own ``wrap``: the
+    obstacle its path wraps, fixed to ``body``, centred at ``centre`` (that body's frame, file
+    unit).  A ``cylinder`` (:class:`kneenlp.model.paths.CylinderWrap`, the default shape) along
+    ``axis``, of ``radius``, passed on ``side`` (``positive``: counterclockwise about the axis
+    going from the tibial to the femoral attachment); an ``ellipsoid``
+    (:class:`kneenlp.model.paths.EllipsoidWrap`) of semi-axes ``radii`` (file unit) along ``axes``
+    (three orthogonal directions), passed on the side away from its centre."""
+
+    shape: Literal["cylinder", "ellipsoid"] = "cylinder"
+    body: Literal["femur", "tibia"] = Field(description='body ("femur" or "tibia")')
+    centre: Point = Field(description="centre (a point of the axis)")
+    axis: Point | None = None
+    radius: Number | None = None
+    side: Literal["positive", "negative"] | None = None
+    axes: list[Point] | None = Field(None, min_length=3, max_length=3)
+    radii: Point | None = None
+
+    @model_validator(mode="after")
+    def _keys_of_the_shape(self) -> WrapTable:
+        """A cylinder's axis, radius and side; an ellipsoid's axes and radii; nothing of the other."""
+        need = {"cylinder": ("axis", "radius", "side"), "ellipsoid": ("axes", "radii")}
+        for key in need[self.shape]:
+            if getattr(self, key) is None:
+                raise fail(f"a wrapping {self.shape} needs {key}", key)
+        for shape, keys in need.items():
+            for key in keys:
+                if shape != self.shape and getattr(self, key) is not None:
+                    raise fail(f"{key} belongs to a {shape}, not a {self.shape}", key)
+        return self
+
+
 class BundleTable(Table):
     """``[[ligaments.<NAME>.bundles]]``: attachments, ``stiffness`` (N per unit strain),
-    ``slack_length`` (file unit) or ``ref_strain`` (%), and ``transition_strain`` (OpenSim's,
-    default 0.06) or ``lin_strain`` (%)."""
+    ``slack_length`` (file unit) or ``ref_strain`` (%), ``transition_strain`` (OpenSim's,
+    default 0.06) or ``lin_strain`` (%), and the obstacle its own path wraps (``wrap``, in place of
+    the ligament's)."""
 
     name: str | None = None
     femur: Point = Field(description="attachment")
@@ -123,6 +156,7 @@ class BundleTable(Table):
     ref_strain: Number | None = None
     transition_strain: Number | None = None
     lin_strain: Number | None = None
+    wrap: WrapTable | None = None
 
 
 class SlackShiftTable(Table):
@@ -132,19 +166,6 @@ class SlackShiftTable(Table):
 
     length: Number = Field(description="the group's reference length (file unit)")
     ref_strain: Number = Field(description="the group's reference strain (%)")
-
-
-class WrapTable(Table):
-    """``[ligaments.<NAME>.wrap]``: every bundle's path wraps a cylinder (:class:`kneenlp.model.paths.
-    CylinderWrap`) fixed to ``body``, through ``centre`` along ``axis`` (that body's frame, file
-    unit), of ``radius``, passed on ``side`` (``positive``: counterclockwise about the axis going
-    from the tibial to the femoral attachment)."""
-
-    body: Literal["femur", "tibia"] = Field(description='body ("femur" or "tibia")')
-    centre: Point = Field(description="centre (a point of the axis)")
-    axis: Point = Field(description="axis direction")
-    radius: Number = Field(description="radius (file unit)")
-    side: Literal["positive", "negative"] = Field(description='side ("positive" or "negative")')
 
 
 class ViaTable(Table):

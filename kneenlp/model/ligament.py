@@ -264,14 +264,14 @@ class Ligament(ForceElement):
             else:
                 strain = length / slack_length(reference, own["ref_strain"]) - 1
                 tension = self.law.tension(strain, own["k"], own["lin_strain"])
-            yield route.arm, route.direction, strain, tension
+            yield route, strain, tension
 
     def wrench(self, pose: Pose, values: dict) -> tuple[ca.SX, ca.SX]:
         force, moment = ca.SX.zeros(3), ca.SX.zeros(3)
-        for arm, direction, _, tension in self._bundle_terms(pose, values):
-            f = tension * direction
+        for route, _, tension in self._bundle_terms(pose, values):
+            f, m = route.wrench(tension)
             force += f
-            moment += ca.cross(arm, f)
+            moment += m
         return force, moment
 
     def outputs(self) -> list[Output]:
@@ -279,7 +279,7 @@ class Ligament(ForceElement):
 
     def output_values(self, pose: Pose, values: dict) -> list[ca.SX]:
         terms = list(self._bundle_terms(pose, values))
-        strain = terms[0][2]
+        strain = terms[0][1]
         for t in terms[1:]:
-            strain = ca.fmax(strain, t[2])
-        return [strain, sum((t[3] for t in terms), ca.SX(0))]
+            strain = ca.fmax(strain, t[1])
+        return [strain, sum((t[2] for t in terms), ca.SX(0))]
