@@ -195,8 +195,11 @@ def test_the_force_on_the_tibia_is_the_length_derivative(name):
     for p in (np.zeros(3), np.array([0.002, -0.001, 0.001])):
         length, dl_dp, dl_dw, direction, moment = (np.asarray(v).ravel() for v in f(p, np.zeros(3)))
         assert length > np.linalg.norm(femur - (p + ROTATED @ tibia)) + 1e-4  # longer than the straight line
-        np.testing.assert_allclose(direction, -dl_dp, atol=1e-12)
-        np.testing.assert_allclose(moment, -dl_dw, atol=1e-12)
+        # a planar path over an ellipsoid is not a geodesic: its tension along the free segments
+        # (OpenSim's force) is its length's gradient to ~1e-3 of the tension; the others' exactly
+        tol = 1e-3 if isinstance(path, EllipsoidWrap) else 1e-12
+        np.testing.assert_allclose(direction, -dl_dp, atol=tol)
+        np.testing.assert_allclose(moment, -dl_dw, atol=tol * 0.05)
 
 
 def test_length_and_its_gradient_are_continuous_where_the_wrap_begins():

@@ -8,7 +8,7 @@ s; benchmarks/bench_compiled.py).  The NLP's per-trial blocks stay in CasADi: th
 free parameters, and IPOPT's share of a calibration is small.
 
 :func:`compiled` returns the function's library from the cache (:func:`~kneenlp.base.cache.cache_dir`,
-``compiled/``), keyed by the SHA-256 of its generated C code and the compiler's flags.  The flags
+``compiled/``), keyed by the SHA-256 of its serialized form, the compiler's flags and CasADi's version.  The flags
 (``-O1 -ffp-contract=off``, no fast-math) keep every operation as the virtual machine does it, in
 the same order: a library is used only if it gives the function's own values bit for bit at a seeded
 probe input, so a result does not depend on whether the cache holds the library.
@@ -74,12 +74,15 @@ def compiled(function: ca.Function) -> ca.Function:
     if where is None:
         return function
     name = function.name()
-    generator = ca.CodeGenerator(f"{name}.c")
-    generator.add(function)
-    source = generator.dump().encode()
-    key = hashlib.sha256(source + " ".join(FLAGS).encode() + ca.__version__.encode()).hexdigest()[:24]
+    # the key: the function's serialized form (a third of the time of generating its C code, which
+    # only a missing library needs), the flags and CasADi's version
+    key = hashlib.sha256(function.serialize().encode() + " ".join(FLAGS).encode()
+                         + ca.__version__.encode()).hexdigest()[:24]
     library = where / f"{name}_{key}.so"
     if not library.exists():
+        generator = ca.CodeGenerator(f"{name}.c")
+        generator.add(function)
+        source = generator.dump().encode()
         _prune(where)
         src = where / f"{name}_{key}.{os.getpid()}.c"  # this process's copy: removed by its own command
         _write(src, source)

@@ -2,8 +2,8 @@
 
 ``kneenlp import-osim MODEL.osim --out KNEE_DIR`` (:func:`import_osim`) reads the femur and tibia
 bodies of the knee joint, every femur-tibia Blankevoort1991Ligament bundle (stiffness, slack
-length, transition strain, the path points on the two bodies; wrapping surfaces and path points on
-other bodies are reported and skipped: kneenlp's bundles are straight lines), the tibiofemoral
+length, transition strain, the path points on the two bodies and the surface the path wraps,
+:mod:`kneenlp.io.import_wraps`; path points on other bodies are reported and skipped), the tibiofemoral
 contact meshes (Smith2018ContactMesh, found next to the model or in ``--geometry DIR``), and
 writes a knee whose multi-bundle ligaments are the model's bundle groups (``ACLam``, ``ACLpl``,
 ... by default; ``groups="coarse"`` merges them into ``ACL``, ``PCL``, ``MCL``, ...).  Each group
@@ -31,6 +31,7 @@ from kneenlp.base.atomic import write_text_atomic
 from kneenlp.base.errors import InputError
 from kneenlp.base.keywords import keyword_options
 from kneenlp.base.modes import Groups, checked
+from kneenlp.io.import_wraps import wrap_table
 from kneenlp.io.osim import LineElement, OsimError, OsimModel, knee_line_elements, ligament_groups, read_osim
 from kneenlp.model.knee_file import PLAUSIBLE_MM
 from kneenlp.model.laws import BlankevoortLaw
@@ -105,7 +106,8 @@ def import_osim(osim: str | Path, out: str | Path, **options) -> ImportReport:
     osim = Path(osim)
     _check_femur_offset(femur_offset)
     model = _read_model(osim, groups, (femur_body, tibia_body))
-    keep, skipped = _straight_bundles(model, femur_body, tibia_body)
+    keep, skipped = _kept_bundles(model, femur_body, tibia_body)
+    wraps = _wraps(model, keep, {"femur": femur_body, "tibia": tibia_body}, skipped)
     grouped = ligament_groups(list(keep))[groups]
     out = Path(out)
     (out / "meshes").mkdir(parents=True, exist_ok=True)
@@ -121,11 +123,12 @@ def import_osim(osim: str | Path, out: str | Path, **options) -> ImportReport:
         "landmarks": landmarks,
         "contact": {"femur": meshes["femur"], "tibia": meshes["tibia"], "gate": 1e-5, "grid_spacing": 5e-4,
                     **({"femur_offset": float(femur_offset)} if femur_offset else {})},
-        "ligaments": {group: _ligament_table(keep, names) for group, names in grouped.items()},
+        "ligaments": {group: _ligament_table(keep, names, wraps) for group, names in grouped.items()},
     }
     header = (f"# kneenlp knee imported from {osim.name} (kneenlp import-osim; {groups} bundle groups).\n"
               f"# Coordinates: metres in the model's {femur_body} frame ({tibia_body} for tibial points).\n"
-              "# Bundles: stiffness in N per unit strain (OpenSim linear_stiffness), slack_length in m,\n"
+              "# Bundles: stiffness in N per unit strain (OpenSim linear_stiffness), slack_length in m (of the\n"
+              "# path, wrapped where OpenSim wraps it: wrap tables, the surface in its body's frame),\n"
               "# transition_strain as OpenSim's (the paper's linear strain limit is half of it); the law is\n"
               "# OpenSim's Blankevoort1991Ligament (law = \"blankevoort\", kneenlp.model.laws).\n")
     knee_file = write_text_atomic(out / "knee.toml", header + tomli_w.dumps(doc))
@@ -158,15 +161,11 @@ def _read_model(osim: Path, groups: Groups, bodies: tuple[str, str]) -> OsimMode
     return model
 
 
-def _straight_bundles(model: OsimModel, femur_body: str, tibia_body: str) -> tuple[dict[str, LineElement], list[str]]:
-    """The femur-tibia bundles kneenlp represents (straight, load bearing) by name, and the notes
-    on what the import leaves out: the reader's, wrapping surfaces, bundles with points on other bodies."""
+def _kept_bundles(model: OsimModel, femur_body: str, tibia_body: str) -> tuple[dict[str, LineElement], list[str]]:
+    """The femur-tibia bundles kneenlp represents (load bearing, on the two bodies) by name, and
+    the notes on what the import leaves out: the reader's, bundles with points on other bodies."""
     lines = knee_line_elements(model, femur_body, tibia_body)
     skipped = [s for s in model.skipped if "PathWrap" not in s]
-    wrapped = sorted({n for n, e in lines.items() if e.wraps})
-    if wrapped:
-        skipped.append(f"wrapping surfaces of {len(wrapped)} bundles ({', '.join(_ranges(wrapped))}): straight lines "
-                       "between their attachments are used")
     keep = {}
     for name, e in lines.items():
         if e.ignored_points:
@@ -175,6 +174,26 @@ def _straight_bundles(model: OsimModel, femur_body: str, tibia_body: str) -> tup
         elif e.linear_stiffness > 0:
             keep[name] = e
     return keep, skipped
+
+
+def _wraps(model: OsimModel, keep: dict[str, LineElement], bodies: dict[str, str], skipped: list[str]) -> dict:
+    """Each wrapping bundle's ``wrap`` table (:func:`kneenlp.io.import_wraps.wrap_table`); what
+    stays straight is added to ``skipped``, and the wrapped bundles are summed up there."""
+    tables = {}
+    for name, line in keep.items():
+        table, note = wrap_table(model, line, bodies)
+        if note:
+            skipped.append(note)
+        if table is not None:
+            tables[name] = table
+    by_surface: dict[str, list[str]] = {}
+    for name in tables:
+        by_surface.setdefault(keep[name].wraps[0], []).append(name)
+    if by_surface:
+        skipped.append("wrapping surfaces imported: " + "; ".join(
+            f"{surface} ({model.wrap_objects[surface].type[4:].lower()}): {', '.join(_ranges(names))}"
+            for surface, names in by_surface.items()))
+    return tables
 
 
 def _copy_contact_mesh(model: OsimModel, role: str, body: str, given: str | Path | None, copying: _MeshCopy) -> str:
@@ -197,13 +216,14 @@ def _copy_contact_mesh(model: OsimModel, role: str, body: str, given: str | Path
     return f"meshes/{path.name}"
 
 
-def _ligament_table(keep: dict[str, LineElement], names: list[str]) -> dict:
+def _ligament_table(keep: dict[str, LineElement], names: list[str], wraps: dict[str, dict]) -> dict:
     """The knee-file table of one bundle group: OpenSim's law and each bundle's attachments (m),
-    stiffness (N per unit strain), slack length (m) and transition strain."""
+    stiffness (N per unit strain), slack length (m), transition strain and wrapping surface."""
     return {"law": BlankevoortLaw.name, "bundles": [
         {"name": n, "femur": [float(v) for v in keep[n].femoral_point],
          "tibia": [float(v) for v in keep[n].tibial_point], "stiffness": float(keep[n].linear_stiffness),
-         "slack_length": float(keep[n].slack_length), "transition_strain": float(keep[n].transition_strain)}
+         "slack_length": float(keep[n].slack_length), "transition_strain": float(keep[n].transition_strain),
+         **({"wrap": wraps[n]} if n in wraps else {})}
         for n in names]}
 
 

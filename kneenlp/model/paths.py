@@ -38,6 +38,7 @@ AMPL ``.nl`` writer has no conditional and refuses such a knee with its one-line
 
 from __future__ import annotations
 
+import functools
 import itertools
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -54,22 +55,18 @@ BODIES = ("femur", "tibia")
 @dataclass(frozen=True)
 class Route:
     """A path at a pose: its ``length`` (m), the ``arm`` from the tibial origin to the point where
-    its tension acts on the tibia, the ``direction`` it pulls the tibia along (unit for a path
-    whose tension runs along its last free segment) and the ``couple`` per unit tension beyond
-    ``arm x direction`` (m; zero but for a path whose force is its length's gradient, femoral
-    frame's axes)."""
+    its tension acts on the tibia and the unit ``direction`` it pulls the tibia along (femoral
+    frame's axes, m)."""
 
     length: ca.SX
     arm: ca.SX
     direction: ca.SX
-    couple: ca.SX | None = None
 
     def wrench(self, tension: ca.SX) -> tuple[ca.SX, ca.SX]:
         """The force (N) and the moment about the tibial origin (N m) the path's ``tension`` (N)
         puts on the tibia."""
         force = tension * self.direction
-        moment = ca.cross(self.arm, force)
-        return force, moment if self.couple is None else moment + tension * self.couple
+        return force, ca.cross(self.arm, force)
 
 
 class LigamentPath(ABC):
@@ -225,12 +222,21 @@ class CylinderWrap(WrapPath):
                      ca.if_else(active, last / ca.norm_2(last), chord / straight))
 
 
-#: Gauss-Legendre nodes and weights on [0, 1] for an ellipsoid wrap's arc; 12 nodes integrate the
-#: arc of a section ellipse with axes up to 1:3 to 1e-12 of its length.
-_ARC_NODES, _ARC_WEIGHTS = (lambda x, w: ((x + 1) / 2, w / 2))(*np.polynomial.legendre.leggauss(12))
-#: Newton steps on the wrapping plane's angle; from the start plane two reach 1e-9 rad on the
-#: Lenhart ellipsoids, and the length's error is second order in the angle's.
+def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` Gauss-Legendre nodes and weights on [0, 1]."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    return (x + 1) / 2, w / 2
+
+
+#: Quadrature of an ellipsoid wrap's arc: 12 nodes integrate the arc of a section ellipse with
+#: axes up to 1:3 to 1e-12 of its length; the plane is sought with 4 (the length's error is second
+#: order in the plane's, so a slightly displaced minimum costs nothing measurable).
+_ARC, _ARC_SEARCH = _gauss_legendre(12), _gauss_legendre(4)
+#: Newton steps on the wrapping plane's angle: from the start plane two bring the length to 1e-10
+#: of the shortest planar path's (a brute-force search, tests/test_paths.py), one to 5e-4.
 _PLANE_STEPS = 2
+#: The angle step (rad) of the central differences of those Newton steps.
+_PLANE_STEP = 0.02
 
 
 @dataclass(frozen=True)
@@ -274,11 +280,12 @@ class EllipsoidWrap(WrapPath):
         y = s + t * d
         return t, y, ca.dot(y * D, y)
 
-    def planar(self, s: ca.SX, e: ca.SX, phi: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
+    def planar(self, s: ca.SX, e: ca.SX, phi: ca.SX, arc_rule=_ARC) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
         """The path from ``s`` to ``e`` (own axes, outside) in the plane through both turned by
         ``phi`` (rad) about the straight line from the plane of the outward normal where the line
         runs deepest: its length (m), the tangent points seen from ``s`` and from ``e`` (own axes),
-        and the arc's angle on the unit circle (> 0 where the plane's section is cut)."""
+        and the arc's angle on the unit circle (> 0 where the plane's section is cut);
+        ``arc_rule``: the quadrature's nodes and weights on [0, 1]."""
         D = ca.DM(1 / self.radii**2)
         chord = e - s
         span = ca.norm_2(chord)
@@ -320,7 +327,7 @@ class EllipsoidWrap(WrapPath):
             dx1 = (-root * ca.sin(th) - l12 * dx2) / l11
             return ca.sqrt(dx1**2 + dx2**2)
 
-        along = sum(float(wk) * speed(th_a - arc * float(xk)) for xk, wk in zip(_ARC_NODES, _ARC_WEIGHTS, strict=True))
+        along = sum(float(wk) * speed(th_a - arc * float(xk)) for xk, wk in zip(*arc_rule, strict=True))
         ta, tb = plane_point(th_a), plane_point(th_b)
         first = ca.sqrt(ta[0] ** 2 + ta[1] ** 2)
         last = ca.sqrt((span - tb[0]) ** 2 + tb[1] ** 2)
@@ -329,42 +336,51 @@ class EllipsoidWrap(WrapPath):
 
     def wrapped(self, s: ca.SX, e: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
         """The shortest planar path from ``s`` to ``e`` (own axes): its length, tangent points
-        and arc angle (:meth:`planar`) in the plane found by Newton steps on the angle."""
-        phi = ca.SX.sym("phi")
-        length = self.planar(s, e, phi)[0]
-        curv, grad = ca.hessian(length, phi)
-        step = grad / ca.fmax(curv, 1e-12)
-        angle = ca.SX(0)
+        and arc angle (:meth:`planar`) in the plane found by Newton steps on the angle, the
+        derivatives by central differences of :data:`_PLANE_STEP` (a parabola through three
+        planes: exact derivatives of the length would triple the expression for nothing the
+        length can see)."""
+        angle, h = ca.SX(0), _PLANE_STEP
         for _ in range(_PLANE_STEPS):
-            angle = angle - ca.substitute(step, phi, angle)
+            low, mid, high = (self.planar(s, e, angle + d, _ARC_SEARCH)[0] for d in (-h, 0.0, h))
+            angle = angle - h / 2 * (high - low) / ca.fmax(high - 2 * mid + low, 1e-9 * h**2 * mid)
         return self.planar(s, e, angle)
 
-    def path_length(self, start: ca.SX, end: ca.SX, centre: ca.SX, frame: ca.SX) -> ca.SX:
-        """The path's length (m) from ``start`` to ``end`` with the ellipsoid at ``centre`` with its
-        axes the columns of ``frame`` (femoral frame): wrapped while the straight segment cuts it."""
-        s, e = frame.T @ (start - centre), frame.T @ (end - centre)
+    @functools.cached_property
+    def _function(self) -> ca.Function:
+        """The length (:meth:`path_length`), the tangent points seen from the start and from the
+        end (femoral frame) and whether the path wraps, as a function of the start, the end, the
+        centre and the axes (built once per path; not pickled)."""
+        x, end, c, frame = ca.SX.sym("x", 3), ca.SX.sym("end", 3), ca.SX.sym("c", 3), ca.SX.sym("A", 3, 3)
+        s, e = frame.T @ (x - c), frame.T @ (end - c)
         t, _, level = self.depth(s, e)
-        length, _, _, arc = self.wrapped(s, e)
+        length, first, last, arc = self.wrapped(s, e)
         active = ca.logic_and(ca.logic_and(t > 0, t < 1), ca.logic_and(level < 1, arc > 0))
-        return ca.if_else(active, length, ca.norm_2(end - start))
+        length = ca.if_else(active, length, ca.norm_2(end - x))
+        return ca.Function("ellipsoid_path", [x, end, c, frame], [length, c + frame @ first, c + frame @ last, active])
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_function"}
+
+    def length(self, femur, tibia, R, p) -> float:
+        centre, *axes = self.placed(R, p, self.centre, tuple(self.axes.T))
+        start = R @ np.asarray(tibia, float) + p
+        return float(self._function(start, np.asarray(femur, float), centre, np.column_stack(axes))[0])
 
     def route(self, femur, tibia, pose: Pose) -> Route:
-        """The tibia feels the length's gradient (virtual work; the planar path is not a geodesic,
-        so its tension does not run exactly along the free segments): with ``g`` the gradients of
-        the length at the tibial attachment, the centre and the axes of the ellipsoid when it
-        moves with the tibia, the force per unit tension is ``-sum g`` and the moment about the
-        tibial origin ``-sum (x - p) x g_x - sum a x g_a``."""
+        """The tension runs along the free segments, as OpenSim applies a wrapped path's force: the
+        tibia feels the first segment at its attachment (an ellipsoid of the femur) or the last
+        at its tangent point (an ellipsoid of the tibia).  The planar path is not a geodesic, so
+        this force differs from the length's gradient by up to ~0.1 % of the tension (a geodesic's
+        would be exact)."""
         arm = pose.R @ tibia
         start = pose.p + arm  # the tibial attachment in the femoral frame
-        x, c, frame = ca.SX.sym("x", 3), ca.SX.sym("c", 3), ca.SX.sym("A", 3, 3)
-        length = self.path_length(x, femur, c, frame)
-        moves = self.body == "tibia"
-        grads = [ca.gradient(length, v) for v in (x, c, frame)]
         centre, *axes = _placed(self.body, pose, self.centre, tuple(self.axes.T))
-        actual = ca.horzcat(*axes)
-        values = [ca.substitute([e], [x, c, frame], [start, centre, actual])[0] for e in (length, *grads)]
-        length, g_x, g_c, g_a = values
-        if not moves:
-            return Route(length, arm, -g_x)
-        couple = ca.cross(centre - start, -g_c) + sum((ca.cross(axes[i], -g_a[:, i]) for i in range(3)), ca.SX.zeros(3))
-        return Route(length, arm, -(g_x + g_c), couple)
+        length, first, last, active = self._function(start, femur, centre, ca.horzcat(*axes))
+        chord = femur - start
+        straight = chord / ca.norm_2(chord)
+        if self.body == "femur":
+            to = first - start
+            return Route(length, arm, ca.if_else(active, to / ca.norm_2(to), straight))
+        out = femur - last
+        return Route(length, ca.if_else(active, last - pose.p, arm), ca.if_else(active, out / ca.norm_2(out), straight))

@@ -159,13 +159,15 @@ class ContactMesh:
 @dataclass
 class WrapObject:
     """A wrap surface (type e.g. WrapEllipsoid) on ``body``: translation [m], body-fixed
-    XYZ rotation [rad] and raw dimension properties (m)."""
+    XYZ rotation [rad], raw dimension properties (m) and the ``quadrant`` it is constrained to
+    (``all``: unconstrained)."""
     name: str
     type: str
     body: str
     translation: np.ndarray
     xyz_body_rotation: np.ndarray
     dimensions: dict[str, np.ndarray]
+    quadrant: str = "all"
 
 
 # --------------------------------------------------------------------------------------

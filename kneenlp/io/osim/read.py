@@ -240,7 +240,7 @@ def _read_geometry(ctx: _Ctx, model: OsimModel, comps: list[tuple[ET.Element, st
             tr = ctx.floats(el, "translation", where, 3, required=False)
             model.wrap_objects[el.get("name")] = WrapObject(
                 el.get("name"), el.tag, body, np.zeros(3) if tr is None else tr,
-                np.zeros(3) if rot is None else rot, dims)
+                np.zeros(3) if rot is None else rot, dims, (el.findtext("quadrant") or "all").strip().lower())
 
 
 def _read_joints(ctx: _Ctx, model: OsimModel, model_el: ET.Element) -> None:
