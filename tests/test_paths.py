@@ -281,3 +281,77 @@ def test_the_nl_export_of_a_wrapping_knee_is_refused_in_one_line(tmp_path, capsy
     err = capsys.readouterr().err.strip()
     assert "the .nl format has no" in err and "--format casadi or c" in err and "\n" not in err
     assert main([*args, "--format", "casadi", "--out", str(tmp_path / "casadi")]) == 0
+
+
+def test_a_path_at_a_discontinuity_says_why():
+    """The long way round a cylinder (the straight line passes the axis on the other side), a
+    straight line through an ellipsoid's centre, an attachment inside: each named; a smooth wrap not."""
+    S, E = np.array([0.03, 0.002, -0.02]), np.array([-0.03, -0.003, 0.03])
+    short, other = (CylinderWrap(np.zeros(3), [0, 0, 1], 0.01, "femur", side) for side in (1, -1))
+    if short.length(E, S, *identity()) > other.length(E, S, *identity()):
+        short, other = other, short
+    assert short.jump(E, S, *identity()) == ""
+    assert "long way round" in other.jump(E, S, *identity())
+    w = ELLIPSOIDS[0]
+    assert w.jump(E, S, *identity()) == ""
+    through = EllipsoidWrap(0.5 * (S + E), w.axes, w.radii, "femur")  # centred on the straight line
+    assert "switches sides" in through.jump(E, S, *identity())
+    holding = EllipsoidWrap(S, w.axes, w.radii, "femur")
+    assert "tibial attachment lies inside the wrapping ellipsoid" in holding.jump(E, S, *identity())
+
+
+ELLIPSOID_RIM = ('\n[ligaments.MCL.wrap]\nshape = "ellipsoid"\nbody = "tibia"\ncentre = {centre}\n'
+                 'axes = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\nradii = [10.0, 14.0, 8.0]\n')
+
+
+def test_a_knee_file_wraps_an_ellipsoid_and_refuses_one_holding_an_attachment(tmp_path, capsys):
+    """The synthetic MCL over an ellipsoid at the medial plateau's rim: wrapped, longer, simulated;
+    an ellipsoid round the tibial attachment is refused in one line naming the bundle (exit 2);
+    one the path never meets is noted; keys of the other shape are refused."""
+    from kneenlp.cli import main
+
+    (tmp_path / "a").mkdir()
+    knee = _knee_with_wrap(tmp_path / "a", ELLIPSOID_RIM.format(centre="[0.0, -12.0, -36.0]"))
+    mcl = knee.ligaments["MCL"]
+    b = mcl.bundles[0]
+    assert isinstance(b.path, EllipsoidWrap)
+    assert mcl.bundle_length(b) > np.linalg.norm(b.femur - mcl.tibia_at_reference(b.tibia)) + 1e-3
+    assert kneenlp.simulate(knee, "set1").table()["converged"].all()
+    (tmp_path / "b").mkdir()
+    with pytest.raises(InputError, match=r"ligaments\.MCL\.wrap.*bundle 'MCL'.*tibial attachment lies inside"):
+        _knee_with_wrap(tmp_path / "b", ELLIPSOID_RIM.format(centre="[6.0, -84.0, -26.0]"))
+    assert main(["simulate", "--knee", str(tmp_path / "b" / "knee" / "knee.toml"), "--no-plots",
+                 "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "tibial attachment lies inside" in err and "\n" not in err
+    (tmp_path / "c").mkdir()
+    far = _knee_with_wrap(tmp_path / "c", ELLIPSOID_RIM.format(centre="[0.0, -12.0, -90.0]"))
+    assert any("never meets its obstacle" in n for n in far.notes)
+    (tmp_path / "d").mkdir()
+    with pytest.raises(InputError, match=r"ligaments\.MCL\.wrap\.radius.*belongs to a cylinder"):
+        _knee_with_wrap(tmp_path / "d", ELLIPSOID_RIM.format(centre="[0.0, -12.0, -36.0]") + "radius = 3.0\n")
+
+
+def test_a_cylinder_passed_the_long_way_is_noted_in_the_solved_trials(tmp_path):
+    """The rim cylinder declared on the side the path does not take (the longer one in the
+    reference pose): simulate names the trials where the path goes the long way round."""
+    knees = {}
+    for side in ("positive", "negative"):
+        (tmp_path / side).mkdir()
+        knees[side] = _knee_with_wrap(tmp_path / side, RIM.format(side=side))
+    length = {s: k.ligaments["MCL"].bundle_length(k.ligaments["MCL"].bundles[0]) for s, k in knees.items()}
+    right, wrong = sorted(length, key=length.get)
+    assert not any("long way" in n for n in kneenlp.simulate(knees[right], "set1").table()["note"])
+    notes = kneenlp.simulate(knees[wrong], "set1").table()["note"]
+    assert sum("MCL bundle 'MCL'" in n and "long way round" in n for n in notes) >= 2
+
+
+def test_a_via_point_inside_a_bone_is_refused(tmp_path):
+    """The default knee's MCL through a point 20 mm inside its medial femoral condyle: the via
+    point is checked against the bone as an attachment is, and named."""
+    src = Path(kneenlp.Knee.named("default").source)
+    text = src.read_text().replace('"../', f'"{src.parent}/../')
+    text = text.replace("[ligaments.LCL]", "[ligaments.MCL.via]\nfemur = [[0.0, -0.008, -0.02]]\n\n[ligaments.LCL]")
+    (tmp_path / "knee.toml").write_text(text)
+    with pytest.raises(InputError, match=r"ligaments\.MCL\.via\.femur\[0\].*inside the femoral mesh"):
+        kneenlp.Knee.load(tmp_path / "knee.toml")

@@ -23,6 +23,7 @@ How a fit starts and restarts, and the solves themselves: :mod:`kneenlp.estimati
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -38,6 +39,7 @@ from kneenlp.estimation.solve import ScatterSettings, scatter_fit, scatter_searc
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import MeasuredData, read_measured
 from kneenlp.experiment.noise import NoiseModel
+from kneenlp.experiment.path_checks import path_jumps
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.protocol import Protocol, available_protocols
 from kneenlp.model.knee import Knee
@@ -149,7 +151,8 @@ def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
     model = KneeModel.of(knee or Knee.default())
     data = checked_data(data, opts.protocol)
     if resolve_strategy(opts.strategy, data, method) == "calibration":
-        return calibration(model, data, params, opts)
+        found = calibration(model, data, params, opts)
+        return dataclasses.replace(found, fit=noted_path_jumps(found.fit))
     chosen = {"free": opts.free, "fixed": opts.fixed, "priors": opts.priors, "with_effects": opts.with_effects or ()}
     if params is not None:
         chosen = scatter_params(model, params, chosen)
@@ -165,9 +168,18 @@ def identification(knee: Knee | KneeModel | None, data: MeasuredData | str | Pat
         if method != "simultaneous":
             raise InputError("the global search solves the simultaneous NLP; --method nested has its own "
                              "population", field="--starts")
-        return Calibration(scatter_search(problem, start, SearchSettings(seed=opts.seed, threads=opts.threads,
-                                                                         **search_options)))
-    return Calibration(scatter_fit(problem, start, opts.scatter(method)))
+        return Calibration(noted_path_jumps(scatter_search(problem, start, SearchSettings(
+            seed=opts.seed, threads=opts.threads, **search_options))))
+    return Calibration(noted_path_jumps(scatter_fit(problem, start, opts.scatter(method))))
+
+
+def noted_path_jumps(fit: Fit) -> Fit:
+    """``fit`` with a note naming the trials whose fitted pose puts a wrapped ligament path where
+    it is not smooth (:func:`~kneenlp.experiment.path_checks.path_jumps`)."""
+    problem = fit.problem
+    notes = path_jumps(problem.model, fit.q_pred, fit.theta, [t.flexion for t in problem.trials])
+    found = [f"trial {t.id}: {n}" for t, n in zip(problem.trials, notes, strict=True) if n]
+    return fit.with_note("wrapped paths at a discontinuity: " + "; ".join(found)) if found else fit
 
 
 def scatter_params(model: KneeModel, params: Parameters, given: dict) -> dict:

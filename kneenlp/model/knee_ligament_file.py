@@ -142,13 +142,14 @@ class LigamentReading:
                 ligaments[name] = Ligament(name, bundles, reference=self.reference, law=law,
                                            shift=self.slack_shift(lig.slack_shift, f"{fld}.slack_shift"))
                 for i, b in enumerate(bundles):
-                    self.check_path(b, f"{fld}.bundles[{i}]" if lig.bundles[i].wrap is not None else f"{fld}.wrap")
+                    own = lig.bundles[i].wrap is not None
+                    self.check_path(b, f"{fld}.bundles[{i}]" if own else f"{fld}.wrap", b.name)
                 continue
             femur, tibia = self.point(lig.femur), self.point(lig.tibia)
             self.check_length(femur, tibia, fld)
             self.attach(femur, tibia, f"{fld}.femur", f"{fld}.tibia")
             ligaments[name] = Ligament(name, [Bundle(femur, tibia, path=path)], reference=self.reference, law=law)
-            self.check_path(ligaments[name].bundles[0], f"{fld}.wrap")
+            self.check_path(ligaments[name].bundles[0], f"{fld}.wrap", name)
         return ligaments
 
     def ligament_path(self, lig, fld: str) -> LigamentPath:
@@ -188,22 +189,22 @@ class LigamentReading:
         radii = [self.length(r, "wrap_radius", 10.0, f"{fld}.radii") for r in table.radii]
         return EllipsoidWrap(centre, axes, np.array(radii), table.body)
 
-    def check_path(self, bundle: Bundle, fld: str) -> None:
+    def check_path(self, bundle: Bundle, fld: str, name: str) -> None:
         """A wrapping obstacle holds neither attachment in the reference pose (one line naming the
         bundle), and one the straight path never meets between 0 and 120 deg flexion at the
-        reference laxity pose is noted: the path then stays straight."""
+        reference laxity pose is noted: the path then stays straight (``name``: the bundle's)."""
         path = bundle.path
         if not isinstance(path, WrapPath):
             return
         R, p = self.reference
         for where in path.inside(bundle.femur, bundle.tibia, R, p):
-            raise InputError(f"bundle {bundle.name!r}: its {where} attachment lies inside the wrapping obstacle in "
+            raise InputError(f"bundle {name!r}: its {where} attachment lies inside the wrapping {path.shape} in "
                              "the reference pose, where the path is not defined (OpenSim silently runs it straight)",
                              source=self.src, field=fld)
         laxity = np.asarray(self.reference_pose[1], float)
         if not any(path.wraps(bundle.femur, bundle.tibia, *reference_transform(np.radians(f), laxity))
                    for f in WRAP_FLEXIONS):
-            self.notes.append(f"{fld}: bundle {bundle.name!r} never meets its obstacle between 0 and 120 deg flexion "
+            self.notes.append(f"{fld}: bundle {name!r} never meets its obstacle between 0 and 120 deg flexion "
                               "(its path stays straight)")
 
     def slack_shift(self, table: SlackShiftTable | None, fld: str) -> SlackShift | None:

@@ -38,6 +38,7 @@ AMPL ``.nl`` writer has no conditional and refuses such a knee with its one-line
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 from abc import ABC, abstractmethod
@@ -117,6 +118,8 @@ class WrapPath(LigamentPath):
     where a point lies (< 1 inside)."""
 
     body: str
+    #: the obstacle's name in messages
+    shape = "obstacle"
 
     @abstractmethod
     def level(self, point: np.ndarray, R: np.ndarray, p: np.ndarray) -> float:
@@ -127,6 +130,19 @@ class WrapPath(LigamentPath):
         """Which attachments (``"femoral"``, ``"tibial"``) lie inside the obstacle at ``R``, ``p``."""
         points = {"femoral": np.asarray(femur, float), "tibial": R @ np.asarray(tibia, float) + p}
         return [name for name, x in points.items() if self.level(x, R, p) < 1]
+
+    def jump(self, femur: np.ndarray, tibia: np.ndarray, R: np.ndarray, p: np.ndarray) -> str:
+        """Why the path's length is not smooth near ``R``, ``p`` ("" where it is): an attachment
+        inside the obstacle (the path is not defined; OpenSim runs it straight), or the path at
+        the pose where it switches sides (:meth:`side_switch`)."""
+        inside = self.inside(femur, tibia, R, p)
+        if inside:
+            return f"its {' and '.join(inside)} attachment lies inside the wrapping {self.shape}"
+        return self.side_switch(femur, tibia, R, p)
+
+    @abstractmethod
+    def side_switch(self, femur: np.ndarray, tibia: np.ndarray, R: np.ndarray, p: np.ndarray) -> str:
+        """Why the path at ``R``, ``p`` is near where it switches sides ("" if it is not)."""
 
     def wraps(self, femur: np.ndarray, tibia: np.ndarray, R: np.ndarray, p: np.ndarray) -> bool:
         """Whether the path touches the obstacle at ``R``, ``p`` (it is then longer than the line)."""
@@ -178,6 +194,17 @@ class CylinderWrap(WrapPath):
         object.__setattr__(self, "axis", axis)
         object.__setattr__(self, "centre", np.asarray(self.centre, float))
         object.__setattr__(self, "basis", (e1, np.cross(axis, e1)))
+
+    shape = "cylinder"
+
+    def side_switch(self, femur, tibia, R, p) -> str:
+        """The path goes the long way round: the straight line passes the axis on the other side,
+        where OpenSim's path (the short way) switches sides and its length jumps."""
+        other = dataclasses.replace(self, side=-self.side)
+        if other.wraps(femur, tibia, R, p) and other.length(femur, tibia, R, p) < self.length(femur, tibia, R, p):
+            return ("the straight line passes the wrapping cylinder's axis on the other side than declared: the path "
+                    "goes the long way round (OpenSim's would switch sides there, its length jumping)")
+        return ""
 
     def level(self, point, R, p) -> float:
         c, a = self.placed(R, p, self.centre, (self.axis,))
@@ -235,6 +262,9 @@ _ARC, _ARC_SEARCH = _gauss_legendre(12), _gauss_legendre(4)
 #: Newton steps on the wrapping plane's angle: from the start plane two bring the length to 1e-10
 #: of the shortest planar path's (a brute-force search, tests/test_paths.py), one to 5e-4.
 _PLANE_STEPS = 2
+#: A wrapped path whose straight line passes closer than this to the ellipsoid's centre (a fraction
+#: of the way to its surface) is near where it switches sides (:meth:`EllipsoidWrap.side_switch`).
+NEAR_CENTRE = 0.1
 #: The angle step (rad) of the central differences of those Newton steps.
 _PLANE_STEP = 0.02
 
@@ -260,6 +290,22 @@ class EllipsoidWrap(WrapPath):
         object.__setattr__(self, "axes", axes)
         object.__setattr__(self, "radii", radii)
         object.__setattr__(self, "centre", np.asarray(self.centre, float))
+
+    shape = "ellipsoid"
+
+    def side_switch(self, femur, tibia, R, p) -> str:
+        """The straight line passes within :data:`NEAR_CENTRE` of the centre (in the ellipsoid's own
+        scale), where the side the path passes on flips and its length jumps."""
+        centre, *axes = self.placed(R, p, self.centre, tuple(self.axes.T))
+        frame = np.column_stack(axes)
+        s, e = (ca.DM(frame.T @ (x - centre)) for x in (R @ np.asarray(tibia, float) + p, np.asarray(femur, float)))
+        t, _, level = self.depth(s, e)
+        t, level = float(t), float(level)
+        near = np.sqrt(max(level, 0.0))
+        if 0 < t < 1 and near < NEAR_CENTRE:
+            return (f"the straight line passes {100 * near:.0f} % of the way from the wrapping ellipsoid's centre to "
+                    "its surface, where the path switches sides and its length jumps")
+        return ""
 
     def level(self, point, R, p) -> float:
         c, *axes = self.placed(R, p, self.centre, tuple(self.axes.T))

@@ -39,6 +39,7 @@ from kneenlp.base.conventions import (
 )
 from kneenlp.base.modes import SolveStrategy
 from kneenlp.experiment.kneemodel import KneeModel
+from kneenlp.experiment.path_checks import path_jumps
 from kneenlp.experiment.protocol import Loading, Trial
 from kneenlp.model.elements import StagedElement
 from kneenlp.model.mesh_contact import RIM_SHARE
@@ -367,8 +368,10 @@ class ForwardSolver:
                                                                         for c in self._contact_columns):
             sol.converged, sol.strategy = False, "failed"
             sol.reason = "equilibrium found only at an implausible (dislocated) pose"
-        elif (rim := self.model.rim_share(q, theta, trial.flexion)) > RIM_SHARE:
-            sol.note = rim_note(rim)
+        else:
+            rim = self.model.rim_share(q, theta, trial.flexion)
+            jumps = path_jumps(self.model, q[None], theta, [trial.flexion])[0]
+            sol.note = "; ".join(filter(None, [rim_note(rim) if rim > RIM_SHARE else "", jumps]))
         return sol
 
     def unloaded_states(self, flexions: list[float], theta: np.ndarray,
