@@ -162,3 +162,22 @@ def test_wrapping_changes_the_reference_strains_as_opensims_slack_lengths_say(co
     b = pcap.bundles[0]
     straight = np.linalg.norm(b.femur - pcap.tibia_at_reference(b.tibia))
     assert pcap.bundle_length(b) / straight - 1 > 0.05
+
+
+def test_export_osim_writes_opensims_own_slack_lengths_back_for_wrapped_bundles(compared, tmp_path):
+    """A fit at the imported values (every group's scale 1 and offset 0) gives back each bundle's
+    OpenSim slack length, wrapped ones included (their reference length is the wrapped path's),
+    and a shifted offset moves a wrapped bundle's slack length as OpenSim's own strain would."""
+    from kneenlp.io.export_osim import calibrated_values
+
+    knee, *_ = compared
+    lines = O.knee_line_elements(O.read_osim(LENHART))
+    params = {f"{g}.{k}": v for g in knee.ligaments for k, v in (("k_scale", 1.0), ("ref_strain_offset", 0.0))}
+    values = calibrated_values(knee, params)
+    for name in ("pCAP1", "pCAP3", "MCLs2", "MCLp3", "ACLam1"):
+        assert values[name]["slack_length"] == pytest.approx(lines[name].slack_length, rel=1e-12)
+    shifted = calibrated_values(knee, params | {"pCAP.ref_strain_offset": 0.02})
+    pcap = knee.ligaments["pCAP"]
+    b = next(b for b in pcap.bundles if b.name == "pCAP1")
+    wrapped = pcap.bundle_length(b)  # OpenSim's strain at the reference pose rises by the offset
+    assert wrapped / shifted["pCAP1"]["slack_length"] - 1 == pytest.approx(b.ref_strain + 0.02, rel=1e-12)

@@ -6,10 +6,11 @@ fitted group gets its ``linear_stiffness`` and ``slack_length`` from the fit and
 changes (:func:`kneenlp.io.osim.write_calibrated` edits the numbers inside the XML as text).
 
 For a bundle ``i`` of group ``g`` with stiffness ``k_i`` and reference strain ``eps_i`` in the knee
-(``eps_i = l_i / L0_i - 1``, ``l_i`` its straight length in the reference pose, ``L0_i`` the
-model's slack length), the fit's ``g.k_scale`` and ``g.ref_strain_offset`` give
-``linear_stiffness = k_scale k_i`` and ``slack_length = l_i / (1 + eps_i + offset)``: the model's
-slack length scaled as kneenlp's straight-line one is (wrapped paths keep their wrapping).
+(``eps_i = l_i / L0_i - 1``, ``l_i`` its length along its path in the reference pose, wrapped where
+the model wraps it, ``L0_i`` the model's slack length), the fit's ``g.k_scale`` and
+``g.ref_strain_offset`` give ``linear_stiffness = k_scale k_i`` and ``slack_length = l_i / (1 + eps_i
++ offset)``: the slack length of the path OpenSim computes, as kneenlp's (the model keeps its
+PathWraps, which the import read: tests/test_osim_wraps.py).
 """
 
 from __future__ import annotations
