@@ -137,3 +137,72 @@ def test_what_needs_every_coordinate_refuses_in_one_line(knee, strap_data):
 
     with pytest.raises(InputError, match="diagnose needs all five coordinates"):
         diagnose(fit)
+
+
+FOOTPLATE = Path(__file__).parent / "data" / "footplate.toml"
+
+
+@pytest.fixture(scope="module")
+def footplate_data(tmp_path_factory, knee):
+    """Set 1 on the rig that holds internal rotation, simulated through the command line (the
+    experiment file copied beside the data), and read back."""
+    from kneenlp.cli import main
+
+    out = tmp_path_factory.mktemp("footplate")
+    assert main(["simulate", "--knee", str(knee.source), "--protocol", "set1", "--experiment", str(FOOTPLATE),
+                 "--noise", "uniform:0.5", "--seed", "3", "--no-plots", "--out", str(out)]) == 0
+    assert (out / "footplate.toml").is_file()
+    device = Experiment.load(FOOTPLATE)
+    return read_measured(out / "measured.csv"), kneenlp.simulate(knee, "set1", experiment=device)
+
+
+def test_a_held_coordinate_is_prescribed_and_the_others_balance(knee, footplate_data):
+    """Every trial sits at 0 deg internal rotation exactly, converged; the internal moments move
+    nothing (the rig carries them), the other loads move the knee as their equilibrium says."""
+    data, sim = footplate_data
+    assert data.experiment.held == {"internal_rotation": 0.0}
+    assert sim.converged == len(sim.solutions)
+    assert np.abs(sim.q[:, 1]).max() < 1e-12
+    free = kneenlp.simulate(knee, "set1")
+    turned = [i for i, s in enumerate(sim.solutions) if s.trial.loads.get("internal_moment", 0.0)]
+    assert turned and np.abs(free.q[turned, 1]).max() > np.deg2rad(5)
+    model = KneeModel.of(knee)
+    for s in sim.solutions:  # the four free equations hold at the solved pose, the held one is its value
+        r = np.asarray(model.evaluate(s.q, model.theta(), s.trial.load, s.trial.flexion)).ravel()
+        assert np.abs(r[[0, 2, 3, 4]]).max() < 1e-6 and abs(r[1]) < 1e-9
+
+
+def test_a_fit_of_the_rig_data_holds_each_trial_at_its_measured_rotation(knee, footplate_data):
+    """The data observe the held rotation: each trial is held at its measured value, which is an
+    input, not an observation (4 per trial); the fit recovers the ligaments from them."""
+    data, sim = footplate_data
+    assert all(t.held == ((1, pytest.approx(np.deg2rad(row[1]))),) for t, row in zip(data.trials, data.q_user,
+                                                                                         strict=True))
+    truth = {n: sim.parameters[n] for n in FREE}
+    fit = kneenlp.identify(knee, data, free=FREE, start={n: 0.7 * v for n, v in truth.items()}, noise="uniform:0.5")
+    assert fit.success and fit.n_observations == 4 * len(data)
+    np.testing.assert_allclose(fit.q_pred[:, 1], np.deg2rad(data.q_user[:, 1]), atol=1e-12)
+    for n, v in truth.items():
+        assert fit.params[n] == pytest.approx(v, rel=0.1)
+    with pytest.raises(InputError, match="holds internal_rotation"):
+        data.check_observed("cross-validation")
+
+
+@pytest.mark.parametrize("held, needle", [
+    ("internal_rotatoin = 0.0", r"footplate.toml: held.internal_rotatoin: unknown coordinate 'internal_rotatoin'"),
+    ("\n".join(f"{c} = 0.0" for c in ("varus_rotation", "internal_rotation", "lateral_translation",
+                                      "anterior_translation", "proximal_translation")),
+     r"footplate.toml: held: holds every coordinate"),
+])
+def test_held_coordinates_that_leave_nothing_free_or_are_unknown_are_one_line(tmp_path, capsys, knee, held, needle):
+    from kneenlp.cli import main
+
+    bad = tmp_path / "footplate.toml"
+    bad.write_text(FOOTPLATE.read_text().replace("internal_rotation = 0.0  # deg", held))
+    assert main(["simulate", "--knee", str(knee.source), "--protocol", "set1", "--experiment", str(bad),
+                 "--no-plots", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err
+    import re
+
+    assert re.search(needle, err), err

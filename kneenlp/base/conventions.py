@@ -90,9 +90,12 @@ EXTRA_LOAD_UNITS: tuple[str, ...] = ("N", "N", "Nm")
 ALL_LOAD_COMPONENTS: tuple[str, ...] = LOAD_COMPONENTS + EXTRA_LOAD_COMPONENTS
 ALL_LOAD_UNITS: tuple[str, ...] = LOAD_UNITS + EXTRA_LOAD_UNITS
 #: Size of the internal load vector (:func:`load_vector`): a force (3), a pure moment (3), both in
-#: the femoral frame, generalised forces of the five free coordinates (5), and where the force acts:
-#: a tibial point (3, tibial frame, m) plus the knee's tuberosity times a weight (1).
-LOAD_SIZE = 15
+#: the femoral frame, generalised forces of the five free coordinates (5), where the force acts: a
+#: tibial point (3, tibial frame, m) plus the knee's tuberosity times a weight (1), and the
+#: coordinates the apparatus holds: a mask (5, 1 = held) and the values they are held at (5, SI).
+LOAD_SIZE = 25
+#: Slices of the load vector: the loads a ramp scales, the held mask, the held values.
+LOADS, HELD, HELD_AT = slice(0, 11), slice(15, 20), slice(20, 25)
 
 #: Load directions of the paper's Table 2: (component, sign).
 DIRECTIONS: dict[str, tuple[str | None, float]] = {
@@ -170,19 +173,20 @@ def scaled_load(load: np.ndarray, factor: float) -> np.ndarray:
     """``factor`` times the force, moment and generalised forces of a load vector (:func:`load_vector`;
     a ramp's fraction of the trial's load), acting at the same point."""
     out = np.array(load, float)
-    out[:11] *= factor
+    out[LOADS] *= factor
     return out
 
 
 def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes = "femoral",
-                point: np.ndarray | None = None) -> np.ndarray:
+                point: np.ndarray | None = None, held: tuple[tuple[int, float], ...] = ()) -> np.ndarray:
     """Internal load vector (:data:`LOAD_SIZE`) of signed load components (N, N m; absent = 0).
 
     ``[F (3), M (3), Q (5), a (3), w (1)]``: a force ``F`` and a pure moment ``M``, both in the
     femoral frame, generalised forces ``Q`` added to the equilibrium residual as they are (order of
     :data:`COORDINATES`), and the tibial point ``F`` acts at, ``a + w t`` (tibial frame, m; ``t`` the
     knee's tuberosity): ``point`` (``a``, ``w = 0``) or by default the tuberosity (``a = 0``,
-    ``w = 1``).  ``axes`` (module docstring): ``"femoral"`` along femoral X, Y, Z; ``"joint"``
+    ``w = 1``), then the ``held`` coordinates (index in :data:`COORDINATES`, value in rad or m: the
+    mask and the values).  ``axes`` (module docstring): ``"femoral"`` along femoral X, Y, Z; ``"joint"``
     along the floating axis ``e2 = (cos f, -sin f, 0)``, the unvarused tibial axis
     ``e3 = (sin f, cos f, 0)`` at flexion ``f`` (rad) and ``e1 = Z``; ``"jcs"`` all in ``Q``.  The
     flexion moment is never applied (the prescribed flexion carries it).
@@ -192,7 +196,9 @@ def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes
     if unknown:
         raise ValueError(f"unknown load component {sorted(unknown)[0]!r}; known: {', '.join(ALL_LOAD_COMPONENTS)}")
     out = np.zeros(LOAD_SIZE)
-    out[11:] = (0.0, 0.0, 0.0, 1.0) if point is None else (*np.asarray(point, float).reshape(3), 0.0)
+    out[11:15] = (0.0, 0.0, 0.0, 1.0) if point is None else (*np.asarray(point, float).reshape(3), 0.0)
+    for i, value in held:
+        out[HELD.start + i], out[HELD_AT.start + i] = 1.0, value
     if axes == "jcs":
         out[6:11] = [get["varus_moment"], get["internal_moment"], get["lateral_force"], get["anterior_force"],
                    get["proximal_force"]]

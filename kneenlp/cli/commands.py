@@ -55,6 +55,22 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+def experiment_from_arg(value: str):
+    """``--experiment``: a shipped experiment's name or an experiment file -> (experiment, its file)."""
+    from pathlib import Path
+
+    from kneenlp.experiment.kind import Experiment, experiment_named
+
+    if value.endswith(".toml"):
+        if not Path(value).is_file():
+            raise InputError("file not found", source=value, field="--experiment")
+        return Experiment.load(value), Path(value)
+    try:
+        return experiment_named(value), None
+    except InputError as exc:
+        raise exc.with_context(field="--experiment") from None
+
+
 def cmd_simulate(args) -> int:
     import numpy as np
 
@@ -64,7 +80,8 @@ def cmd_simulate(args) -> int:
 
     protocol = Protocol.load(args.protocol)
     knee = knee_from_args(args)
-    result = simulate(knee, protocol, parameters=effect_values(knee, args.with_effect))
+    experiment, experiment_file = experiment_from_arg(args.experiment)
+    result = simulate(knee, protocol, parameters=effect_values(knee, args.with_effect), experiment=experiment)
     table = result.table()
     recruitment = result.recruitment() if any(t.direction == "none" for t in protocol.trials) else None
     with staged_directory(args.out) as stage:
@@ -80,6 +97,8 @@ def cmd_simulate(args) -> int:
             measured = result.measured(args.noise, args.seed)
             write_csv_atomic(measured, out / "measured.csv", index=False, float_format="%.10g")
             written.append(out / "measured.csv")
+            if experiment_file is not None:  # the data name their experiment: its file goes beside them
+                written.append(write_text_atomic(out / f"{experiment.name}.toml", experiment_file.read_text()))
         if not args.no_plots:
             axes = "/".join(sorted({t.axes for t in protocol.trials}))
             title = f"{result.knee.name} knee, {protocol.title or protocol.name}, loads along {axes} axes"

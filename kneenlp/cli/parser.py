@@ -91,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--with-effect", action="append", default=[], metavar="NAME:PARAM=VALUE,...",
                    help="switch a candidate effect on (display units), e.g. posterior_capsule:k=8000")
+    p.add_argument("--experiment", default="simulated", metavar="NAME|FILE.toml",
+                   help="the experiment simulated: where its force acts, the coordinates it holds and observes "
+                        "(an experiment file, copied beside measured.csv; default: simulated)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(validate=True, out_kind="dir")
 

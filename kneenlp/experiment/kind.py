@@ -8,7 +8,12 @@ an :class:`Experiment` says what that experiment is:
 * ``observed``: the coordinates it measures (:data:`~kneenlp.base.conventions.COORDINATES`; the
   others are not in the file, and the fit weighs them zero);
 * ``load_point``: the named tibial point its applied force acts at: ``tibial_tuberosity`` (the
-  knee's, the paper's), ``tibial_origin``, or a point of its own ``points`` (mm, tibial frame).
+  knee's, the paper's), ``tibial_origin``, or a point of its own ``points`` (mm, tibial frame);
+* ``held``: the coordinates its apparatus holds (a device that fixes the foot's rotation is not a
+  robot in force control), each at a value (deg, mm; ``[held]`` table).  They are prescribed, not
+  solved: simulate holds them at those values; measured data that observe a held coordinate hold
+  each trial at its measured value (the apparatus set it), and at the declared value where they
+  do not observe it.  At least one coordinate stays free.
 
 Two kinds are shipped: ``simulated`` (every coordinate, the tuberosity: what ``simulate`` writes)
 and ``laboratory`` (the same, on a real knee: what ``import-laxity`` writes).  Any other name is an
@@ -37,9 +42,9 @@ import numpy as np
 import pandas as pd
 from pydantic import BeforeValidator, Field
 
-from kneenlp.base.conventions import COORDINATES
+from kneenlp.base.conventions import COORDINATES, TO_USER
 from kneenlp.base.errors import InputError, unknown_name
-from kneenlp.base.schema import Name, Table, fail, one_of, validated
+from kneenlp.base.schema import Name, Number, Table, fail, one_of, validated
 from kneenlp.base.tomlfile import read_toml
 from kneenlp.experiment.protocol import Trial
 
@@ -68,6 +73,7 @@ class ExperimentFile(Table):
         default_factory=lambda: list(COORDINATES), min_length=1)
     load_point: Name = "tibial_tuberosity"
     points: dict[Name, Point] = Field(default_factory=dict)
+    held: dict[Annotated[str, one_of("coordinate", COORDINATES)], Number] = Field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -80,8 +86,16 @@ class Experiment:
     load_point: str = "tibial_tuberosity"
     points: dict[str, tuple[float, float, float]] = field(default_factory=dict, compare=False)
     description: str = ""
+    #: the coordinates the apparatus holds and their values (rad, m)
+    held: dict[str, float] = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
+        for name in self.held:
+            if name not in COORDINATES:
+                raise unknown_name("coordinate", name, COORDINATES).with_context(field=f"held.{name}")
+        if len(self.held) == len(COORDINATES):
+            raise InputError("holds every coordinate: nothing is left for the knee to move (hold at most four)",
+                             field="held")
         shadowing = sorted(set(self.points) & set(KNOWN_POINTS))
         if shadowing:
             raise InputError(f"{shadowing[0]!r} is a point every experiment knows; name yours otherwise",
@@ -98,9 +112,9 @@ class Experiment:
         try:
             return cls(doc.name, doc.laboratory, tuple(c for c in COORDINATES if c in doc.observed),
                        doc.load_point, {n: tuple(np.asarray(p, float) / 1e3) for n, p in doc.points.items()},
-                       doc.description)
+                       doc.description, {n: float(v / TO_USER[COORDINATES.index(n)]) for n, v in doc.held.items()})
         except InputError as exc:
-            raise exc.with_context(source=src, field="load_point") from None
+            raise exc.with_context(source=src, field=exc.field or "load_point") from None
 
     @property
     def mask(self) -> np.ndarray:
@@ -113,11 +127,23 @@ class Experiment:
             return None
         return np.zeros(3) if self.load_point == "tibial_origin" else np.asarray(self.points[self.load_point], float)
 
-    def applied_to(self, trials: list[Trial]) -> list[Trial]:
-        """``trials`` with their force applied at this experiment's load point."""
+    def applied_to(self, trials: list[Trial], measured: np.ndarray | None = None) -> list[Trial]:
+        """``trials`` with their force applied at this experiment's load point and its held
+        coordinates held: at the ``measured`` values (T x 5, SI; NaN where not observed) where
+        given, else at the declared ones."""
         at = self.point()
-        return [t if at is None and t.point is None else replace(t, point=None if at is None else tuple(at))
-                for t in trials]
+        out = [t if at is None and t.point is None else replace(t, point=None if at is None else tuple(at))
+               for t in trials]
+        if not self.held:
+            return out
+        index = {c: COORDINATES.index(c) for c in self.held}
+
+        def value(row: int, name: str) -> float:
+            if measured is not None and np.isfinite(measured[row, index[name]]):
+                return float(measured[row, index[name]])
+            return self.held[name]
+
+        return [replace(t, held=tuple((index[n], value(k, n)) for n in self.held)) for k, t in enumerate(out)]
 
 
 #: The shipped experiments (module docstring).

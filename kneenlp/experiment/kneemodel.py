@@ -43,7 +43,7 @@ import casadi as ca
 import numpy as np
 
 from kneenlp.base.compiled import BufferedCall, compiled
-from kneenlp.base.conventions import LOAD_SIZE, coords_to_user
+from kneenlp.base.conventions import HELD, HELD_AT, LOAD_SIZE, coords_to_user
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.modes import Layout, PriorChoice
 from kneenlp.experiment.contact_sets import ContactSets
@@ -103,6 +103,9 @@ def check_sign(info: Parameter, lower: float, source: str | None, table: str) ->
 #: How far (in units of a parameter's scale) a value given to the model may lie beyond its bounds:
 #: the bound tolerance of the solvers that produce values (IPOPT relaxes bounds by 1e-8 relative).
 BOUND_SLACK = 1e-6
+#: The held coordinates' equations ``HOLD_SCALE (q - value)``: a knee's stiffness in each coordinate
+#: (N m/rad, N/m), so that Newton's Jacobian keeps its scale.
+HOLD_SCALE = (100.0, 100.0, 1e5, 1e5, 1e5)
 
 
 class KneeModel(ContactSets):
@@ -223,6 +226,10 @@ class KneeModel(ContactSets):
         moment += ca.cross(R @ (at + shift), load[0:3]) + load[3:6]
         moment += ca.cross(R_exp @ (shift + origin), joint_force)  # the experiment's tibial axes
         residual = generalized_forces(q, p, axes, force, moment) + load[6:11]
+        # a coordinate the apparatus holds is prescribed: its equation is its value (the apparatus
+        # carries its generalised force); exact, the mask being 0 or 1
+        held = load[HELD]
+        residual = (1 - held) * residual + held * ca.DM(HOLD_SCALE) * (q - load[HELD_AT])
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 

@@ -146,7 +146,12 @@ class MeasuredData:
 
     def check_observed(self, what: str) -> None:
         """Refuse ``what`` (an analysis that needs every coordinate of every trial: a calibration's
-        outlier test, cross-validation, diagnose) for data whose experiment observes fewer."""
+        outlier test, cross-validation, diagnose) for data whose experiment observes fewer or holds
+        some (a held coordinate is an input, not an observation)."""
+        if self.experiment.held:
+            raise InputError(f"{what} needs all five coordinates free; experiment {self.experiment.name!r} holds "
+                             f"{', '.join(self.experiment.held)} (fit it with --strategy scatter)",
+                             source=self.source, field="experiment")
         if len(self.experiment.observed) < len(COORDINATES):
             raise InputError(f"{what} needs all five coordinates; experiment {self.experiment.name!r} observes "
                              f"{', '.join(self.experiment.observed)} (fit it with --strategy scatter)",
@@ -180,7 +185,7 @@ class MeasuredData:
                 raise InputError(f"trial {t.id!r} is not in protocol {protocol.name!r}", source=src,
                                  field="trial")
             ref = known[t.id]
-            same_load = np.allclose(ref.load, replace(t, point=ref.point).load)  # the experiment's own load point
+            same_load = np.allclose(ref.load, replace(t, point=ref.point, held=ref.held).load)  # the experiment's own
             if abs(ref.flexion_deg - t.flexion_deg) > 1e-9 or not same_load:
                 raise InputError(f"trial {t.id!r}: flexion or load differs from protocol {protocol.name!r}",
                                  source=src, field="trial")
@@ -237,10 +242,10 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
     axes = _load_axes(df, src)
     side = _side(df, src)
     check_plausible(df, src)
-    trials = experiment.applied_to(_trials(df, axes))
-    name = _protocol_name(df, src)
     q_user = np.column_stack([df[c].to_numpy(dtype=float) if c in df.columns else np.full(len(df), np.nan)
                               for c in coordinate_columns()])
+    trials = experiment.applied_to(_trials(df, axes), coords_from_user(q_user))
+    name = _protocol_name(df, src)
     data = MeasuredData.from_user(trials, q_user, name, src, side=side, experiment=experiment)
     if name is not None and protocol is None:
         _check_protocol_name(data, path)

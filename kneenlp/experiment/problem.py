@@ -198,8 +198,12 @@ class IdentificationProblem:
     @property
     def measured_start(self) -> np.ndarray:
         """The measured poses as starts (T x 5, mm and deg): a coordinate the experiment does not
-        observe at the knee's reference pose."""
-        return np.where(self.observed, self.measured, coords_to_user(self.model.knee.reference_pose[1]))
+        observe at the knee's reference pose, a held one at its value."""
+        start = np.where(np.isfinite(self.measured), self.measured, coords_to_user(self.model.knee.reference_pose[1]))
+        for k, t in enumerate(self.trials):
+            for i, value in t.held:
+                start[k, i] = coords_to_user(np.eye(5)[i] * value)[i]
+        return start
 
     @property
     def measured_q(self) -> np.ndarray:
@@ -209,10 +213,14 @@ class IdentificationProblem:
     @property
     def observed(self) -> np.ndarray:
         """Which coordinates of which trial were measured (T x 5, bool; NaN in ``measured``: not
-        observed by the experiment, weighed zero)."""
+        observed by the experiment, weighed zero).  A coordinate the apparatus holds is an input
+        (the trial is held at its value), not an observation: weighed zero too."""
+        held = np.zeros((len(self.trials), 5), bool)
+        for k, t in enumerate(self.trials):
+            held[k, [i for i, _ in t.held]] = True
         if self.measured is None:
-            return np.ones((len(self.trials), 5), bool)
-        return np.isfinite(self.measured)
+            return ~held
+        return np.isfinite(self.measured) & ~held
 
     @classmethod
     def from_data(cls, model: KneeModel, data: MeasuredData, free: Sequence[str] | None = None,

@@ -55,6 +55,9 @@ class Trial:
     #: where the applied force acts (tibial frame, m; None: the knee's tuberosity), the experiment's
     #: load point (:class:`~kneenlp.experiment.kind.Experiment`)
     point: tuple[float, float, float] | None = None
+    #: the coordinates the apparatus holds and where (index in COORDINATES, rad or m): the
+    #: experiment's (:class:`~kneenlp.experiment.kind.Experiment`); they are prescribed, not solved
+    held: tuple[tuple[int, float], ...] = ()
 
     @property
     def flexion(self) -> float:
@@ -64,7 +67,7 @@ class Trial:
     @property
     def load(self) -> np.ndarray:
         """Internal load vector (N, N m; :func:`~kneenlp.base.conventions.load_vector`)."""
-        return load_vector(self.loads, flexion=self.flexion, axes=self.axes, point=self.point)
+        return load_vector(self.loads, flexion=self.flexion, axes=self.axes, point=self.point, held=self.held)
 
     @property
     def dominant(self) -> str:

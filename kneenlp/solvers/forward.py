@@ -493,7 +493,9 @@ def _passive(flexion: float) -> Trial:
 
 
 def _is_unloaded(t: Trial) -> bool:
-    return not any(v != 0 for v in t.loads.values())
+    """No load and nothing held: the passive equilibrium at its flexion (a held trial is reached
+    from it, as a loaded one)."""
+    return not t.held and not any(v != 0 for v in t.loads.values())
 
 
 def forward_solver(model: KneeModel, tol: float = EQUILIBRIUM_TOL,
