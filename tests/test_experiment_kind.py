@@ -206,3 +206,27 @@ def test_held_coordinates_that_leave_nothing_free_or_are_unknown_are_one_line(tm
     import re
 
     assert re.search(needle, err), err
+
+
+def test_a_preload_acts_at_its_own_point(knee, tmp_path):
+    """A rig that pushes the drawer at the tuberosity and compresses the knee at the ankle: the
+    wrench is the tuberosity's push plus the preload moved to the ankle (its couple); a preload
+    point at the load point is the plain load; an unknown point is one line."""
+    rig = Experiment("rig", points={"ankle": (0.0, -0.35, 0.02)}, preload_point="ankle")
+    trial = Protocol.from_dict({"name": "pre", "cases": [{"name": "drawer", "flexion": [30.0],
+                                "loads": {"anterior_force": 50.0, "proximal_force": 40.0}}]}).trials[0]
+    (applied,) = rig.applied_to([trial])
+    model = KneeModel.of(knee)
+    q, theta = np.array([0.01, 0.02, 0.001, 0.002, -0.001]), model.theta()
+    R = np.asarray(model.pose(q, trial.flexion, theta)[0])
+    together = trial.load.copy()
+    preload = np.array([0.0, 40.0, 0.0])  # femoral axes: the proximal force
+    together[3:6] += np.cross(R @ (np.array([0.0, -0.35, 0.02]) - knee.tuberosity), preload)
+    np.testing.assert_allclose(np.asarray(model.evaluate(q, theta, applied.load, trial.flexion)).ravel(),
+                               np.asarray(model.evaluate(q, theta, together, trial.flexion)).ravel(), atol=1e-9)
+    (same,) = Experiment("same", preload_point="tibial_tuberosity").applied_to([trial])
+    np.testing.assert_array_equal(same.load, trial.load)
+    bad = tmp_path / "rig.toml"
+    bad.write_text('name = "rig"\npreload_point = "heel"\n')
+    with pytest.raises(InputError, match=r"rig.toml: preload_point: unknown preload point 'heel'"):
+        Experiment.load(bad)

@@ -91,11 +91,13 @@ ALL_LOAD_COMPONENTS: tuple[str, ...] = LOAD_COMPONENTS + EXTRA_LOAD_COMPONENTS
 ALL_LOAD_UNITS: tuple[str, ...] = LOAD_UNITS + EXTRA_LOAD_UNITS
 #: Size of the internal load vector (:func:`load_vector`): a force (3), a pure moment (3), both in
 #: the femoral frame, generalised forces of the five free coordinates (5), where the force acts: a
-#: tibial point (3, tibial frame, m) plus the knee's tuberosity times a weight (1), and the
-#: coordinates the apparatus holds: a mask (5, 1 = held) and the values they are held at (5, SI).
-LOAD_SIZE = 25
-#: Slices of the load vector: the loads a ramp scales, the held mask, the held values.
-LOADS, HELD, HELD_AT = slice(0, 11), slice(15, 20), slice(20, 25)
+#: tibial point (3, tibial frame, m) plus the knee's tuberosity times a weight (1), the coordinates
+#: the apparatus holds: a mask (5, 1 = held) and the values they are held at (5, SI), and a
+#: compressive preload acting elsewhere: its force (3, femoral frame) and its tibial point (3 + 1).
+LOAD_SIZE = 32
+#: Slices of the load vector: the loads a ramp scales, the held mask, the held values, the preload
+#: and its point (as the force's: a tibial point and the tuberosity's weight).
+LOADS, HELD, HELD_AT, PRELOAD, PRELOAD_AT = slice(0, 11), slice(15, 20), slice(20, 25), slice(25, 28), slice(28, 32)
 
 #: Load directions of the paper's Table 2: (component, sign).
 DIRECTIONS: dict[str, tuple[str | None, float]] = {
@@ -174,11 +176,13 @@ def scaled_load(load: np.ndarray, factor: float) -> np.ndarray:
     a ramp's fraction of the trial's load), acting at the same point."""
     out = np.array(load, float)
     out[LOADS] *= factor
+    out[PRELOAD] *= factor
     return out
 
 
 def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes = "femoral",
-                point: np.ndarray | None = None, held: tuple[tuple[int, float], ...] = ()) -> np.ndarray:
+                point: np.ndarray | None = None, held: tuple[tuple[int, float], ...] = (),
+                preload_point: tuple[float, float, float, float] | None = None) -> np.ndarray:
     """Internal load vector (:data:`LOAD_SIZE`) of signed load components (N, N m; absent = 0).
 
     ``[F (3), M (3), Q (5), a (3), w (1)]``: a force ``F`` and a pure moment ``M``, both in the
@@ -186,10 +190,12 @@ def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes
     :data:`COORDINATES`), and the tibial point ``F`` acts at, ``a + w t`` (tibial frame, m; ``t`` the
     knee's tuberosity): ``point`` (``a``, ``w = 0``) or by default the tuberosity (``a = 0``,
     ``w = 1``), then the ``held`` coordinates (index in :data:`COORDINATES`, value in rad or m: the
-    mask and the values).  ``axes`` (module docstring): ``"femoral"`` along femoral X, Y, Z; ``"joint"``
-    along the floating axis ``e2 = (cos f, -sin f, 0)``, the unvarused tibial axis
-    ``e3 = (sin f, cos f, 0)`` at flexion ``f`` (rad) and ``e1 = Z``; ``"jcs"`` all in ``Q``.  The
-    flexion moment is never applied (the prescribed flexion carries it).
+    mask and the values), and, given a ``preload_point`` (``a, w`` as the force's point), the
+    proximal force as a preload of its own acting there (not for ``jcs`` loads).  ``axes``
+    (module docstring): ``"femoral"`` along femoral X, Y, Z; ``"joint"`` along the floating axis
+    ``e2 = (cos f, -sin f, 0)``, the unvarused tibial axis ``e3 = (sin f, cos f, 0)`` at flexion
+    ``f`` (rad) and ``e1 = Z``; ``"jcs"`` all in ``Q``.  The flexion moment is never applied (the
+    prescribed flexion carries it).
     """
     get = {c: float(loads.get(c, 0.0)) for c in ALL_LOAD_COMPONENTS}
     unknown = set(loads) - set(ALL_LOAD_COMPONENTS)
@@ -211,7 +217,12 @@ def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes
     else:
         raise ValueError(f"unknown load axes {axes!r}; known: {', '.join(LOAD_AXES)}")
     e1 = np.array([0.0, 0.0, 1.0])
-    out[0:3] = get["anterior_force"] * e2 + get["proximal_force"] * e3 + get["lateral_force"] * e1
+    preload = get["proximal_force"] * e3
+    out[0:3] = get["anterior_force"] * e2 + get["lateral_force"] * e1
+    if preload_point is None:
+        out[0:3] += preload
+    else:
+        out[PRELOAD], out[PRELOAD_AT] = preload, preload_point
     out[3:6] = get["varus_moment"] * e2 + get["internal_moment"] * e3
     return out
 

@@ -13,7 +13,10 @@ an :class:`Experiment` says what that experiment is:
   robot in force control), each at a value (deg, mm; ``[held]`` table).  They are prescribed, not
   solved: simulate holds them at those values; measured data that observe a held coordinate hold
   each trial at its measured value (the apparatus set it), and at the declared value where they
-  do not observe it.  At least one coordinate stays free.
+  do not observe it.  At least one coordinate stays free;
+* ``preload_point``: where its compressive preload (the proximal force) acts when not at the load
+  point (a weight hung at the ankle, a pneumatic cylinder along the tibia), named like
+  ``load_point``; not for a robot's joint loads (``load_axes = jcs``: generalised forces).
 
 Two kinds are shipped: ``simulated`` (every coordinate, the tuberosity: what ``simulate`` writes)
 and ``laboratory`` (the same, on a real knee: what ``import-laxity`` writes).  Any other name is an
@@ -74,6 +77,7 @@ class ExperimentFile(Table):
     load_point: Name = "tibial_tuberosity"
     points: dict[Name, Point] = Field(default_factory=dict)
     held: dict[Annotated[str, one_of("coordinate", COORDINATES)], Number] = Field(default_factory=dict)
+    preload_point: Name | None = None
 
 
 @dataclass(frozen=True)
@@ -88,6 +92,8 @@ class Experiment:
     description: str = ""
     #: the coordinates the apparatus holds and their values (rad, m)
     held: dict[str, float] = field(default_factory=dict, compare=False)
+    #: where the compressive preload acts (a point name as ``load_point``; None: at the load point)
+    preload_point: str | None = None
 
     def __post_init__(self) -> None:
         for name in self.held:
@@ -103,6 +109,8 @@ class Experiment:
         known = (*KNOWN_POINTS, *self.points)
         if self.load_point not in known:
             raise unknown_name("load point", self.load_point, known)
+        if self.preload_point is not None and self.preload_point not in known:
+            raise unknown_name("preload point", self.preload_point, known).with_context(field="preload_point")
 
     @classmethod
     def load(cls, path: str | Path) -> Experiment:
@@ -112,7 +120,8 @@ class Experiment:
         try:
             return cls(doc.name, doc.laboratory, tuple(c for c in COORDINATES if c in doc.observed),
                        doc.load_point, {n: tuple(np.asarray(p, float) / 1e3) for n, p in doc.points.items()},
-                       doc.description, {n: float(v / TO_USER[COORDINATES.index(n)]) for n, v in doc.held.items()})
+                       doc.description, {n: float(v / TO_USER[COORDINATES.index(n)]) for n, v in doc.held.items()},
+                       doc.preload_point)
         except InputError as exc:
             raise exc.with_context(source=src, field=exc.field or "load_point") from None
 
@@ -121,19 +130,30 @@ class Experiment:
         """Which of the five coordinates it observes (bool, :data:`COORDINATES` order)."""
         return np.array([c in self.observed for c in COORDINATES])
 
-    def point(self) -> np.ndarray | None:
-        """Where its applied force acts (tibial frame, m); ``None``: the knee's tuberosity."""
-        if self.load_point == "tibial_tuberosity":
+    def point(self, name: str | None = None) -> np.ndarray | None:
+        """Where its applied force acts, or the point ``name`` (tibial frame, m); ``None``: the
+        knee's tuberosity."""
+        name = self.load_point if name is None else name
+        if name == "tibial_tuberosity":
             return None
-        return np.zeros(3) if self.load_point == "tibial_origin" else np.asarray(self.points[self.load_point], float)
+        return np.zeros(3) if name == "tibial_origin" else np.asarray(self.points[name], float)
+
+    def preload_at(self) -> tuple[float, float, float, float] | None:
+        """Where its preload acts, when elsewhere than its load point: a tibial point (m) and the
+        weight of the knee's tuberosity added to it (:func:`~kneenlp.base.conventions.load_vector`);
+        ``None``: with the other loads."""
+        if self.preload_point is None or self.preload_point == self.load_point:
+            return None
+        at = self.point(self.preload_point)
+        return (0.0, 0.0, 0.0, 1.0) if at is None else (*map(float, at), 0.0)
 
     def applied_to(self, trials: list[Trial], measured: np.ndarray | None = None) -> list[Trial]:
-        """``trials`` with their force applied at this experiment's load point and its held
-        coordinates held: at the ``measured`` values (T x 5, SI; NaN where not observed) where
-        given, else at the declared ones."""
-        at = self.point()
-        out = [t if at is None and t.point is None else replace(t, point=None if at is None else tuple(at))
-               for t in trials]
+        """``trials`` with their force applied at this experiment's load point (the preload at its
+        preload point) and its held coordinates held: at the ``measured`` values (T x 5, SI; NaN
+        where not observed) where given, else at the declared ones."""
+        at, preload = self.point(), self.preload_at()
+        out = [t if at is None and t.point is None and t.preload_point == preload
+               else replace(t, point=None if at is None else tuple(at), preload_point=preload) for t in trials]
         if not self.held:
             return out
         index = {c: COORDINATES.index(c) for c in self.held}

@@ -43,7 +43,7 @@ import casadi as ca
 import numpy as np
 
 from kneenlp.base.compiled import BufferedCall, compiled
-from kneenlp.base.conventions import HELD, HELD_AT, LOAD_SIZE, coords_to_user
+from kneenlp.base.conventions import HELD, HELD_AT, LOAD_SIZE, PRELOAD, PRELOAD_AT, coords_to_user
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.modes import Layout, PriorChoice
 from kneenlp.experiment.contact_sets import ContactSets
@@ -225,6 +225,9 @@ class KneeModel(ContactSets):
         at = ca.DM(self.knee.tuberosity) * load[14] + load[11:14]  # the trial's point, or the tuberosity
         moment += ca.cross(R @ (at + shift), load[0:3]) + load[3:6]
         moment += ca.cross(R_exp @ (shift + origin), joint_force)  # the experiment's tibial axes
+        preload_at = ca.DM(self.knee.tuberosity) * load[PRELOAD_AT][3] + load[PRELOAD_AT][:3]
+        force += load[PRELOAD]
+        moment += ca.cross(R @ preload_at, load[PRELOAD])  # a compressive preload acting elsewhere
         residual = generalized_forces(q, p, axes, force, moment) + load[6:11]
         # a coordinate the apparatus holds is prescribed: its equation is its value (the apparatus
         # carries its generalised force); exact, the mask being 0 or 1

@@ -185,7 +185,8 @@ class MeasuredData:
                 raise InputError(f"trial {t.id!r} is not in protocol {protocol.name!r}", source=src,
                                  field="trial")
             ref = known[t.id]
-            same_load = np.allclose(ref.load, replace(t, point=ref.point, held=ref.held).load)  # the experiment's own
+            same_load = np.allclose(ref.load, replace(t, point=ref.point, held=ref.held,  # the experiment's own
+                                                      preload_point=ref.preload_point).load)
             if abs(ref.flexion_deg - t.flexion_deg) > 1e-9 or not same_load:
                 raise InputError(f"trial {t.id!r}: flexion or load differs from protocol {protocol.name!r}",
                                  source=src, field="trial")

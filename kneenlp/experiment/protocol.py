@@ -58,6 +58,9 @@ class Trial:
     #: the coordinates the apparatus holds and where (index in COORDINATES, rad or m): the
     #: experiment's (:class:`~kneenlp.experiment.kind.Experiment`); they are prescribed, not solved
     held: tuple[tuple[int, float], ...] = ()
+    #: where a compressive preload (the proximal force) acts, when elsewhere than the other loads:
+    #: the experiment's preload point (a tibial point, m, and the tuberosity's weight)
+    preload_point: tuple[float, float, float, float] | None = None
 
     @property
     def flexion(self) -> float:
@@ -67,7 +70,8 @@ class Trial:
     @property
     def load(self) -> np.ndarray:
         """Internal load vector (N, N m; :func:`~kneenlp.base.conventions.load_vector`)."""
-        return load_vector(self.loads, flexion=self.flexion, axes=self.axes, point=self.point, held=self.held)
+        return load_vector(self.loads, flexion=self.flexion, axes=self.axes, point=self.point, held=self.held,
+                           preload_point=self.preload_point)
 
     @property
     def dominant(self) -> str:
