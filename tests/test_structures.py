@@ -7,6 +7,7 @@ that does not declare it carries it as a neutral candidate.  The menisci are suc
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -78,7 +79,7 @@ def _synthetic_copy(directory: Path, extra: str = "") -> Path:
 
 def test_a_new_structure_is_one_module(with_stop, tmp_path):
     names = [t.name for t in structures.structure_tables()]
-    assert names == ["anterior_stop", "contact", "menisci"]
+    assert names == ["anterior_stop", "contact", "menisci", "oblique_popliteal", "popliteus"]
     declared = kneenlp.Knee.load(_synthetic_copy(tmp_path / "a", "\n[anterior_stop]\nstiffness = 50.0\n"))
     plain = kneenlp.Knee.load(_synthetic_copy(tmp_path / "b"))
     assert declared.structures == {"anterior_stop": pytest.approx(5e4)}
@@ -107,3 +108,44 @@ def test_the_menisci_are_a_structure_module():
                      if "Meniscus" in p.read_text() and p.parent.name != "structures")
     assert knowing == []
     assert np.isclose(KneeModel.of(synthetic).theta()[KneeModel.of(synthetic).index("meniscus.k")], 0.0)
+
+
+def _default_copy(folder: Path, extra: str) -> Path:
+    """A copy of the default knee's file (its meshes and parameters by absolute path) plus ``extra``."""
+    src = Path(kneenlp.Knee.named("default").source)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "knee.toml").write_text(src.read_text().replace('"../', f'"{src.parent}/../') + extra)
+    return folder / "knee.toml"
+
+
+def test_the_posterolateral_corner_structures_are_placed_from_the_knees_ligaments(tmp_path):
+    """[popliteus] and [oblique_popliteal]: one module each, placed from the LCL's and the PCL's
+    attachments (their documented offsets), with their own priors.  As candidates they change
+    nothing (k = 0: the default knee's Set 1 to the last digit); in the base model the popliteus
+    restrains external rotation, and a knee without the anchor ligament is refused in one line."""
+    base = kneenlp.Knee.default()
+    path = _default_copy(tmp_path / "on", "\n[popliteus]\n\n[oblique_popliteal]\n")
+    knee = kneenlp.Knee.load(path)
+    els = {e.name: e for e in knee.elements()}
+    plt, opl = els["popliteus"], els["oblique_popliteal"]
+    lcl, pcl = base.ligaments["LCL"].bundles[0], base.ligaments["PCL"].bundles[0]
+    np.testing.assert_allclose(plt.bundles[0].femur - lcl.femur, [0.004, -0.008, -0.001], atol=1e-12)
+    np.testing.assert_allclose(opl.bundles[0].tibia - pcl.tibia, [-0.006, 0.002, -0.018], atol=1e-12)
+    assert 0.040 < opl.bundle_length(opl.bundles[0]) < 0.050  # Wu 2017: 39.5 mm, Osti 2013: 45.6 +- 4.7 mm
+    model = KneeModel.of(knee)
+    prior = model.parameter("popliteus.k").default_prior(1000.0)
+    assert prior.shape == "lognormal" and prior.sd == 0.5
+    assert "popliteus: popliteus tendon" in knee.report()
+    external = [t for t in kneenlp.Protocol.load("set1").trials if t.id.startswith("external")]
+    free = kneenlp.simulate(base, kneenlp.Protocol("one", external)).q
+    held = kneenlp.simulate(knee, kneenlp.Protocol("one", external)).q
+    assert held[0, 1] > free[0, 1] + np.radians(0.3)  # less external (negative) rotation
+    neutral = kneenlp.Knee.load(_default_copy(tmp_path / "cand", "\n[popliteus]\ncandidate = true\n"))
+    np.testing.assert_array_equal(kneenlp.simulate(neutral, "set1").q, kneenlp.simulate(base, "set1").q)
+    from kneenlp.model.placed_bundle import Placed, declared
+    from kneenlp.model.structures.popliteus import PLACEMENT
+
+    elsewhere = dataclasses.replace(PLACEMENT, anchor="FCL")  # a knee whose LCL is called otherwise
+    placed = Placed(False, np.zeros(3), np.zeros(3), 1000.0, 0.0)
+    with pytest.raises(InputError, match=r"popliteus \(placed from the FCL's attachments\).*unknown ligament 'FCL'"):
+        declared(elsewhere)(base, placed)
