@@ -428,7 +428,8 @@ def test_protocol_files_take_joint_loads_and_the_extra_components():
     assert np.allclose(load[:6], 0) and np.allclose(load[6:11], [0, 0, 0, 200.0, 50.0])
     femoral = Protocol.from_dict({"cases": [{"loads": {"lateral_force": 10.0, "proximal_force": 40.0},
                                              "flexion": [0.0]}]}).trials[0].load
-    assert np.allclose(femoral, [0, 40.0, 10.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1.0])  # at the tuberosity
+    assert np.allclose(femoral[:15], [0, 40.0, 10.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1.0])  # at the tuberosity
+    assert not femoral[15:].any()  # nothing held, no preload of its own
     with pytest.raises(kneenlp.base.errors.InputError, match="beyond the largest laxity load"):
         Protocol.from_dict({"cases": [{"loads": {"proximal_force": 5000.0}, "flexion": [0.0]}]})
 

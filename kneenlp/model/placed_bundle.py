@@ -32,7 +32,8 @@ from kneenlp.model.parameters import Parameter
 
 @dataclass(frozen=True)
 class Placement:
-    """Where and how stiff a placed bundle is by default: the ``anchor`` ligament, the offsets of
+    """Where and how stiff a placed bundle is by default: the ``anchor`` ligament (every ligament
+    whose name starts so: ``PCL`` is PCLal and PCLpm of a knee that splits it), the offsets of
     its femoral and tibial attachments from the anchor's (mm: anterior, proximal, lateral), the
     stiffness's log-normal prior (median N per unit strain, sd of its log) and the reference
     strain's normal prior (mean and sd, fractions)."""
@@ -102,15 +103,15 @@ class PlacedBundle(Ligament):
 
 def declared(placement: Placement):
     """The ``declared`` of a :class:`~kneenlp.model.structures.StructureTable` of ``placement``: the
-    bundle at the anchor's attachments (their centroid) plus the offsets."""
+    bundle at the anchor's attachments (the centroid of its bundles) plus the offsets."""
 
     def build(knee: Any, placed: Placed) -> list[PlacedBundle]:
-        anchor = knee.ligaments.get(placement.anchor)
-        if anchor is None:
+        bundles = [b for name, lig in knee.ligaments.items() if name.startswith(placement.anchor) for b in lig.bundles]
+        if not bundles:
             raise unknown_name("ligament", placement.anchor, list(knee.ligaments)).with_context(
                 source=knee.source, field=f"{placement.name} (placed from the {placement.anchor}'s attachments)")
-        femur = np.mean([b.femur for b in anchor.bundles], axis=0) + placed.femur_offset
-        tibia = np.mean([b.tibia for b in anchor.bundles], axis=0) + placed.tibia_offset
+        femur = np.mean([b.femur for b in bundles], axis=0) + placed.femur_offset
+        tibia = np.mean([b.tibia for b in bundles], axis=0) + placed.tibia_offset
         return [PlacedBundle(placement, Bundle(femur, tibia), placed, knee.reference_transform)]
 
     return build
