@@ -108,6 +108,21 @@ BOUND_SLACK = 1e-6
 HOLD_SCALE = (100.0, 100.0, 1e5, 1e5, 1e5)
 
 
+def preload_wrench(load: ca.SX, R: ca.SX, tuberosity: np.ndarray) -> tuple[ca.SX, ca.SX]:
+    """The force and moment about the tibial origin (femoral frame) of a compressive preload acting
+    at a point of its own (:func:`~kneenlp.base.conventions.load_vector`; zero for most experiments)."""
+    at = ca.DM(tuberosity) * load[PRELOAD_AT][3] + load[PRELOAD_AT][:3]
+    return load[PRELOAD], ca.cross(R @ at, load[PRELOAD])
+
+
+def held_residual(residual: ca.SX, q: ca.SX, load: ca.SX) -> ca.SX:
+    """The residual with the held coordinates prescribed: a held coordinate's equation is its value,
+    ``HOLD_SCALE (q - value)`` (the apparatus carries its generalised force); exact, the mask being
+    0 or 1."""
+    held = load[HELD]
+    return (1 - held) * residual + held * ca.DM(HOLD_SCALE) * (q - load[HELD_AT])
+
+
 class KneeModel(ContactSets):
     """Symbolic equilibrium model of a :class:`~kneenlp.model.knee.Knee` (built once, reused).
 
@@ -214,9 +229,8 @@ class KneeModel(ContactSets):
             f_e, m_e = e.wrench(pose, values)
             force += f_e
             moment += m_e
-        # the force acts at the trial's point (the tuberosity by default; a robot's joint loads at the
-        # tibial origin), shifted by LoadPoint; with the tibial origin elsewhere (TibialOrigin) the
-        # joint loads' force (projections on e1, e2, e3: the joint forces) adds the shift's couple
+        # the force acts at the trial's point (the tuberosity by default), shifted by LoadPoint; with the tibial
+        # origin elsewhere (TibialOrigin) the joint loads' force (on e1, e2, e3) adds the shift's couple
         shift = self.measurement.load_point_shift(values)
         origin = self.measurement.joint_origin_shift(values)
         e1, e2, e3 = axes
@@ -225,14 +239,8 @@ class KneeModel(ContactSets):
         at = ca.DM(self.knee.tuberosity) * load[14] + load[11:14]  # the trial's point, or the tuberosity
         moment += ca.cross(R @ (at + shift), load[0:3]) + load[3:6]
         moment += ca.cross(R_exp @ (shift + origin), joint_force)  # the experiment's tibial axes
-        preload_at = ca.DM(self.knee.tuberosity) * load[PRELOAD_AT][3] + load[PRELOAD_AT][:3]
-        force += load[PRELOAD]
-        moment += ca.cross(R @ preload_at, load[PRELOAD])  # a compressive preload acting elsewhere
-        residual = generalized_forces(q, p, axes, force, moment) + load[6:11]
-        # a coordinate the apparatus holds is prescribed: its equation is its value (the apparatus
-        # carries its generalised force); exact, the mask being 0 or 1
-        held = load[HELD]
-        residual = (1 - held) * residual + held * ca.DM(HOLD_SCALE) * (q - load[HELD_AT])
+        f_pre, m_pre = preload_wrench(load, R, self.knee.tuberosity)
+        residual = held_residual(generalized_forces(q, p, axes, force + f_pre, moment + m_pre) + load[6:11], q, load)
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 

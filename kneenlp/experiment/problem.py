@@ -65,6 +65,15 @@ def prior_rows(values, centre, inv_sd, logs: Sequence[bool]):
     return (ca.vertcat(*rows) if symbolic else np.array(rows, dtype=float)) * inv_sd
 
 
+def held_values(trials) -> np.ndarray:
+    """The values the apparatus holds each trial's coordinates at (T x 5, SI; NaN: free)."""
+    out = np.full((len(trials), 5), np.nan)
+    for k, t in enumerate(trials):
+        for i, value in t.held:
+            out[k, i] = value
+    return out
+
+
 @dataclass(frozen=True)
 class DataLayout:
     """The NLP's data vector ``p``: the full parameter vector (SI), then per trial (trial-major)
@@ -200,10 +209,8 @@ class IdentificationProblem:
         """The measured poses as starts (T x 5, mm and deg): a coordinate the experiment does not
         observe at the knee's reference pose, a held one at its value."""
         start = np.where(np.isfinite(self.measured), self.measured, coords_to_user(self.model.knee.reference_pose[1]))
-        for k, t in enumerate(self.trials):
-            for i, value in t.held:
-                start[k, i] = coords_to_user(np.eye(5)[i] * value)[i]
-        return start
+        held = held_values(self.trials)
+        return np.where(np.isfinite(held), coords_to_user(np.nan_to_num(held)), start)
 
     @property
     def measured_q(self) -> np.ndarray:
@@ -215,12 +222,8 @@ class IdentificationProblem:
         """Which coordinates of which trial were measured (T x 5, bool; NaN in ``measured``: not
         observed by the experiment, weighed zero).  A coordinate the apparatus holds is an input
         (the trial is held at its value), not an observation: weighed zero too."""
-        held = np.zeros((len(self.trials), 5), bool)
-        for k, t in enumerate(self.trials):
-            held[k, [i for i, _ in t.held]] = True
-        if self.measured is None:
-            return ~held
-        return np.isfinite(self.measured) & ~held
+        held = np.isfinite(held_values(self.trials))
+        return ~held if self.measured is None else np.isfinite(self.measured) & ~held
 
     @classmethod
     def from_data(cls, model: KneeModel, data: MeasuredData, free: Sequence[str] | None = None,
