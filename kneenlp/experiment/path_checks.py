@@ -11,8 +11,8 @@ from kneenlp.model.paths import WrapPath
 
 
 def wrapped_bundles(model: KneeModel) -> list[tuple]:
-    """``(ligament, bundle)`` of every bundle of ``model``'s knee whose path wraps an obstacle."""
-    return [(lig, b) for lig in model.knee.elements() if hasattr(lig, "bundles")
+    """``(ligament, bundle)`` of every bundle of ``model``'s elements whose path wraps an obstacle."""
+    return [(lig, b) for lig in model.elements if hasattr(lig, "bundles")
             for b in lig.bundles if isinstance(b.path, WrapPath)]
 
 
