@@ -347,7 +347,7 @@ def test_a_cylinder_passed_the_long_way_is_noted_in_the_solved_trials(tmp_path):
 
 
 def test_a_via_point_inside_a_bone_is_refused(tmp_path):
-    """The default knee's MCL through a point 20 mm inside its medial femoral condyle: the via
+    """The default knee's MCL through a point inside its medial femoral condyle: the via
     point is checked against the bone as an attachment is, and named."""
     src = Path(kneenlp.Knee.named("default").source)
     text = src.read_text().replace('"../', f'"{src.parent}/../')
