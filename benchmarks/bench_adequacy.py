@@ -46,7 +46,8 @@ NOISE = "uniform:0.5"
 HIDDEN = [("posterior_capsule", "posterior_capsule.k", 1), ("meniscus", "meniscus.k", 1),
           ("flexion_offset", "flexion_offset.delta", 1), ("contact_modulus", "contact.modulus", -1),
           ("lin_strain", "ACL.lin_strain", 1), ("registration", "registration.anterior_translation", 1),
-          ("ALL", "ALL.k", 1), ("LCL_femoral_attachment", "LCL.femur_anterior", 1)]
+          ("ALL", "ALL.k", 1), ("LCL_femoral_attachment", "LCL.femur_anterior", 1),
+          ("neutral_zone", "neutral_zone.anterior_translation", 1)]
 
 
 def hidden_effects(knee) -> list[tuple[str, str, int]]:
@@ -165,6 +166,8 @@ def cases(args, knee, out: Path):
             limits = limits_for(knee, protocol, out)
             theta = KneeModel.of(knee).theta()
             for effect, par, sign in hidden_effects(knee):
+                if args.effects and effect not in args.effects.split(","):
+                    continue
                 for factor in args.factors:
                     for i in range(args.hidden):
                         base = theta[KneeModel.of(knee).index(par)]
@@ -240,6 +243,7 @@ def main() -> None:
     ap.add_argument("--hidden", type=int, default=1, help="datasets per hidden effect, size and protocol")
     ap.add_argument("--factors", type=float, nargs="+", default=[1.0, 2.0, 4.0],
                     help="effect sizes in detection limits")
+    ap.add_argument("--effects", default="", help="hidden effects to run (comma-separated; default all)")
     ap.add_argument("--attachment", type=int, default=5, help="moved-attachment datasets per protocol (Sets 3, 4)")
     ap.add_argument("--refit", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)

@@ -102,7 +102,8 @@ class SimulationResult:
         rng = np.random.default_rng(seed)
         model = self.model or KneeModel.of(self.knee)
         # what the instrument reads, biases included
-        y = model.observe(self.q, model.theta(self.parameters), [s.trial.flexion for s in self.solutions])
+        y = model.observe(self.q, model.theta(self.parameters), [s.trial.load for s in self.solutions],
+                          [s.trial.flexion for s in self.solutions])
         return measured_frame([s.trial for s in self.solutions], y + noise.sample(rng, self.q.shape),
                               self.protocol.name, experiment=self.experiment)
 

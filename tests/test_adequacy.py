@@ -107,7 +107,8 @@ def test_cli_diagnose_clean_data_smoke(tmp_path, capsys):
     assert main(["diagnose", "--knee", "synthetic", str(tmp_path / "measured.csv"), "--json", "--refit", "0"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert {"adequate", "p_value", "rms", "expected_rms", "flagged", "ranking"} <= set(out)
-    assert len(out["ranking"]) == 21 and out["recommended"] is None  # 8 + 5 registrations + 8 attachments
+    # 9 (the neutral zone among them) + 5 registrations + 8 attachments
+    assert len(out["ranking"]) == 22 and out["recommended"] is None
 
 
 def test_neutral_effects_leave_the_model_unchanged(model):

@@ -263,17 +263,25 @@ def test_s192803_diagnosis():
                   rf"translation ({NUMBER}) mm and varus ({NUMBER}) deg in all four external-rotation trials, "
                   rf"proximal ({NUMBER}) mm in all seven trials at 5 deg\)", text)
     assert m, "the diagnosis sentence of docs/real-experiment.md"
-    chi2, dof, lateral, varus, proximal = (float(v) for v in m.groups())
+    dof = float(m.group(2))
+    spread = re.search(rf"chi-square ({NUMBER}) to ({NUMBER}), lateral ({NUMBER}) to ({NUMBER}) mm, varus ({NUMBER}) "
+                       rf"to ({NUMBER}) deg, proximal ({NUMBER}) to ({NUMBER}) mm", text)
+    assert spread, "the competing minima's ranges of docs/real-experiment.md"
+    chi2, lateral, varus, proximal = (tuple(float(v) for v in spread.groups()[i:i + 2]) for i in range(0, 8, 2))
     r = script("diagnose_s192803.py")["diagnosis"]()
-    assert close(r["chi2"], chi2, tolerance(text, "chi-square +-")) and r["dof"] == dof
+    # the figures of whichever competing minimum ranks first (docs: a stability test of one trial
+    # chooses), each inside its documented range over them, widened by its tolerance
+    chi_tol = tolerance(text, "chi-square +-")
+    assert close(r["chi2"], min(max(r["chi2"], chi2[0]), chi2[1]), chi_tol) and r["dof"] == dof, (r["chi2"], chi2)
     verdict = re.search(r'the verdict is "([A-Z ,]+)"', text)
     assert verdict and r["verdict"].startswith(verdict.group(1)), r["verdict"]
     means = r["pattern_means"]
-    tol = tolerance(text, "%, means")
-    quoted_means = {"lateral translation under external load": lateral, "varus rotation under external load": varus,
-                    "proximal translation at 5 deg flexion": proximal}
-    for key, quoted in quoted_means.items():
-        assert close(means[key], quoted, (tol[0], "abs")), (key, means.get(key), quoted)
+    tol = tolerance(text, "%, means")[0]
+    quoted_ranges = {"lateral translation under external load": lateral, "varus rotation under external load": varus,
+                     "proximal translation at 5 deg flexion": proximal}
+    for key, (low, high) in quoted_ranges.items():
+        assert low - tol <= means[key] <= high + tol, (key, means.get(key), low, high)
+    assert r["spread"]["minima"] >= 1 and r["spread"]["chi2"][0] <= r["chi2"] <= r["spread"]["chi2"][1]
 
 
 def test_deepest_attachment_of_the_shipped_knees():

@@ -113,7 +113,7 @@ def test_a_moved_origin_reads_the_translations_of_the_moved_point(element):
                                                                   strict=True)})
         q = np.r_[rng.uniform(-0.4, 0.4, 2), rng.uniform(-0.01, 0.01, 2), rng.uniform(-0.03, -0.01)]
         flexions = rng.uniform(-0.1, 1.7, 3)
-        seen = model.observe(np.tile(q, (3, 1)), theta, flexions)
+        seen = model.observe(np.tile(q, (3, 1)), theta, np.zeros(LOAD_SIZE), flexions)
         for flexion, y in zip(flexions, seen, strict=True):
             R, p = reference_transform(flexion, q)
             f_back, q_moved = joint_coordinates(R, p + R @ shift if element == "tibial_origin" else p - shift)
@@ -146,7 +146,9 @@ def test_turned_tibial_axes_make_the_coordinates_the_experiments():
     assert f_back == pytest.approx(flexion, abs=1e-12) and np.allclose(q_back, q, atol=1e-12)
     f_model, q_model = joint_coordinates(R, p)  # the model's own axes read another pose
     assert abs(f_model - flexion) > np.radians(1.0) and abs(q_model[0] - q[0]) > np.radians(2.0)
-    assert np.allclose(model.observe(q[None], theta, flexion), model.observe(q[None], model.theta(), flexion))
+    unloaded = np.zeros(LOAD_SIZE)
+    assert np.allclose(model.observe(q[None], theta, unloaded, flexion),
+                       model.observe(q[None], model.theta(), unloaded, flexion))
 
     tub = np.asarray(model.knee.tuberosity, float)
 

@@ -58,7 +58,8 @@ def test_the_standard_experiment_at_zero_is_the_bare_knee(knee):
         r_s = np.asarray(standard.residual(q, theta_s, load, flexion, ws_s)).ravel()
         r_b = np.asarray(bare.residual(q, theta_b, load, flexion, ws_b)).ravel()
         np.testing.assert_array_equal(r_s, r_b)
-        np.testing.assert_array_equal(standard.observe(q, theta_s, flexion), bare.observe(q, theta_b, flexion))
+        np.testing.assert_array_equal(standard.observe(q, theta_s, load, flexion),
+                                      bare.observe(q, theta_b, load, flexion))
 
 
 def test_a_user_part_changes_the_reading_not_the_forces(knee):
@@ -66,7 +67,8 @@ def test_a_user_part_changes_the_reading_not_the_forces(knee):
     assert model.parameter_names[-1] == "bias.anterior" and model.element("bias").name == "bias"
     q, flexion = np.array([0.01, -0.05, 1e-3, 2e-3, -1e-3]), 0.5
     theta0, theta1 = model.theta(), model.theta({"bias.anterior": 1.5e-3})
-    y0, y1 = model.observe(q, theta0, flexion)[0], model.observe(q, theta1, flexion)[0]
+    unloaded = np.zeros(LOAD_SIZE)
+    y0, y1 = model.observe(q, theta0, unloaded, flexion)[0], model.observe(q, theta1, unloaded, flexion)[0]
     np.testing.assert_allclose(y1 - y0, [0, 0, 0, 1.5, 0], atol=1e-12)  # mm
     ws = model.working_data(q, theta0, flexion)
     load = np.zeros(LOAD_SIZE)

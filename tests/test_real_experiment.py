@@ -18,7 +18,7 @@ import pytest
 import scipy.io
 
 import kneenlp
-from kneenlp.base.conventions import coordinate_columns, coords_to_user
+from kneenlp.base.conventions import LOADED, coordinate_columns, coords_to_user
 from kneenlp.base.resources import resource
 from kneenlp.cli import main
 from kneenlp.experiment.kneemodel import KneeModel
@@ -429,7 +429,9 @@ def test_protocol_files_take_joint_loads_and_the_extra_components():
     femoral = Protocol.from_dict({"cases": [{"loads": {"lateral_force": 10.0, "proximal_force": 40.0},
                                              "flexion": [0.0]}]}).trials[0].load
     assert np.allclose(femoral[:15], [0, 40.0, 10.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1.0])  # at the tuberosity
-    assert not femoral[15:].any()  # nothing held, no preload of its own
+    assert not femoral[15:LOADED.start].any()  # nothing held, no preload of its own
+    # the lateral force dominates: the loaded direction is lateral (the neutral zone's)
+    assert list(femoral[LOADED]) == [0, 0, 1.0, 0, 0]
     with pytest.raises(kneenlp.base.errors.InputError, match="beyond the largest laxity load"):
         Protocol.from_dict({"cases": [{"loads": {"proximal_force": 5000.0}, "flexion": [0.0]}]})
 

@@ -15,7 +15,7 @@ from scipy import stats
 
 import kneenlp
 from kneenlp.base.errors import InputError
-from kneenlp.estimation.minima import SAME_PARAMETERS, distinct_minima, standardised
+from kneenlp.estimation.minima import SAME_PARAMETERS, Search, distinct_minima, standardised
 from kneenlp.estimation.search import CENTRAL, SearchSettings, Solves, prior_starts, search
 from kneenlp.estimation.solve import reduced_fit, solve_simultaneous
 from kneenlp.experiment.kneemodel import KneeModel
@@ -80,6 +80,28 @@ def test_minima_are_ends_equal_in_objective_and_parameters_lowest_on_the_loading
     assert [m.reached_by for m in minima] == [("start 1", "hop 1.1", "start 2"), ("start 3",), ("start 4",),
                                               ("start 6",)]
     assert standardised(problem, minima[1].fit.params)[0] == pytest.approx(1.0)
+    found = Search(6, 0, np.zeros(6), ends, minima)
+    # the best (stable, on the path) first, then the others within 1 % of the lowest found (8.0)
+    assert [m.reached_by for m in found.competing()] == [("start 1", "hop 1.1", "start 2"), ("start 6",)]
+    assert [m.reached_by[0] for m in found.competing(within=0.25)] == ["start 1", "start 3", "start 4", "start 6"]
+
+
+def test_a_diagnosis_gives_its_figures_range_over_the_competing_minima():
+    """The chi-square and each pattern's mean over the fits at a search's competing minima: their
+    smallest and largest, by hand."""
+    from kneenlp.adequacy.diagnosis import minima_spread
+    from kneenlp.adequacy.patterns import Pattern
+
+    r1 = np.zeros((3, 5))
+    r1[:2, 2] = [2.0, 4.0]
+    r2 = r1.copy()
+    r2[:2, 2] = [1.0, 1.0]
+    r2[2, 0] = 3.0
+    fits = [SimpleNamespace(residuals=r, weights=None, free=["x"]) for r in (r1, r2)]
+    lateral = Pattern("lateral_translation", "under external load", frozenset({0, 1}), 3.0, 2, 5.0)
+    spread = minima_spread([lateral], fits, sigma=0.5)
+    assert spread["minima"] == 2 and spread["pattern_means"] == [(1.0, 3.0)]
+    assert spread["chi2"] == (pytest.approx((1 + 1 + 9) / 0.25), pytest.approx((4 + 16) / 0.25))
 
 
 @pytest.fixture(scope="module")

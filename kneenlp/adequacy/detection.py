@@ -97,7 +97,8 @@ def exact_noncentrality(fit: Fit, name: str, shift: float, sigma: float) -> floa
                                                                         zip(fit.data.trials, fit.q_pred, strict=True)})
     if not all(s.converged for s in sols):
         return float("nan")
-    y = model.observe(np.array([s.q for s in sols]), theta, [s.trial.flexion for s in sols])
+    y = model.observe(np.array([s.q for s in sols]), theta, [s.trial.load for s in sols],
+                      [s.trial.flexion for s in sols])
     data = MeasuredData.from_user(fit.data.trials, y, fit.data.protocol, "noise-free simulation")
     refit = identify(model, data, free=list(fit.free), start=dict(fit.params), fixed=fit.problem.fixed,
                      noise=fit.problem.noise, restarts=0)

@@ -41,6 +41,7 @@ from kneenlp.base.conventions import COORDINATE_UNITS, COORDINATES
 from kneenlp.base.errors import InputError
 from kneenlp.base.keywords import keyword_options
 from kneenlp.estimation.fit import Fit
+from kneenlp.estimation.minima import COMPETING
 from kneenlp.estimation.statistics import chi_square_test
 from kneenlp.experiment.noise import NoiseModel
 from kneenlp.model.ligament import SHIFT_AXES
@@ -81,6 +82,8 @@ class Diagnosis:
     refits: dict[str, Fit] = field(default_factory=dict)  # effect name -> refitted Fit
     seconds: float = 0.0
     limits: str = "linear"  # how the detection limits were computed: "linear", "simulated" or "none"
+    #: the figures' range over the competing minima of the fit's search (:func:`minima_spread`)
+    spread: dict = field(default_factory=dict)
 
     @property
     def outcome(self) -> str:
@@ -114,7 +117,7 @@ class Diagnosis:
                 else None, "recommended": rec.effect if rec else None,
                 "estimate": estimate_words(self.fit, rec, self.refits.get(rec.effect)) if rec else None,
                 "verdict": self.verdict, "base_starts": self.fit.starts,
-                "detection_limits": self.limits,
+                "detection_limits": self.limits, "spread": self.spread,
                 "seconds": self.seconds}
 
     def to_json(self) -> str:
@@ -131,6 +134,13 @@ class Diagnosis:
                  f"    residuals beyond the noise bound: {len(self.flagged)}"]
         lines.append("[[Where it fails]]")
         lines += [f"    {p.words()}" for p in self.patterns] or ["    no pattern beyond the noise"]
+        if self.spread:
+            ranges = "; ".join(f"{p.coordinate.replace('_', ' ')} {p.where} {lo:+.2f} to {hi:+.2f} {p.unit}"
+                               for p, (lo, hi) in zip(self.patterns, self.spread["pattern_means"], strict=True))
+            lo, hi = self.spread["chi2"]
+            lines.append(f"    over the {self.spread['minima']} competing minima of the search (within "
+                         f"{100 * COMPETING:g} % of its MAP): chi-square {lo:.0f} to {hi:.0f}"
+                         + (f"; {ranges}" if ranges else ""))
         lines += ["    worst cells:"] + [f"      {w}" for w in self.worst]
         if self.ranking:
             lines.append(f"[[Candidate effects]] chi-square drop in units of the declared noise variance (score: one "
@@ -222,6 +232,7 @@ class DiagnoseOptions:
     refit: int = 4
     alpha: float = ALPHA
     limits: bool | str = True
+    minima: list[Fit] | None = None
 
 
 def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", **options) -> Diagnosis:
@@ -265,6 +276,8 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", **options) -> Di
     worst = [_words(fit.data.trials[k // 5], COORDINATES[k % 5], COORDINATE_UNITS[k % 5], r.flat[k]) for k in order]
     diag = Diagnosis(fit, noise, rms, expected, chi2, dof, p_value, flagged, rmap, worst,
                      patterns=failure_patterns(fit.data.trials, r, sigma))
+    if opts.minima:
+        diag.spread = minima_spread(diag.patterns, opts.minima, sigma)
     diag.ranking = score_effects(fit, sigma, effects)
     # refits cost a solve each: only for candidates with some evidence, unless the global test fails
     # (then the score test may under-score a nonlinear effect such as a slack bundle switched on)
@@ -297,6 +310,16 @@ def diagnose(fit: Fit, noise: str | NoiseModel = "uniform:0.5", **options) -> Di
     diag.verdict = verdict_words(diag)
     diag.seconds = time.perf_counter() - t0
     return diag
+
+
+def minima_spread(patterns: list[Pattern], minima: list[Fit], sigma: float) -> dict:
+    """The chi-square and each pattern's mean (mm, deg) as ranges ``(low, high)`` over the fits at a
+    search's competing minima (same trials): a figure compared across effects or machines means no
+    more than this range, as any of these minima could be ranked first."""
+    chi2 = [chi_square_test(f.residuals, f.weights, sigma**2, len(f.free))[0] for f in minima]
+    means = [[p.mean_of(f.residuals) for f in minima] for p in patterns]
+    return {"minima": len(minima), "chi2": (min(chi2), max(chi2)),
+            "pattern_means": [(min(m), max(m)) for m in means]}
 
 
 def _other_side(effect: str) -> str | None:

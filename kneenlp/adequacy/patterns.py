@@ -36,9 +36,19 @@ class Pattern:
     same_sign: int
     strength: float  # |sum z| / sqrt(n)
 
+    @property
+    def unit(self) -> str:
+        """mm or deg."""
+        return COORDINATE_UNITS[COORDINATES.index(self.coordinate)]
+
+    def mean_of(self, residuals: np.ndarray) -> float:
+        """This pattern's mean in other residuals of the same trials (T x 5, mm and deg): the same
+        group at another minimum of the fit."""
+        return float(np.mean(np.asarray(residuals)[sorted(self.trials), COORDINATES.index(self.coordinate)]))
+
     def words(self) -> str:
         n = len(self.trials)
-        unit = COORDINATE_UNITS[COORDINATES.index(self.coordinate)]
+        unit = self.unit
         side = "above" if self.mean > 0 else "below"
         count = f"all {n}" if self.same_sign == n else f"{self.same_sign} of {n}"
         return (f"{self.coordinate.replace('_', ' ')}: model {side} the measurement in {count} trials {self.where} "

@@ -93,11 +93,14 @@ ALL_LOAD_UNITS: tuple[str, ...] = LOAD_UNITS + EXTRA_LOAD_UNITS
 #: the femoral frame, generalised forces of the five free coordinates (5), where the force acts: a
 #: tibial point (3, tibial frame, m) plus the knee's tuberosity times a weight (1), the coordinates
 #: the apparatus holds: a mask (5, 1 = held) and the values they are held at (5, SI), and a
-#: compressive preload acting elsewhere: its force (3, femoral frame) and its tibial point (3 + 1).
-LOAD_SIZE = 32
+#: compressive preload acting elsewhere: its force (3, femoral frame) and its tibial point (3 + 1),
+#: and the coordinate the trial's dominant load drives, with its sign (5: +-1 there, else 0; the
+#: observation's, e.g. an apparatus' dead band, :class:`~kneenlp.experiment.parts.NeutralZone`).
+LOAD_SIZE = 37
 #: Slices of the load vector: the loads a ramp scales, the held mask, the held values, the preload
-#: and its point (as the force's: a tibial point and the tuberosity's weight).
+#: and its point (as the force's: a tibial point and the tuberosity's weight), the loaded direction.
 LOADS, HELD, HELD_AT, PRELOAD, PRELOAD_AT = slice(0, 11), slice(15, 20), slice(20, 25), slice(25, 28), slice(28, 32)
+LOADED = slice(32, 37)
 
 #: Load directions of the paper's Table 2: (component, sign).
 DIRECTIONS: dict[str, tuple[str | None, float]] = {
@@ -182,7 +185,8 @@ def scaled_load(load: np.ndarray, factor: float) -> np.ndarray:
 
 def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes = "femoral",
                 point: np.ndarray | None = None, held: tuple[tuple[int, float], ...] = (),
-                preload_point: tuple[float, float, float, float] | None = None) -> np.ndarray:
+                preload_point: tuple[float, float, float, float] | None = None,
+                loaded: tuple[int, float] | None = None) -> np.ndarray:
     """Internal load vector (:data:`LOAD_SIZE`) of signed load components (N, N m; absent = 0).
 
     ``[F (3), M (3), Q (5), a (3), w (1)]``: a force ``F`` and a pure moment ``M``, both in the
@@ -191,7 +195,8 @@ def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes
     knee's tuberosity): ``point`` (``a``, ``w = 0``) or by default the tuberosity (``a = 0``,
     ``w = 1``), then the ``held`` coordinates (index in :data:`COORDINATES`, value in rad or m: the
     mask and the values), and, given a ``preload_point`` (``a, w`` as the force's point), the
-    proximal force as a preload of its own acting there (not for ``jcs`` loads).  ``axes``
+    proximal force as a preload of its own acting there (not for ``jcs`` loads), and ``loaded``: the
+    coordinate (index in :data:`COORDINATES`) the dominant load drives and its sign.  ``axes``
     (module docstring): ``"femoral"`` along femoral X, Y, Z; ``"joint"`` along the floating axis
     ``e2 = (cos f, -sin f, 0)``, the unvarused tibial axis ``e3 = (sin f, cos f, 0)`` at flexion
     ``f`` (rad) and ``e1 = Z``; ``"jcs"`` all in ``Q``.  The flexion moment is never applied (the
@@ -205,6 +210,8 @@ def load_vector(loads: dict[str, float], *, flexion: float = 0.0, axes: LoadAxes
     out[11:15] = (0.0, 0.0, 0.0, 1.0) if point is None else (*np.asarray(point, float).reshape(3), 0.0)
     for i, value in held:
         out[HELD.start + i], out[HELD_AT.start + i] = 1.0, value
+    if loaded is not None:
+        out[LOADED.start + loaded[0]] = np.sign(loaded[1])
     if axes == "jcs":
         out[6:11] = [get["varus_moment"], get["internal_moment"], get["lateral_force"], get["anterior_force"],
                    get["proximal_force"]]

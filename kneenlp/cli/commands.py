@@ -28,16 +28,20 @@ def cmd_diagnose(args) -> int:
     knee = knee_from_args(args)
     data = args.measured  # read and checked by the options layer
     real = real_experiment(data)
+    minima = None
     if real:  # the base model of a real experiment is its calibration (registration included);
         # every trial: the residual map shows a trial identify would set aside
-        fit = calibrate(KneeModel.of(knee), data, noise=args.noise, seed=args.seed, keep_outliers=True,
-                        starts=search_starts(args, calibration=True), workers=search_workers(args)).fit
+        calibration = calibrate(KneeModel.of(knee), data, noise=args.noise, seed=args.seed, keep_outliers=True,
+                                starts=search_starts(args, calibration=True), workers=search_workers(args))
+        fit = calibration.fit
+        minima = [m.fit for m in calibration.search.competing()] if calibration.search else None
     else:
         if args.held_out:
             raise InputError("judges a real experiment's calibrations (data of a laboratory experiment)",
                              field="--held-out")
         fit = base_fit(knee, data, args.noise, seed=args.seed)
-    d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear")
+    d = diagnose(fit, args.noise, refit=args.refit, limits="simulated" if args.simulated_limits else "linear",
+                 minima=minima)
     n = (HELD_OUT_CANDIDATES if args.held_out is None else args.held_out) if real else 0
     judged = crossval.judge(KneeModel.of(knee), data, [[s.effect] for s in d.ranking[:n]], seed=args.seed,
                             workers=search_workers(args), starts=search_starts(args, calibration=True)) if n else []

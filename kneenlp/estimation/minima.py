@@ -29,6 +29,10 @@ ENOUGH_HITS = 3
 #: Relative MAP objective within which two ranked solves count as equal (the ranking then goes by
 #: start index, so that the last digits of the arithmetic never choose).
 TIE = 1e-9
+#: Relative MAP objective within which a minimum competes with the lowest (:meth:`Search.competing`):
+#: S192803's four lowest minima lie within 0.5 % and differ by 0.1 mm in their residual patterns,
+#: and which of them ranks first turns on a borderline stability test of one trial.
+COMPETING = 1e-2
 
 
 @dataclass(frozen=True)
@@ -92,6 +96,14 @@ class Search:
                     "finds it repeatedly")
         return (f"the lowest minimum was reached by {self.best.hits} solve(s) only (fewer than {ENOUGH_HITS}): the "
                 f"search may not have found the global MAP; try --starts {min(4 * self.starts, MAX_STARTS)}")
+
+    def competing(self, within: float = COMPETING) -> list[Minimum]:
+        """The minima whose MAP objective is within ``within`` (relative) of the lowest found, the
+        best first: the answers a search on another machine may have ranked first."""
+        if not self.minima:
+            return [self.best]
+        low = min(m.objective for m in self.minima)
+        return [self.best] + [m for m in self.minima[1:] if m.objective <= low + within * abs(low)]
 
     def objectives(self) -> np.ndarray:
         """The MAP objective of every converged end, sorted (the waterfall's points)."""

@@ -15,7 +15,7 @@
 * ``r`` (5): generalised forces of all elements + load for the five free coordinates (N m for the
   rotations, N for the translations); equilibrium is ``r = 0``.  The flexion moment is reacted.
 
-``KneeModel.observation`` is THE map from a pose to what is measured, ``(q, theta, flexion) -> y``
+``KneeModel.observation`` is THE map from a pose to what is measured, ``(q, theta, load, flexion) -> y``
 with ``y`` the five coordinates in mm and deg plus the experiment's measurement bias (which may
 depend on the prescribed flexion: :class:`~kneenlp.experiment.parts.FemoralOrigin`).
 
@@ -43,7 +43,7 @@ import casadi as ca
 import numpy as np
 
 from kneenlp.base.compiled import BufferedCall, compiled
-from kneenlp.base.conventions import HELD, HELD_AT, LOAD_SIZE, PRELOAD, PRELOAD_AT, coords_to_user
+from kneenlp.base.conventions import HELD, HELD_AT, LOAD_SIZE, LOADED, PRELOAD, PRELOAD_AT, coords_to_user
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.modes import Layout, PriorChoice
 from kneenlp.experiment.contact_sets import ContactSets
@@ -121,6 +121,18 @@ def held_residual(residual: ca.SX, q: ca.SX, load: ca.SX) -> ca.SX:
     0 or 1."""
     held = load[HELD]
     return (1 - held) * residual + held * ca.DM(HOLD_SCALE) * (q - load[HELD_AT])
+
+
+#: The observation function's inputs (:attr:`KneeModel.observation`).
+OBSERVATION_INPUTS = ["q", "theta", "load", "flexion"]
+
+
+def _called(items: list, name: str, what: str):
+    """The item of ``items`` whose ``name`` is ``name``; else the one-line error naming the known ones."""
+    found = next((e for e in items if e.name == name), None)
+    if found is None:
+        raise unknown_name(what, name, [e.name for e in items])
+    return found
 
 
 class KneeModel(ContactSets):
@@ -244,9 +256,9 @@ class KneeModel(ContactSets):
         plain_out = ca.vertcat(*[v for e in plain for v in e.output_values(pose, values)])
         balance = ca.Function("balance", [q, flexion, theta, load, *stage_f, *stage_m], [residual, plain_out])
 
-        bias = self.measurement.bias(pose, values)
+        bias = self.measurement.bias(pose, values, load[LOADED])
         y = coords_to_user(q) + (coords_to_user(bias) if bias is not None else 0)
-        self.observation = ca.Function("observation", [q, theta, flexion], [y], ["q", "theta", "flexion"], ["y"])
+        self.observation = ca.Function("observation", [q, theta, load, flexion], [y], OBSERVATION_INPUTS, ["y"])
 
         self.pose = ca.Function("pose", [q, flexion, theta], [R, p], ["q", "flexion", "theta"], ["R", "p"])
         self.staged = staged
@@ -373,31 +385,26 @@ class KneeModel(ContactSets):
         (:func:`~kneenlp.model.params.make_params`)."""
         return make_params(self, priors)
 
-    def observe(self, q: np.ndarray, theta: np.ndarray, flexions) -> np.ndarray:
-        """Measured coordinates (T x 5, mm and deg) of poses ``q`` (T x 5, SI) at their prescribed
-        ``flexions`` (T, rad) and ``theta``."""
+    def observe(self, q: np.ndarray, theta: np.ndarray, loads: np.ndarray, flexions) -> np.ndarray:
+        """Measured coordinates (T x 5, mm and deg) of poses ``q`` (T x 5, SI) under their trials'
+        ``loads`` (T x ``LOAD_SIZE``) at their prescribed ``flexions`` (T, rad) and ``theta``."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
         flexions = np.broadcast_to(np.asarray(flexions, float), (len(q),))
-        return np.asarray(self.observation.map(len(q))(q.T, theta, flexions[None, :])).T
+        loads = np.broadcast_to(np.asarray(loads, float).reshape(-1, LOAD_SIZE), (len(q), LOAD_SIZE))
+        return np.asarray(self.observation.map(len(q))(q.T, theta, loads.T, flexions[None, :])).T
 
     def bias_user(self, theta: np.ndarray, flexion: float = 0.0) -> np.ndarray:
         """Measurement bias (mm, deg) that the experiment adds to the model's coordinates at the
-        neutral pose and ``flexion`` (rad)."""
-        return self.observe(np.zeros(5), theta, flexion)[0]
+        neutral pose and ``flexion`` (rad) without a load."""
+        return self.observe(np.zeros(5), theta, np.zeros(LOAD_SIZE), flexion)[0]
 
     def effect(self, name: str) -> Effect:
         """The candidate effect called ``name``."""
-        for e in self.effects:
-            if e.name == name:
-                return e
-        raise unknown_name("effect", name, [e.name for e in self.effects])
+        return _called(self.effects, name, "effect")
 
     def element(self, name: str) -> Part:
         """The part (force element or experiment part) called ``name``."""
-        for e in self.parts:
-            if e.name == name:
-                return e
-        raise unknown_name("force element or experiment part", name, [e.name for e in self.parts])
+        return _called(self.parts, name, "force element or experiment part")
 
     def index(self, name: str) -> int:
         """Position of parameter ``name`` in ``theta``."""
@@ -471,5 +478,5 @@ class KneeModel(ContactSets):
 
     @cached_property
     def observation_jacobians(self) -> ca.Function:
-        """``(q, theta, flexion) -> (dy/dq, dy/dtheta)`` of :attr:`observation`."""
-        return self.observation.factory("observation_jac", ["q", "theta", "flexion"], ["jac:y:q", "jac:y:theta"])
+        """``(q, theta, load, flexion) -> (dy/dq, dy/dtheta)`` of :attr:`observation`."""
+        return self.observation.factory("observation_jac", OBSERVATION_INPUTS, ["jac:y:q", "jac:y:theta"])

@@ -10,7 +10,8 @@ robot or a tracking system adds on top is the experiment's, and lives here, as
   points of the tibia and the femur than the model's origins (a robot also applies its joint loads
   at its tibial origin);
 * :class:`TibialAxes`: the experiment's tibial axes are turned from the model's;
-* :class:`LoadPoint`: the applied force acts elsewhere than its nominal point.
+* :class:`LoadPoint`: the applied force acts elsewhere than its nominal point;
+* :class:`NeutralZone`: a dead band of the apparatus in the loaded direction.
 
 Every part is neutral at its default (zero) values: the experiment is then the model's own frames,
 bit for bit.  :class:`~kneenlp.experiment.kneemodel.KneeModel` combines the knee and its
@@ -43,6 +44,13 @@ LOAD_POINT_AXES = ("anterior", "proximal", "lateral")
 REGISTRATION_SD_MM = 5.0
 REGISTRATION_SD_DEG = 5.0
 ORIGIN_SD_MM = 5.0
+#: Default prior widths (sd) of a dead band's half-width in the loaded direction (mm, deg): the
+#: play of a fixture or strap and the soft tissue between it and the bone (docs/priors.md).
+NEUTRAL_ZONE_SD_MM = 2.0
+NEUTRAL_ZONE_SD_DEG = 2.0
+#: The coordinates a load drives (:data:`~kneenlp.experiment.protocol.LOADED_COORDINATE`): the
+#: dead band's; the proximal translation carries the preload in every trial and has none.
+NEUTRAL_ZONE_COORDINATES = COORDINATES[:4]
 
 
 class ExperimentPart(Part):
@@ -57,6 +65,11 @@ class ExperimentPart(Part):
     def measurement_bias(self, pose: Pose, values: dict[str, ca.SX]) -> ca.SX | None:
         """Added to the model's five coordinates ``pose.q`` before comparison with measurements
         (rad, m); it may depend on the pose, flexion included."""
+        return None
+
+    def loaded_bias(self, loaded: ca.SX, values: dict[str, ca.SX]) -> ca.SX | None:
+        """Added to the five measured coordinates (rad, m) of a trial whose dominant load drives the
+        coordinate ``loaded`` marks (5: the load's sign there, else 0; :data:`~kneenlp.base.conventions.LOADED`)."""
         return None
 
     def load_point_offset(self, values: dict[str, ca.SX]) -> ca.SX | None:
@@ -223,6 +236,33 @@ class LoadPoint(ExperimentPart):
         return ca.vertcat(*[values[f"load_point.{a}"] for a in LOAD_POINT_AXES])
 
 
+class NeutralZone(ExperimentPart):
+    """A dead band of the apparatus in the loaded direction: under a load that drives a coordinate
+    (the trial's dominant load, :attr:`~kneenlp.experiment.protocol.Trial.loaded`), the measured
+    coordinate reads the knee's plus ``neutral_zone.<coordinate>`` (mm or deg, at least 0) in the
+    load's sense: the play a strap, a fixture's pins or the soft tissue between them and the bone
+    take up before the knee is loaded.  Unloaded trials and the other coordinates read the knee's.
+    It differs from a constant registration in its sign, which follows the load: it widens every
+    laxity (anterior minus posterior translation) by twice the half-width and leaves the unloaded
+    pose alone.  (The hysteresis of an unloaded pose, which depends on the previous load, would need
+    the trials' order, which the data files do not keep.)"""
+
+    name = "neutral_zone"
+    description = "a dead band of the apparatus in the loaded direction"
+    candidate = True
+
+    def parameters(self) -> list[Parameter]:
+        return [Parameter(f"neutral_zone.{c}", "angle" if u == "deg" else "length",
+                          f"half-width of the dead band of the {c.replace('_', ' ')} in the loaded direction", 0.0,
+                          0.0, lower=0.0, prior=("normal", np.deg2rad(NEUTRAL_ZONE_SD_DEG) if u == "deg" else
+                                                 NEUTRAL_ZONE_SD_MM / 1e3))
+                for c, u in zip(NEUTRAL_ZONE_COORDINATES, COORDINATE_UNITS, strict=False)]
+
+    def loaded_bias(self, loaded: ca.SX, values: dict) -> ca.SX:
+        return ca.vertcat(*[loaded[i] * values[f"neutral_zone.{c}"] for i, c in enumerate(NEUTRAL_ZONE_COORDINATES)],
+                          0.0)
+
+
 def _summed(vectors: list[ca.SX | None]) -> ca.SX:
     """The sum of the given 3-vectors (``None``: absent), zero if none."""
     return sum((v for v in vectors if v is not None), ca.SX.zeros(3))
@@ -237,8 +277,10 @@ class Measurement:
     @classmethod
     def standard(cls) -> Measurement:
         """The parts every knee model carries, neutral until fitted: flexion offset, registration,
-        load point, tibial and femoral origins, tibial axes (in this order: the parameter order)."""
-        return cls((FlexionOffset(), Registration(), LoadPoint(), TibialOrigin(), FemoralOrigin(), TibialAxes()))
+        load point, tibial and femoral origins, tibial axes, neutral zone (in this order: the
+        parameter order)."""
+        return cls((FlexionOffset(), Registration(), LoadPoint(), TibialOrigin(), FemoralOrigin(), TibialAxes(),
+                    NeutralZone()))
 
     def with_parts(self, extra: list[ExperimentPart]) -> Measurement:
         """This description with ``extra`` parts after its own."""
@@ -267,9 +309,11 @@ class Measurement:
         """Shift (tibial frame, m) of the experiment's tibial origin from the model's."""
         return _summed([p.joint_origin_offset(values) for p in self.parts])
 
-    def bias(self, pose: Pose, values: dict[str, ca.SX]) -> ca.SX | None:
-        """Bias (rad, m) of the five measured coordinates at ``pose``, ``None`` when no part has one."""
-        biases = [b for p in self.parts if (b := p.measurement_bias(pose, values)) is not None]
+    def bias(self, pose: Pose, values: dict[str, ca.SX], loaded: ca.SX) -> ca.SX | None:
+        """Bias (rad, m) of the five measured coordinates at ``pose`` of a trial loaded as ``loaded``
+        marks (:meth:`ExperimentPart.loaded_bias`), ``None`` when no part has one."""
+        biases = [b for p in self.parts for b in (p.measurement_bias(pose, values), p.loaded_bias(loaded, values))
+                  if b is not None]
         return sum(biases, ca.SX.zeros(5)) if biases else None
 
 

@@ -429,7 +429,7 @@ class IdentificationProblem:
     # ------------------------------------------------------------------ the one comparison
     def observe(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Predicted measurements (T x 5, mm and deg) of poses ``q`` (T x 5, SI)."""
-        return self.model.observe(q, theta, self.flexions)
+        return self.model.observe(q, theta, self.loads, self.flexions)
 
     def residuals(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Model minus measured coordinates (T x 5, mm and deg)."""
@@ -458,7 +458,8 @@ class IdentificationProblem:
         T = len(q)
         dq, dth = model.trial_derivatives(q, theta, Loading.of(self.trials), wrt_theta=True)
         dy_dq, dy_dth = (np.asarray(v).reshape(5, T, -1).transpose(1, 0, 2)
-                         for v in model.observation_jacobians.map(T)(q.T, theta, self.flexions[None, :]))
+                         for v in model.observation_jacobians.map(T)(q.T, theta, self.loads.T,
+                                                                            self.flexions[None, :]))
         dr_dp, dy_dp_direct = dth[:, :, idx], dy_dth[:, :, idx]
         if names is None and self.ties:  # through the ties: d theta / d p is not a selection
             J = self.space.jacobian(theta)

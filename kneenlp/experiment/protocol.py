@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kneenlp.base.conventions import DIRECTIONS, LOAD_SIZE, load_vector
+from kneenlp.base.conventions import COORDINATES, DIRECTIONS, LOAD_SIZE, load_vector
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.modes import LoadAxes
 from kneenlp.base.resources import resource
@@ -71,7 +71,17 @@ class Trial:
     def load(self) -> np.ndarray:
         """Internal load vector (N, N m; :func:`~kneenlp.base.conventions.load_vector`)."""
         return load_vector(self.loads, flexion=self.flexion, axes=self.axes, point=self.point, held=self.held,
-                           preload_point=self.preload_point)
+                           preload_point=self.preload_point, loaded=self.loaded)
+
+    @property
+    def loaded(self) -> tuple[int, float] | None:
+        """The coordinate the dominant load drives (index in ``COORDINATES``) and the load's sign;
+        None without a load."""
+        word = self.dominant
+        if word == "none":
+            return None
+        comp, sign = next(key for key, w in DIRECTION_WORDS.items() if w == word)
+        return COORDINATES.index(LOADED_COORDINATE[comp]), float(sign)
 
     @property
     def dominant(self) -> str:
@@ -138,6 +148,9 @@ DIRECTION_WORDS = {("anterior_force", 1): "anterior", ("anterior_force", -1): "p
                    ("varus_moment", 1): "varus", ("varus_moment", -1): "valgus",
                    ("internal_moment", 1): "internal", ("internal_moment", -1): "external",
                    ("lateral_force", 1): "lateral", ("lateral_force", -1): "medial"}
+#: The coordinate each dominant load component drives.
+LOADED_COORDINATE = {"anterior_force": "anterior_translation", "varus_moment": "varus_rotation",
+                     "internal_moment": "internal_rotation", "lateral_force": "lateral_translation"}
 #: The laxity a pair of opposite loads measures: the coordinate column (mm or deg) and the two
 #: direction words, positive first (anterior-posterior laxity is the anterior translation under the
 #: anterior load minus that under the posterior load).

@@ -184,7 +184,7 @@ def predict(knee: Knee | KneeModel, data: MeasuredData, parameters: dict[str, fl
     theta = model.theta(parameters)
     solutions = forward_solver(model).solve(protocol.trials, theta)
     q = np.array([s.q for s in solutions])
-    observed = model.observe(q, theta, [s.trial.flexion for s in solutions])
+    observed = model.observe(q, theta, [s.trial.load for s in solutions], [s.trial.flexion for s in solutions])
     if posterior is None and parameters is None:
         posterior = model.knee.parameters.posterior
     sd = None if posterior is None else predictive_sd(model, data, solutions, theta, posterior)

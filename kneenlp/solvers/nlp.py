@@ -122,7 +122,7 @@ def nlp_expressions(problem: IdentificationProblem, parallel: str = "serial", th
         ws = (model.working_sets_function(T)(q_si, theta, flex) if working_sets == "pose" and model.ws_size
               else data["working_sets"])
         g = ca.vec(mapped(q_si, theta, loads, flex, ws))
-    diff = model.observation.map(T)(q_si, theta, flex) - data["measured"]
+    diff = model.observation.map(T)(q_si, theta, loads, flex) - data["measured"]
     f = ca.sum1(ca.sum2(data["weights"] * diff * diff)) + _prior_term(problem, xp, data)
     lbx, ubx = problem.x_bounds()
     return NLPExpressions(ca.vertcat(xp, ca.vec(xq)), par, f, g, lbx, ubx, q_si, theta, flex)
@@ -288,7 +288,7 @@ def _trial_block_derivatives(problem: IdentificationProblem, e: NLPExpressions) 
     theta = problem.theta_of_scaled(xp, theta_in)
     q_si = coords_from_user(q_user)
     r = residual(q_si, theta, load, flexion, ws)
-    diff = model.observation(q_si, theta, flexion) - meas
+    diff = model.observation(q_si, theta, load, flexion) - meas
     f_t = ca.sum1(w * diff * diff)
     z = ca.vertcat(q_user, xp)
     ins = [q_user, xp, theta_in, load, flexion, ws, meas, w]
