@@ -48,13 +48,13 @@ HIDDEN = [("posterior_capsule", "posterior_capsule.k", 1), ("meniscus", "meniscu
           ("lin_strain", "ACL.lin_strain", 1), ("registration", "registration.anterior_translation", 1),
           ("ALL", "ALL.k", 1), ("LCL_femoral_attachment", "LCL.femur_anterior", 1),
           ("neutral_zone", "neutral_zone.anterior_translation", 1), ("popliteus", "popliteus.k", 1),
-          ("oblique_popliteal", "oblique_popliteal.k", 1)]
+          ("oblique_popliteal", "oblique_popliteal.k", 1), ("meniscal_rim", "meniscal_rim.k", 1)]
 
 
 def hidden_effects(knee) -> list[tuple[str, str, int]]:
     """The :data:`HIDDEN` effects that are candidates of ``knee`` (the default knee's menisci are part
-    of its base model; ``ALL`` is the synthetic knee's; ``popliteus`` and ``oblique_popliteal`` a knee
-    file's that declares their table with ``candidate = true``)."""
+    of its base model; ``ALL`` is the synthetic knee's; ``popliteus``, ``oblique_popliteal`` and
+    ``meniscal_rim`` a knee file's that declares their table with ``candidate = true``)."""
     known = {e.name for e in KneeModel.of(knee).effects}
     return [h for h in HIDDEN if h[0] in known]
 

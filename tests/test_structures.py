@@ -79,7 +79,7 @@ def _synthetic_copy(directory: Path, extra: str = "") -> Path:
 
 def test_a_new_structure_is_one_module(with_stop, tmp_path):
     names = [t.name for t in structures.structure_tables()]
-    assert names == ["anterior_stop", "contact", "menisci", "oblique_popliteal", "popliteus"]
+    assert names == ["anterior_stop", "contact", "meniscal_rim", "menisci", "oblique_popliteal", "popliteus"]
     declared = kneenlp.Knee.load(_synthetic_copy(tmp_path / "a", "\n[anterior_stop]\nstiffness = 50.0\n"))
     plain = kneenlp.Knee.load(_synthetic_copy(tmp_path / "b"))
     assert declared.structures == {"anterior_stop": pytest.approx(5e4)}
