@@ -7,7 +7,7 @@ cluster.  Prints, per setting, the
 kept MAP objective, how many solves reached it, the distinct minima and the wall time; then the
 largest spread of the kept objective (relative) and of the kept parameters (prior sd) over the
 settings.  The target: the same kept minimum (1e-6 relative, 1e-4 prior sd), reached by at least 3
-solves, no higher than 298.62, in at most 60 s.
+solves, the one docs/real-experiment.md quotes (tests/test_search.py checks one setting).
 
 Run: python benchmarks/bench_global.py [--starts N] [--settings NAME,...]   (about 1 min per setting)
 """
