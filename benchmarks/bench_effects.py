@@ -37,12 +37,11 @@ from kneenlp.experiment.problem_file import ProblemFile
 from kneenlp.validation import crossval
 
 PROBLEM = Path(__file__).resolve().parents[1] / "problems" / "s192803"
-#: The knee's and the experiment's frames' effects the held-out error accepted first.
-SIX = ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment", "ACLam_femoral_attachment",
-       "PCLal_bundles"]
+PROBLEM_FILE = ProblemFile.load(PROBLEM)
+#: The effects problems/s192803 frees beside the MAP calibration (the six the held-out error accepts).
+SIX = list(PROBLEM_FILE.also_free)
 #: Every group's femoral attachment (the generic geometry variant).
-FEMORAL = [f"{g}_femoral_attachment" for g in ("ACLam", "ACLpl", "ALS", "LCL", "MCLa", "MCLm", "MCLp", "dMCL", "POL",
-                                                "PCAPl", "PCAPm", "PCLal", "PCLpm", "PFL")]
+FEMORAL = [f"{g}_femoral_attachment" for g in kneenlp.Knee.named("s192803").ligaments]
 #: name: (the calibration's options beside the problem's, the structure added to the knee file or None)
 VARIANTS = {
     "none": ({"also_free": []}, None),
@@ -77,7 +76,7 @@ def main() -> None:
     parser.add_argument("--twins", type=int, default=2, help="twins per variant")
     parser.add_argument("--fitted-only", action="store_true", help="the calibrations only (no hold-out, no twin)")
     args = parser.parse_args()
-    problem = ProblemFile.load(PROBLEM)
+    problem = PROBLEM_FILE
     data = read_measured(problem.data)
     base = {k: v for k, v in problem.calibrate_options().items() if k != "also_free"}
     print(f"problems/s192803 frees {', '.join(problem.also_free)} beside the MAP calibration; options {base}")

@@ -13,8 +13,8 @@ predicted on the held-out trials (deg, mm) and whether it meets 5 deg and 2 mm. 
 - ``MAP weight 0.3`` and ``MAP weight estimated``: the priors weighed against a smaller misfit, or
   the one estimated from the fit's own residuals;
 - ``MAP + the six effects``: the experiment's frames, the cruciates' femoral attachments and PCLal's
-  bundles (problems/s192803's ``also_free``), with the apparatus' neutral zone, and the seven with
-  the PFL's tibial attachment;
+  bundles (problems/s192803's ``also_free``); the six and the apparatus' neutral zone; the seven,
+  with the PFL's tibial attachment;
   ``MAP + frames and femoral attachments``: the frames and every group's femoral attachment (2 mm
   priors), the generic version.
 
@@ -44,8 +44,8 @@ from kneenlp.validation import crossval
 
 #: The effects the held-out error accepts (docs/real-experiment.md): problems/s192803's also_free.
 EFFECTS = list(ProblemFile.load(Path(__file__).resolve().parents[1] / "problems" / "s192803").also_free)
-FEMORAL = [f"{g}_femoral_attachment" for g in ("ACLam", "ACLpl", "ALS", "LCL", "MCLa", "MCLm", "MCLp", "dMCL", "POL",
-                                                "PCAPl", "PCAPm", "PCLal", "PCLpm", "PFL")]
+#: Every group's femoral attachment (the generic geometry variant).
+FEMORAL = [f"{g}_femoral_attachment" for g in kneenlp.Knee.named("s192803").ligaments]
 VARIANTS = {
     "source": {"free": [*REGISTRATION, LOAD_POINT], "priors": "none"},
     "data-only": {"priors": "none"},
