@@ -10,7 +10,7 @@
   default prior (docs/priors.md) written out; the offsets of the groups the probe engages carry
   no written prior (theirs is centred on the probe when the calibration starts, docs/priors.md);
   ``also_free`` names the effects the held-out error accepts beside the table (the experiment's
-  frames, the cruciates' femoral attachments, PCLal's bundles), fitted
+  frames, the cruciates' femoral attachments, PCLal's bundles, the apparatus' neutral zone), fitted
   from the table's calibration (``--also-free``); ``starts``: the MAP estimate is the lowest minimum
   of the global search from :data:`STARTS` starts over the priors (docs/real-experiment.md: the same
   on every machine, thread count and start).
@@ -36,13 +36,11 @@ from kneenlp.model.params import default_free
 
 NOISE = "uniform:0.5"
 #: What the held-out error accepts beside S192803's calibration (docs/real-experiment.md): the
-#: experiment's frames, the cruciates' femoral attachments and PCLal's bundles, each with its default
-#: prior (the PFL's tibial attachment ties with them on the hold-outs and on unseen flexions: left out).
-#: The apparatus' neutral zone lowers the held-out error too, but with it the global search keeps
-#: another minimum with one worker than with two (360.307 and 360.775): it joins when the search
-#: keeps one answer.
+#: experiment's frames, the cruciates' femoral attachments and PCLal's bundles, and the apparatus'
+#: neutral zone, each with its default prior (the PFL's tibial attachment ties with them on the
+#: hold-outs and on unseen flexions: left out).
 EFFECTS = ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment", "ACLam_femoral_attachment",
-           "PCLal_bundles"]
+           "PCLal_bundles", "neutral_zone"]
 ROBOT_NOISE = "uniform:0.2"
 #: The global search's starts (docs/real-experiment.md: with 16 the lowest minimum is reached by 4-5
 #: solves and kept to 1e-11 whatever the BLAS, workers, compilation or a 1e-12 change of data or start).
