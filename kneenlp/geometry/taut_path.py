@@ -101,20 +101,22 @@ def lagrangian(s: ca.SX, e: ca.SX, data: ca.SX, nodes: int = NODES) -> ca.SX:
     K = nodes
     s0, e0 = data[0:3], data[3:6]
     shift = ca.vertcat(s - s0, e - e0)
-    c = e - s
-    t = np.arange(1, K + 1) / (K + 1)
-    previous, total, constraint = s, 0, 0
+    chain, mus, total, contact = [s], [], 0, 0
     for k in range(K):
         block = data[6 + PER_NODE * k: 6 + PER_NODE * (k + 1)]
         y0, J = block[0:3], ca.reshape(block[3:21], 6, 3).T  # (row-major in the data)
         mu, lam, gap, grad, hess = block[21], block[22], block[23], block[24:27], ca.reshape(block[27:36], 3, 3)
         y = y0 + J @ shift
         dy = y - y0
-        total += ca.norm_2(y - previous)
-        g = gap + ca.dot(grad, dy) + 0.5 * ca.dot(dy, hess @ dy)
-        constraint += mu * (ca.dot(c, y - s) - t[k] * ca.dot(c, c)) + lam * g
-        previous = y
-    return total + ca.norm_2(e - previous) - constraint
+        contact += lam * (gap + ca.dot(grad, dy) + 0.5 * ca.dot(dy, hess @ dy))
+        chain.append(y)
+        mus.append(mu)
+    chain.append(e)
+    segments = [b - a for a, b in zip(chain[:-1], chain[1:], strict=True)]
+    total = sum(ca.norm_2(a) for a in segments)
+    spacing = sum(mu * (ca.dot(segments[k + 1], segments[k + 1]) - ca.dot(segments[k], segments[k]))
+                  for k, mu in enumerate(mus))
+    return total - spacing - contact
 
 
 def _segments(start, end, Y):
@@ -125,32 +127,45 @@ def _segments(start, end, Y):
     return seg / np.maximum(length, 1e-300)[..., None], length
 
 
-def _kkt(start, end, Y, mu, lam, active, values, grads, hessians, t, curvature):
+def _kkt(start, end, Y, mu, lam, active, values, grads, hessians, curvature: bool | np.ndarray):
     """The KKT residual (T x 5K) and its Jacobian (T x 5K x 5K) in (nodes, mu, lam), and the
-    segments' unit vectors and lengths; ``curvature`` (T x K): the contact multipliers the
-    Jacobian's Hessian takes (``lam`` for Newton's, 0 for the length's own)."""
+    segments' unit vectors and lengths; ``curvature`` (T, bool): whether the Jacobian's Hessian
+    is the Lagrangian's (Newton's) or the length's own."""
     T, K = mu.shape
     u, ell = _segments(start, end, Y)
-    c = end - start
+    a = np.diff(np.concatenate([start[:, None], Y, end[:, None]], axis=1), axis=1)  # T x K+1 x 3
     n = 5 * K
     r = np.zeros((T, n))
-    # stationarity: u_{k-1} - u_k - mu_k c - lam_k grad d_k
-    stat = u[:, :-1] - u[:, 1:] - mu[..., None] * c[:, None] - lam[..., None] * grads
+    m = np.concatenate([np.zeros((T, 1)), mu, np.zeros((T, 1))], axis=1)  # mu_0 = mu_K+1 = 0
+    dm_prev, dm_next = (m[:, 1:-1] - m[:, :-2]), (m[:, 1:-1] - m[:, 2:])
+    stat = (u[:, :-1] - u[:, 1:] + 2 * dm_prev[..., None] * a[:, :-1] + 2 * dm_next[..., None] * a[:, 1:]
+            - lam[..., None] * grads)
     r[:, : 3 * K] = stat.reshape(T, -1)
-    r[:, 3 * K: 4 * K] = np.einsum("tj,tkj->tk", c, Y - start[:, None]) - t * np.sum(c * c, axis=1)[:, None]
+    r[:, 3 * K: 4 * K] = np.sum(a[:, 1:] ** 2, axis=2) - np.sum(a[:, :-1] ** 2, axis=2)
     r[:, 4 * K:] = np.where(active, values, lam)
     B = (np.eye(3) - u[..., :, None] * u[..., None, :]) / np.maximum(ell, 1e-300)[..., None, None]  # T x K+1 x 3 x 3
+    on = np.asarray(curvature, float).reshape(-1, 1) * np.ones((T, 1))
+    eye = np.eye(3)
     M = np.zeros((T, K, 3, K, 3))  # the nodes' block: block tridiagonal
     k = np.arange(K)
-    M[:, k, :, k, :] = (B[:, :-1] + B[:, 1:] - curvature[..., None, None] * hessians).transpose(1, 0, 2, 3)
-    M[:, k[1:], :, k[:-1], :] = -B[:, 1:-1].transpose(1, 0, 2, 3)
-    M[:, k[:-1], :, k[1:], :] = -B[:, 1:-1].transpose(1, 0, 2, 3)
+    diag = (B[:, :-1] + B[:, 1:] + (on * 2 * (m[:, 2:] - m[:, :-2]))[..., None, None] * eye
+            - (on * lam)[..., None, None] * hessians)
+    M[:, k, :, k, :] = diag.transpose(1, 0, 2, 3)
+    off = -B[:, 1:-1] + (on * 2 * (mu[:, :-1] - mu[:, 1:]))[..., None, None] * eye  # (k, k+1) and (k+1, k)
+    M[:, k[:-1], :, k[1:], :] = off.transpose(1, 0, 2, 3)
+    M[:, k[1:], :, k[:-1], :] = off.transpose(1, 0, 2, 3)
     out = np.zeros((T, n, n))
     out[:, : 3 * K, : 3 * K] = M.reshape(T, 3 * K, 3 * K)
     rows = 3 * k[:, None] + np.arange(3)  # K x 3
-    out[:, rows, 3 * K + k[:, None]] = -c[:, None, :]
+    # d(stat_k)/d(mu_j) = -grad_{y_k} h_j; the h rows are grad h (the KKT matrix is symmetric)
+    grad_own = -2 * (a[:, 1:] + a[:, :-1])  # d h_k / d y_k
+    out[:, rows, 3 * K + k[:, None]] = -grad_own
+    out[:, 3 * K + k[:, None], rows] = grad_own
+    out[:, rows[1:], 3 * K + k[:-1, None]] = -2 * a[:, 1:-1]  # d h_{k-1} / d y_k = 2 a_{k-1}
+    out[:, 3 * K + k[:-1, None], rows[1:]] = 2 * a[:, 1:-1]
+    out[:, rows[:-1], 3 * K + k[1:, None]] = -2 * a[:, 1:-1]  # d h_{k+1} / d y_k = 2 a_k
+    out[:, 3 * K + k[1:, None], rows[:-1]] = 2 * a[:, 1:-1]
     out[:, rows, 4 * K + k[:, None]] = -grads
-    out[:, 3 * K + k[:, None], rows] = c[:, None, :]
     out[:, 4 * K + k[:, None], rows] = np.where(active[..., None], grads, 0.0)
     out[:, 4 * K + k, 4 * K + k] = np.where(active, 0.0, 1.0)
     return r, out, u, ell
@@ -183,13 +198,15 @@ def _push_out(field, start, end, Y, clearance: float, steps: int = 40) -> np.nda
     return Y
 
 
-def _merit(field, start, end, Y, clearance: float) -> np.ndarray:
+def _merit(field, start, end, Y, clearance: float, spacing: np.ndarray) -> np.ndarray:
     """The l1 merit of :func:`taut_path`'s line search: the polyline's length plus :data:`PENALTY`
-    times the depth of every node inside the body (T)."""
+    times the depth of every node inside the body and the segments' departure from equal
+    lengths (``spacing``: the chord's share, m) (T)."""
     T, K, _ = Y.shape
     _, ell = _segments(start, end, Y)
     gap = field.evaluate(Y.reshape(-1, 3))[0].reshape(T, K) - clearance
-    return ell.sum(axis=1) + PENALTY * np.maximum(-gap, 0.0).sum(axis=1)
+    unequal = np.abs(np.diff(ell**2, axis=1)).sum(axis=1) / (2 * spacing)
+    return ell.sum(axis=1) + PENALTY * (np.maximum(-gap, 0.0).sum(axis=1) + unequal)
 
 
 def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0, nodes: int = NODES,
@@ -211,6 +228,7 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
     c = end - start
     Y = start[:, None] + t[None, :, None] * c[:, None]
     Y = _push_out(field, start, end, Y, clearance)
+    spacing = np.linalg.norm(c, axis=1) / (K + 1)
     mu, lam = np.zeros((T, K)), np.zeros((T, K))
     d = field.evaluate(Y.reshape(-1, 3))[0].reshape(T, K)
     active = d - clearance < 1e-9
@@ -222,8 +240,8 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
         vals, grads, hessians = field.evaluate(Y.reshape(-1, 3), order=2)
         gap = vals.reshape(T, K) - clearance
         grads, hessians = grads.reshape(T, K, 3), hessians.reshape(T, K, 3, 3)
-        r, _, _, _ = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, t, curvature=lam)
-        norm = np.maximum(np.abs(r[:, : 3 * K]).max(axis=1), np.abs(r[:, 3 * K: 4 * K]).max(axis=1) / scale)
+        r, _, _, _ = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=True)
+        norm = np.maximum(np.abs(r[:, : 3 * K]).max(axis=1), np.abs(r[:, 3 * K: 4 * K]).max(axis=1) / scale**2)
         norm = np.maximum(norm, np.abs(np.where(active, gap, 0.0)).max(axis=1))
         violated = (gap < -1e-12) & ~active
         # in balance on the active set, or no longer getting there: release the node pulling away most
@@ -240,8 +258,7 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
         active = (active | violated) & ~release
         lam = np.where(active, lam, 0.0)
         newton = (norm < NEAR) & ~changed  # near a solution on an unchanged active set: Newton's steps
-        curvature = np.where(newton[:, None], lam, 0.0)
-        r, M, _, _ = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, t, curvature=curvature)
+        r, M, _, _ = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=newton)
         todo = ~converged
         step = np.zeros_like(r)
         step[todo] = -np.linalg.solve(M[todo], r[todo][..., None])[..., 0]
@@ -250,10 +267,11 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
         alpha = np.minimum(1.0, 2e-3 / np.maximum(size, 1e-300))  # at most 2 mm a step
         search = todo & ~newton
         if search.any():
-            before = _merit(field, start[search], end[search], Y[search], clearance)
+            before = _merit(field, start[search], end[search], Y[search], clearance, spacing[search])
             a = alpha[search]
             for _ in range(30):
-                after = _merit(field, start[search], end[search], Y[search] + a[:, None, None] * dY[search], clearance)
+                after = _merit(field, start[search], end[search], Y[search] + a[:, None, None] * dY[search], clearance,
+                               spacing[search])
                 worse = after > before + 1e-15
                 if not worse.any():
                     break
@@ -266,26 +284,21 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
     gap = vals.reshape(T, K) - clearance
     grads, hessians = grads.reshape(T, K, 3), hessians.reshape(T, K, 3, 3)
     lam = np.where(active, lam, 0.0)
-    _, M, u, ell = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, t, curvature=lam)
-    dnodes = _response(M, u, ell, c, Y, start, mu, t)
+    _, M, u, ell = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=True)
+    dnodes = _response(M, u, ell, start, end, Y, mu)
     return TautPath(start, end, Y, dnodes, mu, lam, gap, grads, hessians, ell.sum(axis=1), converged)
 
 
-def _response(M, u, ell, c, Y, start, mu, t) -> np.ndarray:
+def _response(M, u, ell, start, end, Y, mu) -> np.ndarray:
     """dY/d(s, e) (T x K x 3 x 6) by the implicit function theorem on the KKT conditions."""
     T, K = mu.shape
     n = 5 * K
     dP = np.zeros((T, n, 6))
     B = (np.eye(3) - u[..., :, None] * u[..., None, :]) / np.maximum(ell, 1e-300)[..., None, None]
-    dP[:, 0:3, 0:3] -= B[:, 0]  # u_0 = unit(y_1 - s)
-    dP[:, 3 * K - 3: 3 * K, 3:6] -= B[:, K]  # -u_K, u_K = unit(e - y_K)
     eye = np.eye(3)
-    for k in range(K):
-        rows = slice(3 * k, 3 * k + 3)
-        dP[:, rows, 0:3] += mu[:, k, None, None] * eye  # -mu_k c, c = e - s
-        dP[:, rows, 3:6] -= mu[:, k, None, None] * eye
-        rel = Y[:, k] - start
-        dP[:, 3 * K + k, 0:3] = -rel - c + 2 * t[k] * c
-        dP[:, 3 * K + k, 3:6] = rel - 2 * t[k] * c
+    dP[:, 0:3, 0:3] -= B[:, 0] + 2 * mu[:, 0, None, None] * eye  # u_0 and 2 mu_1 a_0, a_0 = y_1 - s
+    dP[:, 3 * K - 3: 3 * K, 3:6] += -B[:, K] + 2 * mu[:, K - 1, None, None] * eye  # -u_K and 2 mu_K a_K, a_K = e - y_K
+    dP[:, 3 * K, 0:3] = 2 * (Y[:, 0] - start)  # h_1 = |a_1|^2 - |a_0|^2
+    dP[:, 4 * K - 1, 3:6] = 2 * (end - Y[:, -1])  # h_K = |a_K|^2 - |a_K-1|^2
     dz = -np.linalg.solve(M, dP)
     return dz[:, : 3 * K].reshape(T, K, 3, 6)
