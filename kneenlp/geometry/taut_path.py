@@ -43,7 +43,7 @@ MAX_ITER = 80
 TOLERANCE = 1e-11
 #: Newton's steps (the Hessian of the Lagrangian) once the KKT residual is below this; a node is
 #: released from the active set only then (:func:`taut_path`).
-NEAR = 1e-3
+NEAR = 5e-2
 #: A step that leaves the KKT residual above this share of the last one has stalled on its active set.
 STALL = 0.9
 #: Weight of a node's depth inside the body in the line search's merit (above any multiplier: a
