@@ -86,3 +86,42 @@ def test_a_path_that_misses_is_the_chord_and_moves_with_its_ends():
     J = sol.dnodes[0]
     assert np.allclose(J[:, :, :3], (1 - t)[:, None, None] * np.eye(3), atol=1e-10)
     assert np.allclose(J[:, :, 3:], t[:, None, None] * np.eye(3), atol=1e-10)
+
+
+@pytest.mark.slow
+def test_a_path_over_a_real_bone_is_the_brute_force_shortest_path(tmp_path):
+    """S192803's superficial MCL over its tibia (the straight line cuts the bone 2-6 mm in every pose):
+    the taut path over the bone's distance field is, at poses of three flexions, the shortest path
+    over the bone's mesh found by brute force (kneenlp.testing.shortest_path) to 0.1 % of its length
+    (measured: 0.8-1.6e-4), and longer than the straight line by more than that."""
+    import shutil
+
+    import kneenlp
+    from kneenlp.base.resources import resource
+    from kneenlp.experiment.kneemodel import KneeModel
+    from kneenlp.model.knee_file import KneeFile
+    from kneenlp.testing.shortest_path import shortest_over_mesh
+
+    folder = tmp_path / "knee"
+    shutil.copytree(resource("knees", "s192803"), folder)
+    with open(folder / "knee.toml", "a") as f:
+        f.write("".join(f'\n[ligaments.{g}.wrap]\nshape = "bone"\nbody = "tibia"\n' for g in ("MCLa", "MCLm", "MCLp")))
+    knee = kneenlp.Knee.load(folder / "knee.toml")
+    reader = KneeFile(folder / "knee.toml")
+    mesh = reader.frame.mesh(reader.mesh(reader.spec.bones.tibia, "bones.tibia"))
+    model = KneeModel.of(knee)
+    theta = model.theta()
+    values = dict(zip(model.parameter_names, theta, strict=True))
+    for name, flexion, q in [("MCLa", 30, [-2, 0.3, -0.7, 0.2, -21.7]), ("MCLm", 60, [-4, 8, -2, 4, -20]),
+                             ("MCLp", 0, [-1, -12, 1, 5, -20])]:
+        q = np.r_[np.radians(q[:2]), np.array(q[2:]) * 1e-3]
+        R, p = (np.asarray(v) for v in model.pose(q, np.radians(flexion), theta))
+        ligament = knee.ligaments[name]
+        bundle = ligament.bundles[0]
+        s, e = bundle.path.ends(*ligament.attachments(bundle, values), R[None], p[None])
+        sol = taut_path(bundle.path.field, s, e)
+        touching = np.flatnonzero(sol.lam[0] > 0)
+        oracle = shortest_over_mesh(mesh, s[0], e[0], sol.nodes[0, touching[0]], sol.nodes[0, touching[-1]],
+                                    reach=4e-3, edge=0.5e-3, crop=15e-3)
+        assert sol.converged[0] and sol.length[0] == pytest.approx(oracle, rel=1e-3), name
+        assert oracle > np.linalg.norm(e - s) * (1 + 2e-3), name
