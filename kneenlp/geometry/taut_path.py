@@ -4,32 +4,32 @@ A ligament that wraps a bone runs straight from its attachment to where it meets
 along the surface, and straight again to its other attachment: the shortest path from ``s`` to
 ``e`` that stays outside the body, on or beyond the level ``d = clearance`` of its signed
 distance ``d`` (m, negative inside; :class:`~kneenlp.geometry.sdf.DistanceField`).  It is
-discretised as a polyline through :data:`NODES` nodes, node ``k`` confined to the plane across the
-chord at ``t_k = k / (K + 1)`` of the way from ``s`` to ``e`` (the nodes never bunch, and a path
-that misses the body is the chord itself):
+discretised as a polyline through :data:`NODES` nodes with segments of equal length (so the nodes
+never bunch, wherever the path turns, and a path that misses the body is the chord itself):
 
-    minimise    F(Y) = sum_j |y_{j+1} - y_j|              (y_0 = s, y_{K+1} = e)
-    subject to  h_k = c . (y_k - s) - t_k |c|^2 = 0       (c = e - s: the planes)
-                g_k = d(y_k) - clearance >= 0             (outside the body).
+    minimise    F(Y) = sum_j |a_j|,   a_j = y_{j+1} - y_j     (y_0 = s, y_{K+1} = e)
+    subject to  h_k = |a_k|^2 - |a_{k-1}|^2 = 0                (equal segments, k = 1..K)
+                g_k = d(y_k) - clearance >= 0                  (outside the body).
 
 Chords of a curved contact shorten it by about ``r beta^3 / (24 n^2)`` over an arc of angle beta
-and radius r split ``n`` ways: with 24 nodes a 90 deg wrap loses 2e-4 of its arc.  The path must
-advance along the chord (every plane across it cuts the path once): true of a ligament over a
-condyle or a plateau's rim, not of one that doubles back round a bone.
+and radius r split ``n`` ways: with 24 nodes a 90 deg wrap loses 2e-4 of its arc.  (Nodes on
+planes across the chord, the first design, failed where the bone faces along the chord: on
+S192803's tibial flare 2-11 % of poses; equal segments converge at all of them.)
 
-:func:`taut_path` solves it, batched over many ``(s, e)``, by Newton's method on the KKT
-conditions with an active set, from the nodes pushed out of the body in their planes; then the
+:func:`taut_path` solves it, batched over many ``(s, e)``, by sequential quadratic steps on the
+KKT conditions with an active set, from the chord's nodes pushed out of the body; then the
 implicit function theorem gives the nodes' first-order response to ``s`` and ``e``.
 :meth:`TautPath.data` packs what :func:`lagrangian` needs: the Lagrangian ``F - mu . h - lambda .
 g`` with the nodes moving linearly with ``s`` and ``e`` and ``d`` expanded to second order about
 each node.  As a function of ``s`` and ``e`` it equals the shortest length at the solution, with
 the same first and second derivatives there (the envelope theorem: the Lagrangian's derivatives,
-not the length's, since the planes move with ``s`` and ``e``) - so a model that takes these data at
-every pose it evaluates sees the path's exact length, gradient and Hessian.
+not the length's, since the constraints move with ``s`` and ``e``) - so a model that takes these
+data at every pose it evaluates sees the path's exact length, gradient and Hessian.
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import casadi as ca
@@ -49,7 +49,7 @@ STALL = 0.9
 #: Weight of a node's depth inside the body in the line search's merit (above any multiplier: a
 #: contact multiplier is the path's turn at the node, at most 2).
 PENALTY = 10.0
-#: Numbers per node in :meth:`TautPath.data`: node (3), its response to (s, e) (18), the plane's and
+#: Numbers per node in :meth:`TautPath.data`: node (3), its response to (s, e) (18), the spacing's and
 #: the contact's multipliers (2), the contact's gap (1), the distance's gradient (3) and Hessian (9).
 PER_NODE = 36
 
@@ -62,7 +62,7 @@ def data_size(nodes: int = NODES) -> int:
 @dataclass(frozen=True)
 class TautPath:
     """Solved paths (T of them, K nodes; m): ends, nodes, the nodes' response ``dnodes`` to ``(s, e)``
-    (T x K x 3 x 6), the planes' multipliers ``mu`` and the contacts' ``lam`` (T x K), the gap
+    (T x K x 3 x 6), the spacing's multipliers ``mu`` and the contacts' ``lam`` (T x K), the gap
     ``gap`` of each node and the distance's ``grad`` and ``hess`` there, the polyline's ``length``
     (T) and whether each solve ``converged``."""
 
@@ -112,7 +112,7 @@ def lagrangian(s: ca.SX, e: ca.SX, data: ca.SX, nodes: int = NODES) -> ca.SX:
         chain.append(y)
         mus.append(mu)
     chain.append(e)
-    segments = [b - a for a, b in zip(chain[:-1], chain[1:], strict=True)]
+    segments = [b - a for a, b in itertools.pairwise(chain)]
     total = sum(ca.norm_2(a) for a in segments)
     spacing = sum(mu * (ca.dot(segments[k + 1], segments[k + 1]) - ca.dot(segments[k], segments[k]))
                   for k, mu in enumerate(mus))

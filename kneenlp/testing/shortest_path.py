@@ -77,7 +77,8 @@ def shortest_over_mesh(mesh: trimesh.Trimesh, start: np.ndarray, end: np.ndarray
     improved = True
     while improved:
         improved = False
-        for pp, qq in [(n, q) for n in neighbours[p] if n in visible_a] + [(p, n) for n in neighbours[q] if n in visible_b]:
+        moves = [(n, q) for n in neighbours[p] if n in visible_a] + [(p, n) for n in neighbours[q] if n in visible_b]
+        for pp, qq in moves:
             length = exact(pp, qq)
             if length < best - 1e-15:
                 best, p, q, improved = length, pp, qq, True
