@@ -34,12 +34,15 @@ from kneenlp.geometry.taut_path import NODES, data_size, lagrangian, taut_path
 from kneenlp.model.elements import Pose
 from kneenlp.model.paths import Route, WrapPath, _check_body
 
+#: Deepest an attachment may lie inside the bone its path wraps (m): the knee file's tolerance of an
+#: attachment inside a mesh (docs/inputs.md), deeper is a slip.
+ATTACHMENT_DEPTH = 2.5e-3
 #: The key of a path's own data in the pose its ligament routes it with (``pose.data``).
 PATH_DATA = "path"
-#: A wrapped path whose chord leaves the bone by a direction this small in its plane (the distance's
-#: gradient across the chord, at the chord's deepest point) passes near the bone's middle, where the
-#: side it goes round flips and its length jumps (:meth:`BoneWrap.side_switch`).
-NEAR_MIDDLE = 0.1
+#: A straight line through the bone within this distance (m) of its middle (where the distance's
+#: gradient across the line turns round) is near where the path switches sides and its length
+#: jumps (:meth:`BoneWrap.side_switch`).
+NEAR_MIDDLE = 1e-3
 
 
 #: A bone's field for paths over it (m): a 1 mm grid (its error on S192803's bones: 16-24 um RMS,
@@ -105,25 +108,39 @@ class BoneWrap(WrapPath):
         return float(self.solve(femur, tibia, R, p).length[0])
 
     def level(self, point, R, p) -> float:
-        """1 on the surface moved out by the clearance, below 1 inside it (in mm of depth)."""
+        """Below 1 for a point deeper in the bone than an attachment may lie (:data:`ATTACHMENT_DEPTH`:
+        a ligament attaches to the bone it wraps, a little inside its mesh), in mm of depth."""
         x = np.asarray(point, float) if self.body == "femur" else np.asarray(R).T @ (np.asarray(point, float) - p)
-        return 1.0 + (float(self.field.evaluate(x[None])[0][0]) - self.clearance) * 1e3
+        return 1.0 + (float(self.field.evaluate(x[None])[0][0]) - self.clearance + ATTACHMENT_DEPTH) * 1e3
 
     def side_switch(self, femur, tibia, R, p) -> str:
-        """The chord runs through the bone near its middle (:data:`NEAR_MIDDLE`)."""
+        """The straight line runs through the bone within :data:`NEAR_MIDDLE` of its middle: the
+        distance's gradient across the line points the other way that far on the other side of its
+        deepest point (the side the path goes round flips there, and its length jumps)."""
         s, e = (v[0] for v in self.ends(femur, tibia, R, p))
         t = np.linspace(0, 1, 4 * self.nodes + 2)[1:-1]
         points = s + t[:, None] * (e - s)
-        d, grad = self.field.evaluate(points, order=1)
+        d = self.field.evaluate(points)[0]
         deepest = int(np.argmin(d))
         if d[deepest] >= self.clearance:
             return ""
         u = (e - s) / np.linalg.norm(e - s)
-        across = grad[deepest] - (grad[deepest] @ u) * u
-        if np.linalg.norm(across) < NEAR_MIDDLE:
-            return (f"its straight line runs through the {self.bone} near its middle, where the path switches the "
-                    "side it goes round and its length jumps")
+
+        def across(x):
+            g = self.field.evaluate(x[None], order=1)[1][0]
+            return g - (g @ u) * u
+
+        out = across(points[deepest])
+        if not np.linalg.norm(out) > 0:
+            return self._middle()
+        out /= np.linalg.norm(out)
+        if across(points[deepest] - NEAR_MIDDLE * out) @ out < 0:
+            return self._middle()
         return ""
+
+    def _middle(self) -> str:
+        return (f"its straight line runs through the {self.bone} near its middle, where the path switches the side "
+                "it goes round and its length jumps")
 
     @functools.cached_property
     def _function(self) -> ca.Function:
