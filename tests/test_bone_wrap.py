@@ -31,6 +31,7 @@ def test_a_path_over_a_bone_names_where_it_jumps():
     rotation, origin = np.eye(3), np.zeros(3)
     S, E = np.array([-0.03, 0.004, 0.0]), np.array([0.025, 0.002, 0.01])
     assert path.jump(E, S, rotation, origin) == ""
-    assert "near its middle" in path.jump(np.array([0.025, 0.0005, 0.01]), np.array([-0.03, 0.0, 0.0]), rotation, origin)
+    through = np.array([0.025, 0.0005, 0.01]), np.array([-0.03, 0.0, 0.0])  # 0.3 mm from the axis
+    assert "near its middle" in path.jump(*through, rotation, origin)
     assert "tibial attachment lies inside" in path.jump(E, np.array([0.005, 0.0, 0.0]), rotation, origin)
     assert path.jump(E, np.array([0.0099, 0.0, 0.0]), rotation, origin) == ""  # on the surface: an attachment
