@@ -5,7 +5,8 @@ Each job runs twice in a fresh process: ``KNEENLP_COMPILE=off`` (the virtual mac
 each and the result, which must be the same to the last digit:
 
 - the default knee: forward Set 4 (60 trials, cold) and ``identify`` of noisy Set 4 (seed 0);
-- S192803: the calibration of problems/s192803 with one start (MAP and the six effects).
+- S192803: the calibration of problems/s192803 with one start (MAP and the effects its
+  ``also_free`` names).
 
 Also the time one compile of a knee's two functions takes (the libraries removed first, in a
 private cache directory; distance fields are copied from the user's cache).
@@ -20,8 +21,11 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 from kneenlp.base.cache import cache_dir
+
+PROBLEM = str(Path(__file__).resolve().parents[1] / "problems" / "s192803")
 
 JOBS = {
     "default knee, forward Set 4": """
@@ -43,14 +47,14 @@ kneenlp.simulate(knee, "set4").measured("uniform:0.5", 0).to_csv(path, index=Fal
 t = time.perf_counter(); fit = kneenlp.identify(knee, read_measured(path), seed=0, noise="uniform:0.5")
 seconds = time.perf_counter() - t; result = fit.objective
 """,
-    "S192803, problems/s192803 with 1 start": """
+    "S192803, problems/s192803 with 1 start": f"""
 import kneenlp
 from kneenlp.base.resources import resource
 from kneenlp.estimation.calibrate import calibrate
 from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.measured import read_measured
-EFFECTS = ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment", "ACLam_femoral_attachment",
-           "PCLal_bundles"]
+from kneenlp.experiment.problem_file import ProblemFile
+EFFECTS = list(ProblemFile.load({PROBLEM!r}).also_free)
 model = KneeModel.of(kneenlp.Knee.named("s192803")); model._residual_and_jacobian; model.jacobians
 data = read_measured(resource("datasets", "s192803_laxity.csv"))
 t = time.perf_counter(); cal = calibrate(model, data, also_free=EFFECTS, starts=1); seconds = time.perf_counter() - t

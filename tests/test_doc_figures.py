@@ -228,9 +228,7 @@ def test_s192803_before_fitting(s192803):
 CALIBRATIONS = {
     "source values": ({"free": "source"}, 1),
     "MAP calibration": ({}, 2),
-    "problems/s192803": ({"also_free": ["tibial_origin", "femoral_origin", "tibial_axes", "PCLal_femoral_attachment",
-                                        "ACLam_femoral_attachment", "PCLal_bundles"],
-                          "starts": 16, "workers": 2}, 3),
+    "problems/s192803": ({"problem": "s192803", "workers": 2}, 3),
 }
 
 
@@ -246,6 +244,10 @@ def test_s192803_fitted_rms(s192803, name):
     options, column = CALIBRATIONS[name]
     if options.get("free") == "source":
         options = {"free": [*REGISTRATION, LOAD_POINT], "priors": "none"}
+    if "problem" in options:  # the problem's calibration options (its also_free, starts, priors)
+        from kneenlp.experiment.problem_file import ProblemFile
+
+        options = ProblemFile.load(ROOT / "problems" / options["problem"]).calibrate_options() | {"workers": 2}
     rotations = numbers(table_rows(raw, "fitted RMS, varus / internal (deg)")[0][column])
     translations = numbers(table_rows(raw, "fitted RMS, lateral / anterior / proximal (mm)")[0][column])
     model, data = s192803
