@@ -35,3 +35,52 @@ def test_a_path_over_a_bone_names_where_it_jumps():
     assert "near its middle" in path.jump(*through, rotation, origin)
     assert "tibial attachment lies inside" in path.jump(E, np.array([0.005, 0.0, 0.0]), rotation, origin)
     assert path.jump(E, np.array([0.0099, 0.0, 0.0]), rotation, origin) == ""  # on the surface: an attachment
+
+
+def _s192803_smcl_over_the_tibia(tmp_path):
+    """The shipped S192803 knee with its superficial MCL's three groups over the tibia's surface."""
+    import shutil
+
+    import kneenlp
+    from kneenlp.base.resources import resource
+
+    folder = tmp_path / "s192803-wrapped"
+    shutil.copytree(resource("knees", "s192803"), folder)
+    with open(folder / "knee.toml", "a") as f:
+        for group in ("MCLa", "MCLm", "MCLp"):
+            f.write(f'\n[ligaments.{group}.wrap]\nshape = "bone"\nbody = "tibia"\n')
+    return kneenlp.Knee.load(folder)
+
+
+@pytest.mark.slow
+def test_a_real_knee_over_its_bone_keeps_exact_derivatives_and_reaches_equilibrium(tmp_path):
+    """S192803 with its superficial MCL over the tibia, made taut: at the straight knee's equilibrium
+    of a valgus trial the wrap changes the residual (the straight lines cut the tibia), the Jacobian
+    the model evaluates (the path's Lagrangian at that pose's data) is the central difference of the
+    residual with the paths solved again at each pose, and the wrapped knee reaches equilibrium."""
+    import kneenlp
+    from kneenlp.base.resources import resource
+    from kneenlp.experiment.kneemodel import KneeModel
+    from kneenlp.experiment.measured import read_measured
+    from kneenlp.experiment.protocol import Loading
+    from kneenlp.prediction.predict import predict
+
+    taut = {f"{g}.ref_strain_offset": 0.2 for g in ("MCLa", "MCLm", "MCLp")}  # slack at the source values
+    model = KneeModel.of(_s192803_smcl_over_the_tibia(tmp_path))
+    straight = KneeModel.of(kneenlp.Knee.named("s192803"))
+    data = read_measured(resource("datasets", "s192803_laxity.csv"))
+    valgus = data.subset(np.array([t.id == "valgus_flex30" for t in data.trials]))
+    q = np.array([predict(straight, valgus, taut).solutions[0].q])
+    theta, loading = model.theta(taut), Loading.of(valgus.trials)
+    r, J = model.trial_derivatives(q, theta, loading, threads=1)
+    assert np.abs(r).max() > 1.0, r  # N, N m: the straight knee is at equilibrium there
+    h = 1e-6
+    for j in range(5):
+        step = np.zeros((1, 5))
+        step[0, j] = h
+        up, _ = model.trial_derivatives(q + step, theta, loading, threads=1)
+        down, _ = model.trial_derivatives(q - step, theta, loading, threads=1)
+        column = (up - down)[0] / (2 * h)
+        assert np.allclose(column, J[0, :, j], rtol=1e-4, atol=1e-4 * np.abs(J[0]).max()), (j, column, J[0, :, j])
+    prediction = predict(model, valgus, taut)
+    assert prediction.converged.all(), prediction.report()
