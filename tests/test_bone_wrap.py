@@ -53,11 +53,13 @@ def _s192803_smcl_over_the_tibia(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_real_knee_over_its_bone_keeps_exact_derivatives_and_reaches_equilibrium(tmp_path):
+def test_a_real_knee_over_its_bone_keeps_exact_derivatives_and_reaches_equilibrium(tmp_path, capsys):
     """S192803 with its superficial MCL over the tibia, made taut: at the straight knee's equilibrium
     of a valgus trial the wrap changes the residual (the straight lines cut the tibia), the Jacobian
     the model evaluates (the path's Lagrangian at that pose's data) is the central difference of the
-    residual with the paths solved again at each pose, and the wrapped knee reaches equilibrium."""
+    residual with the paths solved again at each pose, and the wrapped knee reaches equilibrium.  An
+    export (a self-contained graph, which a path solved outside CasADi cannot join) is refused in
+    one line naming the bundle."""
     import kneenlp
     from kneenlp.base.resources import resource
     from kneenlp.experiment.kneemodel import KneeModel
@@ -84,3 +86,10 @@ def test_a_real_knee_over_its_bone_keeps_exact_derivatives_and_reaches_equilibri
         assert np.allclose(column, J[0, :, j], rtol=1e-4, atol=1e-4 * np.abs(J[0]).max()), (j, column, J[0, :, j])
     prediction = predict(model, valgus, taut)
     assert prediction.converged.all(), prediction.report()
+    from kneenlp.cli import main
+
+    csv = str(resource("datasets", "s192803_laxity.csv"))
+    knee = str(tmp_path / "s192803-wrapped" / "knee.toml")
+    for form in ("nl", "casadi"):
+        assert main(["export", csv, "--knee", knee, "--format", form, "--approximate", "--out", str(tmp_path)]) == 2
+    assert "ligament MCLa bundle" in capsys.readouterr().err

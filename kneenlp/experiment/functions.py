@@ -191,8 +191,9 @@ class ModelFunctions:
 
     def _exact_residual(self, layout: Layout) -> ca.Function:
         if self.pose_data:
-            raise InputError(f"{self.pose_data[0].what} is solved outside CasADi at every pose: a self-contained "
-                             "graph of the residual cannot carry it (export the working sets' form instead)")
+            raise InputError(f"{self.pose_data[0].what} is solved outside CasADi at every pose, so no self-contained "
+                             "graph of the residual (kneenlp export: .nl, CasADi, C) can carry it: export the knee "
+                             "with that path straight or over an obstacle (cylinder, ellipsoid)")
         q, flexion = ca.MX.sym("q", 5), ca.MX.sym("flexion")
         theta, load = ca.MX.sym("theta", len(self.parameter_names)), ca.MX.sym("load", LOAD_SIZE)
         pr = self._probes(q, flexion, theta) if self.staged else []
