@@ -12,10 +12,10 @@ from kneenlp.base.compiled import BufferedCall
 
 class ContactSets:
     """The contact working sets of a model's staged elements at its poses (a part of
-    :class:`~kneenlp.experiment.kneemodel.KneeModel`, whose ``staged`` elements, ``pose`` function,
-    ``parameter_names``, ``ws_size`` and ``solvers`` it uses): which sample points each pose's
-    contact keeps, their packed data, what a working set leaves out and the share of contact at an
-    open edge of the femoral mesh."""
+    :class:`~kneenlp.experiment.kneemodel.KneeModel`, whose ``staged`` elements, ``pose_data``,
+    ``pose`` function, ``parameter_names``, ``ws_size`` and ``solvers`` it uses): which sample points
+    each pose's contact keeps, their packed data (and the pose data after them), what a working set
+    leaves out and the share of contact at an open edge of the femoral mesh."""
 
     # ------------------------------------------------------------------ working sets
     def working_set(self, q: np.ndarray, theta: np.ndarray, flexion: float) -> tuple[list[np.ndarray], np.ndarray]:
@@ -32,7 +32,7 @@ class ContactSets:
                 idx = e.select(R, p, values)
                 indices.append(idx)
                 packed.append(e.pack(idx, R, p, values))
-        return indices, np.concatenate(packed)
+        return indices, np.concatenate([*packed, self.pose_data_batch(R[None], p[None], values)[0]])
 
     def poses(self, q: np.ndarray, theta: np.ndarray, flexions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tibial poses of the coordinates ``q`` (T x 5, SI) at ``flexions`` (T, rad): rotations
@@ -55,7 +55,13 @@ class ContactSets:
             return np.zeros((len(q), 0))
         R, p = self.poses(q, theta, flexions)
         values = dict(zip(self.parameter_names, np.asarray(theta, float).ravel(), strict=True))
-        return np.hstack([e.working_data_batch(R, p, values, threads, order) for e in self.staged if e.n_working])
+        return np.hstack([*[e.working_data_batch(R, p, values, threads, order) for e in self.staged if e.n_working],
+                          self.pose_data_batch(R, p, values)])
+
+    def pose_data_batch(self, R: np.ndarray, p: np.ndarray, values: dict[str, float]) -> np.ndarray:
+        """The pose data (:attr:`pose_data`, the working sets' last part) at T poses (rotations
+        T x 3 x 3, origins T x 3, m), T x their size."""
+        return np.hstack([np.zeros((len(R), 0)), *[d.take(R, p, values) for d in self.pose_data]])
 
     def working_data(self, q: np.ndarray, theta: np.ndarray, flexion: float, order: int = 2) -> np.ndarray:
         """The packed ``ws`` input of the model's functions at a pose (:meth:`working_set` without

@@ -29,8 +29,7 @@ def path_jumps(model: KneeModel, q: np.ndarray, theta: np.ndarray, flexions) -> 
         R, p = (np.asarray(v) for v in model.pose(qi, flexion, theta))
         found = []
         for lig, b in bundles:
-            femur, tibia = (np.asarray(x, float) + np.array([values.get(n, 0.0) for n in lig.attachment_names(side)])
-                            for x, side in ((b.femur, "femur"), (b.tibia, "tibia")))
+            femur, tibia = lig.attachments(b, values)
             why = b.path.jump(femur, tibia, R, p.ravel())
             if why:
                 found.append(f"{lig.name} bundle {b.name or lig.name!r}: {why}")

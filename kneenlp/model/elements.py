@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import threading
 from abc import ABC, abstractmethod
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from itertools import pairwise
 
 import casadi as ca
@@ -49,6 +49,8 @@ class Pose:
     p: ca.SX
     q: ca.SX
     flexion: ca.SX
+    #: the elements' pose data by key (:class:`PoseData`; symbols the model fills at each pose)
+    data: Mapping[str, ca.SX] = field(default_factory=dict)
 
     def to_femoral(self, point_tibial) -> ca.SX:
         """A point fixed in the tibia (tibial frame, m) in the femoral frame."""
@@ -57,6 +59,21 @@ class Pose:
     def to_tibial(self, point_femoral) -> ca.SX:
         """A point fixed in the femur (femoral frame, m) in the tibial frame."""
         return self.R.T @ (ca.DM(point_femoral) - self.p)
+
+
+@dataclass(frozen=True)
+class PoseData:
+    """Numbers an element's expression needs that are computed outside CasADi at each pose (a path's
+    taut string over a bone): ``size`` of them, the symbol ``pose.data[key]`` in the element's
+    expressions, and ``take(R, p, values)``: their values at T poses (rotations T x 3 x 3, tibial
+    origins T x 3, m; ``values``: every parameter's, SI) as a T x ``size`` array.  The model takes
+    them at every pose a solver evaluates, with zero derivative
+    (:mod:`kneenlp.experiment.functions`); ``what`` names them in messages."""
+
+    key: str
+    size: int
+    take: Callable[[np.ndarray, np.ndarray, dict[str, float]], np.ndarray]
+    what: str
 
 
 @dataclass(frozen=True)
@@ -107,6 +124,10 @@ class ForceElement(Part):
 
     def output_values(self, pose: Pose, values: dict[str, ca.SX]) -> list[ca.SX]:
         """Values (SI) of :meth:`outputs`, in order."""
+        return []
+
+    def pose_data(self) -> list[PoseData]:
+        """What :meth:`wrench` reads from ``pose.data`` (none by default)."""
         return []
 
 

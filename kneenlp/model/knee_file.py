@@ -62,7 +62,7 @@ KNEE_SIZE_RANGE = (5e-3, 0.5)
 #: gate of 0.01 "mm" in a metre knee is 10 mm) or, for the grid, a field too coarse to represent
 #: cartilage or too fine to fit in memory.
 PLAUSIBLE_MM = {"gate": (1e-4, 0.1), "femur_offset": (0.0, 6.0), "grid_spacing": (0.05, 2.0),
-                "wrap_radius": (0.5, 60.0)}
+                "wrap_radius": (0.5, 60.0), "wrap_clearance": (0.0, 5.0)}
 #: Landmarks in the femur's frame (the others are the tibia's), and the two ends of the limb.
 FEMORAL_LANDMARKS = ("hip_center", "medial_epicondyle", "lateral_epicondyle")
 LIMB_LANDMARKS = ("hip_center", "ankle_center")
@@ -127,6 +127,8 @@ class KneeFile(ContactReading, LigamentReading):
         self.notes: list[str] = []
         #: attachments read so far: (field, point in the femoral frame at the reference pose, bone)
         self.attachments: list[tuple[str, np.ndarray, str]] = []
+        #: the bones' distance fields built so far for paths over them, by mesh file
+        self.bone_fields: dict = {}
         self.reference_pose = self.read_reference_pose()
         self.reference = reference_transform(*self.reference_pose)
 

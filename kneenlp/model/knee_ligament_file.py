@@ -9,6 +9,7 @@ import trimesh
 
 from kneenlp.base.errors import InputError
 from kneenlp.geometry.distance import MeshDistance, winding_number
+from kneenlp.model.bone_wrap import BoneWrap, bone_field
 from kneenlp.model.kinematics import reference_transform
 from kneenlp.model.knee_schema import BundleTable, SlackShiftTable
 from kneenlp.model.laws import DEFAULT_LAW, law_named
@@ -176,7 +177,9 @@ class LigamentReading:
 
     def wrap_path(self, table, fld: str) -> LigamentPath:
         """The path over a ``[...wrap]`` table's obstacle (a left knee mirrored, which turns a
-        cylinder's side)."""
+        cylinder's side), or over a bone of ``[bones]``."""
+        if table.shape == "bone":
+            return self.bone_path(table, fld)
         centre = self.point(table.centre)
         if table.shape == "cylinder":
             side = (1 if table.side == "positive" else -1) * int(self.mirror[2])
@@ -188,6 +191,18 @@ class LigamentReading:
         axes[:, 2] *= np.sign(np.linalg.det(axes))  # a mirrored knee's axes, right-handed again
         radii = [self.length(r, "wrap_radius", 10.0, f"{fld}.radii") for r in table.radii]
         return EllipsoidWrap(centre, axes, np.array(radii), table.body)
+
+    def bone_path(self, table, fld: str) -> BoneWrap:
+        """The path over the surface of the bone ``[bones]`` gives for the table's ``body`` (in that
+        body's frame), its field built once per mesh (:func:`~kneenlp.model.bone_wrap.bone_field`)."""
+        value = None if self.spec.bones is None else getattr(self.spec.bones, table.body)
+        if value is None:
+            raise InputError(f"a path over the {table.body}'s surface needs its mesh: give [bones] {table.body}",
+                             source=self.src, field=f"{fld}.body")
+        if value not in self.bone_fields:
+            self.bone_fields[value] = bone_field(self.frame.mesh(self.mesh(value, f"bones.{table.body}")))
+        clearance = self.length(table.clearance, "wrap_clearance", 0.0, f"{fld}.clearance", positive=False)
+        return BoneWrap(self.bone_fields[value], table.body, clearance, f"{table.body} bone ({value})")
 
     def check_path(self, bundle: Bundle, fld: str, name: str) -> None:
         """A wrapping obstacle holds neither attachment in the reference pose (one line naming the

@@ -117,11 +117,14 @@ class WrapTable(Table):
     ``axis``, of ``radius``, passed on ``side`` (``positive``: counterclockwise about the axis
     going from the tibial to the femoral attachment); an ``ellipsoid``
     (:class:`kneenlp.model.paths.EllipsoidWrap`) of semi-axes ``radii`` (file unit) along ``axes``
-    (three orthogonal directions), passed on the side away from its centre."""
+    (three orthogonal directions), passed on the side away from its centre; or the ``bone``'s own
+    surface (:class:`kneenlp.model.bone_wrap.BoneWrap`: the mesh ``[bones]`` gives for ``body``),
+    kept ``clearance`` (file unit, default 0) off it."""
 
-    shape: Literal["cylinder", "ellipsoid"] = "cylinder"
+    shape: Literal["cylinder", "ellipsoid", "bone"] = "cylinder"
     body: Literal["femur", "tibia"] = Field(description='body ("femur" or "tibia")')
-    centre: Point = Field(description="centre (a point of the axis)")
+    centre: Point | None = Field(None, description="centre (a point of the axis)")
+    clearance: Number | None = None
     axis: Point | None = None
     radius: Number | None = None
     side: Literal["positive", "negative"] | None = None
@@ -130,15 +133,17 @@ class WrapTable(Table):
 
     @model_validator(mode="after")
     def _keys_of_the_shape(self) -> WrapTable:
-        """A cylinder's axis, radius and side; an ellipsoid's axes and radii; nothing of the other."""
-        need = {"cylinder": ("axis", "radius", "side"), "ellipsoid": ("axes", "radii")}
+        """A cylinder's centre, axis, radius and side; an ellipsoid's centre, axes and radii; a bone
+        surface's optional clearance; nothing of another shape."""
+        need = {"cylinder": ("centre", "axis", "radius", "side"), "ellipsoid": ("centre", "axes", "radii"), "bone": ()}
+        own = {**need, "bone": ("clearance",)}[self.shape]
         for key in need[self.shape]:
             if getattr(self, key) is None:
                 raise fail(f"a wrapping {self.shape} needs {key}", key)
-        for shape, keys in need.items():
-            for key in keys:
-                if shape != self.shape and getattr(self, key) is not None:
-                    raise fail(f"{key} belongs to a {shape}, not a {self.shape}", key)
+        for key in ("centre", "axis", "radius", "side", "axes", "radii", "clearance"):
+            if key not in own and getattr(self, key) is not None:
+                shape = next(n for n, keys in {**need, "bone": ("clearance",)}.items() if key in keys)
+                raise fail(f"{key} belongs to a {shape}, not a {self.shape}", key)
         return self
 
 

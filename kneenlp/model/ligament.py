@@ -33,13 +33,15 @@ adequacy frees them as geometry candidates (:func:`kneenlp.model.effects.attachm
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
 
 from kneenlp.base.keywords import keyword_options
-from kneenlp.model.elements import ForceElement, Output, Pose
+from kneenlp.model.bone_wrap import PATH_DATA, BoneWrap
+from kneenlp.model.elements import ForceElement, Output, Pose, PoseData
 from kneenlp.model.laws import NUMPY, LigamentLaw, ToeLinearLaw
 from kneenlp.model.parameters import LIGAMENT_KINDS, Parameter, ligament_parameters
 from kneenlp.model.paths import LigamentPath, StraightPath
@@ -245,6 +247,33 @@ class Ligament(ForceElement):
             return 0.0
         return ca.vertcat(*[values[n] for n in self.attachment_names(side)])
 
+    def attachments(self, b: Bundle, values: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """Bundle ``b``'s femoral and tibial attachments (m) moved by the shifts in ``values`` (numbers)."""
+        return tuple(np.asarray(x, float) + np.array([values.get(n, 0.0) for n in self.attachment_names(side)])
+                     for x, side in ((b.femur, "femur"), (b.tibia, "tibia")))
+
+    def _data_key(self, i: int, at_reference: bool = False) -> str:
+        """The key of bundle ``i``'s pose data (:meth:`pose_data`)."""
+        return f"{self.name}.bundle{i}.path" + (".reference" if at_reference else "")
+
+    def pose_data(self) -> list[PoseData]:
+        """Each bundle over a bone (:class:`~kneenlp.model.bone_wrap.BoneWrap`): its path at the pose
+        and in the reference pose (where its reference length is measured, moved with the shifts)."""
+        out = []
+        for i, b in enumerate(self.bundles):
+            if isinstance(b.path, BoneWrap):
+                def take(R, p, values, b=b):
+                    return b.path.take(*self.attachments(b, values), R, p)
+
+                def take_reference(R, p, values, b=b):  # one pose for all: it moves with the parameters only
+                    one = b.path.take(*self.attachments(b, values), self.reference[0][None], self.reference[1][None])
+                    return np.repeat(one, len(p), axis=0)
+
+                what = f"ligament {self.name} bundle {b.name or self.name!r}'s path over the {b.path.bone}"
+                out += [PoseData(self._data_key(i), b.path.data_size, take, what),
+                        PoseData(self._data_key(i, True), b.path.data_size, take_reference, what)]
+        return out
+
     def _bundle_terms(self, pose: Pose, values: dict):
         shift_f, shift_t = self._shift("femur", values), self._shift("tibia", values)
         if self.grouped:
@@ -252,10 +281,14 @@ class Ligament(ForceElement):
         else:
             own = {kind: values[f"{self.name}.{kind}"] for kind in LIGAMENT_KINDS}
         at_reference = Pose(ca.DM(self.reference[0]), ca.DM(self.reference[1]), ca.DM.zeros(5), ca.DM(0))
-        for b in self.bundles:
+        for i, b in enumerate(self.bundles):
             femur, tibia = ca.DM(b.femur) + shift_f, ca.DM(b.tibia) + shift_t
-            reference = b.path.route(femur, tibia, at_reference).length if not self.candidate else self.bundle_length(b)
-            route = b.path.route(femur, tibia, pose)
+            here, there = pose, at_reference
+            if isinstance(b.path, BoneWrap):  # its own pose data (pose_data)
+                here = dataclasses.replace(pose, data={PATH_DATA: pose.data[self._data_key(i)]})
+                there = dataclasses.replace(at_reference, data={PATH_DATA: pose.data[self._data_key(i, True)]})
+            reference = b.path.route(femur, tibia, there).length if not self.candidate else self.bundle_length(b)
+            route = b.path.route(femur, tibia, here)
             length = route.length
             if self.grouped:
                 slack, k, lin = bundle_law(b, self.bundle_length(b), reference, (scale, offset), self.shift)
