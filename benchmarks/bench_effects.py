@@ -38,9 +38,8 @@ from kneenlp.validation import crossval
 
 PROBLEM = Path(__file__).resolve().parents[1] / "problems" / "s192803"
 PROBLEM_FILE = ProblemFile.load(PROBLEM)
-#: The effects problems/s192803 frees beside the MAP calibration but the apparatus' neutral zone: the
-#: six of the knee and the experiment's frames (the held-out error accepts them and the neutral zone).
-SIX = [e for e in PROBLEM_FILE.also_free if e != "neutral_zone"]
+#: The effects problems/s192803 frees beside the MAP calibration (the six the held-out error accepts).
+SIX = list(PROBLEM_FILE.also_free)
 #: Every group's femoral attachment (the generic geometry variant).
 FEMORAL = [f"{g}_femoral_attachment" for g in kneenlp.Knee.named("s192803").ligaments]
 #: name: (the calibration's options beside the problem's, the structure added to the knee file or None)

@@ -13,8 +13,8 @@ predicted on the held-out trials (deg, mm) and whether it meets 5 deg and 2 mm. 
 - ``MAP weight 0.3`` and ``MAP weight estimated``: the priors weighed against a smaller misfit, or
   the one estimated from the fit's own residuals;
 - ``MAP + the six effects``: the experiment's frames, the cruciates' femoral attachments and PCLal's
-  bundles; ``problems/s192803``: the six and the apparatus' neutral zone (its ``also_free``); the
-  seven, the six with the PFL's tibial attachment;
+  bundles (problems/s192803's ``also_free``); the six and the apparatus' neutral zone; the seven,
+  with the PFL's tibial attachment;
   ``MAP + frames and femoral attachments``: the frames and every group's femoral attachment (2 mm
   priors), the generic version.
 
@@ -42,10 +42,8 @@ from kneenlp.experiment.problem import resolve_priors
 from kneenlp.experiment.problem_file import ProblemFile
 from kneenlp.validation import crossval
 
-#: The effects the held-out error accepts (docs/real-experiment.md): problems/s192803's also_free, and
-#: the six of them that are the knee's and the experiment's frames (all but the apparatus' neutral zone).
+#: The effects the held-out error accepts (docs/real-experiment.md): problems/s192803's also_free.
 EFFECTS = list(ProblemFile.load(Path(__file__).resolve().parents[1] / "problems" / "s192803").also_free)
-SIX = [e for e in EFFECTS if e != "neutral_zone"]
 #: Every group's femoral attachment (the generic geometry variant).
 FEMORAL = [f"{g}_femoral_attachment" for g in kneenlp.Knee.named("s192803").ligaments]
 VARIANTS = {
@@ -55,10 +53,10 @@ VARIANTS = {
     "MAP (one start)": {"starts": 1},
     "MAP weight 0.3": {"prior_weight": 0.3},
     "MAP weight estimated": {"prior_weight": "estimate"},
-    "MAP + the six effects": {"also_free": SIX},
-    "problems/s192803 (the six and the neutral zone)": {"also_free": EFFECTS},
-    "problems/s192803 (one start)": {"also_free": EFFECTS, "starts": 1},
-    "MAP + the seven effects (and the PFL's tibial attachment)": {"also_free": [*SIX, "PFL_tibial_attachment"]},
+    "MAP + the six effects": {"also_free": EFFECTS},
+    "MAP + the six effects and the neutral zone": {"also_free": [*EFFECTS, "neutral_zone"]},
+    "MAP + the six effects (one start)": {"also_free": EFFECTS, "starts": 1},
+    "MAP + the seven effects (and the PFL's tibial attachment)": {"also_free": [*EFFECTS, "PFL_tibial_attachment"]},
     "MAP + frames and femoral attachments": {"also_free": ["tibial_origin", "femoral_origin", "tibial_axes", *FEMORAL]},
 }
 
