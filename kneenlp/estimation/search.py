@@ -78,9 +78,8 @@ from kneenlp.solvers.result import SolverResult
 
 #: Share of each prior the starts cover (its central quantiles).
 CENTRAL = 0.95
-#: Starts of a real experiment's calibration by default: on S192803 (51 free parameters) 16 starts
-#: reach the lowest minimum with 4-5 solves in every BLAS, worker, compile and Dask setting, in about
-#: a minute on 2 cores (benchmarks/bench_global.py).
+#: Starts of a real experiment's calibration by default: on S192803 (48 free parameters) 16 starts
+#: reach the lowest minimum with 12 of 20 solves, in about 90 s on 2 cores (benchmarks/bench_global.py).
 DEFAULT_STARTS = 16
 #: Reduced-space evaluations of a start's screen.
 SCREEN_EVALUATIONS = 8
