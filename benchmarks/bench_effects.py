@@ -51,6 +51,7 @@ VARIANTS = {
     "six+popliteus": ({"also_free": [*SIX, "popliteus"]}, "popliteus"),
     "six+oblique_popliteal": ({"also_free": [*SIX, "oblique_popliteal"]}, "oblique_popliteal"),
     "six+meniscal_rim": ({"also_free": [*SIX, "meniscal_rim"]}, "meniscal_rim"),
+    "six+sMCL_over_tibia": ({"also_free": SIX}, "sMCL_over_tibia"),
     "weight 0.3": ({"also_free": [], "prior_weight": 0.3}, None),
     "weight estimated": ({"also_free": [], "prior_weight": "estimate"}, None),
     "least squares": ({"also_free": [], "priors": "none"}, None),
@@ -59,14 +60,19 @@ VARIANTS = {
 }
 
 
+#: The superficial MCL's groups over the tibia's own surface (``shape = "bone"``).
+OVER_THE_TIBIA = "".join(f'\n[ligaments.{g}.wrap]\nshape = "bone"\nbody = "tibia"\n' for g in ("MCLa", "MCLm", "MCLp"))
+
+
 def knee_with(structure: str | None, folder: Path) -> kneenlp.Knee:
-    """The S192803 knee, with ``structure``'s table declared as a candidate in a copy of its file."""
+    """The S192803 knee, with ``structure``'s table declared as a candidate in a copy of its file
+    (``sMCL_over_tibia``: the superficial MCL's paths over the tibia, :data:`OVER_THE_TIBIA`)."""
     if structure is None:
         return kneenlp.Knee.named("s192803")
     copy = folder / structure
     shutil.copytree(resource("knees", "s192803"), copy)
     with open(copy / "knee.toml", "a") as f:
-        f.write(f"\n[{structure}]\ncandidate = true\n")
+        f.write(OVER_THE_TIBIA if structure == "sMCL_over_tibia" else f"\n[{structure}]\ncandidate = true\n")
     return kneenlp.Knee.load(copy / "knee.toml")
 
 

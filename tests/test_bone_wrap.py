@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from kneenlp.base.errors import InputError
-from kneenlp.model.bone_wrap import BoneWrap
+from kneenlp.model.bone_wrap import BONE_REACH, BoneWrap
 from tests.test_paths import _knee_with_wrap
 from tests.test_taut_path import Cylinder
 
@@ -35,6 +35,44 @@ def test_a_path_over_a_bone_names_where_it_jumps():
     assert "near its middle" in path.jump(*through, rotation, origin)
     assert "tibial attachment lies inside" in path.jump(E, np.array([0.005, 0.0, 0.0]), rotation, origin)
     assert path.jump(E, np.array([0.0099, 0.0, 0.0]), rotation, origin) == ""  # on the surface: an attachment
+
+
+class CutCylinder(Cylinder):
+    """The cylinder's field on a grid cut at :data:`BONE_REACH` below the knee (the shaft goes on)."""
+
+    spacing = 1e-3
+    bounds = np.array([[-0.03, -0.03, -BONE_REACH + 1e-3], [0.03, 0.03, 0.01]])
+
+
+def test_an_attachment_beyond_where_the_bones_field_was_cut_is_named():
+    """Below the cut the bone goes on unseen (a path there would cut through it): named; above the
+    mesh's own box (no bone there) and inside the grid: not."""
+    path = BoneWrap(CutCylinder(), "tibia")
+    rotation, origin = np.eye(3), np.zeros(3)
+    femur, tibia = np.array([0.012, 0.0, 0.03]), np.array([0.012, 0.0, -0.07])
+    assert path.uncovered(femur, tibia, rotation, origin) == []
+    assert path.uncovered(femur, np.array([0.012, 0.0, -0.085]), rotation, origin) == ["tibial"]
+
+
+def test_the_banded_kkt_solve_is_the_dense_one_and_a_singular_step_is_least_squares():
+    """The KKT systems are banded node by node (taut_path.BANDWIDTH): the banded solve equals the
+    dense one; a contact whose distance has no gradient (a node deeper than the field's clip) makes
+    its system singular: that path's step is the least-squares one, the others' are unchanged."""
+    from kneenlp.geometry.taut_path import BANDWIDTH, _node_major, _solve
+
+    K = 4
+    order, _, _ = _node_major(K)
+    rng = np.random.default_rng(0)
+    near = np.abs(np.subtract.outer(np.arange(5 * K), np.arange(5 * K))) <= BANDWIDTH
+    M = np.zeros((3, 5 * K, 5 * K))
+    M[:, order[:, None], order[None, :]] = rng.normal(size=(3, 5 * K, 5 * K)) * near + 4 * np.eye(5 * K)
+    M[1, 7] = 0.0
+    b = rng.normal(size=(3, 5 * K, 1))
+    x = _solve(M, b)
+    assert np.all(np.isfinite(x))
+    for i in (0, 2):
+        assert np.allclose(x[i], np.linalg.solve(M[i], b[i]), rtol=1e-10, atol=1e-12)
+    assert np.allclose(x[1], np.linalg.lstsq(M[1], b[1], rcond=None)[0])
 
 
 def _s192803_smcl_over_the_tibia(tmp_path):

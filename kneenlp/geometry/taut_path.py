@@ -29,11 +29,13 @@ data at every pose it evaluates sees the path's exact length, gradient and Hessi
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
+import scipy.linalg
 
 #: Nodes of the discretised path (module docstring: 2e-4 of a 90 deg arc).
 NODES = 24
@@ -127,10 +129,10 @@ def _segments(start, end, Y):
     return seg / np.maximum(length, 1e-300)[..., None], length
 
 
-def _kkt(start, end, Y, mu, lam, active, values, grads, hessians, curvature: bool | np.ndarray):
-    """The KKT residual (T x 5K) and its Jacobian (T x 5K x 5K) in (nodes, mu, lam), and the
-    segments' unit vectors and lengths; ``curvature`` (T, bool): whether the Jacobian's Hessian
-    is the Lagrangian's (Newton's) or the length's own."""
+def _kkt(start, end, Y, mu, lam, active, values, grads, hessians, curvature: bool | np.ndarray, jacobian: bool = True):
+    """The KKT residual (T x 5K) and its Jacobian (T x 5K x 5K; None without ``jacobian``) in
+    (nodes, mu, lam), and the segments' unit vectors and lengths; ``curvature`` (T, bool): whether
+    the Jacobian's Hessian is the Lagrangian's (Newton's) or the length's own."""
     T, K = mu.shape
     u, ell = _segments(start, end, Y)
     a = np.diff(np.concatenate([start[:, None], Y, end[:, None]], axis=1), axis=1)  # T x K+1 x 3
@@ -143,6 +145,8 @@ def _kkt(start, end, Y, mu, lam, active, values, grads, hessians, curvature: boo
     r[:, : 3 * K] = stat.reshape(T, -1)
     r[:, 3 * K: 4 * K] = np.sum(a[:, 1:] ** 2, axis=2) - np.sum(a[:, :-1] ** 2, axis=2)
     r[:, 4 * K:] = np.where(active, values, lam)
+    if not jacobian:
+        return r, None, u, ell
     B = (np.eye(3) - u[..., :, None] * u[..., None, :]) / np.maximum(ell, 1e-300)[..., None, None]  # T x K+1 x 3 x 3
     on = np.asarray(curvature, float).reshape(-1, 1) * np.ones((T, 1))
     eye = np.eye(3)
@@ -169,6 +173,39 @@ def _kkt(start, end, Y, mu, lam, active, values, grads, hessians, curvature: boo
     out[:, 4 * K + k[:, None], rows] = np.where(active[..., None], grads, 0.0)
     out[:, 4 * K + k, 4 * K + k] = np.where(active, 0.0, 1.0)
     return r, out, u, ell
+
+
+#: Half-bandwidth of the KKT matrix with the unknowns node by node (node k's position, mu_k, lambda_k):
+#: a node's stationarity reaches the next node's mu (5 + 3 places on), its spacing the last node's position.
+BANDWIDTH = 8
+
+
+@functools.cache
+def _node_major(K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The permutation to node-by-node unknowns and the (row, column) pairs of its band."""
+    order = np.array([[3 * k, 3 * k + 1, 3 * k + 2, 3 * K + k, 4 * K + k] for k in range(K)]).ravel()
+    rows, cols = np.nonzero(np.abs(np.subtract.outer(np.arange(5 * K), np.arange(5 * K))) <= BANDWIDTH)
+    return order, rows, cols
+
+
+def _solve(M: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``M^-1 b`` for a batch of KKT systems (T x 5K x 5K, T x 5K x m): banded LU with partial
+    pivoting (LAPACK gbsv; node by node the matrix is banded, :data:`BANDWIDTH`), a few times
+    cheaper than a dense solve and never spread over BLAS threads.  A singular system (a contact
+    whose normal lies along its segments, a node with no distance gradient) gets its least-squares
+    step, and a path that keeps needing it ends unconverged (its data NaN), not as an exception."""
+    T, n = M.shape[0], M.shape[1]
+    order, rows, cols = _node_major(n // 5)
+    band = np.zeros((T, 2 * BANDWIDTH + 1, n))
+    band[:, BANDWIDTH + rows - cols, cols] = M[:, order[rows], order[cols]]
+    out = np.empty_like(b)
+    for t in range(T):
+        try:
+            out[t, order] = scipy.linalg.solve_banded((BANDWIDTH, BANDWIDTH), band[t], b[t, order],
+                                                      check_finite=False)
+        except (np.linalg.LinAlgError, ValueError):
+            out[t] = np.linalg.lstsq(M[t], b[t], rcond=None)[0]
+    return out
 
 
 def _push_out(field, start, end, Y, clearance: float, steps: int = 40) -> np.ndarray:
@@ -240,7 +277,7 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
         vals, grads, hessians = field.evaluate(Y.reshape(-1, 3), order=2)
         gap = vals.reshape(T, K) - clearance
         grads, hessians = grads.reshape(T, K, 3), hessians.reshape(T, K, 3, 3)
-        r, _, _, _ = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=True)
+        r, _, _, _ = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=True, jacobian=False)
         norm = np.maximum(np.abs(r[:, : 3 * K]).max(axis=1), np.abs(r[:, 3 * K: 4 * K]).max(axis=1) / scale**2)
         norm = np.maximum(norm, np.abs(np.where(active, gap, 0.0)).max(axis=1))
         violated = (gap < -1e-12) & ~active
@@ -261,7 +298,7 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
         r, M, _, _ = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=newton)
         todo = ~converged
         step = np.zeros_like(r)
-        step[todo] = -np.linalg.solve(M[todo], r[todo][..., None])[..., 0]
+        step[todo] = -_solve(M[todo], r[todo][..., None])[..., 0]
         dY = step[:, : 3 * K].reshape(T, K, 3)
         size = np.linalg.norm(dY, axis=2).max(axis=1)
         alpha = np.minimum(1.0, 2e-3 / np.maximum(size, 1e-300))  # at most 2 mm a step
@@ -300,5 +337,5 @@ def _response(M, u, ell, start, end, Y, mu) -> np.ndarray:
     dP[:, 3 * K - 3: 3 * K, 3:6] += -B[:, K] + 2 * mu[:, K - 1, None, None] * eye  # -u_K and 2 mu_K a_K, a_K = e - y_K
     dP[:, 3 * K, 0:3] = 2 * (Y[:, 0] - start)  # h_1 = |a_1|^2 - |a_0|^2
     dP[:, 4 * K - 1, 3:6] = 2 * (end - Y[:, -1])  # h_K = |a_K|^2 - |a_K-1|^2
-    dz = -np.linalg.solve(M, dP)
+    dz = -_solve(M, dP)
     return dz[:, : 3 * K].reshape(T, K, 3, 6)

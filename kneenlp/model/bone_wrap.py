@@ -48,10 +48,15 @@ NEAR_MIDDLE = 1e-3
 #: A bone's field for paths over it (m): a 1 mm grid (its error on S192803's bones: 16-24 um RMS,
 #: :attr:`DistanceField.info`), exact 5 mm outside and 10 mm inside the surface (where a chord through
 #: the bone is pushed out from), over the mesh's box padded by 5 mm and cut to within
-#: :data:`BONE_REACH` of the frame's origin at the knee (a ligament never reaches the shaft).
+#: :data:`BONE_REACH` of the frame's origin at the knee: the superficial MCL attaches 60-75 mm below
+#: the joint line (S192803: 67-70 mm), and an attachment outside the field is refused
+#: (:meth:`BoneWrap.uncovered`), since beyond it the path would cut through the bone unseen.
 BONE_FIELD = {"spacing": 1e-3, "band": 5e-3, "depth": 10e-3}
 BONE_PAD = 5e-3
-BONE_REACH = 0.05
+BONE_REACH = 0.08
+#: Path solves a :class:`BoneWrap` keeps, by their exact inputs (:meth:`BoneWrap.take`): the reference
+#: pose's path is asked for at every evaluation and changes only with the attachments.
+MEMO_SIZE = 32
 
 
 def bone_field(mesh) -> DistanceField:
@@ -101,11 +106,27 @@ class BoneWrap(WrapPath):
         return taut_path(self.field, s, e, self.clearance, self.nodes)
 
     def take(self, femur: np.ndarray, tibia: np.ndarray, R: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """The pose data at T poses: T x :attr:`data_size` (NaN where the path's solve failed)."""
-        return self.solve(femur, tibia, R, p).data()
+        """The pose data at T poses: T x :attr:`data_size` (NaN where the path's solve failed).  The
+        last :data:`MEMO_SIZE` solves are kept by the bytes of their inputs, so an answer is the
+        same whether it was solved or kept (a function of the inputs, not of the calls before)."""
+        key = b"".join(np.ascontiguousarray(v, float).tobytes() for v in (femur, tibia, R, p))
+        if key not in self._memo:
+            if len(self._memo) >= MEMO_SIZE:
+                del self._memo[next(iter(self._memo))]
+            self._memo[key] = self.solve(femur, tibia, R, p).data()
+        return self._memo[key].copy()
 
     def length(self, femur, tibia, R, p) -> float:
         return float(self.solve(femur, tibia, R, p).length[0])
+
+    def uncovered(self, femur, tibia, R, p) -> list[str]:
+        """Which attachments (``"femoral"``, ``"tibial"``) lie beyond where the field was cut at
+        :data:`BONE_REACH` (at ``R``, ``p``): there the bone may go on unseen, and a path near them
+        would cut through it.  (Beyond the mesh's own box the field's ``band`` is right: no bone.)"""
+        s, e = (v[0] for v in self.ends(femur, tibia, R, p))
+        lo, hi = self.field.bounds
+        cut_lo, cut_hi = lo <= -BONE_REACH + 2 * self.field.spacing, hi >= BONE_REACH - 2 * self.field.spacing
+        return [name for name, x in (("tibial", s), ("femoral", e)) if np.any(cut_lo & (x < lo) | cut_hi & (x > hi))]
 
     def level(self, point, R, p) -> float:
         """Below 1 for a point deeper in the bone than an attachment may lie (:data:`ATTACHMENT_DEPTH`:
@@ -149,8 +170,13 @@ class BoneWrap(WrapPath):
         L = lagrangian(s, e, data, self.nodes)
         return ca.Function("bone_path", [s, e, data], [L, ca.gradient(L, s), ca.gradient(L, e)])
 
+    @functools.cached_property
+    def _memo(self) -> dict[bytes, np.ndarray]:
+        """Kept solves (:meth:`take`; not pickled)."""
+        return {}
+
     def __getstate__(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "_function"}
+        return {k: v for k, v in self.__dict__.items() if k not in ("_function", "_memo")}
 
     def route(self, femur, tibia, pose: Pose) -> Route:
         data = pose.data[PATH_DATA]

@@ -9,7 +9,7 @@ import trimesh
 
 from kneenlp.base.errors import InputError
 from kneenlp.geometry.distance import MeshDistance, winding_number
-from kneenlp.model.bone_wrap import BoneWrap, bone_field
+from kneenlp.model.bone_wrap import BONE_REACH, BoneWrap, bone_field
 from kneenlp.model.kinematics import reference_transform
 from kneenlp.model.knee_schema import BundleTable, SlackShiftTable
 from kneenlp.model.laws import DEFAULT_LAW, law_named
@@ -216,6 +216,10 @@ class LigamentReading:
             raise InputError(f"bundle {name!r}: its {where} attachment lies inside the wrapping {path.shape} in "
                              "the reference pose, where the path is not defined (OpenSim silently runs it straight)",
                              source=self.src, field=fld)
+        for where in path.uncovered(bundle.femur, bundle.tibia, R, p) if isinstance(path, BoneWrap) else []:
+            raise InputError(f"bundle {name!r}: its {where} attachment lies outside the {path.bone}'s distance field "
+                             f"(within {BONE_REACH * 1e3:.0f} mm of the knee's origin), where its path cannot follow "
+                             "the bone", source=self.src, field=fld)
         laxity = np.asarray(self.reference_pose[1], float)
         if not any(path.wraps(bundle.femur, bundle.tibia, *reference_transform(np.radians(f), laxity))
                    for f in WRAP_FLEXIONS):
