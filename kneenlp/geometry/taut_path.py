@@ -271,52 +271,58 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
     active = d - clearance < 1e-9
     converged = np.zeros(T, bool)
     scale = np.linalg.norm(c, axis=1)
-    rows = np.arange(T)
     previous = np.full(T, np.inf)
     for _ in range(max_iter):
-        vals, grads, hessians = field.evaluate(Y.reshape(-1, 3), order=2)
-        gap = vals.reshape(T, K) - clearance
-        grads, hessians = grads.reshape(T, K, 3), hessians.reshape(T, K, 3, 3)
-        r, _, _, _ = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=True, jacobian=False)
-        norm = np.maximum(np.abs(r[:, : 3 * K]).max(axis=1), np.abs(r[:, 3 * K: 4 * K]).max(axis=1) / scale**2)
-        norm = np.maximum(norm, np.abs(np.where(active, gap, 0.0)).max(axis=1))
-        violated = (gap < -1e-12) & ~active
-        # in balance on the active set, or no longer getting there: release the node pulling away most
-        balanced = (norm < NEAR) | (norm > STALL * previous)
-        previous = norm
-        pulling = active & (lam < 0) & balanced[:, None]
-        release = np.zeros_like(active)
-        worst = np.argmin(np.where(pulling, lam, np.inf), axis=1)
-        release[rows, worst] = pulling.any(axis=1)
-        changed = violated.any(axis=1) | release.any(axis=1)
-        converged |= (norm < TOLERANCE) & ~changed & ~pulling.any(axis=1)
-        if converged.all():
+        todo = np.flatnonzero(~converged)  # a converged path stays as it is: only the others are worked on
+        if not len(todo):
             break
-        active = (active | violated) & ~release
-        lam = np.where(active, lam, 0.0)
-        newton = (norm < NEAR) & ~changed  # near a solution on an unchanged active set: Newton's steps
-        r, M, _, _ = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=newton)
-        todo = ~converged
-        step = np.zeros_like(r)
-        step[todo] = -_solve(M[todo], r[todo][..., None])[..., 0]
-        dY = step[:, : 3 * K].reshape(T, K, 3)
+        s, e, y, m, la, act = start[todo], end[todo], Y[todo], mu[todo], lam[todo], active[todo]
+        n = len(todo)
+        vals, grads, hessians = field.evaluate(y.reshape(-1, 3), order=2)
+        gap = vals.reshape(n, K) - clearance
+        grads, hessians = grads.reshape(n, K, 3), hessians.reshape(n, K, 3, 3)
+        r, _, _, _ = _kkt(s, e, y, m, la, act, gap, grads, hessians, curvature=True, jacobian=False)
+        norm = np.maximum(np.abs(r[:, : 3 * K]).max(axis=1), np.abs(r[:, 3 * K: 4 * K]).max(axis=1) / scale[todo]**2)
+        norm = np.maximum(norm, np.abs(np.where(act, gap, 0.0)).max(axis=1))
+        violated = (gap < -1e-12) & ~act
+        # in balance on the active set, or no longer getting there: release the node pulling away most
+        balanced = (norm < NEAR) | (norm > STALL * previous[todo])
+        previous[todo] = norm
+        pulling = act & (la < 0) & balanced[:, None]
+        release = np.zeros_like(act)
+        worst = np.argmin(np.where(pulling, la, np.inf), axis=1)
+        release[np.arange(n), worst] = pulling.any(axis=1)
+        changed = violated.any(axis=1) | release.any(axis=1)
+        done = (norm < TOLERANCE) & ~changed & ~pulling.any(axis=1)
+        converged[todo] = done
+        if done.all():
+            break
+        go = ~done
+        todo, s, e, y, m, la = todo[go], s[go], e[go], y[go], m[go], la[go]
+        act, gap, grads, hessians = ((act | violated) & ~release)[go], gap[go], grads[go], hessians[go]
+        newton, norm = ((norm < NEAR) & ~changed)[go], norm[go]  # near a solution on an unchanged active set
+        la = np.where(act, la, 0.0)
+        r, M, _, _ = _kkt(s, e, y, m, la, act, gap, grads, hessians, curvature=newton)
+        step = -_solve(M, r[..., None])[..., 0]
+        dY = step[:, : 3 * K].reshape(-1, K, 3)
         size = np.linalg.norm(dY, axis=2).max(axis=1)
         alpha = np.minimum(1.0, 2e-3 / np.maximum(size, 1e-300))  # at most 2 mm a step
-        search = todo & ~newton
+        search = ~newton
         if search.any():
-            before = _merit(field, start[search], end[search], Y[search], clearance, spacing[search])
+            before = _merit(field, s[search], e[search], y[search], clearance, spacing[todo][search])
             a = alpha[search]
             for _ in range(30):
-                after = _merit(field, start[search], end[search], Y[search] + a[:, None, None] * dY[search], clearance,
-                               spacing[search])
+                after = _merit(field, s[search], e[search], y[search] + a[:, None, None] * dY[search], clearance,
+                               spacing[todo][search])
                 worse = after > before + 1e-15
                 if not worse.any():
                     break
                 a = np.where(worse, a / 2, a)
             alpha[search] = a
-        Y = Y + alpha[:, None, None] * dY
-        mu = mu + alpha[:, None] * step[:, 3 * K: 4 * K]
-        lam = np.where(active, lam + alpha[:, None] * step[:, 4 * K:], 0.0)
+        Y[todo] = y + alpha[:, None, None] * dY
+        mu[todo] = m + alpha[:, None] * step[:, 3 * K: 4 * K]
+        lam[todo] = np.where(act, la + alpha[:, None] * step[:, 4 * K:], 0.0)
+        active[todo] = act
     vals, grads, hessians = field.evaluate(Y.reshape(-1, 3), order=2)
     gap = vals.reshape(T, K) - clearance
     grads, hessians = grads.reshape(T, K, 3), hessians.reshape(T, K, 3, 3)
