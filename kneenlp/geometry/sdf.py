@@ -37,23 +37,10 @@ from kneenlp.base.cache import cache_dir
 from kneenlp.geometry.distance import MeshDistance
 from kneenlp.geometry.rim import OpenEdges, rim_weights
 from kneenlp.geometry.shell import ShellDistance
-from kneenlp.geometry.spline_kernels import cell_lower_bound, field_values
+from kneenlp.geometry.spline_kernels import cell_lower_bound, field_derivatives, field_values
 
 #: Bump when the stored format or the construction changes (old cache entries are then rebuilt).
 FORMAT_VERSION = 5
-
-
-def _weights(t: np.ndarray, order: int) -> np.ndarray:
-    """Cubic B-spline weights of the 4 nodes around fractional position ``t`` (N,) and their first,
-    second or third derivatives with respect to ``t``: (N, 4)."""
-    s = 1.0 - t
-    if order == 3:
-        return np.broadcast_to(np.array([-1.0, 3.0, -3.0, 1.0]), (len(t), 4))
-    if order == 0:
-        return np.stack([s**3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3], axis=1) / 6
-    if order == 1:
-        return np.stack([-(s**2), 3 * t**2 - 4 * t, -3 * t**2 + 2 * t + 1, t**2], axis=1) / 2
-    return np.stack([s, 3 * t - 2, 1 - 3 * t, t], axis=1)
 
 
 #: Peak memory per grid node while a field is built (bytes): node coordinates, distances, the
@@ -239,29 +226,16 @@ class DistanceField:
         out = [np.full(n, self.band)] + [np.zeros((n,) + (3,) * k) for k in range(1, order + 1)]
         if not np.any(ok):
             return tuple(out)
-        if order == 0:  # compiled (kernels); the same spline as below and as scipy's map_coordinates
-            values = np.empty(int(ok.sum()))
+        m = int(ok.sum())
+        if order == 0:  # compiled (kernels); the same spline as scipy's map_coordinates
+            values = np.empty(m)
             field_values(self.spline, x[ok], values)
             out[0][ok] = values
             return tuple(out)
-        t = u[ok] - i0[ok]
-        strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1])
-        off = np.arange(-1, 3)
-        patch = (off[:, None, None] * strides[0] + off[None, :, None] * strides[1] + off[None, None, :]).ravel()
-        c = self.coeffs.reshape(-1)[(i0[ok] @ strides)[:, None] + patch].reshape(-1, 4, 4, 4)
-        w = [[_weights(t[:, a], k) for k in range(order + 1)] for a in range(3)]
-        cz = [np.einsum("nijk,nk->nij", c, w[2][k]) for k in range(order + 1)]
-        val = {}
-        for kz in range(order + 1):
-            for ky in range(order + 1 - kz):
-                cyz = np.einsum("nij,nj->ni", cz[kz], w[1][ky])
-                for kx in range(order + 1 - kz - ky):
-                    val[kx, ky, kz] = np.einsum("ni,ni->n", cyz, w[0][kx]) / self.spacing ** (kx + ky + kz)
+        parts = (np.empty(m), np.empty((m, 3)), np.empty((m, 3, 3)), np.empty((m, 3, 3, 3)))
+        field_derivatives(self.spline, np.ascontiguousarray(x[ok]), parts)
         for k in range(order + 1):
-            block = np.empty((int(ok.sum()),) + (3,) * k)
-            for idx in np.ndindex(*((3,) * k)):
-                block[(slice(None), *idx)] = val[tuple(idx.count(a) for a in range(3))]
-            out[k][ok] = block
+            out[k][ok] = parts[k]
         return tuple(out)
 
     # ------------------------------------------------------------------ persistence
