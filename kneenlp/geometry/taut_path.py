@@ -247,6 +247,17 @@ def _merit(field, start, end, Y, clearance: float, spacing: np.ndarray) -> np.nd
     return ell.sum(axis=1) + PENALTY * (np.maximum(-gap, 0.0).sum(axis=1) + unequal)
 
 
+def _backtrack(field, start, end, Y, dY, alpha: np.ndarray, clearance: float, spacing: np.ndarray) -> np.ndarray:
+    """Step lengths from ``alpha`` (T), halved until the step ``dY`` lowers :func:`_merit` (30 halvings at most)."""
+    before = _merit(field, start, end, Y, clearance, spacing)
+    for _ in range(30):
+        worse = _merit(field, start, end, Y + alpha[:, None, None] * dY, clearance, spacing) > before + 1e-15
+        if not worse.any():
+            break
+        alpha = np.where(worse, alpha / 2, alpha)
+    return alpha
+
+
 def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0, nodes: int = NODES,
               max_iter: int = MAX_ITER) -> TautPath:
     """The shortest paths from each ``start`` to its ``end`` (T x 3, m, the field's frame) outside the
@@ -310,16 +321,8 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
         alpha = np.minimum(1.0, 2e-3 / np.maximum(size, 1e-300))  # at most 2 mm a step
         search = ~newton
         if search.any():
-            before = _merit(field, s[search], e[search], y[search], clearance, spacing[todo][search])
-            a = alpha[search]
-            for _ in range(30):
-                after = _merit(field, s[search], e[search], y[search] + a[:, None, None] * dY[search], clearance,
-                               spacing[todo][search])
-                worse = after > before + 1e-15
-                if not worse.any():
-                    break
-                a = np.where(worse, a / 2, a)
-            alpha[search] = a
+            alpha[search] = _backtrack(field, s[search], e[search], y[search], dY[search], alpha[search], clearance,
+                                       spacing[todo][search])
         Y[todo] = y + alpha[:, None, None] * dY
         mu[todo] = m + alpha[:, None] * step[:, 3 * K: 4 * K]
         lam[todo] = np.where(act, la + alpha[:, None] * step[:, 4 * K:], 0.0)
