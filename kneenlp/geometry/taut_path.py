@@ -54,6 +54,8 @@ PENALTY = 10.0
 #: Numbers per node in :meth:`TautPath.data`: node (3), its response to (s, e) (18), the spacing's and
 #: the contact's multipliers (2), the contact's gap (1), the distance's gradient (3) and Hessian (9).
 PER_NODE = 36
+#: The longest step of a node (m): the distance's second-order model holds over it.
+STEP = 5e-3
 
 
 def data_size(nodes: int = NODES) -> int:
@@ -66,7 +68,7 @@ class TautPath:
     """Solved paths (T of them, K nodes; m): ends, nodes, the nodes' response ``dnodes`` to ``(s, e)``
     (T x K x 3 x 6), the spacing's multipliers ``mu`` and the contacts' ``lam`` (T x K), the gap
     ``gap`` of each node and the distance's ``grad`` and ``hess`` there, the polyline's ``length``
-    (T) and whether each solve ``converged``."""
+    (T), whether each solve ``converged`` and its ``iterations`` (T)."""
 
     start: np.ndarray
     end: np.ndarray
@@ -79,6 +81,7 @@ class TautPath:
     hess: np.ndarray
     length: np.ndarray
     converged: np.ndarray
+    iterations: np.ndarray
 
     @property
     def wrapped(self) -> np.ndarray:
@@ -180,6 +183,9 @@ def _kkt(start, end, Y, mu, lam, active, values, grads, hessians, curvature: boo
 BANDWIDTH = 8
 
 
+_GBSV = scipy.linalg.get_lapack_funcs("gbsv", dtype=np.float64)  # called directly: scipy's wrapper cost 9x the solve
+
+
 @functools.cache
 def _node_major(K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The permutation to node-by-node unknowns and the (row, column) pairs of its band."""
@@ -197,14 +203,15 @@ def _solve(M: np.ndarray, b: np.ndarray) -> np.ndarray:
     step, and a path that keeps needing it ends unconverged (its data NaN), not as an exception."""
     T, n = M.shape[0], M.shape[1]
     order, rows, cols = _node_major(n // 5)
-    band = np.zeros((T, 2 * BANDWIDTH + 1, n))
-    band[:, BANDWIDTH + rows - cols, cols] = M[:, order[rows], order[cols]]
+    band = np.zeros((T, 3 * BANDWIDTH + 1, n))  # LAPACK's layout: BANDWIDTH rows for the factors' fill
+    band[:, 2 * BANDWIDTH + rows - cols, cols] = M[:, order[rows], order[cols]]
+    rhs = np.ascontiguousarray(b[:, order])
     out = np.empty_like(b)
     for t in range(T):
-        try:
-            out[t, order] = scipy.linalg.solve_banded((BANDWIDTH, BANDWIDTH), band[t], b[t, order],
-                                                      check_finite=False)
-        except (np.linalg.LinAlgError, ValueError):
+        _, _, x, info = _GBSV(BANDWIDTH, BANDWIDTH, band[t], rhs[t], overwrite_ab=True)
+        if info == 0 and np.all(np.isfinite(x)):
+            out[t, order] = x
+        else:
             out[t] = np.linalg.lstsq(M[t], b[t], rcond=None)[0]
     return out
 
@@ -247,6 +254,18 @@ def _merit(field, start, end, Y, clearance: float, spacing: np.ndarray) -> np.nd
     return ell.sum(axis=1) + PENALTY * (np.maximum(-gap, 0.0).sum(axis=1) + unequal)
 
 
+def _blocking(gap, grads, dY, active, alpha):
+    """The step lengths (T) cut to where the first node off the body meets it (its gap linearised
+    along the step), and the nodes that meet it there (T x K): a primal active-set step, which adds
+    a node the step would push in instead of shrinking the step to nothing before it."""
+    rate = np.einsum("tki,tki->tk", grads, dY)  # d gap / d alpha
+    reach = np.where(~active & (rate < 0), np.maximum(gap, 0.0) / np.maximum(-rate, 1e-300), np.inf)
+    first = reach.min(axis=1)
+    cut = first < alpha
+    blocking = cut[:, None] & (reach <= first[:, None] * (1 + 1e-9))
+    return np.where(cut, first, alpha), blocking
+
+
 def _backtrack(field, start, end, Y, dY, alpha: np.ndarray, clearance: float, spacing: np.ndarray) -> np.ndarray:
     """Step lengths from ``alpha`` (T), halved until the step ``dY`` lowers :func:`_merit` (30 halvings at most)."""
     before = _merit(field, start, end, Y, clearance, spacing)
@@ -267,7 +286,8 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
     The method: sequential quadratic steps on the nodes touching the body (the active set), from
     the chord's nodes pushed out to the surface.  Far from a solution a step models the length by
     its own Hessian only (convex: a descent direction of the l1 merit :func:`_merit`, which a
-    backtracking line search decreases); a node inside is added, and a node pulling away
+    backtracking line search decreases); a node the step would push in is added where it meets the
+    body (the step is cut there: a primal active-set step), and a node pulling away
     (negative multiplier) is released, the most negative one at a time once the others are in
     balance; near the solution the Hessian of the Lagrangian makes the steps Newton's."""
     start = np.atleast_2d(np.asarray(start, float))
@@ -282,6 +302,7 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
     d = field.evaluate(Y.reshape(-1, 3))[0].reshape(T, K)
     active = d - clearance < 1e-9
     converged = np.zeros(T, bool)
+    iterations = np.zeros(T, int)
     scale = np.linalg.norm(c, axis=1)
     previous = np.full(T, np.inf)
     for _ in range(max_iter):
@@ -310,6 +331,7 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
         if done.all():
             break
         go = ~done
+        iterations[todo[go]] += 1
         todo, s, e, y, m, la = todo[go], s[go], e[go], y[go], m[go], la[go]
         act, gap, grads, hessians = ((act | violated) & ~release)[go], gap[go], grads[go], hessians[go]
         newton = ((norm < NEAR) & ~changed)[go]  # near a solution on an unchanged active set: Newton's steps
@@ -318,7 +340,8 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
         step = -_solve(M, r[..., None])[..., 0]
         dY = step[:, : 3 * K].reshape(-1, K, 3)
         size = np.linalg.norm(dY, axis=2).max(axis=1)
-        alpha = np.minimum(1.0, 2e-3 / np.maximum(size, 1e-300))  # at most 2 mm a step
+        alpha = np.minimum(1.0, STEP / np.maximum(size, 1e-300))  # at most STEP
+        alpha, blocking = _blocking(gap, grads, dY, act, alpha)
         search = ~newton
         if search.any():
             alpha[search] = _backtrack(field, s[search], e[search], y[search], dY[search], alpha[search], clearance,
@@ -326,14 +349,15 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
         Y[todo] = y + alpha[:, None, None] * dY
         mu[todo] = m + alpha[:, None] * step[:, 3 * K: 4 * K]
         lam[todo] = np.where(act, la + alpha[:, None] * step[:, 4 * K:], 0.0)
-        active[todo] = act
+        active[todo] = act | blocking
     vals, grads, hessians = field.evaluate(Y.reshape(-1, 3), order=2)
     gap = vals.reshape(T, K) - clearance
     grads, hessians = grads.reshape(T, K, 3), hessians.reshape(T, K, 3, 3)
     lam = np.where(active, lam, 0.0)
     _, M, u, ell = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=True)
     dnodes = _response(M, u, ell, start, end, Y, mu)
-    return TautPath(start, end, Y, dnodes, mu, lam, gap, grads, hessians, ell.sum(axis=1), converged)
+    return TautPath(start, end, Y, dnodes, mu, lam, gap, grads, hessians, ell.sum(axis=1), converged,
+                    iterations)
 
 
 def _response(M, u, ell, start, end, Y, mu) -> np.ndarray:
