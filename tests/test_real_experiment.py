@@ -668,7 +668,7 @@ def test_hold_out_of_the_experiments_twin(s192803, tmp_path, capsys):
     assert 0.0 <= row["p_against_twin"] <= 1.0
     assert all(0.1 < row[f"twin_rms_{c}"] < 5.0 for c in coordinate_columns())
     # the draw was written as it finished; a rerun reads it back instead of drawing it again
-    stored = tmp_path / "cv" / "twins" / "draw_0.csv"
+    stored = tmp_path / "cv" / "store" / "draw_0.csv"
     table = pd.read_csv(stored)
     table[coordinate_columns()] *= 10.0
     table.to_csv(stored, index=False)

@@ -349,3 +349,44 @@ def test_the_kept_minimum_of_s192803_with_one_blas_thread_is_the_documented_one(
                          capture_output=True, text=True, check=True).stdout
     got = float(out.split("MAP objective ")[1].split(",")[0])
     assert got == pytest.approx(quoted, rel=1e-6), out
+
+
+def test_a_store_keys_the_models_structure_not_only_its_values(small_problem, tmp_path):
+    """The same knee with its MCL over a cylinder has the same parameter values and data, but other
+    equations: its solves get other keys, so a store never answers one knee's search with another's."""
+    from kneenlp.estimation.search import fingerprint
+    from tests.test_paths import RIM, _knee_with_wrap
+
+    wrapped = KneeModel.of(_knee_with_wrap(tmp_path, RIM.format(side="positive")))
+    assert np.array_equal(wrapped.theta(), small_problem.model.theta())
+    other = IdentificationProblem.from_data(wrapped, small_problem.data, small_problem.free, priors="default",
+                                            prior_weight=0.25)
+    assert fingerprint(other, 1, 6, "screen", 0) != fingerprint(small_problem, 1, 6, "screen", 0)
+    again = IdentificationProblem.from_data(small_problem.model, small_problem.data, small_problem.free,
+                                            priors="default", prior_weight=0.25)
+    assert fingerprint(again, 1, 6, "screen", 0) == fingerprint(small_problem, 1, 6, "screen", 0)
+
+
+def test_a_cross_validation_keeps_its_searches_solves_and_resumes_them(small_problem, tmp_path, monkeypatch):
+    """``cross_validate(store=...)`` keeps every global search's finished solves in the store's
+    ``solves`` folder: a rerun takes them from there (nothing is solved again) and gives the same
+    held-out errors bit for bit."""
+    import kneenlp.estimation.search as search_module
+    from kneenlp.validation import crossval
+
+    data, model = small_problem.data, small_problem.model
+    name = crossval.folds(data)[0][0]
+    options = {"starts": 2, "store": tmp_path / "cv", "priors": "default", "free": ["ACL.k", "PCL.k", "MCL.k"]}
+    (first,) = crossval.cross_validate(model, data, [name], **options)
+    kept = sorted((tmp_path / "cv" / crossval.SOLVES).glob("*.json"))
+    assert len(kept) >= 2 * 3  # the hold-out's search: two starts' screens and refinements, and its hops
+
+    def refused(self, prob, stage, jobs, solve):
+        keys = [search_module.fingerprint(prob, self.seed, self.starts, stage, i) for i in range(len(jobs))]
+        fits = [self.store.load(prob, k) for k in keys]
+        assert all(f is not None for f in fits), f"{stage}: solved again, the store should have answered"
+        return fits
+
+    monkeypatch.setattr(search_module._Runner, "__call__", refused)
+    (again,) = crossval.cross_validate(model, data, [name], **options)
+    assert np.array_equal(again.prediction.errors_user, first.prediction.errors_user, equal_nan=True)

@@ -440,7 +440,7 @@ def cmd_cross_validate(args) -> int:
     from kneenlp.validation import crossval, crossval_report
 
     model = KneeModel.of(knee_from_args(args))
-    store = Path(args.out) / "twins" if args.out and args.twins else None  # each draw as it finishes
+    store = Path(args.out) / "store" if args.out else None  # each draw and each search's solves as they finish
     results = crossval.cross_validate(model, args.measured, args.hold_out or None, reference_draws=args.twins,
                                       store=store, workers=search_workers(args), explain=True, seed=args.seed,
                                       pivot_tolerance=args.pivot_tolerance, also_free=args.also_free,

@@ -279,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="hold out the same trials of N twins of the experiment too: the knee calibrated on "
                         "every trial as the knee, its predictions plus noise at the calibration's level (seeded "
                         "by --seed); the error a model that is exactly right would have (default 0); with --out "
-                        "each draw is written to OUT/twins as it finishes and a rerun resumes from there")
+                        "each draw is written to OUT/store as it finishes and a rerun resumes from there")
     _workers_arg(p)
     p.add_argument("--out", help="write cross_validation.csv and each hold-out's predicted_<name>.csv here")
     p.add_argument("--json", action="store_true", help="print JSON: one row per hold-out (RMS in mm, deg)")

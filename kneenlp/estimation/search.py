@@ -134,16 +134,27 @@ def prior_starts(problem: IdentificationProblem, centre: dict[str, float], start
 
 
 def fingerprint(problem: IdentificationProblem, *parts: object) -> str:
-    """A key of ``problem`` (its free parameters, priors and weights, the knee's values, the data)
-    and ``parts``: the store's file names."""
+    """A key of ``problem`` (the model's structure, its free parameters, priors and weights, the
+    knee's values, the data) and ``parts``: the store's file names."""
     h = hashlib.sha256()
     priors = sorted((n, p.shape, repr(p.mean), repr(p.sd)) for n, p in problem.priors.items())
-    h.update(json.dumps([_package_version(), problem.free, priors, repr(problem.prior_weight),
+    h.update(json.dumps([_package_version(), model_structure(problem.model), problem.free, priors,
+                         repr(problem.prior_weight),
                          [t.id for t in problem.trials], [repr((t.load.tolist(), t.flexion)) for t in problem.trials],
                          list(parts)]).encode())
     for array in (problem.model.theta(), np.asarray(problem.data.q, float), np.asarray(problem.weights, float)):
         h.update(np.ascontiguousarray(array).tobytes())
     return h.hexdigest()[:20]
+
+
+def model_structure(model) -> list:
+    """What makes a model's equations besides its values: its parts, parameters and every bundle's
+    path (a knee whose ligament wraps a bone and the same knee straight share their values), and the
+    knee file's text."""
+    source = model.knee.source
+    text = Path(source).read_bytes() if source and Path(source).is_file() else b""
+    paths = [[type(b.path).__name__ for b in lig.bundles] for lig in model.knee.ligaments.values()]
+    return [[type(p).__name__ for p in model.parts], model.parameter_names, paths, hashlib.sha256(text).hexdigest()]
 
 
 def _package_version() -> str:

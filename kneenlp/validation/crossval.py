@@ -346,6 +346,8 @@ def against_reference(errors: np.ndarray, reference: np.ndarray) -> float:
 
 #: Minima of a hold-out's global search at which its held-out error is measured (:attr:`HeldOut.at_minima`).
 SPREAD_MINIMA = 3
+#: The folder of a cross-validation's ``store`` that keeps its searches' finished solves.
+SOLVES = "solves"
 
 
 def hold_out(model: KneeModel, data: MeasuredData, held: np.ndarray, name: str = "held out",
@@ -394,7 +396,9 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
     """Every hold-out of :func:`folds` (or those named in ``which``), in order; ``options``: those
     below and the calibration's (:func:`~kneenlp.estimation.calibrate.calibrate`).  With
     ``reference_draws`` N, each also on N twins of the experiment (:func:`twin_draw`), each draw
-    written to ``store`` as it finishes and read back from there on a rerun (:class:`TwinStore`).
+    written to ``store`` as it finishes and read back from there on a rerun (:class:`TwinStore`);
+    with a ``store``, every global search's finished solves (the hold-outs', the twins') are kept in
+    its :data:`SOLVES` folder too (the search's ``store``), so an interrupted run resumes mid-way.
     ``workers`` > 1 calibrates the hold-outs in that many forked processes (:func:`hold_outs`), those
     left over from whole rounds one at a time with their global searches over the workers (7 hold-outs
     of S192803 on 2: the seventh's search on both, not the 4th round of one process); a
@@ -409,6 +413,8 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
     names = [n for n, _ in chosen]
     # the store is checked before the first calibration: a store of another run stops at once
     saved = TwinStore.open(store, model, data, names, calibrate_options) if store and reference_draws else None
+    if store and calibrate_options.get("store") is None:  # every search's solves kept: a rerun resumes mid-way
+        calibrate_options = calibrate_options | {"store": Path(store) / SOLVES}
     whole = calibrate_options | {"workers": workers}  # a calibration in turn: its search over the workers
     if isinstance(workers, DaskWorkers):  # the hold-outs in turn, each calibration's search on Dask
         calibrate_options = whole

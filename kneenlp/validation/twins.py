@@ -38,7 +38,7 @@ def twin(model: KneeModel, data: MeasuredData, parameters: dict[str, float], sd:
 @dataclass(frozen=True)
 class TwinStore:
     """Finished twin draws in a directory: ``draw_<n>.csv`` (hold-out, row within it and errors,
-    mm and deg), and ``run.json`` naming the run (knee and its parameters, data, hold-outs,
+    mm and deg), and ``run.json`` naming the run (knee, its structure and parameters, data, hold-outs,
     options) so that a store of another run is refused, never mixed in.  Nothing is written before
     the first draw finishes (an interrupted run with none leaves no file)."""
 
@@ -53,7 +53,10 @@ class TwinStore:
         from kneenlp.base.errors import InputError
 
         path = Path(path)
-        identity = {"knee": model.knee.name, "parameters": np.round(model.theta(), 12).tolist(),
+        from kneenlp.estimation.search import model_structure
+
+        identity = {"knee": model.knee.name, "structure": model_structure(model),
+                    "parameters": np.round(model.theta(), 12).tolist(),
                     "trials": [t.id for t in data.trials], "measured": np.round(data.q_user, 9).tolist(),
                     "hold_outs": names, "options": {k: v for k, v in sorted(options.items()) if v is not None}}
         identity = json.loads(json.dumps(identity))
