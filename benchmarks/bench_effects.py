@@ -14,7 +14,8 @@ A structure the shipped knee does not declare (the popliteus, the oblique poplit
 meniscal rim) is added to a copy of the knee as its knee-file table with ``candidate = true``:
 default attachments and priors, neutral until freed.
 
-Run: python benchmarks/bench_effects.py [--only NAME,...] [--twins N] [--fitted-only] [--store DIR]
+Run: python benchmarks/bench_effects.py [--only NAME,...] [--twins N] [--fitted-only | --held-out-only]
+[--store DIR]
 (``--store``: each variant's searches' finished solves and its twin draws kept under DIR/<variant>,
 so a rerun resumes where an interrupted one stopped).  A variant on 2 cores: its calibration 1-2 min, the hold-outs
 5-9 min, each twin 15-25 min; with the superficial MCL over the tibia (paths solved at every pose)
@@ -84,6 +85,8 @@ def main() -> None:
     parser.add_argument("--only", default=",".join(VARIANTS), help="variants, comma-separated")
     parser.add_argument("--twins", type=int, default=2, help="twins per variant")
     parser.add_argument("--fitted-only", action="store_true", help="the calibrations only (no hold-out, no twin)")
+    parser.add_argument("--held-out-only", action="store_true", help="the hold-outs only (the calibration's row: "
+                        "--fitted-only)")
     parser.add_argument("--store", type=Path, help="keep finished solves and twin draws here (a rerun resumes)")
     args = parser.parse_args()
     problem = PROBLEM_FILE
@@ -100,10 +103,12 @@ def main() -> None:
             model = KneeModel.of(knee_with(structure, Path(tmp)))
             kept = None if args.store is None else args.store / name.replace(" ", "_")
             t0 = time.perf_counter()
-            cal = calibrate(model, data, **options, workers=2, store=kept and kept / crossval.SOLVES)
-            rms = list(cal.rms_after.values())
-            fitted = (f"| {name} | {len(cal.fit.free)} | {cal.fit.map_objective:.4f} | "
-                      f"{rms[0]:.2f} / {rms[1]:.2f} \\| {rms[2]:.2f} / {rms[3]:.2f} / {rms[4]:.2f} | ")
+            fitted = f"| {name} | - | - | - | "
+            if not args.held_out_only:
+                cal = calibrate(model, data, **options, workers=2, store=kept and kept / crossval.SOLVES)
+                rms = list(cal.rms_after.values())
+                fitted = (f"| {name} | {len(cal.fit.free)} | {cal.fit.map_objective:.4f} | "
+                          f"{rms[0]:.2f} / {rms[1]:.2f} \\| {rms[2]:.2f} / {rms[3]:.2f} / {rms[4]:.2f} | ")
             if args.fitted_only:
                 print(f"{fitted}{time.perf_counter() - t0:.0f} |", flush=True)
                 continue
