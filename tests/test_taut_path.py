@@ -125,3 +125,19 @@ def test_a_path_over_a_real_bone_is_the_brute_force_shortest_path(tmp_path):
                                     reach=4e-3, edge=0.5e-3, crop=15e-3)
         assert sol.converged[0] and sol.length[0] == pytest.approx(oracle, rel=1e-3), name
         assert oracle > np.linalg.norm(e - s) * (1 + 1.5e-3), name
+
+
+def test_a_step_that_would_push_a_free_node_in_is_cut_where_it_meets_the_body():
+    """The primal active-set cut (``_blocking``): along a step the gap of a free node falls linearly
+    (its gradient along the step); the step is cut where the first one reaches zero and that node
+    joins the active set; active nodes and nodes moving away never cut it."""
+    from kneenlp.geometry.taut_path import _blocking
+
+    gap = np.array([[2e-3, 1e-3, 0.0, 5e-4]])
+    grads = np.tile([0.0, 0.0, 1.0], (1, 4, 1))
+    dY = np.array([[[0, 0, -4e-3], [0, 0, -4e-3], [0, 0, -1e-3], [0, 0, 1e-3]]], float)
+    active = np.array([[False, False, True, False]])  # the third is on the body already; the fourth moves away
+    alpha, blocking = _blocking(gap, grads, dY, active, np.array([1.0]))
+    assert alpha[0] == pytest.approx(0.25) and blocking.tolist() == [[False, True, False, False]]
+    alpha, blocking = _blocking(gap, grads, dY, active, np.array([0.1]))  # a shorter step meets nothing
+    assert alpha[0] == 0.1 and not blocking.any()
