@@ -72,6 +72,7 @@ from kneenlp.estimation.minima import (
     standardised,
     standing,
 )
+from kneenlp.experiment.kneemodel import KneeModel
 from kneenlp.experiment.problem import IdentificationProblem
 from kneenlp.experiment.problem_file import MAX_STARTS
 from kneenlp.solvers.result import SolverResult
@@ -147,7 +148,7 @@ def fingerprint(problem: IdentificationProblem, *parts: object) -> str:
     return h.hexdigest()[:20]
 
 
-def model_structure(model) -> list:
+def model_structure(model: KneeModel) -> list:
     """What makes a model's equations besides its values: its parts, parameters and every bundle's
     path (a knee whose ligament wraps a bone and the same knee straight share their values), and the
     knee file's text."""
