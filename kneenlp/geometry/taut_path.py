@@ -356,8 +356,7 @@ def taut_path(field, start: np.ndarray, end: np.ndarray, clearance: float = 0.0,
     lam = np.where(active, lam, 0.0)
     _, M, u, ell = _kkt(start, end, Y, mu, lam, active, gap, grads, hessians, curvature=True)
     dnodes = _response(M, u, ell, start, end, Y, mu)
-    return TautPath(start, end, Y, dnodes, mu, lam, gap, grads, hessians, ell.sum(axis=1), converged,
-                    iterations)
+    return TautPath(start, end, Y, dnodes, mu, lam, gap, grads, hessians, ell.sum(axis=1), converged, iterations)
 
 
 def _response(M, u, ell, start, end, Y, mu) -> np.ndarray:
