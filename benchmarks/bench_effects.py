@@ -52,6 +52,7 @@ VARIANTS = {
     "six": ({"also_free": SIX}, None),
     "six+neutral_zone": ({"also_free": [*SIX, "neutral_zone"]}, None),
     "six+PFL_tibial_attachment": ({"also_free": [*SIX, "PFL_tibial_attachment"]}, None),
+    "six+neutral_zone+PFL_tibial_attachment": ({"also_free": [*SIX, "neutral_zone", "PFL_tibial_attachment"]}, None),
     "six+popliteus": ({"also_free": [*SIX, "popliteus"]}, "popliteus"),
     "six+oblique_popliteal": ({"also_free": [*SIX, "oblique_popliteal"]}, "oblique_popliteal"),
     "six+meniscal_rim": ({"also_free": [*SIX, "meniscal_rim"]}, "meniscal_rim"),
