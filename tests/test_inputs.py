@@ -599,3 +599,21 @@ def test_an_error_about_a_staged_file_names_where_it_was_to_go(tmp_path):
     assert err.value.source == str(out / "LIG.inp") and err.value.field == "K"
     assert str(out / "LIG.inp") in err.value.message and ".kneenlp-tmp" not in str(err.value)
     assert staged == []
+
+
+@pytest.mark.parametrize("table, value, shown", [("[popliteus]\ncandidate", '"yes"', "'yes'"),
+                                                 ("[meniscal_rim]\ncandidate", "1", "1")])
+def test_a_flag_is_true_or_false(knee_copy, table, value, shown):
+    """pydantic would read "yes" or 1 as true: a flag of a file is a TOML boolean or an error."""
+    knee_copy.write_text(f"{knee_copy.read_text()}\n{table} = {value}\n")
+    field = table.strip("[").replace("]\n", ".")
+    with pytest.raises(InputError, match=rf"{re.escape(field)}: expected true or false, got {re.escape(shown)}"):
+        Knee.load(knee_copy)
+
+
+def test_an_experiment_files_flag_is_true_or_false(tmp_path):
+    from kneenlp.experiment.kind import Experiment
+    path = tmp_path / "robot.toml"
+    path.write_text('name = "robot"\nlaboratory = "false"\n')
+    with pytest.raises(InputError, match=r"robot\.toml: laboratory: expected true or false, got 'false'"):
+        Experiment.load(path)

@@ -67,6 +67,13 @@ def to_name(value: object) -> str:
     return value
 
 
+def to_flag(value: object) -> bool:
+    """A TOML boolean (``true`` or ``false``; not a string or a number pydantic would read as one)."""
+    if not isinstance(value, bool):
+        raise fail(f"expected true or false, got {value!r}")
+    return value
+
+
 def one_of(kind: str, known: Iterable[str]) -> BeforeValidator:
     """A string among ``known``: else ``unknown <kind> 'x'; known: a, b``."""
     names = tuple(known)
@@ -84,6 +91,8 @@ Number = Annotated[float, BeforeValidator(to_number)]
 Numbers = Annotated[list[float], BeforeValidator(to_numbers)]
 #: A point ``[x, y, z]`` (an error names the whole point).
 Point = Annotated[tuple[float, float, float], BeforeValidator(to_point)]
+#: ``true`` or ``false``.
+Flag = Annotated[bool, BeforeValidator(to_flag)]
 #: A non-empty string.
 Name = Annotated[str, BeforeValidator(to_name)]
 

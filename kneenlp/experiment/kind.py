@@ -47,7 +47,7 @@ from pydantic import BeforeValidator, Field
 
 from kneenlp.base.conventions import COORDINATES, TO_USER
 from kneenlp.base.errors import InputError, unknown_name
-from kneenlp.base.schema import Name, Number, Table, fail, one_of, validated
+from kneenlp.base.schema import Flag, Name, Number, Table, fail, one_of, validated
 from kneenlp.base.tomlfile import read_toml
 from kneenlp.experiment.protocol import Trial
 
@@ -71,7 +71,7 @@ class ExperimentFile(Table):
 
     name: Name
     description: str = ""
-    laboratory: bool = False
+    laboratory: Flag = False
     observed: list[Annotated[str, one_of("coordinate", COORDINATES)]] = Field(
         default_factory=lambda: list(COORDINATES), min_length=1)
     load_point: Name = "tibial_tuberosity"
@@ -85,7 +85,7 @@ class Experiment:
     """What an experiment is (module docstring); ``points`` in the tibial frame, m."""
 
     name: str
-    laboratory: bool = False
+    laboratory: Flag = False
     observed: tuple[str, ...] = COORDINATES
     load_point: str = "tibial_tuberosity"
     points: dict[str, tuple[float, float, float]] = field(default_factory=dict, compare=False)

@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import Field
 
 from kneenlp.base.errors import InputError, unknown_name
-from kneenlp.base.schema import Number, Point, Table
+from kneenlp.base.schema import Flag, Number, Point, Table
 from kneenlp.model.ligament import Bundle, Ligament
 from kneenlp.model.parameters import Parameter
 
@@ -51,7 +51,7 @@ class Placement:
 class PlacedTable(Table):
     """A placed bundle's table: a candidate or part of the base model, and its offsets (mm)."""
 
-    candidate: bool = Field(False, description="neutral candidate (true) or part of the base model (false)")
+    candidate: Flag = Field(False, description="neutral candidate (true) or part of the base model (false)")
     femur_offset: Point | None = None
     tibia_offset: Point | None = None
     stiffness: Number | None = Field(None, description="stiffness (N per unit strain)")

@@ -41,7 +41,7 @@ import numpy as np
 from pydantic import Field
 
 from kneenlp.base.errors import InputError
-from kneenlp.base.schema import Number, Table
+from kneenlp.base.schema import Flag, Number, Table
 from kneenlp.model.elements import ForceElement, Output, Pose
 from kneenlp.model.parameters import UNIT_FACTORS, Parameter
 from kneenlp.model.structures import KneeGeometry, StructureTable
@@ -58,7 +58,7 @@ PRIOR_SD = 0.7
 class MeniscalRimTable(Table):
     """``[meniscal_rim]``: the rim's stiffness (N/mm per compartment) and shape."""
 
-    candidate: bool = Field(False, description="neutral candidate (true) or part of the base model (false)")
+    candidate: Flag = Field(False, description="neutral candidate (true) or part of the base model (false)")
     stiffness: Number = Field(5.0, description="radial stiffness against a transverse move of the condyle "
                                                "(N/mm per compartment)")
     hoop_ratio: Number = Field(300.0, description="a chord's hoop stiffness over a node's radial stiffness")
