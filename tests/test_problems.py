@@ -106,6 +106,10 @@ def test_free_flags_and_bounds_of_the_table_act(tmp_path, capsys):
     (lambda t: "multistart = 0\n" + t, "multistart: expected a whole number of starts from 1 to 1000, got 0"),
     (lambda t: "multistart = 2.5\n" + t, "multistart"),
     (lambda t: "multistart = true\n" + t, "multistart"),
+    # names the command does not use are checked too, against the file's own field
+    (lambda t: 'also_free = ["ACLx_femoral_attachment"]\n' + t,
+     "problem.toml: also_free: unknown parameter, effect or element 'ACLx_femoral_attachment'"),
+    (lambda t: 'hold_outs = ["nope"]\n' + t, "problem.toml: hold_outs: unknown hold-out 'nope'; known: "),
 ])
 def test_bad_problem_file_is_refused(tmp_path, capsys, edit, needle):
     folder = _copy(tmp_path)

@@ -605,17 +605,17 @@ def test_every_flexion_can_be_held_out_by_name():
     """The default hold-outs are the highest flexion and the load directions; any other flexion is
     held out by name (all its trials), in the order named; an unknown name lists the known ones."""
     from kneenlp.base.errors import InputError
-    from kneenlp.validation.crossval import _chosen
+    from kneenlp.validation.crossval import chosen_hold_outs
 
     data = read_measured(CSV)
-    default = [n for n, _ in _chosen(data, None)]
+    default = [n for n, _ in chosen_hold_outs(data, None)]
     assert default[0] == "flexion 87 deg" and "flexion 36 deg" not in default and len(default) == 7
-    chosen = _chosen(data, ["flexion 36 deg", "valgus"])
+    chosen = chosen_hold_outs(data, ["flexion 36 deg", "valgus"])
     assert [n for n, _ in chosen] == ["flexion 36 deg", "valgus"]
     flexions = np.array([t.flexion_deg for t in data.trials])
     assert chosen[0][1].sum() == 6 and np.all(np.abs(flexions[chosen[0][1]] - 35.8) < 2)
     with pytest.raises(InputError, match="flexion 57 deg"):
-        _chosen(data, ["flexion 40 deg"])
+        chosen_hold_outs(data, ["flexion 40 deg"])
 
 
 @pytest.mark.slow

@@ -145,6 +145,27 @@ def check_names(knee, args) -> None:
     for name in getattr(args, "profile", None) or []:
         if name not in model.parameter_names:
             raise InputError(unknown_name("parameter", name, model.parameter_names).message, field="--profile")
+    problem = getattr(args, "problem_file", None)
+    if problem is not None:
+        check_problem_names(model, getattr(args, "measured", None), problem)
+
+
+def check_problem_names(model, data, problem) -> None:
+    """A problem file's ``also_free`` must name the model's effects and its ``hold_outs`` the data's
+    hold-outs, whichever command reads it (an error names the file's own field, not an option)."""
+    from kneenlp.estimation.choice import also_free_names
+    from kneenlp.validation.crossval import chosen_hold_outs
+
+    checks = {"also_free": lambda names: also_free_names(model, names)}
+    if data is not None:
+        checks["hold_outs"] = lambda names: chosen_hold_outs(data, names)
+    for key, check in checks.items():
+        names = list(getattr(problem, key))
+        if names:
+            try:
+                check(names)
+            except InputError as exc:
+                raise InputError(exc.message, source=str(problem.path), field=key) from None
 
 
 def set_names(text: str) -> list[str]:

@@ -409,7 +409,7 @@ def cross_validate(model: KneeModel, data: MeasuredData, which: list[str] | None
     data.check_observed("cross-validation")
     calibrate_options, workers, store, reference_draws = opts.calibrate, opts.workers, opts.store, opts.reference_draws
     explain = opts.explain
-    chosen = _chosen(data, which)
+    chosen = chosen_hold_outs(data, which)
     names = [n for n, _ in chosen]
     # the store is checked before the first calibration: a store of another run stops at once
     saved = TwinStore.open(store, model, data, names, calibrate_options) if store and reference_draws else None
@@ -473,7 +473,7 @@ def flexion_folds(data: MeasuredData) -> list[tuple[str, np.ndarray]]:
     return [(f"flexion {f:.0f} deg", nominal == f) for f in np.unique(nominal)]
 
 
-def _chosen(data: MeasuredData, which: list[str] | None) -> list[tuple[str, np.ndarray]]:
+def chosen_hold_outs(data: MeasuredData, which: list[str] | None) -> list[tuple[str, np.ndarray]]:
     """The hold-outs of :func:`folds` named in ``which`` (all of them if None), or any flexion of
     :func:`flexion_folds`; an unknown name is an error."""
     from kneenlp.base.errors import InputError, unknown_name
