@@ -105,6 +105,11 @@ MAX_TRANSLATION_MM = 100.0
 MIN_TRANSLATION_MM = 0.1
 MAX_ROTATION_DEG = 90.0
 MIN_ROTATION_DEG = 0.2
+#: A rotation that stays below this (deg) in every row although its own moment reaches
+#: :data:`RADIAN_MOMENT_NM` was given in radians: a knee under 2 N m turns further (the shipped
+#: data's smallest largest varus rotation is 1.4 deg, internal 11 deg; 29 deg in radians is 0.5).
+RADIAN_SLIP_DEG = {"varus_rotation_deg": 0.5, "internal_rotation_deg": 1.0}
+RADIAN_MOMENT_NM = 2.0
 #: A trial with a force of at least this (N) or a moment of at least 1 N m moves the knee.
 LOADED_FORCE_N = 20.0
 
@@ -313,8 +318,10 @@ def _to_numbers(df: pd.DataFrame, src: str) -> None:
         bad = ~np.isfinite(vals.to_numpy(dtype=float))
         if bad.any():
             i = int(np.argmax(bad))
-            raise InputError(f"row {i + 2} (trial {df['trial'].iloc[i]!r}): value {df[col].iloc[i]!r} is "
-                             "not a finite number", source=src, field=col)
+            value = df[col].iloc[i]
+            shown = repr(value) if isinstance(value, str) else "nan (or empty)" if pd.isna(value) else str(value)
+            raise InputError(f"row {i + 2} (trial {str(df['trial'].iloc[i])!r}): value {shown} is not a finite number",
+                             source=src, field=col)
         df[col] = vals.astype(float)
 
 
@@ -404,6 +411,14 @@ def check_plausible(df: pd.DataFrame, src: str) -> None:
         raise InputError(f"every rotation is below {MIN_ROTATION_DEG:g} deg (largest {r.max():.3g}) although "
                          "moments of 1 N m or more act: radians in the _deg columns? Give rotations in deg",
                          source=src, field=rots[int(np.argmax(r.max(axis=0)))])
+    for col, limit in RADIAN_SLIP_DEG.items():
+        moment_col = next(m for m, c in PULLS.items() if c == col)
+        if col in df.columns and moment_col in df.columns:
+            largest = float(np.abs(df[col].to_numpy(float)).max())
+            if (np.abs(df[moment_col].to_numpy(float)) >= RADIAN_MOMENT_NM).any() and largest < limit:
+                raise InputError(f"never beyond {limit:g} deg (largest {largest:.3g}) although {moment_col} reaches "
+                                 f"{RADIAN_MOMENT_NM:g} N m or more: radians in a _deg column? Give rotations in deg",
+                                 source=src, field=col)
 
 
 #: A row under loads below 1 N and :data:`QUIET_MOMENT_NM` that moved this far (mm or deg) from the
