@@ -483,7 +483,7 @@ def chosen_hold_outs(data: MeasuredData, which: list[str] | None) -> list[tuple[
         known = dict(flexion_folds(data)) | dict(_default_folds(data))
         unknown = [w for w in which if w not in known]
         if unknown:
-            raise unknown_name("hold-out", unknown[0], list(known))
+            raise unknown_name("hold-out", unknown[0], list(known), field="--hold-out")
         chosen = [(n, known[n]) for n in dict.fromkeys(which)]
         for name, held in chosen:
             if not calibrates(data, held):
