@@ -383,6 +383,18 @@ def test_malformed_xml(tmp_path):
         O.read_osim(str(p))
 
 
+@pytest.mark.parametrize("tag, value", [("dimensions", "0.02 -0.01 0.03"), ("dimensions", "0 0.01 0.03")])
+def test_a_wrapping_surface_of_no_size_is_refused(tmp_path, tag, value):
+    """Else the importer would write a knee file its reader refuses (a radius <= 0)."""
+    text = open(LENHART, encoding="utf-8").read()
+    start = text.index('<WrapEllipsoid name="Med_Lig_r">')
+    i, j = text.index(f"<{tag}>", start), text.index(f"</{tag}>", start)
+    p = tmp_path / "bad.osim"
+    p.write_text(text[:i] + f"<{tag}>{value}" + text[j:])
+    with pytest.raises(O.OsimError, match=rf"bad\.osim: WrapEllipsoid '.*Med_Lig_r' <{tag}>: .* must be > 0 m"):
+        O.read_osim(str(p))
+
+
 # ----------------------------------------------------------------------------- OpenSim oracle
 def test_offset_orientation_is_body_fixed_xyz(oracle):
     X = _T(oracle["offset"])

@@ -234,6 +234,9 @@ def _read_geometry(ctx: _Ctx, model: OsimModel, comps: list[tuple[ET.Element, st
             dims = {}
             for t in ("dimensions", "radius", "length", "inner_radius", "outer_radius"):
                 v = ctx.floats(el, t, where, required=False)
+                if v is not None and t in ("dimensions", "radius", "length") and not np.all(v > 0):
+                    raise ctx.err(f"{where} <{t}>: a wrapping surface's size must be > 0 m, got "
+                                  f"'{' '.join(f'{x:g}' for x in v)}'")
                 if v is not None:
                     dims[t] = v
             rot = ctx.floats(el, "xyz_body_rotation", where, 3, required=False)
