@@ -879,6 +879,34 @@ def test_abaqus_keywords_not_understood_are_refused_by_name(tmp_path):
         assert err.value.field == field and "\n" not in str(err.value)
 
 
+@pytest.mark.parametrize("rows, needle", [("1, 0., nan, 0.", "node 1: expected three finite coordinates"),
+                                         ("1, 0., 0.", "node 1: expected three finite coordinates"),
+                                         ("1, 0., 0., 0.\n1, 0., 0., 1.", "node 1 is defined twice")])
+def test_abaqus_nodes_are_finite_and_defined_once(tmp_path, rows, needle):
+    from kneenlp.io.abaqus import nodes, read_keywords
+
+    path = tmp_path / "n.inp"
+    path.write_text("*NODE\n1, 0., 0., 0.\n2, 1., 0., 0.\n1, 0., 0., 0.\n")
+    assert len(nodes(read_keywords(path))) == 2  # the same node twice at one place is one node
+    path.write_text(f"*NODE\n{rows}\n")
+    with pytest.raises(kneenlp.InputError, match=needle) as err:
+        nodes(read_keywords(path), str(path))
+    assert err.value.field == "*NODE"
+
+
+@needs_deposit
+def test_a_fibre_to_an_undefined_node_is_named(tmp_path):
+    from kneenlp.io.import_abaqus import read_abaqus_knee
+
+    shutil.copytree(DEPOSIT, tmp_path / "m", ignore=shutil.ignore_patterns("laxity", "abaqus-example"))
+    lig = tmp_path / "m" / "ligaments" / "LIG-LCL-S192803L.inp"
+    text = lig.read_text()
+    assert "40000,      4400,      4405" in text
+    lig.write_text(text.replace("40000,      4400,      4405", "40000,      4400,      9999999"))
+    with pytest.raises(kneenlp.InputError, match="fibre 40000 of LCL_1D ends at node 9999999, which no"):
+        read_abaqus_knee(tmp_path / "m")
+
+
 def test_an_abaqus_model_in_metres_is_named_as_such():
     """The unit check comes first: a femoral cartilage 0.06 units wide is a model in metres."""
     from kneenlp.io.import_abaqus import _check_millimetres

@@ -154,16 +154,25 @@ def substitute(value: str, parameters: dict[str, float], source: str = "<inp>") 
 
 
 def nodes(keywords: list[Keyword], source: str = "<inp>") -> dict[int, np.ndarray]:
-    """Every ``*NODE`` of ``keywords``: id -> coordinates (the file's unit)."""
-    out = {}
+    """Every ``*NODE`` of ``keywords``: id -> coordinates (the file's unit).  Coordinates are three
+    finite numbers; a node defined twice at different places is refused (which is meant is not
+    known; at the same place it is one node)."""
+    out: dict[int, np.ndarray] = {}
     for kw in keywords:
         if kw.name == "NODE":
             for row in kw.data:
                 try:
-                    out[int(row[0])] = np.array([float(v) for v in row[1:4]])
+                    node, x = int(row[0]), np.array([float(v) for v in row[1:4]])
                 except (ValueError, IndexError):
                     raise InputError(f"malformed node line {', '.join(row)!r}", source=source,
                                      field="*NODE") from None
+                if x.size != 3 or not np.all(np.isfinite(x)):
+                    raise InputError(f"node {node}: expected three finite coordinates, got {', '.join(row[1:])!r}",
+                                     source=source, field="*NODE")
+                if node in out and not np.array_equal(out[node], x):
+                    raise InputError(f"node {node} is defined twice, at different places", source=source,
+                                     field="*NODE")
+                out[node] = x
     return out
 
 

@@ -230,6 +230,10 @@ def read_fibres(folder: Path) -> list[Fibre]:
                                  field=elset)
             for row in kw.data:
                 eid, a, b = (int(v) for v in row[:3])
+                undefined = [n for n in (a, b) if n not in pts]
+                if undefined:
+                    raise InputError(f"fibre {eid} of {elset} ends at node {undefined[0]}, which no *NODE of the file "
+                                     "defines", source=str(lig_file), field=str(eid))
                 ends = {bone_of.get(a): a, bone_of.get(b): b}
                 if set(ends) != {"femur", "tibia"}:
                     raise InputError(f"fibre {eid} of {elset}: LIGS-ATTACH.inp does not fix one end to the femur and "
