@@ -193,6 +193,9 @@ def test_a_fit_of_the_rig_data_holds_each_trial_at_its_measured_rotation(knee, f
     ("\n".join(f"{c} = 0.0" for c in ("varus_rotation", "internal_rotation", "lateral_translation",
                                       "anterior_translation", "proximal_translation")),
      r"footplate.toml: held: holds every coordinate"),
+    ("internal_rotation = 400.0", r"footplate.toml: held.internal_rotation: 400 deg is beyond what a knee reaches"),
+    ("internal_rotation = 0.0\n[points]\nankle = [0.0, -350000.0, 0.0]",
+     r"footplate.toml: points.ankle: 350000 mm from the tibial origin, beyond 600 mm"),
 ])
 def test_held_coordinates_that_leave_nothing_free_or_are_unknown_are_one_line(tmp_path, capsys, knee, held, needle):
     from kneenlp.cli import main

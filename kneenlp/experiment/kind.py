@@ -45,7 +45,7 @@ import numpy as np
 import pandas as pd
 from pydantic import BeforeValidator, Field
 
-from kneenlp.base.conventions import COORDINATES, TO_USER
+from kneenlp.base.conventions import COORDINATES, POSE_ENVELOPE_USER, TO_USER
 from kneenlp.base.errors import InputError, unknown_name
 from kneenlp.base.schema import Flag, Name, Number, Table, fail, one_of, validated
 from kneenlp.base.tomlfile import read_toml
@@ -53,6 +53,9 @@ from kneenlp.experiment.protocol import Trial
 
 #: Named tibial points every experiment knows (the tuberosity is the knee's own).
 KNOWN_POINTS = ("tibial_tuberosity", "tibial_origin")
+#: The farthest a tibial point of an experiment may lie from the tibial origin (mm): a device that
+#: straps the foot loads about 400 mm below the knee; farther is a unit slip.
+MAX_POINT_MM = 600.0
 
 
 def _point(value: object) -> list[float]:
@@ -85,7 +88,7 @@ class Experiment:
     """What an experiment is (module docstring); ``points`` in the tibial frame, m."""
 
     name: str
-    laboratory: Flag = False
+    laboratory: bool = False
     observed: tuple[str, ...] = COORDINATES
     load_point: str = "tibial_tuberosity"
     points: dict[str, tuple[float, float, float]] = field(default_factory=dict, compare=False)
@@ -99,6 +102,17 @@ class Experiment:
         for name in self.held:
             if name not in COORDINATES:
                 raise unknown_name("coordinate", name, COORDINATES).with_context(field=f"held.{name}")
+        for name, value in self.held.items():
+            j = COORDINATES.index(name)
+            if abs(value * TO_USER[j]) > POSE_ENVELOPE_USER[j]:
+                unit = "deg" if "rotation" in name else "mm"
+                raise InputError(f"{value * TO_USER[j]:g} {unit} is beyond what a knee reaches "
+                                 f"({POSE_ENVELOPE_USER[j]:g} {unit}); a unit slip?", field=f"held.{name}")
+        for name, point in self.points.items():
+            if np.linalg.norm(point) * 1e3 > MAX_POINT_MM:
+                raise InputError(f"{np.linalg.norm(point) * 1e3:g} mm from the tibial origin, beyond "
+                                 f"{MAX_POINT_MM:g} mm (a foot-strap loads about 400 mm below the knee); a unit slip?",
+                                 field=f"points.{name}")
         if len(self.held) == len(COORDINATES):
             raise InputError("holds every coordinate: nothing is left for the knee to move (hold at most four)",
                              field="held")

@@ -247,7 +247,7 @@ def read_measured(path: str | Path, protocol: object = None) -> MeasuredData:
         raise InputError(f"duplicate trial(s) {', '.join(map(str, dup))}", source=src, field="trial")
     axes = _load_axes(df, src)
     side = _side(df, src)
-    check_plausible(df, src)
+    check_plausible(df, src, held=tuple(experiment.held))
     q_user = np.column_stack([df[c].to_numpy(dtype=float) if c in df.columns else np.full(len(df), np.nan)
                               for c in coordinate_columns()])
     trials = experiment.applied_to(_trials(df, axes), coords_from_user(q_user))
@@ -369,10 +369,11 @@ def _protocol_name(df: pd.DataFrame, src: str) -> str | None:
     return names.pop() if names else None
 
 
-def check_plausible(df: pd.DataFrame, src: str) -> None:
+def check_plausible(df: pd.DataFrame, src: str, held: tuple[str, ...] = ()) -> None:
     """Ranges and unit plausibility of a measured-data table (see module docstring): the one check
     of a table read from CSV and of one made by an importer (``import-laxity``), so an importer never
-    writes a file the reader refuses."""
+    writes a file the reader refuses.  ``held``: the coordinates the experiment's apparatus holds
+    (they need not turn under their moments)."""
     lo, hi = FLEXION_RANGE
     flex = df["flexion_deg"].to_numpy()
     bad = (flex < lo) | (flex > hi)
@@ -413,7 +414,7 @@ def check_plausible(df: pd.DataFrame, src: str) -> None:
                          source=src, field=rots[int(np.argmax(r.max(axis=0)))])
     for col, limit in RADIAN_SLIP_DEG.items():
         moment_col = next(m for m, c in PULLS.items() if c == col)
-        if col in df.columns and moment_col in df.columns:
+        if col in df.columns and moment_col in df.columns and col.rsplit("_", 1)[0] not in held:
             largest = float(np.abs(df[col].to_numpy(float)).max())
             if (np.abs(df[moment_col].to_numpy(float)) >= RADIAN_MOMENT_NM).any() and largest < limit:
                 raise InputError(f"never beyond {limit:g} deg (largest {largest:.3g}) although {moment_col} reaches "
