@@ -120,8 +120,10 @@ def main() -> None:
             twins = np.array([r.reference_normalised() for r in results]).reshape(len(results), -1)  # hold-outs x draws
             twin_met = (twins <= 1).sum(axis=0)
             twin_mean = twins.mean(axis=0)
-            inside = (f"{sum(s <= np.nanmax(t) for s, t in zip(scores, twins, strict=True))} of 7" if args.twins
-                      else "-")
+            outside = [f"{r.name} {s:.2f} > {np.nanmax(t):.2f}" for r, s, t in zip(results, scores, twins, strict=True)
+                       if s > np.nanmax(t)]
+            named = f" ({', '.join(outside)})" if outside else ""
+            inside = f"{len(results) - len(outside)} of {len(results)}{named}" if args.twins else "-"
             twin = (f"{twin_met.min()}-{twin_met.max()} of 7, {twin_mean.min():.2f}-{twin_mean.max():.2f}"
                     if args.twins else "-")
             print(f"{fitted}{sum(s <= 1 for s in scores)} of 7, {np.mean(scores):.2f} +- {spread:.2f} | "
