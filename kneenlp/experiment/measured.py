@@ -46,8 +46,8 @@ the column and the row):
   :data:`MIN_TRANSLATION_MM` (0.1 mm) although the file has loaded trials (metres?); rotations
   beyond 90 deg, or all within :data:`MIN_ROTATION_DEG` (0.2 deg) although the file has a moment
   of at least 1 N m (radians?), or one rotation within :data:`RADIAN_SLIP_DEG` although its own
-  moment reaches 2 N m and the apparatus does not hold it (that column in radians?); a row pushed more than 1 mm from the unloaded pose of its flexion by
-  a force below 1 N and no moment (kN?);
+  moment reaches 2 N m and the apparatus does not hold it (that column in radians?); a row pushed
+  more than 1 mm from the unloaded pose of its flexion by a force below 1 N and no moment (kN?);
 * at most :data:`MAX_TRIALS` rows (1000): the identification NLP has 5 pose variables and 5
   equilibrium constraints per trial, and 1000 trials took 90 s and 0.9 GB on the synthetic knee
   (a loaded 2-core machine) and take many minutes on a mesh knee (the paper's protocols have 7 to
