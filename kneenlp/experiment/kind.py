@@ -99,10 +99,9 @@ class Experiment:
     preload_point: str | None = None
 
     def __post_init__(self) -> None:
-        for name in self.held:
+        for name, value in self.held.items():
             if name not in COORDINATES:
                 raise unknown_name("coordinate", name, COORDINATES).with_context(field=f"held.{name}")
-        for name, value in self.held.items():
             j = COORDINATES.index(name)
             if abs(value * TO_USER[j]) > POSE_ENVELOPE_USER[j]:
                 unit = "deg" if "rotation" in name else "mm"
